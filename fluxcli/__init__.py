@@ -1,0 +1,6 @@
+"""fluxmap: quantitative surface-flux mapping for preclinical optical imaging.
+
+The package is ``fluxcli``; the command is ``fluxmap``.  See README.md.
+"""
+
+__version__ = "0.1.0"

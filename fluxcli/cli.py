@@ -1,0 +1,128 @@
+"""``fluxmap <stage> CONFIG.yaml``: parse, load the config, call a stage, map errors to exit codes.
+
+Exit codes: 0 success, 2 bad input (config, files, arguments), 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import sys
+import textwrap
+from pathlib import Path
+from typing import Callable, List, Optional
+
+import typer
+
+from . import __version__
+from .errors import UserError
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="fluxmap: quantitative light-flux maps on the surface of imaged subjects.\n\n"
+    "Each stage reads a YAML config and the HDF5 artefacts of earlier stages, and writes its own.",
+    context_settings={"help_option_names": ["-h", "--help"]},
+    pretty_exceptions_enable=False,
+)
+
+ConfigArg = typer.Argument(..., help="The experiment's YAML config.", show_default=False)
+SetOpt = typer.Option(None, "--set", help="Override a config key: dotted.key=value (repeatable).")
+ForceOpt = typer.Option(False, "--force", help="Recompute even when an up-to-date artefact exists.")
+JobsOpt = typer.Option(1, "--jobs", "-j", min=1, help="Worker processes.")
+QuietOpt = typer.Option(False, "--quiet", "-q", help="Print nothing but errors.")
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"fluxmap {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                       help="Show the version and exit.")) -> None:
+    pass
+
+
+def _fail(message: str) -> None:
+    text = textwrap.fill(f"fluxmap: error: {message}", width=100, break_long_words=False, break_on_hyphens=False)
+    typer.echo(text, err=True)
+    raise typer.Exit(2)
+
+
+def _run(stage: Callable, config: Path, overrides: Optional[List[str]], force: bool, jobs: int, quiet: bool) -> None:
+    from .config import load_config
+    from .stages.context import RunContext
+
+    try:
+        cfg = load_config(config, overrides or [])
+        ctx = RunContext(force=force, jobs=jobs, quiet=quiet, overrides=tuple(overrides or ()))
+        out = stage(cfg, ctx)
+        if not quiet and out is not None:
+            typer.echo(f"output: {out}")
+    except UserError as e:
+        _fail(str(e))
+    except KeyboardInterrupt:
+        typer.echo("fluxmap: interrupted; artefacts already written are complete, partial ones were discarded.", err=True)
+        raise typer.Exit(130)
+
+
+def _not_built(name: str, issue: str) -> Callable:
+    def stage(cfg, ctx):
+        raise UserError(f"the '{name}' stage is not built yet in fluxmap {__version__} ({issue}); "
+                        f"config {cfg.path} was read and is valid.")
+    return stage
+
+
+@app.command("build-T")
+def build_T(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, force: bool = ForceOpt,
+            jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
+    """Compute the transfer matrix T of each pose (cached by content).
+
+    $ fluxmap build-T configs/paper-3d.yaml --jobs 2
+    """
+    from .stages import build_t
+
+    _run(build_t.run, config, set_, force, jobs, quiet)
+
+
+@app.command("simulate")
+def simulate(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, force: bool = ForceOpt,
+             jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
+    """Make ground-truth surface fluxes and realistic camera images."""
+    _run(_not_built("simulate", "issue 3"), config, set_, force, jobs, quiet)
+
+
+@app.command("reconstruct")
+def reconstruct(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, force: bool = ForceOpt,
+                jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
+    """Invert images into surface flux."""
+    _run(_not_built("reconstruct", "issue 4"), config, set_, force, jobs, quiet)
+
+
+@app.command("report")
+def report(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, force: bool = ForceOpt,
+           jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
+    """Figures and an HTML page from the artefacts."""
+    _run(_not_built("report", "issue 5"), config, set_, force, jobs, quiet)
+
+
+@app.command("calibrate")
+def calibrate(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, force: bool = ForceOpt,
+              jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
+    """Derive the camera model from grid images."""
+    _run(_not_built("calibrate", "no issue yet"), config, set_, force, jobs, quiet)
+
+
+@app.command("capture-surface")
+def capture_surface(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, force: bool = ForceOpt,
+                    jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
+    """Drive the rig (or its simulator) and capture the surface and images."""
+    _run(_not_built("capture-surface", "no issue yet"), config, set_, force, jobs, quiet)
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

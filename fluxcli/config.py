@@ -1,0 +1,320 @@
+"""The YAML config: schema (validated, unknown keys rejected) and loader.
+
+Every field carries its unit in its name and one line of description.  Paths in a config
+are relative to the config file.  See DESIGN.md section 8 for the contract.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from .errors import UserError
+
+Vec3 = tuple[float, float, float]
+
+
+class Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def _unit(v: Vec3, what: str) -> Vec3:
+    n = math.sqrt(sum(c * c for c in v))
+    if n == 0:
+        raise ValueError(f"{what} must be a non-zero vector")
+    return tuple(c / n for c in v)  # type: ignore[return-value]
+
+
+# --------------------------------------------------------------------------- system
+class Lens(Model):
+    focal_length_mm: float = Field(gt=0, description="Thin-lens focal length f (mm).")
+    f_number: float | None = Field(None, gt=0, description="f-number N; aperture radius R = f/(2N).")
+    aperture_diameter_mm: float | None = Field(None, gt=0, description="Lens aperture diameter 2R (mm), instead of f_number.")
+    focus_distance_mm: float = Field(description="Distance from the lens centre to the front focal plane along the optical axis (mm).")
+
+    @model_validator(mode="after")
+    def _check(self) -> "Lens":
+        if (self.f_number is None) == (self.aperture_diameter_mm is None):
+            raise ValueError("give exactly one of f_number and aperture_diameter_mm")
+        if self.focus_distance_mm <= self.focal_length_mm:
+            raise ValueError(
+                f"focus_distance_mm ({self.focus_distance_mm}) must exceed focal_length_mm "
+                f"({self.focal_length_mm}): a thin lens cannot focus closer than its focal length"
+            )
+        return self
+
+    @property
+    def aperture_radius_mm(self) -> float:
+        if self.aperture_diameter_mm is not None:
+            return self.aperture_diameter_mm / 2
+        return self.focal_length_mm / (2 * self.f_number)  # type: ignore[operator]
+
+
+class CameraPose(Model):
+    lens_center_mm: Vec3 = Field(description="World position of the lens centre C (mm).")
+    look: Vec3 = Field((0.0, 0.0, -1.0), description="Optical axis n, from the lens into the scene.")
+    up: Vec3 = Field((0.0, 1.0, 0.0), description="World direction that appears at the top of the image (row 0).")
+
+    @model_validator(mode="after")
+    def _check(self) -> "CameraPose":
+        look = _unit(self.look, "look")
+        up = _unit(self.up, "up")
+        if abs(sum(a * b for a, b in zip(look, up))) > 0.999:
+            raise ValueError("up must not be parallel to look")
+        return self
+
+
+class Aperture(Model):
+    distance_mm: float = Field(gt=0, description="Distance of the aperture plane in front of the lens, along the optical axis (mm).")
+    diameter_mm: float = Field(gt=0, description="Diameter of the circular opening, centred on the optical axis (mm).")
+
+
+class Sensor(Model):
+    quantum_efficiency: float = Field(0.9, gt=0, le=1, description="Photons to electrons (QE at the imaging wavelength).")
+    em_gain: float = Field(300.0, ge=1, description="EM register gain G.")
+    read_noise_e: float = Field(50.0, ge=0, description="Read noise at the output node (rms electrons).")
+    bias_counts: float = Field(500.0, ge=0, description="Offset added by the ADC (counts).")
+    electrons_per_count: float = Field(10.0, gt=0, description="ADC conversion gain (electrons per count).")
+    dark_current_e_per_s: float = Field(0.001, ge=0, description="Dark current per pixel (electrons/s).")
+    cic_e_per_pixel: float = Field(0.005, ge=0, description="Clock-induced charge per pixel per frame (electrons).")
+    bit_depth: int = Field(16, ge=8, le=32, description="ADC bit depth; counts saturate at 2**bit_depth - 1.")
+
+
+class Camera(Model):
+    pixels: tuple[int, int] = Field(description="Sensor size [nx, ny] in (binned) pixels: columns, rows.")
+    pixel_pitch_mm: float = Field(gt=0, description="(Binned) pixel pitch on the detector (mm).")
+    lens: Lens
+    pose: CameraPose
+    apertures: tuple[Aperture, ...] = Field((), description="Extra circular apertures in front of the lens (the beta term).")
+    sensor: Sensor = Field(Sensor(), description="Detector model used to turn photons into counts.")
+
+    @field_validator("pixels")
+    @classmethod
+    def _pixels(cls, v: tuple[int, int]) -> tuple[int, int]:
+        if v[0] < 1 or v[1] < 1:
+            raise ValueError("pixels must be two positive integers [nx, ny]")
+        return v
+
+
+class Mirror(Model):
+    name: str | None = Field(None, description="Name of the view it adds (default mirror0, mirror1, ...).")
+    center_mm: Vec3 = Field(description="Centre of the rectangular mirror (mm).")
+    normal: Vec3 = Field(description="Normal of the reflecting side.")
+    axis: Vec3 = Field(description="Direction of the first side of the rectangle (in the mirror plane).")
+    size_mm: tuple[float, float] = Field(description="[along axis, along normal x axis] (mm).")
+    reflectance: float = Field(1.0, gt=0, le=1, description="Mirror reflectance rho.")
+    scale: float = Field(1.0, gt=0, description="Per-view scale s (filter angular transmission heuristic).")
+
+    @model_validator(mode="after")
+    def _check(self) -> "Mirror":
+        n = _unit(self.normal, "normal")
+        a = _unit(self.axis, "axis")
+        if abs(sum(x * y for x, y in zip(n, a))) > 1e-6:
+            raise ValueError("axis must lie in the mirror plane (perpendicular to normal)")
+        if min(self.size_mm) <= 0:
+            raise ValueError("size_mm must be positive")
+        return self
+
+
+class Stage(Model):
+    top_z_mm: float = Field(0.0, description="Height of the stage top at stage height 0 (mm).")
+    size_mm: tuple[float, float] = Field((150.0, 150.0), description="Plate extent along x and y (mm).")
+    thickness_mm: float = Field(5.0, gt=0, description="Plate thickness (mm).")
+    center_xy_mm: tuple[float, float] = Field((0.0, 0.0), description="Plate centre in x, y (mm).")
+
+
+class System(Model):
+    camera: Camera
+    mirrors: tuple[Mirror, ...] = Field((), description="Plane mirrors; each adds a view.")
+    stage: Stage | None = Field(None, description="The stage plate (an occluder); phantoms rest on its top.")
+
+
+# --------------------------------------------------------------------------- subject
+class CylinderPhantom(Model):
+    phantom: Literal["cylinder"]
+    radius_mm: float = Field(12.5, gt=0)
+    length_mm: float = Field(50.0, gt=0)
+    n_angular: int = Field(50, ge=3, description="Elements around the circumference.")
+    n_axial: int = Field(32, ge=1, description="Elements along the axis.")
+    cap_elements: bool = Field(False, description="Make the end caps elements too (else they only occlude).")
+
+
+class RingPhantom(Model):
+    phantom: Literal["ring"]
+    radius_mm: float = Field(25.0, gt=0)
+    thickness_mm: float = Field(1.0, gt=0, description="Extent along the ring axis (mm).")
+    n_elements: int = Field(200, ge=3)
+
+
+class SpherePhantom(Model):
+    phantom: Literal["sphere"]
+    radius_mm: float = Field(10.0, gt=0)
+    n_latitude: int = Field(16, ge=2)
+    n_longitude: int = Field(32, ge=3)
+
+
+class PatchPhantom(Model):
+    phantom: Literal["patch"]
+    size_mm: tuple[float, float] = Field((10.0, 10.0))
+    n: tuple[int, int] = Field((1, 1), description="Elements along each side.")
+    center_mm: Vec3 = Field((0.0, 0.0, 0.0), description="Patch centre (before any pose).")
+    normal: Vec3 = Field((0.0, 0.0, 1.0), description="Emitting side.")
+
+
+class MeshSurface(Model):
+    mesh: Path = Field(description="Mesh file pyvista reads (PLY, STL, VTK, OBJ); relative to the config file.")
+    scale_to_mm: float = Field(1.0, gt=0, description="Multiply file coordinates by this to get mm.")
+
+
+class ArtefactSurface(Model):
+    artefact: Path = Field(description="A surface artefact (HDF5 with /surface) from capture-surface.")
+
+
+Phantom = Annotated[Union[CylinderPhantom, RingPhantom, SpherePhantom, PatchPhantom], Field(discriminator="phantom")]
+
+
+class RotationAxis(Model):
+    point_mm: Vec3 | None = Field(None, description="A point on the axis (default: the subject's centre).")
+    direction: Vec3 = Field((1.0, 0.0, 0.0), description="Axis direction.")
+
+
+class Poses(Model):
+    heights_mm: tuple[float, ...] = Field((0.0,), description="Stage heights h (mm).")
+    rotations_deg: tuple[float, ...] = Field((0.0,), description="Rotations about the subject axis (deg).")
+
+
+class Subject(Model):
+    surface: Union[Phantom, MeshSurface, ArtefactSurface]
+    poses: Poses | None = Field(None, description="Heights x rotations; without it the subject stays put (height 0).")
+    rotation_axis: RotationAxis | None = Field(None, description="Axis for rotations (default: the phantom's own axis).")
+
+
+# --------------------------------------------------------------------------- transfer
+class LensSampling(Model):
+    surface_samples_per_pixel: float = Field(2.0, gt=0, description="Surface sub-samples per focal-plane pixel length.")
+    max_surface_subdivisions: int = Field(48, ge=1, description="Cap on sub-triangles per face edge.")
+    min_surface_subdivisions: int = Field(1, ge=1)
+    lens_samples_min: int = Field(32, ge=1, description="Lens samples per surface point, at least.")
+    lens_samples_max: int = Field(2048, ge=1, description="Lens samples per surface point, at most.")
+    lens_samples_per_blur_pixel: float = Field(4.0, gt=0, description="Lens samples per pixel of blur-disk area.")
+
+
+class PairwiseSampling(Model):
+    surface_subdivisions: int = Field(6, ge=1, description="Sub-triangles per face edge (n^2 per face).")
+    pixel_subdivisions: int = Field(3, ge=1, description="Sub-pixels per pixel side (n^2 per pixel).")
+
+
+class Transfer(Model):
+    estimator: Literal["lens", "pairwise"] = Field("lens", description="lens (default) or pairwise (the paper's).")
+    lens: LensSampling = LensSampling()
+    pairwise: PairwiseSampling = PairwiseSampling()
+    ray_offset_mm: float = Field(1e-3, gt=0, description="Rays start this far along the normal (self-hit guard).")
+    rays_per_batch: int = Field(2_000_000, ge=1000, description="Rays cast per Embree call (memory vs overhead).")
+    cache_dir: Path | None = Field(None, description="Where cached T files live (default <workdir>/cache/T).")
+
+
+# --------------------------------------------------------------------------- top level
+class Config(Model):
+    workdir: Path | None = Field(None, description="Output folder (default runs/<config name>), relative to the config file.")
+    system: System
+    subject: Subject
+    transfer: Transfer = Transfer()
+    # Sections of stages that validate their own keys when they are built.
+    simulate: dict[str, Any] | None = None
+    reconstruct: dict[str, Any] | None = None
+    report: dict[str, Any] | None = None
+    calibrate: dict[str, Any] | None = None
+    capture: dict[str, Any] | None = None
+
+
+class LoadedConfig:
+    """A validated config with where it came from."""
+
+    def __init__(self, model: Config, path: Path, raw: dict[str, Any]):
+        self.model = model
+        self.path = path
+        self.raw = raw
+
+    @property
+    def base_dir(self) -> Path:
+        return self.path.parent
+
+    def resolve(self, p: Path | str) -> Path:
+        p = Path(p)
+        return p if p.is_absolute() else (self.base_dir / p).resolve()
+
+    @property
+    def workdir(self) -> Path:
+        w = self.model.workdir or Path("runs") / self.path.stem
+        return self.resolve(w)
+
+    @property
+    def sha256(self) -> str:
+        return hashlib.sha256(yaml.safe_dump(self.raw, sort_keys=True).encode()).hexdigest()
+
+
+def _apply_override(raw: dict[str, Any], item: str) -> None:
+    if "=" not in item:
+        raise UserError(f"--set {item!r}: expected dotted.key=value, e.g. --set transfer.estimator=pairwise.")
+    key, value = item.split("=", 1)
+    parts = key.strip().split(".")
+    node = raw
+    for i, part in enumerate(parts[:-1]):
+        nxt = node.get(part)
+        if nxt is None:
+            nxt = node[part] = {}
+        if not isinstance(nxt, dict):
+            raise UserError(f"--set {item!r}: {'.'.join(parts[: i + 1])} is not a section, so it has no key {parts[i + 1]!r}.")
+        node = nxt
+    node[parts[-1]] = yaml.safe_load(value)
+
+
+def _format_validation_error(err: ValidationError, path: Path) -> str:
+    lines = []
+    for e in err.errors()[:6]:
+        loc = ".".join(str(x) for x in e["loc"] if not (isinstance(x, str) and x in _UNION_TAGS))
+        if e["type"] == "extra_forbidden":
+            msg = "unknown key (check its spelling against the README's config reference)"
+        elif e["type"] == "missing":
+            msg = "required key is missing"
+        else:
+            msg = e["msg"].removeprefix("Value error, ")
+        lines.append(f"'{loc}': {msg}" if loc else msg)
+    more = "" if len(err.errors()) <= 6 else f" (and {len(err.errors()) - 6} more)"
+    return f"config {path}: " + "; ".join(lines) + more + "."
+
+
+# pydantic puts union member names into error locations; they are not keys the user wrote.
+_UNION_TAGS = {"cylinder", "ring", "sphere", "patch", "MeshSurface", "ArtefactSurface",
+               "function-after[_check(), Lens]", "tagged-union[CylinderPhantom,RingPhantom,SpherePhantom,PatchPhantom]"}
+
+
+def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -> LoadedConfig:
+    """Read, override and validate a config; raise UserError with one clear paragraph."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"config file {path} does not exist.")
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise UserError(f"config file {path} is not valid YAML: {e}".replace("\n", " ")) from None
+    if not isinstance(raw, dict):
+        raise UserError(f"config file {path} must hold a mapping of keys (workdir, system, subject, ...).")
+    for item in overrides:
+        _apply_override(raw, item)
+    try:
+        model = Config.model_validate(raw)
+    except ValidationError as e:
+        raise UserError(_format_validation_error(e, path)) from None
+    loaded = LoadedConfig(model, path.resolve(), raw)
+    surf = model.subject.surface
+    for attr in ("mesh", "artefact"):
+        p = getattr(surf, attr, None)
+        if p is not None and not loaded.resolve(p).is_file():
+            raise UserError(f"config {path}: 'subject.surface.{attr}': file {loaded.resolve(p)} does not exist.")
+    return loaded

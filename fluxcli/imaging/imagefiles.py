@@ -1,0 +1,280 @@
+"""Single-channel image files (TIFF, FITS, OpenEXR) through OpenImageIO.
+
+Arrays are ``[row, col]`` = ``[ny, nx]`` with row 0 the first row the camera reads out.
+What is written is read back unchanged (values, row order, metadata) in every format.
+
+File conventions, including where OpenImageIO needs help:
+
+- **Row order.** TIFF and EXR store row 0 first. FITS stores its first data row
+  (``NAXIS2`` index 1) first; viewers such as ds9 draw it at the *bottom*, and
+  OpenImageIO flips FITS rows on both read and write so that its row 0 is that bottom
+  (last stored) row. fluxmap undoes that flip: row 0 of the array is the first row
+  stored in the FITS file, which is also ``astropy.io.fits.getdata(path)[0]``. A FITS
+  file therefore looks upside down in ds9 next to the same image as TIFF.
+- **Sample types.** ``uint16`` (counts) and ``float32`` (photons) are accepted. TIFF
+  stores both natively. OpenImageIO converts ``uint16`` lossily for FITS (to a
+  normalised int16) and EXR (to half), so there counts are stored exactly as int32
+  (FITS, ``BITPIX = 32``) or float32 (EXR).
+- **Metadata.** OpenImageIO drops unknown attributes from TIFF, and its FITS writer
+  truncates keywords to 8 characters and values to one unquoted card. So the metadata
+  dict is stored as one JSON record: in the ``ImageDescription`` attribute (TIFF tag
+  270, EXR string attribute), and for FITS base64-encoded across keywords ``FXMD0000``,
+  ``FXMD0001``, ….
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import json
+import os
+import uuid
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+
+__all__ = ["SUFFIXES", "read_image", "write_image"]
+
+SUFFIXES = (".tif", ".tiff", ".fits", ".exr")
+"""File name suffixes :func:`write_image` can write (case-insensitive)."""
+
+_RECORD_KEY = "fluxmap_metadata"
+_FITS_CHUNK_PREFIX = "FXMD"
+_FITS_CHUNK_CHARS = 60  # base64 characters per FITS card (a card value holds at most ~68)
+_FITS_MAX_CHUNKS = 10_000
+
+# OIIO attributes describing the file encoding, not the image: not returned as metadata.
+_ENCODING_ATTRIBUTES = {"oiio:subimages", "oiio:BitsPerSample", "oiio:RowsPerChunk"}
+
+
+def _suffix(path: Path) -> str:
+    suffix = path.suffix.lower()
+    if suffix not in SUFFIXES:
+        raise ValueError(
+            f"Image file '{path}' has an unsupported suffix {path.suffix!r}; "
+            f"use one of {', '.join(SUFFIXES)}."
+        )
+    return suffix
+
+
+def _check_metadata(metadata) -> dict[str, str | float | int]:
+    if metadata is None:
+        return {}
+    if not isinstance(metadata, dict):
+        raise ValueError(f"Image metadata must be a dict, not {type(metadata).__name__}.")
+    for key, value in metadata.items():
+        if not isinstance(key, str) or not key:
+            raise ValueError(f"Image metadata key {key!r} must be a non-empty string.")
+        if isinstance(value, bool) or not isinstance(value, (str, int, float)):
+            raise ValueError(
+                f"Image metadata value for {key!r} must be a str, int or float, "
+                f"not {type(value).__name__}."
+            )
+    return dict(metadata)
+
+
+def _fits_chunks(record: str) -> dict[str, str]:
+    encoded = base64.urlsafe_b64encode(record.encode("ascii")).decode("ascii")
+    pieces = [
+        encoded[i : i + _FITS_CHUNK_CHARS] for i in range(0, len(encoded), _FITS_CHUNK_CHARS)
+    ]
+    if len(pieces) > _FITS_MAX_CHUNKS:
+        raise ValueError("Image metadata is too large to store in a FITS header.")
+    # The leading letter keeps OIIO from parsing an all-digit piece as a number.
+    return {f"{_FITS_CHUNK_PREFIX}{i:04d}": "b" + piece for i, piece in enumerate(pieces)}
+
+
+def _write_pixels(path: Path, pixels: np.ndarray, spec: oiio.ImageSpec) -> None:
+    """Write ``pixels`` [ny, nx, 1] with ``spec`` to ``path`` (format from its suffix)."""
+    out = oiio.ImageOutput.create(str(path))
+    if out is None:
+        raise OSError(f"OpenImageIO cannot create image file '{path}': {oiio.geterror()}")
+    try:
+        if not out.open(str(path), spec):
+            raise OSError(f"OpenImageIO cannot open '{path}' for writing: {out.geterror()}")
+        if not out.write_image(pixels):
+            raise OSError(f"OpenImageIO failed to write '{path}': {out.geterror()}")
+    finally:
+        out.close()
+
+
+def write_image(
+    path, image: np.ndarray, *, metadata: dict[str, str | float | int] | None = None
+) -> None:
+    """Write a 2-D image atomically as TIFF, FITS or OpenEXR (chosen by suffix).
+
+    The image is written to a temporary file in the destination directory, then
+    renamed over ``path``: readers never see a partial file, and a failed write leaves
+    an existing ``path`` untouched.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Destination; its suffix (``.tif``, ``.tiff``, ``.fits``, ``.exr``, any case)
+        selects the format. The directory must exist.
+    image : numpy.ndarray, shape (ny, nx), dtype uint16 or float32
+        ``[row, col]`` image, row 0 first: uint16 for counts, float32 for photons
+        (cast float64 data with ``image.astype(numpy.float32)`` first).
+    metadata : dict of str to str, int or float, optional
+        Attributes stored with the image, e.g. ``{"fluxmap:units": "photons"}``;
+        :func:`read_image` returns them unchanged (same keys, values and types).
+
+    Raises
+    ------
+    ValueError
+        Unsupported suffix, missing directory, image not 2-D or empty, unsupported
+        dtype, or metadata that is not a dict of str to str/int/float.
+    OSError
+        OpenImageIO failed to write the file.
+    """
+    path = Path(path)
+    suffix = _suffix(path)
+    if not path.parent.is_dir():
+        raise ValueError(
+            f"Cannot write image file '{path}': directory '{path.parent}' does not exist."
+        )
+    image = np.asarray(image)
+    if image.ndim != 2 or image.size == 0:
+        raise ValueError(
+            f"Image for '{path}' must be a non-empty 2-D array [ny, nx], got shape {image.shape}."
+        )
+    if image.dtype not in (np.dtype(np.uint16), np.dtype(np.float32)):
+        raise ValueError(
+            f"Image for '{path}' must have dtype uint16 (counts) or float32 (photons), "
+            f"got {image.dtype}."
+        )
+    metadata = _check_metadata(metadata)
+
+    pixels = image
+    if image.dtype == np.uint16 and suffix == ".fits":
+        pixels, pixel_type = image.astype(np.int32), oiio.INT32
+    elif image.dtype == np.uint16 and suffix == ".exr":
+        pixels, pixel_type = image.astype(np.float32), oiio.FLOAT
+    elif image.dtype == np.uint16:
+        pixel_type = oiio.UINT16
+    else:
+        pixel_type = oiio.FLOAT
+    if suffix == ".fits":
+        pixels = pixels[::-1]  # OIIO flips FITS rows on write; pre-flip to store row 0 first.
+
+    ny, nx = image.shape
+    spec = oiio.ImageSpec(nx, ny, 1, pixel_type)
+    record = json.dumps({_RECORD_KEY: metadata}, ensure_ascii=True, sort_keys=True)
+    if suffix == ".fits":
+        for key, value in _fits_chunks(record).items():
+            spec.attribute(key, value)
+    else:
+        spec.attribute("ImageDescription", record)
+
+    # Same directory so that os.replace is an atomic rename; same suffix so OIIO
+    # picks the format.
+    tmp = path.with_name(f".{path.stem}.{uuid.uuid4().hex}.tmp{path.suffix}")
+    try:
+        _write_pixels(tmp, np.ascontiguousarray(pixels[:, :, np.newaxis]), spec)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def _decode_record(text) -> dict | None:
+    if not isinstance(text, str):
+        return None
+    try:
+        record = json.loads(text)
+    except ValueError:
+        return None
+    if isinstance(record, dict) and isinstance(record.get(_RECORD_KEY), dict):
+        return record[_RECORD_KEY]
+    return None
+
+
+def _fits_record(attributes: dict) -> dict | None:
+    pieces = {}
+    for name, value in attributes.items():
+        upper = name.upper()
+        if upper.startswith(_FITS_CHUNK_PREFIX) and upper[len(_FITS_CHUNK_PREFIX) :].isdigit():
+            pieces[int(upper[len(_FITS_CHUNK_PREFIX) :])] = value
+    if not pieces:
+        return None
+    if sorted(pieces) != list(range(len(pieces))) or not all(
+        isinstance(v, str) and v.startswith("b") for v in pieces.values()
+    ):
+        return None
+    encoded = "".join(pieces[i][1:] for i in range(len(pieces)))
+    try:
+        text = base64.urlsafe_b64decode(encoded.encode("ascii")).decode("ascii")
+    except (binascii.Error, ValueError):
+        return None
+    return _decode_record(text)
+
+
+def read_image(path) -> tuple[np.ndarray, dict[str, str | float | int]]:
+    """Read a single-channel image file through OpenImageIO.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Image file in any format OpenImageIO reads (format detected from content);
+        row order and metadata are handled as described in the module docstring for
+        TIFF, FITS and EXR.
+
+    Returns
+    -------
+    image : numpy.ndarray of float64, shape (ny, nx)
+        ``[row, col]`` image, row 0 first, sample values unscaled (a uint16 count of
+        1000 reads as 1000.0).
+    metadata : dict of str to str, int or float
+        For files written by :func:`write_image`, exactly the metadata given there.
+        For other files, the file's scalar attributes as OpenImageIO names them (e.g.
+        ``"ImageDescription"``, ``"Exptime"`` for a FITS ``EXPTIME`` keyword).
+
+    Raises
+    ------
+    ValueError
+        The file does not exist, cannot be read, or has more than one channel.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"Image file '{path}' does not exist.")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        reason = oiio.geterror().strip().rstrip(".") or "unknown format"
+        raise ValueError(f"Image file '{path}' cannot be read: {reason}.")
+    try:
+        spec = inp.spec()
+        is_fits = inp.format_name() == "fits"
+        if spec.nchannels != 1:
+            raise ValueError(
+                f"Image file '{path}' has {spec.nchannels} channels; fluxmap expects a "
+                f"single-channel image."
+            )
+        # TypeUnknown: native sample type, so integer samples are not normalised to [0, 1].
+        pixels = inp.read_image(oiio.UNKNOWN)
+        if pixels is None:
+            reason = inp.geterror().strip().rstrip(".")
+            raise ValueError(f"Image file '{path}' cannot be read: {reason}.")
+        attributes = {attribute.name: attribute.value for attribute in spec.extra_attribs}
+    finally:
+        inp.close()
+
+    image = np.asarray(pixels, dtype=np.float64).reshape(spec.height, spec.width)
+    if is_fits:
+        image = image[::-1]  # undo OIIO's flip: row 0 is the first row stored in the file
+    image = np.ascontiguousarray(image)
+
+    if is_fits:
+        record = _fits_record(attributes)
+    else:
+        record = _decode_record(attributes.get("ImageDescription"))
+    if record is not None:
+        return image, record
+    metadata = {
+        name: value
+        for name, value in attributes.items()
+        if name not in _ENCODING_ATTRIBUTES
+        and isinstance(value, (str, int, float))
+        and not isinstance(value, bool)
+    }
+    return image, metadata

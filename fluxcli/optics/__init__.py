@@ -1,0 +1,1 @@
+"""Thin-lens camera, mirrors, apertures and the transfer-matrix estimators."""

@@ -1,0 +1,40 @@
+"""The one ray caster: segment visibility against a triangle scene with Embree (embreex)."""
+
+from __future__ import annotations
+
+import numpy as np
+from embreex import rtcore_scene
+from embreex.mesh_construction import TriangleMesh
+
+
+class OcclusionScene:
+    """Everything that can block light, as one Embree scene.
+
+    Parameters
+    ----------
+    vertices_mm : (V, 3) float
+    faces : (F, 3) int
+    """
+
+    def __init__(self, vertices_mm: np.ndarray, faces: np.ndarray):
+        self._empty = len(faces) == 0
+        if not self._empty:
+            self._scene = rtcore_scene.EmbreeScene()
+            TriangleMesh(self._scene, np.ascontiguousarray(vertices_mm, np.float32),
+                         np.ascontiguousarray(faces, np.int32))
+
+    def blocked(self, origins_mm: np.ndarray, directions: np.ndarray, lengths_mm: np.ndarray) -> np.ndarray:
+        """True where the segment origin + t*direction, 0 < t < length, hits a triangle.
+
+        ``directions`` must be unit vectors; arrays of shape (n, 3), (n, 3), (n,).
+        """
+        n = len(origins_mm)
+        if self._empty or n == 0:
+            return np.zeros(n, bool)
+        hit = self._scene.run(
+            np.ascontiguousarray(origins_mm, np.float32),
+            np.ascontiguousarray(directions, np.float32),
+            dists=np.ascontiguousarray(np.maximum(lengths_mm, 0), np.float32),
+            query="OCCLUDED",
+        )
+        return np.asarray(hit) >= 0

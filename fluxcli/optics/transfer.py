@@ -1,0 +1,341 @@
+"""The free-space transfer matrix T (pixels x elements, dimensionless).
+
+``T[i, j]`` is the fraction of the power emitted (Lambertian, uniform over the element)
+by surface element j that lands in pixel i, so images are ``a = T b`` with b in photons.
+Two estimators of the same integral (DESIGN.md section 3):
+
+``lens`` (default)
+    surface samples x lens-disk samples; each pair is one ray r -> r_l whose line meets
+    the front focal plane at r_vd, which fixes the pixel.  Weight
+    ``cos(theta_s) cos(theta_l) / (pi |r_l - r|^2) dA_l dS``.  The number of lens samples
+    per surface point follows the blur-disk area in pixels.
+``pairwise`` (the paper's)
+    surface samples x sub-pixel centres on the focal plane; weight
+    ``cos(theta_s) cos(theta_d) / (pi |r_vd - r|^2) dA_vd dS``, counted when the line
+    crosses the lens disk (alpha) inside every extra aperture (beta).
+
+Both share one pair filter: beta, the mirror window, and Embree visibility of the real
+segments (surface -> lens, or surface -> mirror -> lens).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Iterator
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..surface.mesh import Surface, merge
+from .camera import PlaneMirror, ThinLensCamera, sunflower_disk
+from .raycast import OcclusionScene
+
+ALGORITHM_VERSION = "transfer-1"
+
+
+@dataclass(frozen=True)
+class View:
+    """One way light reaches the detector: directly, or via one plane mirror."""
+
+    name: str
+    camera: ThinLensCamera  # the real camera, or its virtual copy in ``mirror``
+    mirror: PlaneMirror | None = None
+    weight: float = 1.0  # reflectance x per-view scale
+
+
+@dataclass(frozen=True)
+class LensSampling:
+    surface_samples_per_pixel: float = 2.0
+    min_surface_subdivisions: int = 1
+    max_surface_subdivisions: int = 48
+    lens_samples_min: int = 32
+    lens_samples_max: int = 2048
+    lens_samples_per_blur_pixel: float = 4.0
+
+
+@dataclass(frozen=True)
+class PairwiseSampling:
+    surface_subdivisions: int = 6
+    pixel_subdivisions: int = 3
+
+
+@dataclass
+class TransferResult:
+    """T per view (unweighted) and combined (sum of view weight x view T)."""
+
+    views: list[View]
+    T_per_view: list[sp.csr_matrix]
+    T: sp.csr_matrix
+    stats: dict[str, dict[str, float]] = field(default_factory=dict)
+
+
+# ------------------------------------------------------------------ surface sampling
+def subtriangle_barycentrics(n: int) -> np.ndarray:
+    """Barycentric centroids of the n^2 congruent sub-triangles of a triangle, (n^2, 3)."""
+    pts = []
+    for i in range(n):
+        for j in range(n - i):
+            pts.append((i + 1 / 3, j + 1 / 3))
+            if i + j <= n - 2:
+                pts.append((i + 2 / 3, j + 2 / 3))
+    ab = np.array(pts) / n
+    return np.column_stack([1 - ab.sum(axis=1), ab])
+
+
+def sample_faces(surface: Surface, face_ids: np.ndarray, n_sub: np.ndarray):
+    """Sub-triangle centroid samples of the given faces.
+
+    Returns points (S, 3) mm, normals (S, 3), element index (S,), and the fraction of the
+    element's area each sample stands for (S,).
+    """
+    tri = surface.face_vertices_mm
+    normals = surface.face_normals
+    areas = surface.face_areas_mm2
+    el_area = surface.element_areas_mm2
+    out_p, out_n, out_e, out_w = [], [], [], []
+    for n in np.unique(n_sub):
+        f = face_ids[n_sub == n]
+        bary = subtriangle_barycentrics(int(n))
+        p = np.einsum("kc,fcd->fkd", bary, tri[f]).reshape(-1, 3)
+        k = len(bary)
+        e = np.repeat(surface.element_of_face[f], k)
+        out_p.append(p)
+        out_n.append(np.repeat(normals[f], k, axis=0))
+        out_e.append(e)
+        out_w.append(np.repeat(areas[f] / (n * n), k) / el_area[e])
+    if not out_p:
+        z = np.zeros((0, 3))
+        return z, z, np.zeros(0, np.int64), np.zeros(0)
+    return np.concatenate(out_p), np.concatenate(out_n), np.concatenate(out_e), np.concatenate(out_w)
+
+
+def _candidate_faces(surface: Surface, view: View) -> np.ndarray:
+    """Emitting faces that can possibly send light into this view's lens."""
+    cam = view.camera
+    tri = surface.face_vertices_mm
+    cen = tri.mean(axis=1)
+    rad = np.linalg.norm(tri - cen[:, None], axis=2).max(axis=1)
+    ok = surface.element_of_face >= 0
+    # some lens point in front of the face: n.(L - p) > 0 for some L, p on the face
+    ok &= np.einsum("ij,ij->i", surface.face_normals, cam.center_mm - cen) > -(cam.aperture_radius_mm + rad)
+    ok &= cam.axial(cen) + rad > 0
+    if view.mirror is not None:
+        ok &= (cen - view.mirror.center_mm) @ view.mirror.normal + rad > 0
+    return np.flatnonzero(ok)
+
+
+# ------------------------------------------------------------------ the shared pair filter
+class _PairFilter:
+    def __init__(self, view: View, scene: OcclusionScene, ray_offset_mm: float):
+        self.view, self.scene, self.eps = view, scene, ray_offset_mm
+        self.rays_cast = 0
+
+    def __call__(self, P, N, L, pix, w, elem, axial_p):
+        """Keep the visible pairs; returns (pix, elem, w)."""
+        view, cam, eps = self.view, self.view.camera, self.eps
+        keep = (w > 0) & (pix >= 0)
+        keep[keep] &= cam.passes_apertures(P[keep], L[keep], axial_p[keep])
+        idx = np.flatnonzero(keep)
+        P, N, L = P[idx], N[idx], L[idx]
+        O = P + eps * N
+        if view.mirror is None:
+            d = L - O
+            length = np.linalg.norm(d, axis=1)
+            blocked = self.scene.blocked(O, d / length[:, None], length)
+            self.rays_cast += len(idx)
+        else:
+            m = view.mirror
+            d = L - O
+            denom = d @ m.normal
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = ((m.center_mm - O) @ m.normal) / denom
+            M = O + t[:, None] * d
+            good = (t > 0) & (t < 1) & m.contains(M)
+            L_real = m.reflect_points(L)
+            s1 = M - O
+            l1 = np.linalg.norm(s1, axis=1)
+            s2 = L_real - M
+            l2 = np.linalg.norm(s2, axis=1)
+            blocked = ~good
+            g = np.flatnonzero(good)
+            if len(g):
+                u1 = s1[g] / l1[g, None]
+                u2 = s2[g] / l2[g, None]
+                b1 = self.scene.blocked(O[g], u1, l1[g] - eps)
+                b2 = self.scene.blocked(M[g] + eps * u2, u2, l2[g] - eps)
+                blocked[g] = b1 | b2
+                self.rays_cast += 2 * len(g)
+        vis = idx[~blocked]
+        return pix[vis], elem[vis], w[vis]
+
+
+# ------------------------------------------------------------------ estimators
+def _lens_pairs(surface: Surface, view: View, s: LensSampling, rays_per_batch: int) -> Iterator[tuple]:
+    cam = view.camera
+    faces = _candidate_faces(surface, view)
+    if len(faces) == 0:
+        return
+    tri = surface.face_vertices_mm[faces]
+    edge = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2), axis=1)
+    z_face = np.maximum(cam.axial(tri.mean(axis=1)), 1e-6)
+    footprint = cam.focal_pixel_mm * z_face / cam.focus_distance_mm  # pixel size seen at that depth
+    n_sub = np.clip(np.ceil(edge / footprint * s.surface_samples_per_pixel),
+                    s.min_surface_subdivisions, s.max_surface_subdivisions).astype(np.int64)
+    P, N, E, W = sample_faces(surface, faces, n_sub)
+    z = cam.axial(P)
+    front = (z > 0) & (np.einsum("ij,ij->i", N, cam.center_mm - P) > -cam.aperture_radius_mm)
+    P, N, E, W, z = P[front], N[front], E[front], W[front], z[front]
+    blur = cam.blur_diameter_px(z)
+    want = np.ceil(s.lens_samples_per_blur_pixel * np.pi / 4 * blur**2)
+    want = np.clip(want, s.lens_samples_min, s.lens_samples_max)
+    # quantise to powers of two above the minimum, so samples batch together
+    level = np.ceil(np.log2(want / s.lens_samples_min)).astype(int)
+    n_lens = np.minimum(s.lens_samples_min * 2**level, s.lens_samples_max)
+    dA = cam.lens_area_mm2
+    for n in np.unique(n_lens):
+        lens = cam.lens_points(sunflower_disk(int(n)))
+        sel = np.flatnonzero(n_lens == n)
+        chunk = max(1, rays_per_batch // int(n))
+        for a in range(0, len(sel), chunk):
+            i = sel[a:a + chunk]
+            p = np.repeat(P[i], n, axis=0)
+            nn = np.repeat(N[i], n, axis=0)
+            zz = np.repeat(z[i], n)
+            L = np.tile(lens, (len(i), 1))
+            d = L - p
+            r2 = np.einsum("ij,ij->i", d, d)
+            inv = 1 / np.sqrt(r2)
+            cos_s = np.einsum("ij,ij->i", nn, d) * inv
+            cos_l = -(d @ cam.axis) * inv
+            w = np.where(cos_s > 0, cos_s * cos_l / (np.pi * r2), 0.0) * (dA / n) * np.repeat(W[i], n)
+            pix = cam.pixel_index(cam.focal_plane_hit(p, L, zz))
+            yield p, nn, L, pix, w, np.repeat(E[i], n), zz, len(i)
+
+
+def _pairwise_pairs(surface: Surface, view: View, s: PairwiseSampling, rays_per_batch: int) -> Iterator[tuple]:
+    cam = view.camera
+    faces = _candidate_faces(surface, view)
+    if len(faces) == 0:
+        return
+    P, N, E, W = sample_faces(surface, faces, np.full(len(faces), s.surface_subdivisions))
+    z = cam.axial(P)
+    front = (z > 0) & (np.einsum("ij,ij->i", N, cam.center_mm - P) > -cam.aperture_radius_mm)
+    P, N, E, W, z = P[front], N[front], E[front], W[front], z[front]
+    k = s.pixel_subdivisions
+    sub_pitch = cam.focal_pixel_mm / k
+    dA_vd = sub_pitch**2
+    u, R = cam.focus_distance_mm, cam.aperture_radius_mm
+    # the lines from a point through the lens disk meet the focal plane in a disk
+    centre = cam.focal_plane_hit(P, np.broadcast_to(cam.center_mm, P.shape), z)
+    radius = R * np.abs(1 - u / z)
+    ccol, crow = cam.pixel_coords(centre)
+    ccol, crow = ccol * k, crow * k  # in sub-pixel units
+    rs = radius / sub_pitch
+    c0 = np.clip(np.floor(ccol - rs - 0.5).astype(int), 0, cam.nx * k - 1)
+    c1 = np.clip(np.ceil(ccol + rs - 0.5).astype(int), 0, cam.nx * k - 1)
+    r0 = np.clip(np.floor(crow - rs - 0.5).astype(int), 0, cam.ny * k - 1)
+    r1 = np.clip(np.ceil(crow + rs - 0.5).astype(int), 0, cam.ny * k - 1)
+    onsensor = (ccol + rs >= 0) & (ccol - rs <= cam.nx * k) & (crow + rs >= 0) & (crow - rs <= cam.ny * k)
+    wc, wr = c1 - c0 + 1, r1 - r0 + 1
+    box = np.where(onsensor, wc * wr, 0)
+    order = np.argsort(box, kind="stable")
+    order = order[box[order] > 0]
+    o = cam.center_mm + u * cam.axis
+    a = 0
+    while a < len(order):
+        # homogeneous chunk: samples with similar box sizes
+        first = max(1, rays_per_batch // int(box[order[a]]))
+        bmax = int(box[order[min(len(order), a + first) - 1]])  # sorted: the chunk's largest
+        chunk = max(1, rays_per_batch // bmax)
+        i = order[a:a + chunk]
+        bw, bh = int(wc[i].max()), int(wr[i].max())
+        a += len(i)
+        dc, dr = np.meshgrid(np.arange(bw), np.arange(bh))
+        cc = (c0[i, None] + dc.ravel()[None]).ravel()
+        rr = (r0[i, None] + dr.ravel()[None]).ravel()
+        rep = bw * bh
+        ii = np.repeat(i, rep)
+        inbox = (cc <= np.repeat(c1[i], rep)) & (rr <= np.repeat(r1[i], rep))
+        X = o + sub_pitch * (((cc + 0.5) - cam.nx * k / 2)[:, None] * cam.right
+                             + ((rr + 0.5) - cam.ny * k / 2)[:, None] * cam.down)
+        p, nn, zz = P[ii], N[ii], z[ii]
+        # the line's crossing of the lens plane (axial 0): from X (axial u) towards p
+        with np.errstate(divide="ignore", invalid="ignore"):
+            L = X + (u / (u - zz))[:, None] * (p - X)
+            rl = L - cam.center_mm
+            in_lens = inbox & (np.einsum("ij,ij->i", rl, rl) <= R * R)
+            d = L - p
+            dl = np.linalg.norm(d, axis=1)
+            cos_s = np.einsum("ij,ij->i", nn, d) / dl
+            cos_d = np.abs(d @ cam.axis) / dl
+            dv = X - p
+            r2 = np.einsum("ij,ij->i", dv, dv)
+            w = np.where(in_lens & (cos_s > 0), cos_s * cos_d / (np.pi * r2), 0.0) * dA_vd * W[ii]
+        pix = (rr // k) * cam.nx + (cc // k)
+        pix = np.where(inbox, pix, -1)
+        yield p, nn, L, pix, w, E[ii], zz, len(i)
+
+
+def build_transfer(
+    surface: Surface,
+    views: list[View],
+    occluders: list[Surface] = (),
+    *,
+    estimator: str = "lens",
+    lens_sampling: LensSampling = LensSampling(),
+    pairwise_sampling: PairwiseSampling = PairwiseSampling(),
+    ray_offset_mm: float = 1e-3,
+    rays_per_batch: int = 2_000_000,
+    progress: Callable[[float], None] | None = None,
+) -> TransferResult:
+    """Compute T for ``surface`` seen by ``views``, with ``surface`` and ``occluders`` blocking.
+
+    Parameters
+    ----------
+    surface : the placed subject surface (its faces both emit and occlude).
+    views : the direct view and one per mirror (see :func:`views_for`).
+    occluders : other blocking geometry (stage plate, mirror plates).
+    progress : called with the fraction done (0..1), for a progress bar.
+
+    Returns
+    -------
+    TransferResult with ``T`` of shape (nx * ny, n_elements), dimensionless.
+    """
+    if estimator not in ("lens", "pairwise"):
+        raise ValueError(f"unknown estimator {estimator!r} (lens or pairwise)")
+    v, f = merge(surface, *occluders)
+    scene = OcclusionScene(v, f)
+    n_pix = views[0].camera.nx * views[0].camera.ny
+    shape = (n_pix, surface.n_elements)
+    per_view, stats = [], {}
+    for k, view in enumerate(views):
+        filt = _PairFilter(view, scene, ray_offset_mm)
+        T = sp.csr_matrix(shape)
+        n_samples = 0
+        gen = (_lens_pairs(surface, view, lens_sampling, rays_per_batch) if estimator == "lens"
+               else _pairwise_pairs(surface, view, pairwise_sampling, rays_per_batch))
+        pending = []
+        for P, N, L, pix, w, elem, zz, n_s in gen:
+            n_samples += n_s
+            pix, elem, w = filt(P, N, L, pix, w, elem, zz)
+            pending.append(sp.csr_matrix((w, (pix, elem)), shape=shape))
+            if len(pending) >= 8:
+                T = T + sum(pending[1:], pending[0])
+                pending = []
+        if pending:
+            T = T + sum(pending[1:], pending[0])
+        T.sum_duplicates()
+        T.eliminate_zeros()
+        per_view.append(T.tocsr())
+        stats[view.name] = {"rays": float(filt.rays_cast), "surface_samples": float(n_samples)}
+        if progress:
+            progress((k + 1) / len(views))
+    total = per_view[0] * views[0].weight
+    for T, view in zip(per_view[1:], views[1:]):
+        total = total + T * view.weight
+    return TransferResult(list(views), per_view, total.tocsr(), stats)
+
+
+def views_for(camera: ThinLensCamera, mirrors: list[tuple[str, PlaneMirror, float]]) -> list[View]:
+    """The direct view plus one virtual camera per (name, mirror, weight)."""
+    return [View("direct", camera)] + [View(name, camera.mirrored(m), m, w) for name, m, w in mirrors]

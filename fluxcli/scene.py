@@ -1,0 +1,163 @@
+"""From a validated config to the geometry the science packages take: camera, mirror
+views, the subject placed at each pose, and the occluders.
+
+Placement: a phantom rests on the stage top (``system.stage.top_z_mm + h``, or ``z = h``
+without a stage), centred over the stage; a mesh (file or artefact) stays where its file
+puts it and is raised by h.  A rotation turns the subject about its own axis (the
+phantom's axis, or ``subject.rotation_axis``; for a mesh by default the x-direction line
+through its bounding-box centre) before it is raised.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import config as C
+from .errors import UserError
+from .optics.camera import Aperture, PlaneMirror, ThinLensCamera
+from .optics.transfer import View, views_for
+from .surface import phantoms
+from .surface.mesh import Surface, box, read_mesh, rectangle
+
+
+@dataclass(frozen=True)
+class Pose:
+    height_mm: float
+    rotation_deg: float
+
+    @property
+    def label(self) -> str:
+        return f"h={self.height_mm:+g}mm rot={self.rotation_deg:g}deg"
+
+
+@dataclass(frozen=True)
+class PlacedScene:
+    pose: Pose
+    surface: Surface
+    occluders: list[Surface]
+
+
+def camera_from_config(cam: C.Camera) -> ThinLensCamera:
+    return ThinLensCamera.from_pose(
+        lens_center_mm=cam.pose.lens_center_mm, look=cam.pose.look, up=cam.pose.up,
+        focal_length_mm=cam.lens.focal_length_mm, aperture_radius_mm=cam.lens.aperture_radius_mm,
+        focus_distance_mm=cam.lens.focus_distance_mm, nx=cam.pixels[0], ny=cam.pixels[1],
+        pixel_pitch_mm=cam.pixel_pitch_mm,
+        apertures=tuple(Aperture(a.distance_mm, a.diameter_mm / 2) for a in cam.apertures),
+    )
+
+
+def mirror_names(system: C.System) -> list[str]:
+    return [m.name or f"mirror{k}" for k, m in enumerate(system.mirrors)]
+
+
+def plane_mirrors(system: C.System) -> list[PlaneMirror]:
+    return [PlaneMirror.from_axis(m.center_mm, m.normal, m.axis, m.size_mm) for m in system.mirrors]
+
+
+def views_from_config(system: C.System) -> list[View]:
+    cam = camera_from_config(system.camera)
+    mirrors = [(name, pm, m.reflectance * m.scale)
+               for name, pm, m in zip(mirror_names(system), plane_mirrors(system), system.mirrors)]
+    views = views_for(cam, mirrors)
+    for v in views[1:]:
+        if np.dot(cam.center_mm - v.mirror.center_mm, v.mirror.normal) <= 0:
+            raise UserError(f"system.mirrors: mirror {v.name!r} faces away from the camera "
+                            "(its normal must point to the side the lens is on).")
+    return views
+
+
+def poses_from_config(subject: C.Subject) -> list[Pose]:
+    p = subject.poses or C.Poses()
+    return [Pose(float(h), float(r)) for h in p.heights_mm for r in p.rotations_deg]
+
+
+def _rotation(axis: np.ndarray, angle_deg: float) -> np.ndarray:
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    t = np.deg2rad(angle_deg)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(t) * K + (1 - np.cos(t)) * K @ K
+
+
+class SubjectPlacer:
+    """Builds the subject surface once and places it at any pose."""
+
+    def __init__(self, cfg: "C.LoadedConfig"):
+        model = cfg.model
+        s = model.subject.surface
+        self.stage = model.system.stage
+        self.rests_on_stage = isinstance(s, (C.CylinderPhantom, C.RingPhantom, C.SpherePhantom))
+        if isinstance(s, C.CylinderPhantom):
+            surf, point, axis = phantoms.cylinder(radius_mm=s.radius_mm, length_mm=s.length_mm, n_angular=s.n_angular,
+                                                  n_axial=s.n_axial, cap_elements=s.cap_elements)
+        elif isinstance(s, C.RingPhantom):
+            surf, point, axis = phantoms.ring(radius_mm=s.radius_mm, thickness_mm=s.thickness_mm, n_elements=s.n_elements)
+        elif isinstance(s, C.SpherePhantom):
+            surf, point, axis = phantoms.sphere(radius_mm=s.radius_mm, n_latitude=s.n_latitude, n_longitude=s.n_longitude)
+        elif isinstance(s, C.PatchPhantom):
+            surf, point, axis = phantoms.patch(size_mm=s.size_mm, n=s.n, center_mm=s.center_mm, normal=s.normal)
+        elif isinstance(s, C.MeshSurface):
+            path = cfg.resolve(s.mesh)
+            try:
+                surf = read_mesh(path, scale_to_mm=s.scale_to_mm)
+            except ValueError as e:
+                raise UserError(f"subject.surface.mesh: {e}.") from None
+            lo, hi = surf.bounds_mm()
+            point, axis = (lo + hi) / 2, np.array([1.0, 0, 0])
+        else:  # surface artefact from capture-surface
+            from .artefacts import read_surface
+            import h5py
+
+            path = cfg.resolve(s.artefact)
+            try:
+                with h5py.File(path, "r") as f:
+                    surf = read_surface(f["surface"])
+            except (OSError, KeyError) as e:
+                raise UserError(f"subject.surface.artefact: {path} holds no readable /surface group ({e}).") from None
+            lo, hi = surf.bounds_mm()
+            point, axis = (lo + hi) / 2, np.array([1.0, 0, 0])
+        if surf.n_elements == 0:
+            raise UserError("subject.surface: the surface has no elements.")
+        if self.rests_on_stage:
+            surf, point = self._rest(surf, point, 0.0)
+        ra = model.subject.rotation_axis
+        if ra is not None:
+            axis = np.asarray(ra.direction, float)
+            if ra.point_mm is not None:
+                point = np.asarray(ra.point_mm, float)
+        self.surface, self.axis_point, self.axis = surf, np.asarray(point, float), axis / np.linalg.norm(axis)
+
+    def _stage_top(self, h: float) -> float:
+        return (self.stage.top_z_mm if self.stage else 0.0) + h
+
+    def _rest(self, surf: Surface, point: np.ndarray, h: float) -> tuple[Surface, np.ndarray]:
+        cxy = np.array(self.stage.center_xy_mm) if self.stage else np.zeros(2)
+        lo, hi = surf.bounds_mm()
+        shift = np.array([cxy[0] - (lo[0] + hi[0]) / 2, cxy[1] - (lo[1] + hi[1]) / 2, self._stage_top(h) - lo[2]])
+        return surf.transformed(np.eye(3), shift), point + shift
+
+    def place(self, pose: Pose) -> Surface:
+        R = _rotation(self.axis, pose.rotation_deg)
+        t = self.axis_point - R @ self.axis_point + np.array([0, 0, pose.height_mm])
+        placed = self.surface.transformed(R, t)
+        if self.rests_on_stage:  # a faceted phantom turned by an odd angle must still sit on the stage
+            lo = placed.bounds_mm()[0]
+            placed = placed.transformed(np.eye(3), np.array([0, 0, self._stage_top(pose.height_mm) - lo[2]]))
+        return placed
+
+    def occluders(self, pose: Pose, system: C.System) -> list[Surface]:
+        occ = []
+        if self.stage is not None:
+            st = self.stage
+            top = self._stage_top(pose.height_mm)
+            cx, cy = st.center_xy_mm
+            occ.append(box([cx - st.size_mm[0] / 2, cy - st.size_mm[1] / 2, top - st.thickness_mm],
+                           [cx + st.size_mm[0] / 2, cy + st.size_mm[1] / 2, top]))
+        for m in plane_mirrors(system):
+            occ.append(rectangle(m.center_mm, m.axis_u, m.axis_v, (2 * m.half_size_mm[0], 2 * m.half_size_mm[1])))
+        return occ
+
+    def scene(self, pose: Pose, system: C.System) -> PlacedScene:
+        return PlacedScene(pose, self.place(pose), self.occluders(pose, system))

@@ -1,0 +1,1 @@
+"""Surfaces: phantom generators and mesh files, grouped into flux elements."""

@@ -1,0 +1,162 @@
+"""Triangle surfaces whose faces are grouped into flux elements.
+
+A :class:`Surface` is the unit every stage passes around: vertices in mm, triangular
+faces wound counter-clockwise seen from outside (the emitting side), and the element
+each face belongs to (``-1`` for faces that only occlude, such as the unmeshed caps of a
+cylinder phantom).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Surface:
+    """A triangulated surface with faces grouped into elements.
+
+    Attributes
+    ----------
+    vertices_mm : (V, 3) float64
+    faces : (F, 3) int64, counter-clockwise seen from the emitting side.
+    element_of_face : (F,) int64, element index in ``[0, n_elements)`` or -1 (occluder only).
+    n_elements : int
+    """
+
+    vertices_mm: np.ndarray
+    faces: np.ndarray
+    element_of_face: np.ndarray
+    n_elements: int
+    element_ids: np.ndarray | None = field(default=None, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "vertices_mm", np.ascontiguousarray(self.vertices_mm, dtype=np.float64))
+        object.__setattr__(self, "faces", np.ascontiguousarray(self.faces, dtype=np.int64))
+        object.__setattr__(self, "element_of_face", np.ascontiguousarray(self.element_of_face, dtype=np.int64))
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def face_vertices_mm(self) -> np.ndarray:
+        """(F, 3, 3) corner coordinates."""
+        return self.vertices_mm[self.faces]
+
+    @property
+    def face_areas_mm2(self) -> np.ndarray:
+        t = self.face_vertices_mm
+        return 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
+
+    @property
+    def face_normals(self) -> np.ndarray:
+        t = self.face_vertices_mm
+        n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+    @property
+    def element_areas_mm2(self) -> np.ndarray:
+        """(n_elements,) area S_j of each element."""
+        m = self.element_of_face >= 0
+        return np.bincount(self.element_of_face[m], weights=self.face_areas_mm2[m], minlength=self.n_elements)
+
+    @property
+    def element_centroids_mm(self) -> np.ndarray:
+        m = self.element_of_face >= 0
+        a = self.face_areas_mm2[m]
+        c = self.face_vertices_mm[m].mean(axis=1)
+        e = self.element_of_face[m]
+        out = np.stack([np.bincount(e, weights=a * c[:, k], minlength=self.n_elements) for k in range(3)], axis=1)
+        return out / np.maximum(self.element_areas_mm2, 1e-300)[:, None]
+
+    @property
+    def element_normals(self) -> np.ndarray:
+        m = self.element_of_face >= 0
+        an = self.face_normals[m] * self.face_areas_mm2[m, None]
+        e = self.element_of_face[m]
+        out = np.stack([np.bincount(e, weights=an[:, k], minlength=self.n_elements) for k in range(3)], axis=1)
+        return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
+
+    def boundary_edge_count(self) -> int:
+        """Number of edges not shared by exactly two faces (0 for a closed manifold)."""
+        e = np.sort(self.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        _, counts = np.unique(e, axis=0, return_counts=True)
+        return int(np.count_nonzero(counts != 2))
+
+    @property
+    def is_closed(self) -> bool:
+        return len(self.faces) > 0 and self.boundary_edge_count() == 0
+
+    # ------------------------------------------------------------------ placement
+    def transformed(self, rotation: np.ndarray, translation_mm: np.ndarray) -> "Surface":
+        """x -> R x + t (R proper or improper; an improper R flips the winding)."""
+        v = self.vertices_mm @ np.asarray(rotation).T + np.asarray(translation_mm)
+        faces = self.faces if np.linalg.det(rotation) > 0 else self.faces[:, ::-1]
+        return Surface(v, faces, self.element_of_face, self.n_elements, self.element_ids)
+
+    def digest(self) -> str:
+        """Content hash of the placed geometry (rounded to 1 nm, so float noise does not matter)."""
+        h = hashlib.sha256()
+        h.update(np.round(self.vertices_mm, 6).astype("<f8").tobytes())
+        h.update(self.faces.astype("<i8").tobytes())
+        h.update(self.element_of_face.astype("<i8").tobytes())
+        return h.hexdigest()
+
+    def bounds_mm(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.vertices_mm.min(axis=0), self.vertices_mm.max(axis=0)
+
+
+def merge(*surfaces: Surface) -> tuple[np.ndarray, np.ndarray]:
+    """Concatenate surfaces into one (vertices, faces) triangle soup for occlusion."""
+    verts, faces, off = [], [], 0
+    for s in surfaces:
+        verts.append(s.vertices_mm)
+        faces.append(s.faces + off)
+        off += len(s.vertices_mm)
+    return np.concatenate(verts), np.concatenate(faces)
+
+
+def box(lo_mm: np.ndarray, hi_mm: np.ndarray) -> Surface:
+    """An axis-aligned closed box (occluder only: no elements), outward winding."""
+    lo, hi = np.asarray(lo_mm, float), np.asarray(hi_mm, float)
+    v = np.array([[x, y, z] for z in (lo[2], hi[2]) for y in (lo[1], hi[1]) for x in (lo[0], hi[0])])
+    quads = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
+    f = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
+    return Surface(v, f, -np.ones(len(f), np.int64), 0)
+
+
+def rectangle(center_mm, axis_u, axis_v, size_mm) -> Surface:
+    """A flat rectangle (two triangles, occluder only), normal = axis_u x axis_v."""
+    c, u, w = (np.asarray(x, float) for x in (center_mm, axis_u, axis_v))
+    a, b = size_mm[0] / 2, size_mm[1] / 2
+    v = np.array([c - a * u - b * w, c + a * u - b * w, c + a * u + b * w, c - a * u + b * w])
+    return Surface(v, np.array([[0, 1, 2], [0, 2, 3]]), -np.ones(2, np.int64), 0)
+
+
+def read_mesh(path: Path, *, scale_to_mm: float = 1.0) -> Surface:
+    """Read any mesh pyvista reads; each triangle an element unless the file has an integer
+    cell array ``element``.  Raises ValueError naming the file when it is empty or unreadable."""
+    import pyvista as pv
+
+    try:
+        mesh = pv.read(str(path))
+    except Exception as e:  # pyvista raises many kinds; all mean "cannot read"
+        raise ValueError(f"mesh file {path} cannot be read: {e}") from None
+    if isinstance(mesh, pv.MultiBlock):
+        mesh = mesh.combine()
+    mesh = mesh.extract_surface(algorithm=None) if not isinstance(mesh, pv.PolyData) else mesh
+    if mesh.n_cells == 0 or mesh.n_points == 0:
+        raise ValueError(f"mesh file {path} holds no surface triangles")
+    has_element = "element" in mesh.cell_data and np.issubdtype(mesh.cell_data["element"].dtype, np.integer)
+    if has_element:
+        mesh.cell_data["_element"] = mesh.cell_data["element"]
+    tri = mesh.triangulate()
+    faces = tri.faces.reshape(-1, 4)[:, 1:]
+    if len(faces) == 0:
+        raise ValueError(f"mesh file {path} holds no surface triangles")
+    verts = np.asarray(tri.points, dtype=np.float64) * scale_to_mm
+    if has_element:
+        ids, elem = np.unique(np.asarray(tri.cell_data["_element"]), return_inverse=True)
+        return Surface(verts, faces, elem.ravel(), len(ids), ids)
+    return Surface(verts, faces, np.arange(len(faces)), len(faces))

@@ -1,0 +1,127 @@
+"""Phantom surface generators, built in their own frame (centred at the origin).
+
+Each returns the surface and its own rotation axis (a point and a unit direction).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .mesh import Surface
+
+
+def _grid_quads(n_a: int, n_b: int, wrap_a: bool) -> np.ndarray:
+    """Quads (i, j) -> four vertex indices on an (n_a(+1)) x (n_b+1) vertex grid."""
+    na_v = n_a if wrap_a else n_a + 1
+    i, j = np.meshgrid(np.arange(n_a), np.arange(n_b), indexing="ij")
+    i, j = i.ravel(), j.ravel()
+    i1 = (i + 1) % na_v if wrap_a else i + 1
+    return np.stack([j * na_v + i, j * na_v + i1, (j + 1) * na_v + i1, (j + 1) * na_v + i], axis=1)
+
+
+def _split(quads: np.ndarray, elements: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    faces = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    return faces, np.concatenate([elements, elements])
+
+
+def cylinder(*, radius_mm: float, length_mm: float, n_angular: int, n_axial: int,
+             cap_elements: bool = False) -> tuple[Surface, np.ndarray, np.ndarray]:
+    """Closed cylinder along x, centred at the origin.
+
+    Side elements are numbered ``j = i_axial * n_angular + i_angular``; element
+    ``i_angular = 0`` starts at the top (+z) and the angle runs from +z towards +y.
+    Caps are occluders unless ``cap_elements`` (then one element each, after the side).
+    """
+    phi = 2 * np.pi * np.arange(n_angular) / n_angular
+    x = np.linspace(-length_mm / 2, length_mm / 2, n_axial + 1)
+    ring = np.stack([np.sin(phi), np.cos(phi)], axis=1) * radius_mm  # (y, z)
+    side_v = np.array([[xi, y, z] for xi in x for y, z in ring])
+    quads = _grid_quads(n_angular, n_axial, wrap_a=True)
+    faces, elem = _split(quads, np.arange(n_angular * n_axial))
+    n_side = len(side_v)
+    centres = np.array([[-length_mm / 2, 0, 0], [length_mm / 2, 0, 0]])
+    verts = np.concatenate([side_v, centres])
+    cap_faces, cap_elem = [], []
+    for k, (xi, sign) in enumerate(((0, -1), (n_axial, 1))):
+        c = n_side + k
+        a = xi * n_angular + np.arange(n_angular)
+        b = xi * n_angular + (np.arange(n_angular) + 1) % n_angular
+        f = np.stack([np.full(n_angular, c), a, b], axis=1)
+        if sign < 0:
+            f = f[:, ::-1]
+        cap_faces.append(f)
+        cap_elem.append(np.full(n_angular, n_angular * n_axial + k if cap_elements else -1))
+    faces = np.concatenate([faces, *cap_faces])
+    elem = np.concatenate([elem, *cap_elem])
+    n_el = n_angular * n_axial + (2 if cap_elements else 0)
+    surf = _orient_outward(Surface(verts, faces, elem, n_el), np.zeros(3))
+    return surf, np.zeros(3), np.array([1.0, 0, 0])
+
+
+def ring(*, radius_mm: float, thickness_mm: float, n_elements: int) -> tuple[Surface, np.ndarray, np.ndarray]:
+    """The paper's 2-D slice: an open cylindrical band of ``n_elements`` around the y axis.
+
+    Element 0 is centred on the top (+z) and faces straight up; angles run towards +x.
+    """
+    phi = 2 * np.pi * (np.arange(n_elements) - 0.5) / n_elements
+    y = np.array([-thickness_mm / 2, thickness_mm / 2])
+    verts = np.array([[radius_mm * np.sin(p), yi, radius_mm * np.cos(p)] for yi in y for p in phi])
+    quads = _grid_quads(n_elements, 1, wrap_a=True)
+    faces, elem = _split(quads, np.arange(n_elements))
+    surf = Surface(verts, faces, elem, n_elements)
+    return _orient_outward(surf, np.zeros(3)), np.zeros(3), np.array([0.0, 1, 0])
+
+
+def sphere(*, radius_mm: float, n_latitude: int, n_longitude: int) -> tuple[Surface, np.ndarray, np.ndarray]:
+    """Closed UV sphere at the origin; each latitude x longitude cell one element."""
+    theta = np.linspace(0, np.pi, n_latitude + 1)[1:-1]
+    phi = 2 * np.pi * np.arange(n_longitude) / n_longitude
+    body = np.array([[np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)] for t in theta for p in phi])
+    verts = np.concatenate([[[0, 0, 1]], body, [[0, 0, -1]]]) * radius_mm
+    faces, elem = [], []
+    n_top, n_bot = 0, len(verts) - 1
+    for k in range(n_longitude):
+        k1 = (k + 1) % n_longitude
+        faces.append((n_top, 1 + k, 1 + k1))
+        elem.append(k)
+    for r in range(n_latitude - 2):
+        for k in range(n_longitude):
+            k1 = (k + 1) % n_longitude
+            a, b = 1 + r * n_longitude + k, 1 + r * n_longitude + k1
+            c, d = a + n_longitude, b + n_longitude
+            e = (r + 1) * n_longitude + k
+            faces += [(a, c, d), (a, d, b)]
+            elem += [e, e]
+    last = 1 + (n_latitude - 2) * n_longitude
+    for k in range(n_longitude):
+        k1 = (k + 1) % n_longitude
+        faces.append((n_bot, last + k1, last + k))
+        elem.append((n_latitude - 1) * n_longitude + k)
+    surf = Surface(verts, np.array(faces), np.array(elem), n_latitude * n_longitude)
+    return _orient_outward(surf, np.zeros(3)), np.zeros(3), np.array([1.0, 0, 0])
+
+
+def patch(*, size_mm: tuple[float, float], n: tuple[int, int], center_mm, normal) -> tuple[Surface, np.ndarray, np.ndarray]:
+    """A flat rectangle of n[0] x n[1] elements facing ``normal``."""
+    nrm = np.asarray(normal, float) / np.linalg.norm(normal)
+    helper = np.array([1.0, 0, 0]) if abs(nrm[0]) < 0.9 else np.array([0, 1.0, 0])
+    u = np.cross(helper, nrm)
+    u /= np.linalg.norm(u)
+    w = np.cross(nrm, u)
+    a = np.linspace(-size_mm[0] / 2, size_mm[0] / 2, n[0] + 1)
+    b = np.linspace(-size_mm[1] / 2, size_mm[1] / 2, n[1] + 1)
+    verts = np.array([np.asarray(center_mm, float) + ai * u + bi * w for bi in b for ai in a])
+    quads = _grid_quads(n[0], n[1], wrap_a=False)
+    faces, elem = _split(quads, np.arange(n[0] * n[1]))
+    surf = Surface(verts, faces, elem, n[0] * n[1])
+    if np.dot(surf.face_normals[0], nrm) < 0:
+        surf = Surface(verts, faces[:, ::-1], elem, n[0] * n[1])
+    return surf, np.asarray(center_mm, float), u
+
+
+def _orient_outward(surf: Surface, centre: np.ndarray) -> Surface:
+    """Wind every face to point away from ``centre`` (right for the convex phantoms here)."""
+    c = surf.face_vertices_mm.mean(axis=1) - centre
+    inward = np.einsum("ij,ij->i", surf.face_normals, c) < 0
+    faces = np.where(inward[:, None], surf.faces[:, ::-1], surf.faces)
+    return Surface(surf.vertices_mm, faces, surf.element_of_face, surf.n_elements)
