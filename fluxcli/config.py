@@ -259,19 +259,31 @@ class LoadedConfig:
 
 
 def _apply_override(raw: dict[str, Any], item: str) -> None:
+    """Apply ``dotted.key=value`` (list items by index: ``system.mirrors.0.reflectance=0.9``)."""
     if "=" not in item:
         raise UserError(f"--set {item!r}: expected dotted.key=value, e.g. --set transfer.estimator=pairwise.")
     key, value = item.split("=", 1)
     parts = key.strip().split(".")
-    node = raw
-    for i, part in enumerate(parts[:-1]):
-        nxt = node.get(part)
-        if nxt is None:
-            nxt = node[part] = {}
-        if not isinstance(nxt, dict):
-            raise UserError(f"--set {item!r}: {'.'.join(parts[: i + 1])} is not a section, so it has no key {parts[i + 1]!r}.")
-        node = nxt
-    node[parts[-1]] = yaml.safe_load(value)
+    node: Any = raw
+    for i, part in enumerate(parts):
+        last = i == len(parts) - 1
+        where = ".".join(parts[:i]) or "the config"
+        if isinstance(node, list):
+            if not part.isdigit() or int(part) >= len(node):
+                raise UserError(f"--set {item!r}: {where} is a list of {len(node)} item(s); {part!r} is not an index in it.")
+            if last:
+                node[int(part)] = yaml.safe_load(value)
+            else:
+                node = node[int(part)]
+        elif isinstance(node, dict):
+            if last:
+                node[part] = yaml.safe_load(value)
+            else:
+                if node.get(part) is None:
+                    node[part] = {}
+                node = node[part]
+        else:
+            raise UserError(f"--set {item!r}: {where} is a value, not a section, so it has no key {part!r}.")
 
 
 def _format_validation_error(err: ValidationError, path: Path) -> str:

@@ -170,6 +170,27 @@ class _PairFilter:
 
 
 # ------------------------------------------------------------------ estimators
+def _sampling_disks(cam: ThinLensCamera, P: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per surface point, the smallest disk in the lens plane that holds every line from the
+    point through the lens and all extra apertures: the lens disk itself, or the shadow of
+    an aperture (radius rho z / (z - a), centred where the line to its centre lands).
+
+    Returns centre offsets from the lens centre (S, 3) and radii (S,) in mm.
+    """
+    centre = np.zeros_like(P)
+    radius = np.full(len(P), cam.aperture_radius_mm)
+    lateral = (P - cam.center_mm) - z[:, None] * cam.axis
+    for ap in cam.apertures:
+        in_front = z > ap.distance_mm
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = ap.radius_mm * z / (z - ap.distance_mm)
+        smaller = in_front & (r < radius)
+        radius = np.where(smaller, r, radius)
+        shift = -(ap.distance_mm / np.where(in_front, z - ap.distance_mm, 1.0))[:, None] * lateral
+        centre = np.where(smaller[:, None], shift, centre)
+    return centre, radius
+
+
 def _lens_pairs(surface: Surface, view: View, s: LensSampling, rays_per_batch: int) -> Iterator[tuple]:
     cam = view.camera
     faces = _candidate_faces(surface, view)
@@ -185,29 +206,35 @@ def _lens_pairs(surface: Surface, view: View, s: LensSampling, rays_per_batch: i
     z = cam.axial(P)
     front = (z > 0) & (np.einsum("ij,ij->i", N, cam.center_mm - P) > -cam.aperture_radius_mm)
     P, N, E, W, z = P[front], N[front], E[front], W[front], z[front]
-    blur = cam.blur_diameter_px(z)
+    disk_c, disk_r = _sampling_disks(cam, P, z)
+    # blur of the sampled cone, in pixels: sample its area at the requested density
+    blur = 2 * disk_r * np.abs(cam.focus_distance_mm - z) / (z * cam.focal_pixel_mm)
     want = np.ceil(s.lens_samples_per_blur_pixel * np.pi / 4 * blur**2)
     want = np.clip(want, s.lens_samples_min, s.lens_samples_max)
     # quantise to powers of two above the minimum, so samples batch together
     level = np.ceil(np.log2(want / s.lens_samples_min)).astype(int)
     n_lens = np.minimum(s.lens_samples_min * 2**level, s.lens_samples_max)
-    dA = cam.lens_area_mm2
+    R2 = cam.aperture_radius_mm**2
     for n in np.unique(n_lens):
-        lens = cam.lens_points(sunflower_disk(int(n)))
+        unit = sunflower_disk(int(n))
+        unit3 = unit[:, :1] * cam.right + unit[:, 1:] * cam.down  # (n, 3) in the lens plane
         sel = np.flatnonzero(n_lens == n)
         chunk = max(1, rays_per_batch // int(n))
         for a in range(0, len(sel), chunk):
             i = sel[a:a + chunk]
+            offs = (disk_c[i, None, :] + disk_r[i, None, None] * unit3[None]).reshape(-1, 3)
+            L = cam.center_mm + offs
             p = np.repeat(P[i], n, axis=0)
             nn = np.repeat(N[i], n, axis=0)
             zz = np.repeat(z[i], n)
-            L = np.tile(lens, (len(i), 1))
             d = L - p
             r2 = np.einsum("ij,ij->i", d, d)
             inv = 1 / np.sqrt(r2)
             cos_s = np.einsum("ij,ij->i", nn, d) * inv
             cos_l = -(d @ cam.axis) * inv
-            w = np.where(cos_s > 0, cos_s * cos_l / (np.pi * r2), 0.0) * (dA / n) * np.repeat(W[i], n)
+            dA = np.repeat(np.pi * disk_r[i] ** 2 / n * W[i], n)
+            inside = np.einsum("ij,ij->i", offs, offs) <= R2
+            w = np.where((cos_s > 0) & inside, cos_s * cos_l / (np.pi * r2), 0.0) * dA
             pix = cam.pixel_index(cam.focal_plane_hit(p, L, zz))
             yield p, nn, L, pix, w, np.repeat(E[i], n), zz, len(i)
 

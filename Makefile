@@ -1,0 +1,46 @@
+# fluxmap: reproducible set-up, tests, benchmarks and experiments.
+#   make demo   create .venv, install, run the demo pipeline, print where its output is
+#   make test   create .venv if needed, install with test extras, run the test suite
+#   make bench  speed ratios measured in one run (slow checks included)
+
+PYTHON ?= python3
+VENV   ?= .venv
+PY      = $(VENV)/bin/python
+FLUXMAP = $(VENV)/bin/fluxmap
+JOBS   ?= 2
+
+.PHONY: all demo test bench samples figures clean help
+all: test
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[test]'
+	touch $@
+
+install: $(VENV)/.installed
+
+demo: $(VENV)/.installed
+	$(FLUXMAP) build-T configs/demo.yaml --jobs $(JOBS)
+	@echo "demo output: $(CURDIR)/runs/demo/transfer.h5 (T files in runs/demo/cache/T)"
+
+test: $(VENV)/.installed
+	$(PY) -m pytest -q
+
+bench: $(VENV)/.installed
+	$(PY) -m pytest -q -m slow --benchmark-disable
+	$(PY) benchmarks/bench_transfer.py
+
+samples: $(VENV)/.installed
+	$(PY) data-samples/make_samples.py
+
+figures: $(VENV)/.installed
+	$(PY) docs/make_figures.py
+
+clean:
+	rm -rf runs .pytest_cache
+
+help:
+	@sed -n '2,5p' Makefile
+
+-include pipelines/*.mk
