@@ -70,43 +70,66 @@ class TransferResult:
 
 
 # ------------------------------------------------------------------ surface sampling
-def subtriangle_barycentrics(n: int) -> np.ndarray:
-    """Barycentric centroids of the n^2 congruent sub-triangles of a triangle, (n^2, 3)."""
-    pts = []
+def subtriangle_barycentrics(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Barycentric centroids of the n^2 congruent sub-triangles of a triangle, (n^2, 3),
+    and their orientation (+1 for the n(n+1)/2 upright ones, -1 for the inverted ones,
+    which are the upright shape turned 180 degrees about the centroid)."""
+    pts, sign = [], []
     for i in range(n):
         for j in range(n - i):
             pts.append((i + 1 / 3, j + 1 / 3))
+            sign.append(1.0)
             if i + j <= n - 2:
                 pts.append((i + 2 / 3, j + 2 / 3))
+                sign.append(-1.0)
     ab = np.array(pts) / n
-    return np.column_stack([1 - ab.sum(axis=1), ab])
+    return np.column_stack([1 - ab.sum(axis=1), ab]), np.array(sign)
 
 
 def sample_faces(surface: Surface, face_ids: np.ndarray, n_sub: np.ndarray):
     """Sub-triangle centroid samples of the given faces.
 
-    Returns points (S, 3) mm, normals (S, 3), element index (S,), and the fraction of the
-    element's area each sample stands for (S,).
+    Returns points (S, 3) mm, normals (S, 3), element index (S,), the fraction of the
+    element's area each sample stands for (S,), and the two edge vectors of each sample's
+    sub-triangle (S, 2, 3), signed so that ``p + (a - 1/3) e0 + (b - 1/3) e1`` with
+    ``a, b >= 0, a + b <= 1`` covers exactly that sub-triangle.
     """
     tri = surface.face_vertices_mm
     normals = surface.face_normals
     areas = surface.face_areas_mm2
     el_area = surface.element_areas_mm2
-    out_p, out_n, out_e, out_w = [], [], [], []
+    out_p, out_n, out_e, out_w, out_edges = [], [], [], [], []
     for n in np.unique(n_sub):
         f = face_ids[n_sub == n]
-        bary = subtriangle_barycentrics(int(n))
+        bary, sign = subtriangle_barycentrics(int(n))
         p = np.einsum("kc,fcd->fkd", bary, tri[f]).reshape(-1, 3)
         k = len(bary)
         e = np.repeat(surface.element_of_face[f], k)
+        edges = np.stack([tri[f, 1] - tri[f, 0], tri[f, 2] - tri[f, 0]], axis=1) / n  # (F, 2, 3)
         out_p.append(p)
         out_n.append(np.repeat(normals[f], k, axis=0))
         out_e.append(e)
         out_w.append(np.repeat(areas[f] / (n * n), k) / el_area[e])
+        out_edges.append((edges[:, None] * sign[None, :, None, None]).reshape(-1, 2, 3))
     if not out_p:
         z = np.zeros((0, 3))
-        return z, z, np.zeros(0, np.int64), np.zeros(0)
-    return np.concatenate(out_p), np.concatenate(out_n), np.concatenate(out_e), np.concatenate(out_w)
+        return z, z, np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 2, 3))
+    return (np.concatenate(out_p), np.concatenate(out_n), np.concatenate(out_e), np.concatenate(out_w),
+            np.concatenate(out_edges))
+
+
+def triangle_jitter(n: int) -> np.ndarray:
+    """``n`` well-spread points of the unit triangle (a, b >= 0, a + b <= 1), centred on its
+    centroid: offsets (n, 2) with mean ~0.  Roberts' R2 sequence folded into the triangle."""
+    g = 1.32471795724474602596  # plastic number
+    k = np.arange(n) + 0.5
+    a = (k / g) % 1.0
+    b = (k / g**2) % 1.0
+    fold = a + b > 1
+    a, b = np.where(fold, 1 - a, a), np.where(fold, 1 - b, b)
+    # decorrelate from the lens spiral, which is ordered by radius
+    order = (np.arange(n) * 7919) % n if n % 7919 else np.arange(n)
+    return np.column_stack([a, b])[order] - 1 / 3
 
 
 def _candidate_faces(surface: Surface, view: View) -> np.ndarray:
@@ -202,10 +225,10 @@ def _lens_pairs(surface: Surface, view: View, s: LensSampling, rays_per_batch: i
     footprint = cam.focal_pixel_mm * z_face / cam.focus_distance_mm  # pixel size seen at that depth
     n_sub = np.clip(np.ceil(edge / footprint * s.surface_samples_per_pixel),
                     s.min_surface_subdivisions, s.max_surface_subdivisions).astype(np.int64)
-    P, N, E, W = sample_faces(surface, faces, n_sub)
+    P, N, E, W, G = sample_faces(surface, faces, n_sub)
     z = cam.axial(P)
     front = (z > 0) & (np.einsum("ij,ij->i", N, cam.center_mm - P) > -cam.aperture_radius_mm)
-    P, N, E, W, z = P[front], N[front], E[front], W[front], z[front]
+    P, N, E, W, z, G = P[front], N[front], E[front], W[front], z[front], G[front]
     disk_c, disk_r = _sampling_disks(cam, P, z)
     # blur of the sampled cone, in pixels: sample its area at the requested density
     blur = 2 * disk_r * np.abs(cam.focus_distance_mm - z) / (z * cam.focal_pixel_mm)
@@ -218,15 +241,18 @@ def _lens_pairs(surface: Surface, view: View, s: LensSampling, rays_per_batch: i
     for n in np.unique(n_lens):
         unit = sunflower_disk(int(n))
         unit3 = unit[:, :1] * cam.right + unit[:, 1:] * cam.down  # (n, 3) in the lens plane
+        # each ray leaves from its own point of the sample's sub-triangle: the lens samples
+        # then also integrate over the surface, which removes pixel aliasing (moire)
+        jit = triangle_jitter(int(n))
         sel = np.flatnonzero(n_lens == n)
         chunk = max(1, rays_per_batch // int(n))
         for a in range(0, len(sel), chunk):
             i = sel[a:a + chunk]
             offs = (disk_c[i, None, :] + disk_r[i, None, None] * unit3[None]).reshape(-1, 3)
             L = cam.center_mm + offs
-            p = np.repeat(P[i], n, axis=0)
+            p = (P[i, None, :] + np.einsum("kc,scd->skd", jit, G[i])).reshape(-1, 3)
             nn = np.repeat(N[i], n, axis=0)
-            zz = np.repeat(z[i], n)
+            zz = cam.axial(p)
             d = L - p
             r2 = np.einsum("ij,ij->i", d, d)
             inv = 1 / np.sqrt(r2)
@@ -244,7 +270,7 @@ def _pairwise_pairs(surface: Surface, view: View, s: PairwiseSampling, rays_per_
     faces = _candidate_faces(surface, view)
     if len(faces) == 0:
         return
-    P, N, E, W = sample_faces(surface, faces, np.full(len(faces), s.surface_subdivisions))
+    P, N, E, W, _ = sample_faces(surface, faces, np.full(len(faces), s.surface_subdivisions))
     z = cam.axial(P)
     front = (z > 0) & (np.einsum("ij,ij->i", N, cam.center_mm - P) > -cam.aperture_radius_mm)
     P, N, E, W, z = P[front], N[front], E[front], W[front], z[front]
