@@ -214,7 +214,7 @@ class Transfer(Model):
     lens: LensSampling = LensSampling()
     pairwise: PairwiseSampling = PairwiseSampling()
     ray_offset_mm: float = Field(1e-3, gt=0, description="Rays start this far along the normal (self-hit guard).")
-    rays_per_batch: int = Field(2_000_000, ge=1000, description="Rays cast per Embree call (memory vs overhead).")
+    rays_per_batch: int = Field(100_000, ge=1000, description="Rays cast per Embree call (memory vs overhead).")
     cache_dir: Path | None = Field(None, description="Where cached T files live (default <workdir>/cache/T).")
 
 

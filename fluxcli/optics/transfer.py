@@ -338,7 +338,7 @@ def build_transfer(
     lens_sampling: LensSampling = LensSampling(),
     pairwise_sampling: PairwiseSampling = PairwiseSampling(),
     ray_offset_mm: float = 1e-3,
-    rays_per_batch: int = 2_000_000,
+    rays_per_batch: int = 100_000,
     progress: Callable[[float], None] | None = None,
 ) -> TransferResult:
     """Compute T for ``surface`` seen by ``views``, with ``surface`` and ``occluders`` blocking.
