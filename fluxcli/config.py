@@ -82,7 +82,7 @@ class Sensor(Model):
     electrons_per_count: float = Field(10.0, gt=0, description="ADC conversion gain (electrons per count).")
     dark_current_e_per_s: float = Field(0.001, ge=0, description="Dark current per pixel (electrons/s).")
     cic_e_per_pixel: float = Field(0.005, ge=0, description="Clock-induced charge per pixel per frame (electrons).")
-    bit_depth: int = Field(16, ge=8, le=32, description="ADC bit depth; counts saturate at 2**bit_depth - 1.")
+    bit_depth: int = Field(16, ge=8, le=16, description="ADC bit depth; counts saturate at 2**bit_depth - 1.")
 
 
 class Camera(Model):

@@ -35,9 +35,8 @@ def cache_dir(cfg: LoadedConfig) -> Path:
     return cfg.resolve(cfg.model.transfer.cache_dir) if cfg.model.transfer.cache_dir else cfg.workdir / "cache" / "T"
 
 
-def key_parts(scene: PlacedScene, views: list[View], cfg: LoadedConfig) -> dict:
+def key_parts(scene: PlacedScene, views: list[View], tr: Transfer) -> dict:
     """Everything T depends on, and nothing else (no names, paths or later-stage settings)."""
-    tr = cfg.model.transfer
     cam = views[0].camera
     sampling = tr.lens.model_dump() if tr.estimator == "lens" else tr.pairwise.model_dump()
     return A.canonical({
@@ -59,14 +58,18 @@ def key_parts(scene: PlacedScene, views: list[View], cfg: LoadedConfig) -> dict:
     })
 
 
-def plan(cfg: LoadedConfig) -> tuple[list[View], SubjectPlacer, list[tuple[PlacedScene, PoseT]]]:
+def plan(cfg: LoadedConfig, transfer: Transfer | None = None) -> tuple[list[View], SubjectPlacer, list[tuple[PlacedScene, PoseT]]]:
+    """The views, the subject placer, and per pose its placed scene and cache entry.
+
+    ``transfer`` overrides ``cfg.model.transfer`` (simulate builds a finer T this way)."""
+    tr = transfer or cfg.model.transfer
     views = views_from_config(cfg.model.system)
     placer = SubjectPlacer(cfg)
     out = []
     cdir = cache_dir(cfg)
     for pose in poses_from_config(cfg.model.subject):
         scene = placer.scene(pose, cfg.model.system)
-        key = A.cache_key(key_parts(scene, views, cfg))
+        key = A.cache_key(key_parts(scene, views, tr))
         out.append((scene, PoseT(pose, key, cdir / f"{key}.h5")))
     return views, placer, out
 
@@ -131,28 +134,49 @@ def read_summary(path: Path, view_names: list[str], areas: np.ndarray) -> dict:
         return {"nnz": int(f["T"]["data"].shape[0]), "efficiency": eff, "seconds": float(f.attrs["build_seconds"])}
 
 
-def run(cfg: LoadedConfig, ctx: RunContext) -> Path:
-    views, placer, todo = plan(cfg)
+def ensure_T(cfg: LoadedConfig, ctx: RunContext, transfer: Transfer | None = None, label: str = "building T"):
+    """Build every pose's T that the cache lacks (all with ``ctx.force``).
+
+    Returns views, placer, [(scene, PoseT)], and per key a summary dict (cached, seconds,
+    nnz, efficiency per view)."""
+    tr = transfer or cfg.model.transfer
+    views, placer, todo = plan(cfg, tr)
     names = [v.name for v in views]
-    ctx.say(f"build-T: {len(todo)} pose(s), views {', '.join(names)}, estimator {cfg.model.transfer.estimator}, "
-            f"cache {cache_dir(cfg)}")
     results: dict[str, dict] = {}
-    need = [(s, p) for s, p in todo if ctx.force or not p.path.is_file()]
+    need, seen = [], set()
     for s, p in todo:
-        if (s, p) not in need:
+        if (ctx.force or not p.path.is_file()) and p.key not in seen:
+            need.append((s, p))
+            seen.add(p.key)
+    for s, p in todo:
+        if p.key not in seen:
             results[p.key] = read_summary(p.path, names, s.surface.element_areas_mm2) | {"cached": True}
-    with ctx.progress("building T", total=len(need)) as advance:
+    with ctx.progress(label, total=len(need)) as advance:
         if ctx.jobs > 1 and len(need) > 1:
             with ProcessPoolExecutor(max_workers=ctx.jobs) as ex:
-                futs = {ex.submit(_build_and_store, s, views, cfg.model.transfer, p.path, cfg.sha256): p
-                        for s, p in need}
+                futs = {ex.submit(_build_and_store, s, views, tr, p.path, cfg.sha256): p for s, p in need}
                 for fut in futs:
                     results[futs[fut].key] = fut.result() | {"cached": False}
                     advance()
         else:
             for s, p in need:
-                results[p.key] = _build_and_store(s, views, cfg.model.transfer, p.path, cfg.sha256) | {"cached": False}
+                results[p.key] = _build_and_store(s, views, tr, p.path, cfg.sha256) | {"cached": False}
                 advance()
+    return views, placer, todo, results
+
+
+def load_T(path: Path):
+    """The combined T (CSR, pixels x elements) of one cached pose."""
+    with A.open_artefact(path, "transfer") as f:
+        return A.read_csr(f["T"])
+
+
+def run(cfg: LoadedConfig, ctx: RunContext) -> Path:
+    views, _, todo = plan(cfg)  # validates the geometry before anything is printed
+    ctx.say(f"build-T: {len(todo)} pose(s), views {', '.join(v.name for v in views)}, "
+            f"estimator {cfg.model.transfer.estimator}, cache {cache_dir(cfg)}")
+    views, placer, todo, results = ensure_T(cfg, ctx)
+    names = [v.name for v in views]
     rows = []
     for s, p in todo:
         r = results[p.key]
