@@ -88,8 +88,13 @@ def build_T(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, force:
 @app.command("simulate")
 def simulate(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, force: bool = ForceOpt,
              jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
-    """Make ground-truth surface fluxes and realistic camera images."""
-    _run(_not_built("simulate", "issue 3"), config, set_, force, jobs, quiet)
+    """Make ground-truth surface fluxes and realistic camera images.
+
+    $ fluxmap simulate configs/paper-2d.yaml
+    """
+    from .stages import simulate as stage
+
+    _run(stage.run, config, set_, force, jobs, quiet)
 
 
 @app.command("reconstruct")

@@ -218,6 +218,90 @@ class Transfer(Model):
     cache_dir: Path | None = Field(None, description="Where cached T files live (default <workdir>/cache/T).")
 
 
+# --------------------------------------------------------------------------- simulate
+class GaussianFlux(Model):
+    kind: Literal["gaussian"]
+    center_mm: Vec3 | None = Field(None, description="Centre of the patch, subject at rest (height 0, no rotation); default the top element.")
+    width_mm: float = Field(5.0, gt=0, description="Standard deviation of the Gaussian over element centroids (mm).")
+    peak_photons: float = Field(5e7, gt=0, description="Power of the brightest element (photons per exposure).")
+
+
+class UniformFlux(Model):
+    kind: Literal["uniform"]
+    exitance_photons_per_mm2: float = Field(1e5, gt=0, description="Exitance of every element (photons mm^-2 per exposure).")
+
+
+class FileFlux(Model):
+    kind: Literal["file"]
+    path: Path = Field(description="Per-element values: .npy, or text with one value per line.")
+    quantity: Literal["power", "exitance"] = Field("power", description="power (photons) or exitance (photons/mm^2).")
+
+
+class Optical(Model):
+    mua_per_mm: float = Field(ge=0, description="Absorption coefficient mu_a (1/mm).")
+    musp_per_mm: float = Field(gt=0, description="Reduced scattering coefficient mu_s' (1/mm).")
+    refractive_index: float = Field(1.4, ge=1, description="Refractive index n (outside is air).")
+
+
+class Source(Model):
+    power_photons: float = Field(gt=0, description="Source power (photons per exposure).")
+    position_mm: Vec3 | None = Field(None, description="Position, subject at rest (height 0, no rotation).")
+    depth_mm: float | None = Field(None, gt=0, description="Instead of position: this deep below the surface ...")
+    direction: Vec3 = Field((0.0, 0.0, 1.0), description="... under the surface point hit from the subject centre along this direction.")
+    radius_mm: float = Field(0.0, ge=0, description="0 for a point source, else a uniform ball.")
+
+    @model_validator(mode="after")
+    def _check(self) -> "Source":
+        if (self.position_mm is None) == (self.depth_mm is None):
+            raise ValueError("give exactly one of position_mm and depth_mm")
+        return self
+
+
+class DiffusionFlux(Model):
+    kind: Literal["diffusion"]
+    optical: dict[int, Optical] = Field(description="Optical properties per wavelength (nm).")
+    wavelength_nm: int = Field(description="Which wavelength of 'optical' to simulate.")
+    sources: tuple[Source, ...] = Field(min_length=1)
+    mesh_edge_mm: float = Field(1.5, gt=0, description="Target tetrahedron edge length (mm).")
+
+    @model_validator(mode="after")
+    def _check(self) -> "DiffusionFlux":
+        if self.wavelength_nm not in self.optical:
+            raise ValueError(f"wavelength_nm {self.wavelength_nm} has no entry in optical ({sorted(self.optical)})")
+        return self
+
+
+Flux = Annotated[Union[GaussianFlux, UniformFlux, FileFlux, DiffusionFlux], Field(discriminator="kind")]
+
+
+class Noise(Model):
+    model: Literal["none", "gaussian", "poisson", "emccd"] = Field("poisson", description="gaussian: the paper's a + N(0, sqrt a).")
+    peaks_photons: tuple[float, ...] | None = Field(None, description="Signal levels: truth scaled so its brightest element has this power.")
+    repeats: int = Field(1, ge=1, description="Noisy images per level and pose.")
+    seed: int = Field(0, ge=0, description="Seed; the same config gives the same bytes.")
+    exposure_s: float = Field(1.0, gt=0, description="Exposure (for dark current in the EMCCD model).")
+
+    @field_validator("peaks_photons")
+    @classmethod
+    def _peaks(cls, v):
+        if v is not None and (len(v) == 0 or min(v) <= 0):
+            raise ValueError("every signal level must be a positive number of photons")
+        return v
+
+
+class Export(Model):
+    format: Literal["none", "tiff", "fits"] = Field("none", description="Also write images as 16-bit TIFF/float FITS files.")
+    repeats: int = Field(1, ge=1, description="How many repeats per level to export.")
+
+
+class Simulate(Model):
+    flux: Flux
+    transfer: "Transfer | None" = Field(None, description="Sampling of the forward T (default: twice as fine as 'transfer').")
+    allow_inverse_crime: bool = Field(False, description="Allow the forward T to equal reconstruction's T.")
+    noise: Noise = Noise()
+    export: Export = Export()
+
+
 # --------------------------------------------------------------------------- top level
 class Config(Model):
     workdir: Path | None = Field(None, description="Output folder (default runs/<config name>), relative to the config file.")
@@ -225,7 +309,7 @@ class Config(Model):
     subject: Subject
     transfer: Transfer = Transfer()
     # Sections of stages that validate their own keys when they are built.
-    simulate: dict[str, Any] | None = None
+    simulate: Simulate | None = None
     reconstruct: dict[str, Any] | None = None
     report: dict[str, Any] | None = None
     calibrate: dict[str, Any] | None = None
@@ -303,6 +387,7 @@ def _format_validation_error(err: ValidationError, path: Path) -> str:
 
 # pydantic puts union member names into error locations; they are not keys the user wrote.
 _UNION_TAGS = {"cylinder", "ring", "sphere", "patch", "MeshSurface", "ArtefactSurface",
+               "gaussian", "uniform", "file", "diffusion",
                "function-after[_check(), Lens]", "tagged-union[CylinderPhantom,RingPhantom,SpherePhantom,PatchPhantom]"}
 
 
@@ -330,3 +415,7 @@ def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -
         if p is not None and not loaded.resolve(p).is_file():
             raise UserError(f"config {path}: 'subject.surface.{attr}': file {loaded.resolve(p)} does not exist.")
     return loaded
+
+
+Simulate.model_rebuild()
+Config.model_rebuild()

@@ -38,3 +38,12 @@ class OcclusionScene:
             query="OCCLUDED",
         )
         return np.asarray(hit) >= 0
+
+    def first_hit_mm(self, origins_mm: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """Distance along each unit direction to the first triangle hit (inf where none)."""
+        n = len(origins_mm)
+        if self._empty or n == 0:
+            return np.full(n, np.inf)
+        out = self._scene.run(np.ascontiguousarray(origins_mm, np.float32),
+                              np.ascontiguousarray(directions, np.float32), output=1)
+        return np.where(out["geomID"] >= 0, out["tfar"].astype(np.float64), np.inf)

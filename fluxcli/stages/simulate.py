@@ -1,0 +1,234 @@
+"""``fluxmap simulate CONFIG``: ground-truth surface flux and realistic camera images.
+
+Examples
+--------
+$ fluxmap simulate configs/paper-2d.yaml
+$ fluxmap simulate configs/paper-3d.yaml --set simulate.noise.repeats=3
+
+The truth is a power per surface element (photons per exposure); images are
+``a = T_fwd b`` per pose, with ``T_fwd`` sampled more finely than the T that
+reconstruction uses (no inverse crime unless ``simulate.allow_inverse_crime``), then noise.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .. import artefacts as A
+from .. import config as C
+from ..diffusion.surface_flux import element_power_from_sources
+from ..errors import UserError
+from ..imaging import noise as N
+from ..imaging.imagefiles import write_image
+from ..optics.raycast import OcclusionScene
+from ..scene import SubjectPlacer
+from ..surface.mesh import Surface
+from .build_t import cache_dir, ensure_T, load_T, plan
+from .context import RunContext
+
+
+def forward_transfer(cfg: C.LoadedConfig) -> C.Transfer:
+    """The forward T's sampling: as configured, or twice as fine as reconstruction's."""
+    sim = cfg.model.simulate
+    if sim.transfer is not None:
+        return sim.transfer
+    tr = cfg.model.transfer
+    return tr.model_copy(update={
+        "lens": tr.lens.model_copy(update={
+            "surface_samples_per_pixel": 2 * tr.lens.surface_samples_per_pixel,
+            "lens_samples_min": 4 * tr.lens.lens_samples_min,
+            "lens_samples_per_blur_pixel": 2 * tr.lens.lens_samples_per_blur_pixel}),
+        "pairwise": tr.pairwise.model_copy(update={
+            "surface_subdivisions": 2 * tr.pairwise.surface_subdivisions,
+            "pixel_subdivisions": 2 * tr.pairwise.pixel_subdivisions}),
+    })
+
+
+# ------------------------------------------------------------------ ground truth
+def truth_power(cfg: C.LoadedConfig, surface: Surface) -> tuple[np.ndarray, dict]:
+    """Power per element (photons per exposure) of the subject at rest, and notes."""
+    flux = cfg.model.simulate.flux
+    areas = surface.element_areas_mm2
+    if isinstance(flux, C.GaussianFlux):
+        cen = surface.element_centroids_mm
+        centre = np.asarray(flux.center_mm) if flux.center_mm is not None else cen[np.argmax(cen[:, 2])]
+        d2 = ((cen - centre) ** 2).sum(axis=1)
+        return flux.peak_photons * np.exp(-d2 / (2 * flux.width_mm**2)), {"center_mm": centre.tolist()}
+    if isinstance(flux, C.UniformFlux):
+        return flux.exitance_photons_per_mm2 * areas, {}
+    if isinstance(flux, C.FileFlux):
+        path = cfg.resolve(flux.path)
+        if not path.is_file():
+            raise UserError(f"simulate.flux.path: file {path} does not exist.")
+        try:
+            values = np.load(path) if path.suffix == ".npy" else np.loadtxt(path)
+        except Exception as e:  # numpy raises several kinds for malformed files
+            raise UserError(f"simulate.flux.path: {path} is not a readable list of numbers ({e}).") from None
+        values = np.asarray(values, float).ravel()
+        if len(values) != surface.n_elements:
+            raise UserError(f"simulate.flux.path: {path} holds {len(values)} values; the surface has "
+                            f"{surface.n_elements} elements.")
+        if np.any(values < 0) or not np.all(np.isfinite(values)):
+            raise UserError(f"simulate.flux.path: {path} holds negative or non-finite values.")
+        return (values if flux.quantity == "power" else values * areas), {}
+    return _diffusion_truth(flux, surface)
+
+
+def source_positions(flux: C.DiffusionFlux, surface: Surface) -> np.ndarray:
+    """Sources given by depth sit that far below the surface point hit from the subject's
+    centre along ``direction``."""
+    scene = OcclusionScene(surface.vertices_mm, surface.faces)
+    lo, hi = surface.bounds_mm()
+    centre = (lo + hi) / 2
+    out = []
+    for k, s in enumerate(flux.sources):
+        if s.position_mm is not None:
+            out.append(np.asarray(s.position_mm, float))
+            continue
+        d = np.asarray(s.direction, float)
+        d /= np.linalg.norm(d)
+        t = scene.first_hit_mm(centre[None], d[None])[0]
+        if not np.isfinite(t):
+            raise UserError(f"simulate.flux.sources.{k}: no surface along direction {list(s.direction)} "
+                            "from the subject's centre.")
+        if s.depth_mm >= t:
+            raise UserError(f"simulate.flux.sources.{k}.depth_mm: {s.depth_mm} mm is deeper than the subject "
+                            f"({t:.2f} mm from its centre to the surface along that direction).")
+        out.append(centre + (t - s.depth_mm) * d)
+    return np.array(out)
+
+
+def _diffusion_truth(flux: C.DiffusionFlux, surface: Surface) -> tuple[np.ndarray, dict]:
+    if not surface.is_closed:
+        raise UserError(f"simulate.flux: the diffusion model needs a closed subject surface; this one has "
+                        f"{surface.boundary_edge_count()} open edge(s) (a ring or patch phantom, or an open mesh).")
+    opt = flux.optical[flux.wavelength_nm]
+    pos = source_positions(flux, surface)
+    try:
+        power, info = element_power_from_sources(
+            surface, mua_per_mm=opt.mua_per_mm, musp_per_mm=opt.musp_per_mm, refractive_index=opt.refractive_index,
+            positions_mm=pos, radii_mm=np.array([s.radius_mm for s in flux.sources]),
+            powers_photons=np.array([s.power_photons for s in flux.sources]), edge_length_mm=flux.mesh_edge_mm)
+    except ValueError as e:
+        raise UserError(f"simulate.flux: {e}") from None
+    info["source_positions_mm"] = pos.tolist()
+    return power, info
+
+
+# ------------------------------------------------------------------ images
+def levels(cfg: C.LoadedConfig, power: np.ndarray) -> np.ndarray:
+    peaks = cfg.model.simulate.noise.peaks_photons
+    return np.array(peaks if peaks is not None else [power.max()], float)
+
+
+def add_noise(a: np.ndarray, noise: C.Noise, sensor: C.Sensor, rng: np.random.Generator):
+    """Noisy photons (and counts for the EMCCD chain, else None)."""
+    if noise.model == "none":
+        return a.copy(), None
+    if noise.model == "gaussian":
+        return N.gaussian_shot(a, rng), None
+    if noise.model == "poisson":
+        return N.poisson_shot(a, rng), None
+    model = emccd_model(sensor, noise.exposure_s)
+    counts = N.emccd_counts(a, model, rng)
+    return N.counts_to_photons(counts, model), counts
+
+
+def emccd_model(sensor: C.Sensor, exposure_s: float) -> N.EMCCDModel:
+    return N.EMCCDModel(**sensor.model_dump(), exposure_s=exposure_s)
+
+
+def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
+    sim = cfg.model.simulate
+    if sim is None:
+        raise UserError(f"config {cfg.path}: 'simulate': section is missing (flux, noise, ...); see the README.")
+    tr_fwd = forward_transfer(cfg)
+    views, placer, todo = plan(cfg, tr_fwd)
+    _, _, todo_rec = plan(cfg)
+    if not sim.allow_inverse_crime and [p.key for _, p in todo] == [p.key for _, p in todo_rec]:
+        raise UserError("simulate.transfer: the forward T would be the very T that reconstruct uses (an inverse "
+                        "crime); sample it more finely, or set simulate.allow_inverse_crime: true.")
+    surface = placer.surface
+    t0 = time.perf_counter()
+    power, notes = truth_power(cfg, surface)
+    if power.max() <= 0:
+        raise UserError("simulate.flux: the ground truth is zero everywhere.")
+    truth_seconds = time.perf_counter() - t0
+    ctx.say(f"simulate: truth '{sim.flux.kind}' on {surface.n_elements} elements, total "
+            f"{power.sum():.4g} photons, peak {power.max():.4g} ({truth_seconds:.1f} s)")
+    views, placer, todo, built = ensure_T(cfg, ctx, tr_fwd, label="building forward T")
+    lv = levels(cfg, power)
+    scale = lv / power.max()
+    nx, ny = cfg.model.system.camera.pixels
+    P, L, R = len(todo), len(lv), sim.noise.repeats
+    clean = np.zeros((L, P, ny, nx), np.float32)
+    noisy = np.zeros((L, R, P, ny, nx), np.float32)
+    counts = np.zeros((L, R, P, ny, nx), np.uint16) if sim.noise.model == "emccd" else None
+    for k, (scene, pt) in enumerate(todo):
+        a1 = load_T(pt.path) @ power
+        for li in range(L):
+            a = a1 * scale[li]
+            clean[li, k] = a.reshape(ny, nx)
+            for r in range(R):
+                rng = np.random.default_rng([sim.noise.seed, li, r, k])
+                ph, c = add_noise(a, sim.noise, cfg.model.system.camera.sensor, rng)
+                noisy[li, r, k] = ph.reshape(ny, nx)
+                if counts is not None:
+                    counts[li, r, k] = c.reshape(ny, nx)
+    snr = np.sqrt(clean.reshape(L, P, -1).max(axis=2))
+    out = cfg.workdir / "simulation.h5"
+    with A.write_artefact(out, "simulation", config_sha256=cfg.sha256,
+                          inputs={f"T_fwd_{k}": pt.key for k, (_, pt) in enumerate(todo)}) as f:
+        A.write_surface(f.create_group("surface"), surface)
+        g = f.create_group("truth")
+        g.create_dataset("power", data=power).attrs["unit"] = "photons per exposure, per element"
+        g.create_dataset("exitance", data=power / surface.element_areas_mm2).attrs["unit"] = "photons mm^-2 per exposure"
+        g.attrs["kind"] = sim.flux.kind
+        g.attrs["notes"] = json.dumps(notes)
+        g.create_dataset("levels_peak_photons", data=lv)
+        g.create_dataset("level_scale", data=scale).attrs["meaning"] = "truth at level l = power * level_scale[l]"
+        pg = f.create_group("poses")
+        pg.create_dataset("heights_mm", data=[pt.pose.height_mm for _, pt in todo])
+        pg.create_dataset("rotations_deg", data=[pt.pose.rotation_deg for _, pt in todo])
+        pg.create_dataset("T_fwd_keys", data=np.array([pt.key for _, pt in todo], dtype="S64"))
+        ig = f.create_group("images")
+        chunk = (1, 1, 1, ny, nx)
+        ig.create_dataset("noiseless", data=clean, compression="gzip", chunks=(1, 1, ny, nx)).attrs["unit"] = "photons"
+        ig.create_dataset("noisy", data=noisy, compression="gzip", chunks=chunk).attrs["unit"] = "photons"
+        if counts is not None:
+            ig.create_dataset("counts", data=counts, compression="gzip", chunks=chunk).attrs["unit"] = "ADC counts"
+        ig.create_dataset("max_snr", data=snr).attrs["meaning"] = "sqrt(max a) per level and pose (the paper's Table 1)"
+        ig.attrs["layout"] = "noisy[level, repeat, pose, row, col]; noiseless[level, pose, row, col]"
+        ig.attrs["noise_model"] = sim.noise.model
+        ig.attrs["seed"] = sim.noise.seed
+        ig.attrs["exposure_s"] = sim.noise.exposure_s
+        f.attrs["transfer_fwd"] = json.dumps(tr_fwd.model_dump(mode="json"))
+        f.attrs["transfer_fwd_cache"] = str(cache_dir(cfg))
+        f.attrs["truth_seconds"] = truth_seconds
+    if sim.export.format != "none":
+        export_images(cfg, out.parent / "images", noisy, counts, todo, lv)
+    rows = [[pt.pose.height_mm, pt.pose.rotation_deg, *[f"{snr[li, k]:.1f}" for li in range(L)]]
+            for k, (_, pt) in enumerate(todo)]
+    ctx.table(["height_mm", "rotation_deg", *[f"SNR @ peak {x:.0e}" for x in lv]], rows)
+    return out
+
+
+def export_images(cfg: C.LoadedConfig, folder: Path, noisy, counts, todo, lv) -> None:
+    """One file per level, repeat and pose: counts as 16-bit TIFF (EMCCD) or photons as float."""
+    fmt = cfg.model.simulate.export
+    suffix = ".tif" if fmt.format == "tiff" else ".fits"
+    for li in range(noisy.shape[0]):
+        for r in range(min(fmt.repeats, noisy.shape[1])):
+            for k, (_, pt) in enumerate(todo):
+                name = folder / f"level{li}" / f"h{pt.pose.height_mm:+g}_rot{pt.pose.rotation_deg:g}_rep{r}{suffix}"
+                name.parent.mkdir(parents=True, exist_ok=True)
+                meta = {"fluxmap:height_mm": pt.pose.height_mm, "fluxmap:rotation_deg": pt.pose.rotation_deg,
+                        "fluxmap:level_peak_photons": float(lv[li]), "fluxmap:repeat": r}
+                if counts is not None:
+                    write_image(name, counts[li, r, k], metadata=meta | {"fluxmap:units": "counts"})
+                else:
+                    write_image(name, noisy[li, r, k].astype(np.float32), metadata=meta | {"fluxmap:units": "photons"})

@@ -1,0 +1,248 @@
+"""Tests of the diffusion forward model against closed forms and conservation laws.
+
+Meshes come from fTetWild, which is not deterministic, so tolerances leave room for
+mesh-to-mesh variation (measured over repeated runs).
+"""
+
+import numpy as np
+import pytest
+import pyvista as pv
+
+from fluxcli.diffusion import (
+    DiffusionModel,
+    check_closed,
+    exitance_to_elements,
+    nirfast_A,
+    tetrahedralize,
+)
+from fluxcli.diffusion.mesh import boundary_faces, tet_volumes_mm3
+from fluxcli.diffusion.transfer_to_surface import closest_points_on_triangles
+
+RADIUS_MM = 10.0
+MUA, MUSP, N_INDEX = 0.01, 1.0, 1.4
+
+
+def sphere_exitance_closed_form(radius_mm, mua_per_mm, musp_per_mm, refractive_index, power):
+    r"""Exitance of a homogeneous sphere with a central isotropic point source.
+
+    Derivation.  With D = 1/(3(μa + μs′)) and k = √(μa/D), the radial equation
+    −D(φ'' + 2φ'/r) + μa φ = 0 for r > 0 has the solutions e^{−kr}/r and sinh(kr)/r.
+    The source P at the centre fixes the singular part: near r = 0 the flux
+    −4πr² D φ' must tend to P, so φ ≈ P/(4πD r), i.e.
+
+        φ(r) = P/(4πD) · [f(r) + B g(r)],   f = e^{−kr}/r,   g = sinh(kr)/r,
+
+    (g is regular at 0, so it does not change the source).  The Robin condition
+    φ(a) + 2AD φ'(a) = 0 with
+
+        f'(r) = −e^{−kr}(kr + 1)/r²,   g'(r) = (kr cosh kr − sinh kr)/r²
+
+    gives B = −(f(a) + 2AD f'(a)) / (g(a) + 2AD g'(a)).  The exitance is uniform,
+    J = φ(a)/(2A), and the total is 4πa² J.
+
+    Limit μa → 0: k → 0, g → k, B g → c with 1/a + c − 2AD/a² = 0, so
+    φ(a) = P/(4πD) · 2AD/a² and J = P/(4πa²): all power leaves (total = P).
+
+    Returns
+    -------
+    (J in photons s⁻¹ mm⁻², total exitance in photons/s)
+    """
+    a = radius_mm
+    D = 1.0 / (3.0 * (mua_per_mm + musp_per_mm))
+    A = nirfast_A(refractive_index)
+    ka = np.sqrt(mua_per_mm / D) * a
+    f = np.exp(-ka) / a
+    fp = -np.exp(-ka) * (ka + 1) / a**2
+    # B·g(a) = −(f + 2AD f') / (1 + 2AD g'/g), with g'/g = (ka coth ka − 1)/a,
+    # which is ≈ ka²/(3a) for small ka (and 0 at μa = 0).
+    g_ratio = ka**2 / (3 * a) if ka < 1e-4 else (ka / np.tanh(ka) - 1) / a
+    Bg = -(f + 2 * A * D * fp) / (1 + 2 * A * D * g_ratio)
+    phi_a = power / (4 * np.pi * D) * (f + Bg)
+    J = phi_a / (2 * A)
+    return J, 4 * np.pi * a**2 * J
+
+
+def sphere_surface(radius_mm=RADIUS_MM, resolution=40):
+    s = pv.Sphere(radius=radius_mm, theta_resolution=resolution, phi_resolution=resolution)
+    return np.asarray(s.points, dtype=float), s.faces.reshape(-1, 4)[:, 1:].astype(np.int64)
+
+
+@pytest.fixture(scope="module")
+def sphere_meshes():
+    """Tet meshes of the sphere at three edge lengths (coarse → fine), ~12 s in all."""
+    v, f = sphere_surface()
+    return {h: tetrahedralize(v, f, edge_length_mm=h) for h in (4.0, 2.0, 1.2)}
+
+
+@pytest.fixture(scope="module")
+def fine_solution(sphere_meshes):
+    nodes, tets = sphere_meshes[1.2]
+    model = DiffusionModel(nodes, tets, mua_per_mm=MUA, musp_per_mm=MUSP, refractive_index=N_INDEX)
+    fluence = model.solve(model.point_source_rhs([[0.0, 0.0, 0.0]], 1.0))[:, 0]
+    return model, fluence
+
+
+def test_closed_form_limits():
+    # μa → 0: everything leaves; and the total falls as absorption rises.
+    for mua in (0.0, 1e-12, 1e-9):
+        _, total0 = sphere_exitance_closed_form(10, mua, 1.0, 1.4, 1.0)
+        assert total0 == pytest.approx(1.0, rel=1e-6)
+    # Both branches of g'/g agree where they meet (ka = 1e-4 at μa ≈ 3.3e-11 mm⁻¹).
+    below = sphere_exitance_closed_form(10, 3.2e-11, 1.0, 1.4, 1.0)[1]
+    above = sphere_exitance_closed_form(10, 3.5e-11, 1.0, 1.4, 1.0)[1]
+    assert below == pytest.approx(above, rel=1e-8)
+    totals = [sphere_exitance_closed_form(10, m, 1.0, 1.4, 1.0)[1] for m in (1e-3, 1e-2, 1e-1)]
+    assert 1 > totals[0] > totals[1] > totals[2] > 0
+
+
+def test_nirfast_A_hand_values():
+    assert nirfast_A(1.0) == pytest.approx(1.0)
+    # n = 1.4: R0 = (0.4/2.4)² = 1/36, 2/(1 − R0) = 72/35 = 2.0571429,
+    # cos θc = √(1 − 1/1.96) = 0.6998542, cos³ = 0.3427860, 1 − cos² = 1/1.96,
+    # A = (2.0571429 − 1 + 0.3427860) · 1.96 = 2.743860.
+    assert nirfast_A(1.4) == pytest.approx(2.743860, abs=2e-6)
+    with pytest.raises(ValueError, match="refractive index"):
+        nirfast_A(0.9)
+
+
+def test_mesh_is_closed_and_positively_oriented(sphere_meshes):
+    nodes, tets = sphere_meshes[4.0]
+    assert nodes.dtype == np.float64 and tets.dtype == np.int64
+    vol = tet_volumes_mm3(nodes, tets)
+    assert np.all(vol > 0)
+    bf = boundary_faces(tets)
+    check_closed(nodes, bf)
+    # Divergence theorem with outward faces: (1/3)∮ x·n dS equals the volume.
+    p = nodes[bf]
+    flux = np.einsum("ij,ij->i", p.mean(axis=1), np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]) / 2)
+    assert flux.sum() / 3 == pytest.approx(vol.sum(), rel=1e-9)
+    # Close to the sphere volume 4/3 π a³ (faceting makes it slightly smaller).
+    assert vol.sum() == pytest.approx(4 / 3 * np.pi * RADIUS_MM**3, rel=0.01)
+
+
+def test_sphere_matches_closed_form(fine_solution):
+    model, fluence = fine_solution
+    J_exact, total_exact = sphere_exitance_closed_form(RADIUS_MM, MUA, MUSP, N_INDEX, 1.0)
+    J = model.exitance_at_boundary_nodes(fluence)
+    total = model.total_exitance_photons_s(fluence)
+    assert total == pytest.approx(total_exact, rel=0.02)
+    assert J.mean() == pytest.approx(J_exact, rel=0.02)
+    assert J.std() / J.mean() < 0.02
+    # A small uniform ball source gives the same surface field.
+    fluence_ball = model.solve(model.sphere_source_rhs([[0.0, 0.0, 0.0]], 0.3, 1.0))[:, 0]
+    J_ball = model.exitance_at_boundary_nodes(fluence_ball)
+    assert J_ball.mean() == pytest.approx(J_exact, rel=0.02)
+
+
+def test_error_falls_with_refinement(sphere_meshes):
+    J_exact, _ = sphere_exitance_closed_form(RADIUS_MM, MUA, MUSP, N_INDEX, 1.0)
+    rms = []
+    for h in (4.0, 2.0, 1.2):
+        model = DiffusionModel(*sphere_meshes[h], mua_per_mm=MUA, musp_per_mm=MUSP, refractive_index=N_INDEX)
+        J = model.exitance_at_boundary_nodes(model.solve(model.point_source_rhs([0.0, 0.0, 0.0], 1.0)))
+        rms.append(np.sqrt(np.mean((J / J_exact - 1) ** 2)))
+    # Measured over repeated meshings: ~0.06–0.11, ~0.025–0.030, ~0.010.
+    assert rms[0] > rms[1] > rms[2]
+    assert rms[2] < 0.02
+
+
+def test_power_balance_and_low_absorption_limit(sphere_meshes):
+    nodes, tets = sphere_meshes[2.0]
+    for mua in (0.0, 1e-6, 1e-3, 1e-2, 1e-1):
+        model = DiffusionModel(nodes, tets, mua_per_mm=mua, musp_per_mm=MUSP, refractive_index=N_INDEX)
+        centred, off_centre = [[0.0, 0.0, 0.0]], [[1.0, -2.0, 0.5]]
+        fluence = model.solve(model.point_source_rhs(centred + off_centre, 3.0))
+        total = model.total_exitance_photons_s(fluence)
+        absorbed = model.absorbed_power_photons_s(fluence)
+        assert np.all(total <= 3.0 * (1 + 1e-12))
+        np.testing.assert_allclose(total + absorbed, 3.0, rtol=1e-9)
+        _, total_exact = sphere_exitance_closed_form(RADIUS_MM, mua, MUSP, N_INDEX, 3.0)
+        if mua <= 1e-6:
+            np.testing.assert_allclose(total, 3.0, rtol=0.01)
+        if mua <= 1e-2:  # at μa = 0.1 mm⁻¹ (1/k = 1.7 mm) this 2 mm mesh is too coarse
+            assert total[0] == pytest.approx(total_exact, rel=0.02)
+
+
+def test_many_sources_share_one_factorisation(sphere_meshes, monkeypatch):
+    import fluxcli.diffusion.fem as fem
+
+    calls = []
+    real_splu = fem.spla.splu
+    monkeypatch.setattr(fem.spla, "splu", lambda *a, **k: calls.append(1) or real_splu(*a, **k))
+    nodes, tets = sphere_meshes[4.0]
+    model = DiffusionModel(nodes, tets, mua_per_mm=MUA, musp_per_mm=MUSP, refractive_index=N_INDEX)
+    positions = [[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [0.0, -5.0, 2.0]]
+    both = model.solve(model.point_source_rhs(positions, [1.0, 2.0, 0.5]))
+    single = model.solve(model.point_source_rhs(positions[1], 2.0))
+    assert len(calls) == 1
+    np.testing.assert_allclose(both[:, 1], single[:, 0], rtol=1e-10)
+    np.testing.assert_allclose(model.point_source_rhs(positions, 1.0).sum(axis=0), 1.0)
+    mixed = model.source_rhs(positions, [0.0, 0.5, 0.0], [1.0, 2.0, 0.5])
+    np.testing.assert_allclose(mixed.sum(axis=0), [1.0, 2.0, 0.5])
+    np.testing.assert_array_equal(mixed[:, 2], model.point_source_rhs(positions[2], 0.5)[:, 0])
+    # Per-tetrahedron optical properties equal to the scalars give the same field.
+    n_tets = len(tets)
+    per_tet = DiffusionModel(
+        nodes, tets, mua_per_mm=np.full(n_tets, MUA), musp_per_mm=np.full(n_tets, MUSP),
+        refractive_index=N_INDEX,
+    )
+    np.testing.assert_allclose(per_tet.solve(per_tet.point_source_rhs(positions[1], 2.0)), single, rtol=1e-10)
+
+
+def test_bad_input_raises(sphere_meshes):
+    v, f = sphere_surface(resolution=12)
+    with pytest.raises(ValueError, match="not closed"):
+        check_closed(v, f[1:])
+    with pytest.raises(ValueError, match="not closed"):
+        tetrahedralize(v, f[1:], edge_length_mm=3.0)
+    with pytest.raises(ValueError, match="not closed"):
+        check_closed(v, np.zeros((0, 3), dtype=int))
+    with pytest.raises(ValueError, match="edge_length_mm"):
+        tetrahedralize(v, f, edge_length_mm=0.0)
+    nodes, tets = sphere_meshes[4.0]
+    with pytest.raises(ValueError, match="mua_per_mm"):
+        DiffusionModel(nodes, tets, mua_per_mm=-0.01, musp_per_mm=1.0, refractive_index=1.4)
+    for musp in (0.0, -1.0):
+        with pytest.raises(ValueError, match="musp_per_mm"):
+            DiffusionModel(nodes, tets, mua_per_mm=0.01, musp_per_mm=musp, refractive_index=1.4)
+    with pytest.raises(ValueError, match="refractive index"):
+        DiffusionModel(nodes, tets, mua_per_mm=0.01, musp_per_mm=1.0, refractive_index=0.5)
+    model = DiffusionModel(nodes, tets, mua_per_mm=0.01, musp_per_mm=1.0, refractive_index=1.4)
+    with pytest.raises(ValueError, match=r"source at \(0.000, 0.000, 12.000\) mm lies outside"):
+        model.point_source_rhs([[0.0, 0.0, 12.0]], 1.0)
+    with pytest.raises(ValueError, match="outside the subject"):
+        model.sphere_source_rhs([[0.0, 0.0, 9.5]], 1.0, 1.0)
+
+
+def test_closest_points_on_triangle_regions():
+    verts = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    faces = np.array([[0, 1, 2]])
+    queries = np.array([[0.2, 0.2, 1.0], [-1, -1, 0], [0.5, -1, 0], [1, 1, 0], [2, -0.5, 0]])
+    expected = np.array([[0.2, 0.2, 0], [0, 0, 0], [0.5, 0, 0], [0.5, 0.5, 0], [1, 0, 0]])
+    _, bary, dist = closest_points_on_triangles(queries, verts, faces)
+    np.testing.assert_allclose(bary @ verts, expected, atol=1e-12)
+    np.testing.assert_allclose(dist, np.linalg.norm(queries - expected, axis=1))
+
+
+def test_exitance_to_elements_conserves_power(fine_solution):
+    model, fluence = fine_solution
+    bv, bf = model.boundary_surface()
+    J_nodes = model.exitance_at_boundary_nodes(fluence)
+    # Reconstruction surface: a different triangulation of the sphere, faces grouped
+    # into 8 × 4 azimuth × polar-angle patches.
+    sv, sf = sphere_surface(resolution=30)
+    c = sv[sf].mean(axis=1)
+    azimuth = np.floor((np.arctan2(c[:, 1], c[:, 0]) + np.pi) / (2 * np.pi) * 8).clip(0, 7)
+    polar = np.floor(np.arccos(c[:, 2] / np.linalg.norm(c, axis=1)) / np.pi * 4).clip(0, 3)
+    element = (azimuth * 4 + polar).astype(int)
+    power, exitance = exitance_to_elements(bv, bf, J_nodes, sv, sf, element, 32)
+    total = model.total_exitance_photons_s(fluence)
+    assert power.sum() == pytest.approx(total, rel=1e-9)
+    J_exact, _ = sphere_exitance_closed_form(RADIUS_MM, MUA, MUSP, N_INDEX, 1.0)
+    np.testing.assert_allclose(exitance, J_exact, rtol=0.03)
+    assert exitance.std() / exitance.mean() < 0.01
+    # Two sources at once give the same columns.
+    power2, _ = exitance_to_elements(bv, bf, np.column_stack([J_nodes, 2 * J_nodes]), sv, sf, element, 32)
+    np.testing.assert_allclose(power2[:, 1], 2 * power, rtol=1e-12)
+    with pytest.raises(ValueError, match="no faces"):
+        exitance_to_elements(bv, bf, J_nodes, sv, sf, element, 33)

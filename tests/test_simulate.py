@@ -1,0 +1,140 @@
+"""simulate: ground truth, forward images, noise, export, and its errors."""
+
+from __future__ import annotations
+
+import copy
+
+import h5py
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from fluxcli.cli import app
+from fluxcli.imaging.imagefiles import read_image
+from fluxcli.stages.build_t import load_T, plan
+from fluxcli.config import load_config
+
+runner = CliRunner()
+
+
+def run(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+def assert_user_error(r, *words):
+    assert r.exit_code == 2, r.output
+    assert "Traceback" not in r.output
+    text = " ".join(r.output.split())
+    for w in words:
+        assert w in text, (w, r.output)
+
+
+@pytest.fixture
+def sim_config(minimal_config):
+    cfg = copy.deepcopy(minimal_config)
+    cfg["system"]["camera"]["pixels"] = [40, 40]
+    cfg["system"]["camera"]["pixel_pitch_mm"] = 0.3
+    cfg["subject"]["surface"] = {"phantom": "cylinder", "radius_mm": 8, "length_mm": 24, "n_angular": 16, "n_axial": 6}
+    cfg["subject"]["poses"] = {"heights_mm": [0, 5]}
+    cfg["simulate"] = {"flux": {"kind": "gaussian", "width_mm": 4.0, "peak_photons": 1e6},
+                       "noise": {"model": "poisson", "peaks_photons": [1e6, 1e4], "repeats": 3, "seed": 5}}
+    return cfg
+
+
+def test_gaussian_truth_images_and_determinism(write_config, sim_config, tmp_path):
+    p = write_config(sim_config)
+    assert run("simulate", p, "--quiet").exit_code == 0
+    out = tmp_path / "run" / "simulation.h5"
+    with h5py.File(out) as f:
+        assert f.attrs["kind"] == "simulation"
+        power = f["truth/power"][()]
+        clean = f["images/noiseless"][()]
+        noisy = f["images/noisy"][()]
+        snr = f["images/max_snr"][()]
+        assert power.max() == pytest.approx(1e6)
+        assert clean.shape == (2, 2, 40, 40) and noisy.shape == (2, 3, 2, 40, 40)
+        # the images are the forward T (not reconstruction's) applied to the truth
+        cfg = load_config(p)
+        from fluxcli.stages.simulate import forward_transfer
+
+        _, _, todo = plan(cfg, forward_transfer(cfg))
+        _, _, todo_rec = plan(cfg)
+        assert [t.key for _, t in todo] != [t.key for _, t in todo_rec]
+        a = load_T(todo[1][1].path) @ power
+        assert np.allclose(clean[0, 1].ravel(), a, rtol=1e-6)
+        assert np.allclose(clean[1], clean[0] * 1e-2, rtol=1e-6)  # levels scale the truth
+        assert np.allclose(snr, np.sqrt(clean.reshape(2, 2, -1).max(axis=2)))
+        # Poisson: the mean over repeats and pixels follows the noiseless image
+        assert noisy[0].sum() / 3 == pytest.approx(clean[0].sum(), rel=0.01)
+    first = noisy.copy()
+    assert run("simulate", p, "--quiet").exit_code == 0
+    with h5py.File(out) as f:
+        assert np.array_equal(f["images/noisy"][()], first)  # same config, same bytes
+    assert run("simulate", p, "--quiet", "--set", "simulate.noise.seed=6").exit_code == 0
+    with h5py.File(out) as f:
+        assert not np.array_equal(f["images/noisy"][()], first)
+
+
+def test_diffusion_truth_conserves_power_and_emccd_export(write_config, sim_config, tmp_path):
+    cfg = copy.deepcopy(sim_config)
+    cfg["subject"]["surface"]["cap_elements"] = True
+    cfg["subject"]["poses"] = {"heights_mm": [0]}
+    cfg["simulate"] = {
+        "flux": {"kind": "diffusion", "wavelength_nm": 650, "mesh_edge_mm": 2.5,
+                 "optical": {650: {"mua_per_mm": 0.02, "musp_per_mm": 1.7, "refractive_index": 1.4}},
+                 "sources": [{"depth_mm": 4.0, "power_photons": 1e8}]},
+        "noise": {"model": "emccd", "repeats": 1},
+        "export": {"format": "tiff"},
+    }
+    cfg["system"]["camera"]["sensor"] = {"em_gain": 10}
+    assert run("simulate", write_config(cfg), "--quiet").exit_code == 0
+    with h5py.File(tmp_path / "run" / "simulation.h5") as f:
+        power = f["truth/power"][()]
+        counts = f["images/counts"][()]
+        import json
+
+        notes = json.loads(f["truth"].attrs["notes"])
+    # what leaves through the elements (caps included) is what the FEM says leaves the
+    # volume, and with absorption it is less than the source emits
+    assert power.sum() == pytest.approx(notes["total_exitance_photons"], rel=1e-6)
+    assert notes["total_exitance_photons"] + notes["absorbed_photons"] == pytest.approx(1e8, rel=1e-6)
+    assert power.sum() < 1e8
+    # the source sits 4 mm below the top: the top elements are the brightest
+    top = np.argsort(power)[-1]
+    from fluxcli.scene import SubjectPlacer
+
+    placer = SubjectPlacer(load_config(write_config(cfg)))
+    cen = placer.surface.element_centroids_mm
+    assert cen[top, 2] > cen[:, 2].max() - 2.0
+    img, meta = read_image(tmp_path / "run" / "images" / "level0" / "h+0_rot0_rep0.tif")
+    assert np.array_equal(img, counts[0, 0, 0])
+    assert meta["fluxmap:units"] == "counts"
+
+
+def test_inverse_crime_refused_unless_allowed(write_config, sim_config):
+    cfg = copy.deepcopy(sim_config)
+    cfg["simulate"]["transfer"] = {}  # the very same sampling as reconstruction
+    assert_user_error(run("simulate", write_config(cfg)), "inverse crime")
+    cfg["simulate"]["allow_inverse_crime"] = True
+    assert run("simulate", write_config(cfg), "--quiet").exit_code == 0
+
+
+def test_bad_simulation_input(write_config, sim_config, minimal_config):
+    p = write_config(sim_config)
+    assert_user_error(run("simulate", p, "--set", "simulate.flux.peak_photons=0"), "simulate.flux.peak_photons")
+    assert_user_error(run("simulate", p, "--set", "simulate.noise.peaks_photons=[1e5, 0]"), "simulate.noise.peaks_photons")
+    diffusion = {"kind": "diffusion", "wavelength_nm": 650, "mesh_edge_mm": 3.0,
+                 "optical": {650: {"mua_per_mm": 0.02, "musp_per_mm": 1.7}},
+                 "sources": [{"position_mm": [0, 0, 8], "power_photons": 1e8}]}
+    cfg = copy.deepcopy(sim_config)
+    cfg["simulate"]["flux"] = copy.deepcopy(diffusion)
+    cfg["simulate"]["flux"]["optical"][650]["mua_per_mm"] = -0.1
+    assert_user_error(run("simulate", write_config(cfg)), "mua_per_mm")
+    cfg["simulate"]["flux"] = copy.deepcopy(diffusion)
+    cfg["simulate"]["flux"]["sources"][0]["position_mm"] = [0, 0, 40]
+    assert_user_error(run("simulate", write_config(cfg)), "outside the subject")
+    cfg["simulate"]["flux"] = copy.deepcopy(diffusion)
+    cfg["subject"]["surface"] = {"phantom": "ring", "radius_mm": 10, "n_elements": 40}
+    assert_user_error(run("simulate", write_config(cfg)), "closed")
+    no_sim = copy.deepcopy(minimal_config)
+    assert_user_error(run("simulate", write_config(no_sim)), "simulate")
