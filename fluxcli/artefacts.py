@@ -25,7 +25,7 @@ from . import __version__
 from .errors import UserError
 from .surface.mesh import Surface
 
-SCHEMA_VERSIONS = {"transfer": 1, "transfer-index": 1, "simulation": 1, "reconstruction": 1}
+SCHEMA_VERSIONS = {"transfer": 1, "transfer-index": 1, "simulation": 1, "reconstruction": 1, "tetmesh": 1}
 
 
 @contextlib.contextmanager

@@ -302,6 +302,54 @@ class Simulate(Model):
     export: Export = Export()
 
 
+# --------------------------------------------------------------------------- reconstruct
+Method = Literal["backprojection", "paper", "nnls", "weighted", "mlem"]
+
+
+class MethodSettings(Model):
+    method: Method = Field("weighted", description="backprojection | paper | nnls | weighted (noise-weighted NNLS) | mlem.")
+    lam: float | Literal["auto"] = Field("auto", alias="lambda",
+                                          description="Regularisation in the paper's relative units (lambda~ = lambda max diag(T'T)), or auto.")
+    lambda_rule: Literal["gcv", "lcurve", "discrepancy"] = Field("discrepancy", description="How 'auto' picks lambda.")
+    max_iter: int = Field(10, ge=1, description="Iterations (paper: outer iterations; mlem: EM iterations x 20).")
+    tol: float = Field(0.01, gt=0, description="Stop when the fit improves by less than this fraction (paper).")
+
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+
+
+class ImageFiles(Model):
+    files: tuple[Path, ...] = Field(description="One image file per pose (TIFF/FITS/EXR), in subject.poses order.")
+    units: Literal["photons", "counts"] = Field("photons", description="counts are converted with system.camera.sensor.")
+    exposure_s: float = Field(1.0, gt=0)
+
+
+class Sweep(Model):
+    methods: tuple[MethodSettings, ...] = Field(description="Methods compared in the study.")
+    levels: tuple[int, ...] | None = Field(None, description="Signal-level indices (default all).")
+    repeats: int | None = Field(None, ge=1, description="Repeats per cell (default all).")
+
+
+class Reconstruct(Model):
+    method: Method = Field("weighted", description="The method of /flux (see MethodSettings).")
+    lam: float | Literal["auto"] = Field("auto", alias="lambda")
+    lambda_rule: Literal["gcv", "lcurve", "discrepancy"] = "discrepancy"
+    max_iter: int = Field(10, ge=1)
+    tol: float = Field(0.01, gt=0)
+    images: ImageFiles | None = Field(None, description="Images from files instead of simulation.h5.")
+    level: int = Field(0, ge=0, description="Which signal level of the simulation to reconstruct.")
+    repeat: int = Field(0, ge=0, description="Which noise repeat of the simulation to reconstruct.")
+    noiseless: bool = Field(False, description="Reconstruct the simulation's noiseless images.")
+    joint: bool = Field(True, description="Also reconstruct all poses jointly onto one surface.")
+    read_noise_photons: float = Field(0.0, ge=0, description="Added to the shot-noise variance in weights (photons rms).")
+    sweep: Sweep | None = Field(None, description="A study: every level x repeat x pose for each method.")
+
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+
+    def settings(self) -> MethodSettings:
+        return MethodSettings(method=self.method, lam=self.lam, lambda_rule=self.lambda_rule,
+                              max_iter=self.max_iter, tol=self.tol)
+
+
 # --------------------------------------------------------------------------- top level
 class Config(Model):
     workdir: Path | None = Field(None, description="Output folder (default runs/<config name>), relative to the config file.")
@@ -310,7 +358,7 @@ class Config(Model):
     transfer: Transfer = Transfer()
     # Sections of stages that validate their own keys when they are built.
     simulate: Simulate | None = None
-    reconstruct: dict[str, Any] | None = None
+    reconstruct: Reconstruct = Reconstruct()
     report: dict[str, Any] | None = None
     calibrate: dict[str, Any] | None = None
     capture: dict[str, Any] | None = None
@@ -387,7 +435,7 @@ def _format_validation_error(err: ValidationError, path: Path) -> str:
 
 # pydantic puts union member names into error locations; they are not keys the user wrote.
 _UNION_TAGS = {"cylinder", "ring", "sphere", "patch", "MeshSurface", "ArtefactSurface",
-               "gaussian", "uniform", "file", "diffusion",
+               "gaussian", "uniform", "file", "diffusion", "float", "literal['auto']",
                "function-after[_check(), Lens]", "tagged-union[CylinderPhantom,RingPhantom,SpherePhantom,PatchPhantom]"}
 
 

@@ -99,6 +99,11 @@ def test_diffusion_truth_conserves_power_and_emccd_export(write_config, sim_conf
     assert power.sum() == pytest.approx(notes["total_exitance_photons"], rel=1e-6)
     assert notes["total_exitance_photons"] + notes["absorbed_photons"] == pytest.approx(1e8, rel=1e-6)
     assert power.sum() < 1e8
+    # the tetrahedral mesh is cached, so a second run gives the same bytes
+    assert run("simulate", write_config(cfg), "--quiet").exit_code == 0
+    with h5py.File(tmp_path / "run" / "simulation.h5") as f:
+        assert np.array_equal(f["truth/power"][()], power)
+        assert np.array_equal(f["images/counts"][()], counts)
     # the source sits 4 mm below the top: the top elements are the brightest
     top = np.argsort(power)[-1]
     from fluxcli.scene import SubjectPlacer

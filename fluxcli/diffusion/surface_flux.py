@@ -22,6 +22,7 @@ def element_power_from_sources(
     radii_mm: np.ndarray,
     powers_photons: np.ndarray,
     edge_length_mm: float,
+    mesh: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, dict]:
     """Solve the diffusion FEM in the closed ``surface`` and integrate the exitance over
     its elements.
@@ -34,6 +35,8 @@ def element_power_from_sources(
     positions_mm, radii_mm, powers_photons : (n_sources, 3), (n_sources,), (n_sources,)
         Sources; radius 0 means a point source.
     edge_length_mm : target tetrahedron edge.
+    mesh : (nodes_mm, tets) to reuse instead of meshing again (fTetWild is not
+        deterministic, so a cached mesh is what makes a simulation reproducible).
 
     Returns
     -------
@@ -42,7 +45,9 @@ def element_power_from_sources(
     """
     check_closed(surface.vertices_mm, surface.faces)
     t0 = time.perf_counter()
-    nodes, tets = tetrahedralize(surface.vertices_mm, surface.faces, edge_length_mm=edge_length_mm)
+    if mesh is None:
+        mesh = tetrahedralize(surface.vertices_mm, surface.faces, edge_length_mm=edge_length_mm)
+    nodes, tets = mesh
     t1 = time.perf_counter()
     model = DiffusionModel(nodes, tets, mua_per_mm=mua_per_mm, musp_per_mm=musp_per_mm,
                            refractive_index=refractive_index)
@@ -68,7 +73,7 @@ def element_power_from_sources(
         eof[extra] = n_el
     power, _ = exitance_to_elements(bv, bf, J, surface.vertices_mm, surface.faces, eof, n_el + int(extra.any()))
     info = {
-        "n_nodes": len(nodes), "n_tets": len(tets),
+        "n_nodes": len(nodes), "n_tets": len(tets), "nodes_mm": nodes, "tets": tets,
         "mesh_seconds": t1 - t0, "solve_seconds": t2 - t1,
         "source_photons": float(powers.sum()),
         "total_exitance_photons": float(model.total_exitance_photons_s(phi)),

@@ -75,7 +75,7 @@ def truth_power(cfg: C.LoadedConfig, surface: Surface) -> tuple[np.ndarray, dict
         if np.any(values < 0) or not np.all(np.isfinite(values)):
             raise UserError(f"simulate.flux.path: {path} holds negative or non-finite values.")
         return (values if flux.quantity == "power" else values * areas), {}
-    return _diffusion_truth(flux, surface)
+    return _diffusion_truth(flux, surface, cfg.workdir / "cache" / "mesh")
 
 
 def source_positions(flux: C.DiffusionFlux, surface: Surface) -> np.ndarray:
@@ -102,20 +102,35 @@ def source_positions(flux: C.DiffusionFlux, surface: Surface) -> np.ndarray:
     return np.array(out)
 
 
-def _diffusion_truth(flux: C.DiffusionFlux, surface: Surface) -> tuple[np.ndarray, dict]:
+def _diffusion_truth(flux: C.DiffusionFlux, surface: Surface, mesh_cache: Path) -> tuple[np.ndarray, dict]:
     if not surface.is_closed:
         raise UserError(f"simulate.flux: the diffusion model needs a closed subject surface; this one has "
                         f"{surface.boundary_edge_count()} open edge(s) (a ring or patch phantom, or an open mesh).")
     opt = flux.optical[flux.wavelength_nm]
     pos = source_positions(flux, surface)
+    # fTetWild is not deterministic: the tetrahedral mesh is cached by content so that the
+    # same config gives the same bytes
+    key = A.cache_key({"surface": surface.digest(), "edge_length_mm": A.canonical(flux.mesh_edge_mm), "mesher": "ftetwild-1"})
+    path = mesh_cache / f"{key}.h5"
+    mesh = None
+    if path.is_file():
+        with A.open_artefact(path, "tetmesh") as f:
+            mesh = (f["nodes"][()], f["tets"][()])
     try:
         power, info = element_power_from_sources(
             surface, mua_per_mm=opt.mua_per_mm, musp_per_mm=opt.musp_per_mm, refractive_index=opt.refractive_index,
             positions_mm=pos, radii_mm=np.array([s.radius_mm for s in flux.sources]),
-            powers_photons=np.array([s.power_photons for s in flux.sources]), edge_length_mm=flux.mesh_edge_mm)
+            powers_photons=np.array([s.power_photons for s in flux.sources]), edge_length_mm=flux.mesh_edge_mm,
+            mesh=mesh)
     except ValueError as e:
         raise UserError(f"simulate.flux: {e}") from None
+    nodes, tets = info.pop("nodes_mm"), info.pop("tets")
+    if mesh is None:
+        with A.write_artefact(path, "tetmesh") as f:
+            f.create_dataset("nodes", data=nodes).attrs["unit"] = "mm"
+            f.create_dataset("tets", data=tets)
     info["source_positions_mm"] = pos.tolist()
+    info["mesh_cached"] = mesh is not None
     return power, info
 
 
