@@ -202,3 +202,20 @@ def test_pairwise_and_lens_agree_within_one_percent_once_refined():
     assert err_fine < 0.01
     assert err_fine < err_coarse  # convergence under refinement
     assert fine.sum(axis=0) == pytest.approx(lens.sum(axis=0), rel=5e-3)
+
+
+def test_a_line_sensor_sees_exactly_the_middle_row_of_a_full_sensor():
+    """Lens sampling is clipped to the part of the lens whose rays reach the sensor; the
+    clipping must not bias what a one-row sensor records."""
+    # three elements side by side along x, the row direction
+    subject = phantoms.patch(size_mm=(1, 3), n=(1, 3), center_mm=[0.2, 0.1, -112.0], normal=[0.1, 0, 1])[0]
+    full_cam = ThinLensCamera.from_pose(lens_center_mm=[0, 0, 0], look=[0, 0, -1], up=[0, 1, 0], focal_length_mm=25,
+                                        aperture_radius_mm=5, focus_distance_mm=100, nx=64, ny=15, pixel_pitch_mm=0.05)
+    line_cam = ThinLensCamera.from_pose(lens_center_mm=[0, 0, 0], look=[0, 0, -1], up=[0, 1, 0], focal_length_mm=25,
+                                        aperture_radius_mm=5, focus_distance_mm=100, nx=64, ny=1, pixel_pitch_mm=0.05)
+    fine = LensSampling(lens_samples_min=2048)
+    full = build_transfer(subject, views_for(full_cam, []), lens_sampling=fine).T.toarray().reshape(15, 64, 3)
+    line = build_transfer(subject, views_for(line_cam, []), lens_sampling=fine).T.toarray().reshape(1, 64, 3)
+    assert full.sum() > 5 * full[7].sum() > 0  # the blur spreads over many rows
+    assert line.sum(axis=(0, 1)) == pytest.approx(full[7].sum(axis=0), rel=0.01)
+    assert np.abs(line[0] - full[7]).sum() / full[7].sum() < 0.03

@@ -118,13 +118,17 @@ def sample_faces(surface: Surface, face_ids: np.ndarray, n_sub: np.ndarray):
             np.concatenate(out_edges))
 
 
+def square_points(n: int) -> np.ndarray:
+    """``n`` well-spread points of the unit square (Roberts' R2 sequence), shape (n, 2)."""
+    g = 1.32471795724474602596
+    k = np.arange(n) + 0.5
+    return np.column_stack([(k / g) % 1.0, (k / g**2) % 1.0])
+
+
 def triangle_jitter(n: int) -> np.ndarray:
     """``n`` well-spread points of the unit triangle (a, b >= 0, a + b <= 1), centred on its
     centroid: offsets (n, 2) with mean ~0.  Roberts' R2 sequence folded into the triangle."""
-    g = 1.32471795724474602596  # plastic number
-    k = np.arange(n) + 0.5
-    a = (k / g) % 1.0
-    b = (k / g**2) % 1.0
+    a, b = square_points(n).T
     fold = a + b > 1
     a, b = np.where(fold, 1 - a, a), np.where(fold, 1 - b, b)
     # decorrelate from the lens spiral, which is ordered by radius
@@ -230,17 +234,40 @@ def _lens_pairs(surface: Surface, view: View, s: LensSampling, rays_per_batch: i
     front = (z > 0) & (np.einsum("ij,ij->i", N, cam.center_mm - P) > -cam.aperture_radius_mm)
     P, N, E, W, z, G = P[front], N[front], E[front], W[front], z[front], G[front]
     disk_c, disk_r = _sampling_disks(cam, P, z)
-    # blur of the sampled cone, in pixels: sample its area at the requested density
-    blur = 2 * disk_r * np.abs(cam.focus_distance_mm - z) / (z * cam.focal_pixel_mm)
-    want = np.ceil(s.lens_samples_per_blur_pixel * np.pi / 4 * blur**2)
-    want = np.clip(want, s.lens_samples_min, s.lens_samples_max)
+    # Clip the sampling to the lens points whose rays land on the sensor: the focal-plane
+    # hit is X = k L + (u/z) p (lateral, k = 1 - u/z), so the sensor's preimage on the lens
+    # plane is a rectangle.  A line sensor or a point near the image edge then needs only
+    # a sliver of the lens.  Jitter (below) moves p by up to one sub-triangle: pad for it.
+    u, pf = cam.focus_distance_mm, cam.focal_pixel_mm
+    sc = u / z
+    k = 1 - sc
+    lat = np.stack([(P - cam.center_mm) @ cam.right, (P - cam.center_mm) @ cam.down], axis=1)
+    dc = np.stack([disk_c @ cam.right, disk_c @ cam.down], axis=1)
+    half = np.array([cam.nx, cam.ny]) * pf / 2
+    grain = np.linalg.norm(G, axis=2).max(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ends = (np.stack([-half, half])[:, None, :] - sc[None, :, None] * lat[None]) / k[None, :, None]
+        pad = (sc * grain / np.abs(k))[:, None]
+    lo = np.maximum(np.min(ends, axis=0) - pad, dc - disk_r[:, None])
+    hi = np.minimum(np.max(ends, axis=0) + pad, dc + disk_r[:, None])
+    focused = ~np.isfinite(ends).all(axis=(0, 2))  # k = 0: all rays meet at one focal point
+    lo[focused], hi[focused] = (dc - disk_r[:, None])[focused], (dc + disk_r[:, None])[focused]
+    hits = np.all(hi > lo, axis=1) | focused
+    P, N, E, W, z, G, lo, hi, dc, disk_r, k = (x[hits] for x in (P, N, E, W, z, G, lo, hi, dc, disk_r, k))
+    box_area = np.prod(hi - lo, axis=1)
+    use_box = box_area < 0.6 * np.pi * disk_r**2
+    # the blur the sampled region paints, in pixels: sample its area at the requested density
+    extent_px = np.where(use_box[:, None], (hi - lo), 2 * disk_r[:, None]) * np.abs(k)[:, None] / pf
+    painted = np.prod(np.maximum(extent_px, 1.0), axis=1)
+    want = np.clip(np.ceil(s.lens_samples_per_blur_pixel * painted), s.lens_samples_min, s.lens_samples_max)
     # quantise to powers of two above the minimum, so samples batch together
     level = np.ceil(np.log2(want / s.lens_samples_min)).astype(int)
     n_lens = np.minimum(s.lens_samples_min * 2**level, s.lens_samples_max)
     R2 = cam.aperture_radius_mm**2
+    basis = np.stack([cam.right, cam.down])  # (2, 3): lens-plane coordinates to world
     for n in np.unique(n_lens):
-        unit = sunflower_disk(int(n))
-        unit3 = unit[:, :1] * cam.right + unit[:, 1:] * cam.down  # (n, 3) in the lens plane
+        disk_unit = sunflower_disk(int(n))
+        square_unit = square_points(int(n))
         # each ray leaves from its own point of the sample's sub-triangle: the lens samples
         # then also integrate over the surface, which removes pixel aliasing (moire)
         jit = triangle_jitter(int(n))
@@ -248,7 +275,12 @@ def _lens_pairs(surface: Surface, view: View, s: LensSampling, rays_per_batch: i
         chunk = max(1, rays_per_batch // int(n))
         for a in range(0, len(sel), chunk):
             i = sel[a:a + chunk]
-            offs = (disk_c[i, None, :] + disk_r[i, None, None] * unit3[None]).reshape(-1, 3)
+            in_disk = dc[i, None, :] + disk_r[i, None, None] * disk_unit[None]
+            in_box = lo[i, None, :] + (hi - lo)[i, None, :] * square_unit[None]
+            box = use_box[i]
+            offs2 = np.where(box[:, None, None], in_box, in_disk)  # (S, n, 2)
+            within = np.where(box[:, None], ((in_box - dc[i, None, :]) ** 2).sum(axis=2) <= disk_r[i, None] ** 2, True)
+            offs = (offs2 @ basis).reshape(-1, 3)
             L = cam.center_mm + offs
             p = (P[i, None, :] + np.einsum("kc,scd->skd", jit, G[i])).reshape(-1, 3)
             nn = np.repeat(N[i], n, axis=0)
@@ -258,8 +290,9 @@ def _lens_pairs(surface: Surface, view: View, s: LensSampling, rays_per_batch: i
             inv = 1 / np.sqrt(r2)
             cos_s = np.einsum("ij,ij->i", nn, d) * inv
             cos_l = -(d @ cam.axis) * inv
-            dA = np.repeat(np.pi * disk_r[i] ** 2 / n * W[i], n)
-            inside = np.einsum("ij,ij->i", offs, offs) <= R2
+            area = np.where(box, box_area[i], np.pi * disk_r[i] ** 2)
+            dA = np.repeat(area / n * W[i], n)
+            inside = (np.einsum("ij,ij->i", offs, offs) <= R2) & within.ravel()
             w = np.where((cos_s > 0) & inside, cos_s * cos_l / (np.pi * r2), 0.0) * dA
             pix = cam.pixel_index(cam.focal_plane_hit(p, L, zz))
             yield p, nn, L, pix, w, np.repeat(E[i], n), zz, len(i)
