@@ -30,7 +30,7 @@ from ..surface.mesh import Surface, merge
 from .camera import PlaneMirror, ThinLensCamera, sunflower_disk
 from .raycast import OcclusionScene
 
-ALGORITHM_VERSION = "transfer-1"
+ALGORITHM_VERSION = "transfer-2"  # bump whenever the numbers an estimator gives change
 
 
 @dataclass(frozen=True)
