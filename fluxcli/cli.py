@@ -61,6 +61,8 @@ def _run(stage: Callable, config: Path, overrides: Optional[List[str]], force: b
             typer.echo(f"output: {out}")
     except UserError as e:
         _fail(str(e))
+    except ValueError as e:  # the science packages' word for "these numbers cannot be used"
+        _fail(f"invalid input: {e}")
     except KeyboardInterrupt:
         typer.echo("fluxmap: interrupted; artefacts already written are complete, partial ones were discarded.", err=True)
         raise typer.Exit(130)
@@ -100,8 +102,13 @@ def simulate(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, force
 @app.command("reconstruct")
 def reconstruct(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, force: bool = ForceOpt,
                 jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
-    """Invert images into surface flux."""
-    _run(_not_built("reconstruct", "issue 4"), config, set_, force, jobs, quiet)
+    """Invert images into surface flux (photons per element).
+
+    $ fluxmap reconstruct configs/paper-2d.yaml --jobs 2
+    """
+    from .stages import reconstruct as stage
+
+    _run(stage.run, config, set_, force, jobs, quiet)
 
 
 @app.command("report")

@@ -303,16 +303,17 @@ class Simulate(Model):
 
 
 # --------------------------------------------------------------------------- reconstruct
-Method = Literal["backprojection", "paper", "nnls", "weighted", "mlem"]
+Method = Literal["backprojection", "paper", "tikhonov", "nnls", "weighted_lsq", "mlem"]
 
 
 class MethodSettings(Model):
-    method: Method = Field("weighted", description="backprojection | paper | nnls | weighted (noise-weighted NNLS) | mlem.")
+    method: Method = Field("weighted_lsq", description="backprojection | paper | tikhonov | nnls | weighted_lsq (noise-weighted NNLS) | mlem.")
     lam: float | Literal["auto"] = Field("auto", alias="lambda",
                                           description="Regularisation in the paper's relative units (lambda~ = lambda max diag(T'T)), or auto.")
     lambda_rule: Literal["gcv", "lcurve", "discrepancy"] = Field("discrepancy", description="How 'auto' picks lambda.")
-    max_iter: int = Field(10, ge=1, description="Iterations (paper: outer iterations; mlem: EM iterations x 20).")
-    tol: float = Field(0.01, gt=0, description="Stop when the fit improves by less than this fraction (paper).")
+    max_iter: int = Field(10, ge=1, description="paper: at most this many solves.")
+    tol: float = Field(0.01, gt=0, description="paper: stop when the fit improves by less than this fraction.")
+    n_iter: int = Field(500, ge=1, description="mlem: EM iterations.")
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
 
@@ -330,11 +331,12 @@ class Sweep(Model):
 
 
 class Reconstruct(Model):
-    method: Method = Field("weighted", description="The method of /flux (see MethodSettings).")
+    method: Method = Field("weighted_lsq", description="The method of /flux (see MethodSettings).")
     lam: float | Literal["auto"] = Field("auto", alias="lambda")
     lambda_rule: Literal["gcv", "lcurve", "discrepancy"] = "discrepancy"
     max_iter: int = Field(10, ge=1)
     tol: float = Field(0.01, gt=0)
+    n_iter: int = Field(500, ge=1)
     images: ImageFiles | None = Field(None, description="Images from files instead of simulation.h5.")
     level: int = Field(0, ge=0, description="Which signal level of the simulation to reconstruct.")
     repeat: int = Field(0, ge=0, description="Which noise repeat of the simulation to reconstruct.")
@@ -347,7 +349,14 @@ class Reconstruct(Model):
 
     def settings(self) -> MethodSettings:
         return MethodSettings(method=self.method, lam=self.lam, lambda_rule=self.lambda_rule,
-                              max_iter=self.max_iter, tol=self.tol)
+                              max_iter=self.max_iter, tol=self.tol, n_iter=self.n_iter)
+
+
+# --------------------------------------------------------------------------- report
+class ReportSettings(Model):
+    title: str | None = Field(None, description="Page title (default: the config's name).")
+    slice_axial_mm: float = Field(0.0, description="Where along the subject's axis (from its centre) to cut the circumference slice (mm).")
+    surface_views: bool = Field(True, description="Render the flux on the 3-D surface (pyvista, off-screen).")
 
 
 # --------------------------------------------------------------------------- top level
@@ -359,7 +368,7 @@ class Config(Model):
     # Sections of stages that validate their own keys when they are built.
     simulate: Simulate | None = None
     reconstruct: Reconstruct = Reconstruct()
-    report: dict[str, Any] | None = None
+    report: ReportSettings = ReportSettings()
     calibrate: dict[str, Any] | None = None
     capture: dict[str, Any] | None = None
 

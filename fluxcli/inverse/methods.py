@@ -1,0 +1,650 @@
+"""Reconstruction of the surface flux per element from camera images.
+
+The forward model is ``a = T b + noise``: ``T`` (n_pixels, n_elements) is the
+dimensionless, non-negative transfer matrix, ``a`` (n_pixels,) the image in photons and
+``b`` (n_elements,) the flux per surface element in photons, ``b ≥ 0``. Several poses or
+views are reconstructed jointly by stacking their rows (:func:`stack_views`).
+
+Only *observed* elements are solved for (:func:`observed_mask`); every method returns
+NaN, not zero, for the others, because "the cameras cannot see it" is not "it is dark".
+
+Methods
+-------
+- :func:`backprojection` — ``Tᵀa``, the older method; wrong in scale by orders of
+  magnitude (``T`` is applied twice), kept for comparison.
+- :func:`paper` — the paper's iterative non-negative Tikhonov scheme.
+- :func:`tikhonov` — the linear (unconstrained) Tikhonov estimator.
+- :func:`nnls` — exact non-negative (optionally weighted, regularised) least squares.
+- :func:`weighted_lsq` — :func:`nnls` with weights ``1/σ²`` per pixel.
+- :func:`mlem` — Poisson maximum likelihood by EM, optional one-step-late smoothing.
+- :func:`reconstruct` — one entry point returning a :class:`Result`.
+
+Regularisation ``lam`` is always given in the paper's relative units:
+``λ̃ = lam × max diag(TᵀWT)`` (``W = I`` unless the method is weighted), so the same
+``lam`` means the same relative damping whatever the scale of ``T``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.optimize as sopt
+import scipy.sparse as sp
+
+from fluxcli.inverse import _common as c
+
+__all__ = [
+    "METHODS",
+    "Result",
+    "backprojection",
+    "mlem",
+    "nnls",
+    "observed_mask",
+    "paper",
+    "reconstruct",
+    "stack_views",
+    "tikhonov",
+    "weighted_lsq",
+]
+
+METHODS = ("backprojection", "paper", "tikhonov", "nnls", "weighted_lsq", "mlem")
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def observed_mask(T, *, rel_threshold: float = c.DEFAULT_REL_THRESHOLD) -> np.ndarray:
+    """Elements that the cameras see well enough to reconstruct.
+
+    Parameters
+    ----------
+    T : scipy.sparse array or ndarray, shape (n_pixels, n_elements)
+        Transfer matrix, dimensionless, ≥ 0.
+    rel_threshold : float, optional
+        An element is observed when its column sum (total sensitivity) exceeds
+        ``rel_threshold`` × the largest column sum.
+
+    Returns
+    -------
+    ndarray of bool, shape (n_elements,)
+    """
+    return c.observed(c.as_transfer(T), rel_threshold)
+
+
+def stack_views(transfers, images_photons):
+    """Stack several poses / views into one joint problem.
+
+    Parameters
+    ----------
+    transfers : sequence of sparse arrays, each shape (n_pixels_k, n_elements)
+        One transfer matrix per view, all over the same surface elements.
+    images_photons : sequence of ndarray, each shape (n_pixels_k,)
+        The matching images in photons.
+
+    Returns
+    -------
+    T : scipy.sparse.csr_array, shape (Σ n_pixels_k, n_elements)
+    a : ndarray, shape (Σ n_pixels_k,)
+    """
+    transfers = [c.as_transfer(t) for t in transfers]
+    images = list(images_photons)
+    if not transfers or len(transfers) != len(images):
+        raise ValueError(
+            f"stack_views needs one image per transfer matrix, got {len(transfers)} "
+            f"transfer matrices and {len(images)} images."
+        )
+    n_elements = transfers[0].shape[1]
+    for k, t in enumerate(transfers):
+        if t.shape[1] != n_elements:
+            raise ValueError(
+                f"transfer matrix {k} has {t.shape[1]} elements (columns), view 0 has "
+                f"{n_elements}: all views must share the surface elements."
+            )
+    a = np.concatenate(
+        [c.as_pixels(img, t.shape[0], f"image {k}") for k, (t, img) in enumerate(zip(transfers, images))]
+    )
+    return sp.csr_array(sp.vstack(transfers, format="csr")), a
+
+
+def _prepare(T, a, rel_threshold):
+    T = c.as_transfer(T)
+    a = c.as_pixels(a, T.shape[0], "image a (photons)")
+    mask = c.observed(T, rel_threshold)
+    return T, a, mask, sp.csr_array(T[:, mask])
+
+
+def _weights_from_sigma2(sigma2, n_pixels):
+    sigma2 = c.as_pixels(sigma2, n_pixels, "noise variance sigma2 (photons²)", positive=True,
+                         allow_scalar=True)
+    return 1.0 / sigma2
+
+
+# ----------------------------------------------------------------- private solvers
+# Each takes the observed columns only and returns (b_observed, iterations, converged,
+# lam_absolute).
+
+
+def _backprojection(T_obs, a):
+    return np.asarray(T_obs.T @ a, dtype=np.float64), 1, True, 0.0
+
+
+def _tikhonov(T_obs, a, lam, weights):
+    G, g = c.normal_equations(T_obs, a, weights)
+    lam_abs = lam * c.lam_scale(G)
+    cf = c.cholesky(G + lam_abs * np.eye(G.shape[0]), "TᵀWT + λ̃I")
+    return sla.cho_solve(cf, g, check_finite=False), 1, True, lam_abs
+
+
+def _paper(T_obs, a, lam, max_iter, tol):
+    G, g = c.normal_equations(T_obs, a, None)
+    lam_abs = lam * c.lam_scale(G)
+    cf = c.cholesky(G + lam_abs * np.eye(G.shape[0]), "TᵀT + λ̃I")
+
+    b = np.maximum(sla.cho_solve(cf, g, check_finite=False), 0.0)
+    r = a - T_obs @ b
+    fit = np.linalg.norm(r)
+    iterations, converged = 1, False
+    while iterations < max_iter and fit > 0:
+        delta = sla.cho_solve(cf, T_obs.T @ r, check_finite=False)
+        b_new = np.maximum(b + delta, 0.0)
+        r_new = a - T_obs @ b_new
+        fit_new = np.linalg.norm(r_new)
+        iterations += 1
+        improvement = (fit - fit_new) / fit
+        if improvement >= 0:
+            b, r, fit = b_new, r_new, fit_new
+        # A worse fit (possible once clipping bites) ends the loop at the better iterate.
+        if improvement < tol:
+            converged = True
+            break
+    if fit == 0:
+        converged = True
+    return b, iterations, converged, lam_abs
+
+
+def _nnls(T_obs, a, weights, lam):
+    G, g = c.normal_equations(T_obs, a, weights)
+    lam_abs = lam * c.lam_scale(G)
+    H = G + lam_abs * np.eye(G.shape[0])
+    # ½‖W^½(Tb − a)‖² + ½λ̃‖b‖² = ½‖Rb − d‖² + const with RᵀR = H, Rᵀd = g: the same
+    # minimiser over b ≥ 0, but an n_obs × n_obs problem instead of n_pixels × n_obs.
+    cf = c.try_cholesky(H)
+    if cf is not None:
+        R = np.triu(cf[0])
+        d = sla.solve_triangular(R, g, trans="T", check_finite=False)
+    else:
+        # Singular H (lam = 0, rank-deficient T): use the square root from eigh and
+        # drop the null space, where g has no component anyway (g ∈ range(Tᵀ)).
+        w, V = np.linalg.eigh(H)
+        keep = w > w.max() * H.shape[0] * np.finfo(float).eps
+        sw = np.sqrt(w[keep])
+        R = sw[:, None] * V[:, keep].T
+        d = (V[:, keep].T @ g) / sw
+    try:
+        b, _ = sopt.nnls(R, d, maxiter=50 * H.shape[0])
+    except RuntimeError as exc:  # pragma: no cover - Lawson-Hanson essentially always ends
+        raise ValueError(
+            "non-negative least squares did not converge: the problem is too badly "
+            "conditioned; use lam > 0."
+        ) from exc
+    return b, 1, True, lam_abs
+
+
+def _mlem(T_obs, a, n_iter, background, smooth, laplacian, rel_tol):
+    sens = c.column_sums(T_obs)
+    flat = max(np.sum(a - background), 0.0) / np.sum(sens)
+    b = np.full(T_obs.shape[1], flat if flat > 0 else np.finfo(float).tiny)
+    # Relative smoothing: smooth = 1 lets a neighbour difference of the flat flux level
+    # change the denominator by the largest sensitivity.
+    beta = smooth * sens.max() / flat if flat > 0 else 0.0
+    converged = False
+    iterations = 0
+    for iterations in range(1, n_iter + 1):
+        model = T_obs @ b + background
+        ratio = np.divide(a, model, out=np.zeros_like(a), where=model > 0)
+        denom = sens
+        if smooth > 0:
+            # One-step-late (Green 1990): the prior gradient at the current estimate joins
+            # the sensitivity. Floored at half the sensitivity so that a steep gradient
+            # can neither flip the sign nor blow an element up in one step.
+            denom = np.maximum(sens + beta * (laplacian @ b), 0.5 * sens)
+        b_new = b * (T_obs.T @ ratio) / denom
+        norm = np.linalg.norm(b)
+        change = np.linalg.norm(b_new - b) / norm if norm > 0 else 0.0
+        b = b_new
+        if change < rel_tol:
+            converged = True
+            break
+    return b, iterations, converged, 0.0
+
+
+# ------------------------------------------------------------------ public methods
+
+
+def backprojection(T, a, *, rel_threshold: float = c.DEFAULT_REL_THRESHOLD) -> np.ndarray:
+    """Backprojection ``b̃ = Tᵀa`` (the older, unnormalised method).
+
+    Parameters
+    ----------
+    T : scipy.sparse array or ndarray, shape (n_pixels, n_elements)
+        Transfer matrix, dimensionless, ≥ 0.
+    a : ndarray, shape (n_pixels,)
+        Image in photons.
+    rel_threshold : float, optional
+        See :func:`observed_mask`.
+
+    Returns
+    -------
+    ndarray, shape (n_elements,)
+        ``Tᵀa``; NaN for unobserved elements. Its scale is wrong by roughly the square of
+        the typical transfer coefficient (orders of magnitude): only its shape means
+        anything.
+    """
+    _, a, mask, T_obs = _prepare(T, a, rel_threshold)
+    return c.scatter(_backprojection(T_obs, a)[0], mask)
+
+
+def tikhonov(T, a, *, lam: float, sigma2=None,
+             rel_threshold: float = c.DEFAULT_REL_THRESHOLD) -> np.ndarray:
+    """Linear Tikhonov estimator ``b̃ = (TᵀWT + λ̃I)⁻¹ TᵀWa`` (may be negative).
+
+    Parameters
+    ----------
+    T : scipy.sparse array or ndarray, shape (n_pixels, n_elements)
+        Transfer matrix, dimensionless, ≥ 0.
+    a : ndarray, shape (n_pixels,)
+        Image in photons.
+    lam : float
+        Relative regularisation, ``λ̃ = lam × max diag(TᵀWT)``.
+    sigma2 : float or ndarray, shape (n_pixels,), optional
+        Noise variance per pixel in photons²; if given, ``W = diag(1/sigma2)``,
+        otherwise ``W = I``.
+    rel_threshold : float, optional
+        See :func:`observed_mask`.
+
+    Returns
+    -------
+    ndarray, shape (n_elements,)
+        Photons per element; NaN for unobserved elements.
+    """
+    lam = c.check_nonneg_number(lam, "lam")
+    _, a, mask, T_obs = _prepare(T, a, rel_threshold)
+    w = None if sigma2 is None else _weights_from_sigma2(sigma2, a.size)
+    return c.scatter(_tikhonov(T_obs, a, lam, w)[0], mask)
+
+
+def paper(T, a, *, lam: float = 10.0, max_iter: int = 10, tol: float = 0.01,
+          rel_threshold: float = c.DEFAULT_REL_THRESHOLD) -> np.ndarray:
+    """The paper's iterative, regularised, non-negative least squares.
+
+    Solve ``b̃ = (TᵀT + λ̃I)⁻¹ Tᵀa`` with ``λ̃ = lam × max diag(TᵀT)`` and set negative
+    entries to zero; then repeat with the residual ``r = a − T b̃``:
+    ``b̃ ← max(b̃ + (TᵀT + λ̃I)⁻¹ Tᵀr, 0)``, until the fit ``‖a − T b̃‖₂`` improves by
+    less than ``tol`` (relative) between iterations, or ``max_iter`` solves were made.
+
+    Parameters
+    ----------
+    T : scipy.sparse array or ndarray, shape (n_pixels, n_elements)
+        Transfer matrix, dimensionless, ≥ 0.
+    a : ndarray, shape (n_pixels,)
+        Image in photons.
+    lam : float, optional
+        Relative regularisation (paper: 10 in 2-D, 0.1 for noiseless 3-D, 1 for real
+        data).
+    max_iter : int, optional
+        Maximum number of solves, the first one included (paper: 5 or 10).
+    tol : float, optional
+        Relative improvement of the fit below which iteration stops (paper: 1 %).
+    rel_threshold : float, optional
+        See :func:`observed_mask`.
+
+    Returns
+    -------
+    ndarray, shape (n_elements,)
+        Photons per element, ≥ 0; NaN for unobserved elements.
+
+    Notes
+    -----
+    Interpretation of the paper's text: "the fit" is the Euclidean norm of the image
+    residual; an iteration counts one solve, so ``max_iter=1`` is clipped Tikhonov;
+    ``TᵀT + λ̃I`` is factorised once (Cholesky) and reused. Without clipping this is
+    iterated Tikhonov, which tends to the unregularised least-squares solution as the
+    iterations go on, so ``max_iter`` and ``tol`` regularise as much as ``lam`` does. If
+    an update makes the fit worse (possible after clipping) the previous iterate is kept
+    and iteration stops.
+    """
+    b, *_ = _paper_info(T, a, lam=lam, max_iter=max_iter, tol=tol,
+                        rel_threshold=rel_threshold)
+    return b
+
+
+def _paper_info(T, a, *, lam, max_iter, tol, rel_threshold):
+    lam = c.check_nonneg_number(lam, "lam")
+    max_iter = c.check_positive_int(max_iter, "max_iter")
+    tol = c.check_nonneg_number(tol, "tol")
+    _, a, mask, T_obs = _prepare(T, a, rel_threshold)
+    b, it, conv, lam_abs = _paper(T_obs, a, lam, max_iter, tol)
+    return c.scatter(b, mask), it, conv, lam_abs
+
+
+def nnls(T, a, *, weights=None, lam: float = 0.0,
+         rel_threshold: float = c.DEFAULT_REL_THRESHOLD) -> np.ndarray:
+    """Non-negative least squares, optionally weighted and Tikhonov-regularised.
+
+    Minimises ``‖W^½(T b − a)‖² + λ̃‖b‖²`` over ``b ≥ 0`` exactly (Lawson–Hanson active
+    set, :func:`scipy.optimize.nnls`, on the equivalent n_obs × n_obs problem built from
+    the Cholesky factor of ``TᵀWT + λ̃I``).
+
+    Parameters
+    ----------
+    T : scipy.sparse array or ndarray, shape (n_pixels, n_elements)
+        Transfer matrix, dimensionless, ≥ 0.
+    a : ndarray, shape (n_pixels,)
+        Image in photons.
+    weights : ndarray, shape (n_pixels,), optional
+        ``W = diag(weights)``, ≥ 0 (1/photons²); default all ones.
+    lam : float, optional
+        Relative regularisation, ``λ̃ = lam × max diag(TᵀWT)``.
+    rel_threshold : float, optional
+        See :func:`observed_mask`.
+
+    Returns
+    -------
+    ndarray, shape (n_elements,)
+        Photons per element, ≥ 0; NaN for unobserved elements.
+
+    Notes
+    -----
+    Working with the normal matrix squares the condition number of ``W^½T``; with
+    ``lam = 0`` on a badly conditioned ``T`` the solution is accurate only to about
+    ``cond(T)² × 1e-16`` relative.
+    """
+    b, *_ = _nnls_info(T, a, weights=weights, lam=lam, rel_threshold=rel_threshold)
+    return b
+
+
+def _nnls_info(T, a, *, weights, lam, rel_threshold):
+    lam = c.check_nonneg_number(lam, "lam")
+    _, a, mask, T_obs = _prepare(T, a, rel_threshold)
+    if weights is not None:
+        weights = c.as_pixels(weights, a.size, "weights", nonnegative=True,
+                              allow_scalar=True)
+    b, it, conv, lam_abs = _nnls(T_obs, a, weights, lam)
+    return c.scatter(b, mask), it, conv, lam_abs
+
+
+def weighted_lsq(T, a, *, sigma2, lam: float = 0.0,
+                 rel_threshold: float = c.DEFAULT_REL_THRESHOLD) -> np.ndarray:
+    """Noise-weighted non-negative least squares: :func:`nnls` with ``W = 1/σ²``.
+
+    Parameters
+    ----------
+    T : scipy.sparse array or ndarray, shape (n_pixels, n_elements)
+        Transfer matrix, dimensionless, ≥ 0.
+    a : ndarray, shape (n_pixels,)
+        Image in photons.
+    sigma2 : float or ndarray, shape (n_pixels,)
+        Noise variance per pixel in photons², > 0; e.g. ``max(a, 0) + read_noise²``.
+    lam : float, optional
+        Relative regularisation, ``λ̃ = lam × max diag(TᵀWT)``.
+    rel_threshold : float, optional
+        See :func:`observed_mask`.
+
+    Returns
+    -------
+    ndarray, shape (n_elements,)
+        Photons per element, ≥ 0; NaN for unobserved elements.
+    """
+    T_ = c.as_transfer(T)
+    w = _weights_from_sigma2(sigma2, T_.shape[0])
+    return nnls(T_, a, weights=w, lam=lam, rel_threshold=rel_threshold)
+
+
+def mlem(T, a, *, n_iter: int = 200, background=0.0, smooth: float = 0.0,
+         adjacency=None, rel_tol: float = 1e-6,
+         rel_threshold: float = c.DEFAULT_REL_THRESHOLD) -> np.ndarray:
+    """Poisson maximum likelihood by expectation maximisation (MLEM).
+
+    ``b ← b · Tᵀ(a / (T b + background)) / (Tᵀ1 + β L b)``, started from the flat
+    estimate ``b̄ = Σ(a − background) / ΣTᵀ1``, where ``L`` is the graph Laplacian of
+    ``adjacency`` and ``β = smooth × max(Tᵀ1) / b̄`` (one-step-late smoothing, Green
+    1990; ``smooth = 0`` is plain MLEM).
+
+    Parameters
+    ----------
+    T : scipy.sparse array or ndarray, shape (n_pixels, n_elements)
+        Transfer matrix, dimensionless, ≥ 0.
+    a : ndarray, shape (n_pixels,)
+        Image in photons, ≥ 0 (counts).
+    n_iter : int, optional
+        Maximum number of EM iterations.
+    background : float or ndarray, shape (n_pixels,), optional
+        Known additive background in photons per pixel, ≥ 0.
+    smooth : float, optional
+        Relative, dimensionless weight of the quadratic smoothness penalty ``½ β bᵀLb``
+        added to the negative log-likelihood (``β`` above, in 1/photons); 0 disables
+        smoothing. One-step-late is stable only for small values (≲ 0.1).
+    adjacency : scipy.sparse array, shape (n_elements, n_elements), optional
+        Symmetric, non-negative element adjacency weights; required when ``smooth > 0``.
+        Edges to unobserved elements are dropped.
+    rel_tol : float, optional
+        Stop when ``‖b_new − b‖ / ‖b‖`` falls below this.
+    rel_threshold : float, optional
+        See :func:`observed_mask`.
+
+    Returns
+    -------
+    ndarray, shape (n_elements,)
+        Photons per element, ≥ 0; NaN for unobserved elements.
+
+    Notes
+    -----
+    Without background and smoothing every iteration preserves the counts seen by the
+    observed elements, ``Σ T b = Σ a`` over pixels that see some observed element.
+    """
+    b, *_ = _mlem_info(T, a, n_iter=n_iter, background=background, smooth=smooth,
+                       adjacency=adjacency, rel_tol=rel_tol, rel_threshold=rel_threshold)
+    return b
+
+
+def _mlem_info(T, a, *, n_iter, background, smooth, adjacency, rel_tol, rel_threshold):
+    n_iter = c.check_positive_int(n_iter, "n_iter")
+    smooth = c.check_nonneg_number(smooth, "smooth")
+    rel_tol = c.check_nonneg_number(rel_tol, "rel_tol")
+    _, a, mask, T_obs = _prepare(T, a, rel_threshold)
+    if np.any(a < 0):
+        raise ValueError("image a (photons) must be non-negative for MLEM (Poisson counts).")
+    background = c.as_pixels(background, a.size, "background (photons)", nonnegative=True,
+                             allow_scalar=True)
+    laplacian = None
+    if smooth > 0:
+        if adjacency is None:
+            raise ValueError("smooth > 0 needs an element adjacency matrix (adjacency=...).")
+        laplacian = _laplacian(adjacency, mask)
+    b, it, conv, lam_abs = _mlem(T_obs, a, n_iter, background, smooth, laplacian, rel_tol)
+    return c.scatter(b, mask), it, conv, lam_abs
+
+
+def _laplacian(adjacency, mask):
+    n = mask.size
+    if not sp.issparse(adjacency):
+        adjacency = np.asarray(adjacency, dtype=np.float64)
+    A = sp.csr_array(adjacency, dtype=np.float64)
+    if A.shape != (n, n):
+        raise ValueError(f"adjacency must have shape ({n}, {n}), got {A.shape}.")
+    if A.nnz and (not np.all(np.isfinite(A.data)) or A.data.min() < 0):
+        raise ValueError("adjacency must be finite and non-negative.")
+    if abs(A - A.T).sum() > 1e-12 * max(abs(A).sum(), 1.0):
+        raise ValueError("adjacency must be symmetric.")
+    A = sp.csr_array(A[mask][:, mask])
+    A.setdiag(0)
+    A.eliminate_zeros()
+    degree = np.asarray(A.sum(axis=1)).ravel()
+    return sp.csr_array(sp.diags_array(degree) - A)
+
+
+# ------------------------------------------------------------------- entry point
+
+
+@dataclass(frozen=True)
+class Result:
+    """A reconstruction and what is needed to judge it.
+
+    Attributes
+    ----------
+    power : ndarray, shape (n_elements,)
+        Reconstructed flux in photons per element; NaN for unobserved elements.
+    observed : ndarray of bool, shape (n_elements,)
+        Elements that were solved for (see :func:`observed_mask`).
+    sigma : ndarray, shape (n_elements,)
+        Standard deviation of ``power`` under noise, in photons per element: the
+        ``kind="sampling"`` linear approximation of :func:`fluxcli.inverse.uncertainty`
+        (it excludes the regularisation bias). NaN where unobserved, or everywhere when
+        ``sigma2`` was not given or the method is backprojection.
+    fitted : ndarray, shape (n_pixels,)
+        Model image ``T b̃`` in photons (unobserved elements contribute nothing).
+    residual : ndarray, shape (n_pixels,)
+        ``a − T b̃`` in photons.
+    method : str
+        One of :data:`METHODS`.
+    lam : float
+        Relative regularisation used (0 for methods without one).
+    lam_absolute : float
+        ``λ̃ = lam × max diag(TᵀWT)``.
+    iterations : int
+        Solves or EM iterations made (1 for direct solvers).
+    converged : bool
+        Whether the method's stopping criterion was met before its iteration limit.
+    lam_choice : LambdaChoice or None
+        The λ-selection curve when ``lam_rule`` was used.
+    """
+
+    power: np.ndarray
+    observed: np.ndarray
+    sigma: np.ndarray
+    fitted: np.ndarray
+    residual: np.ndarray
+    method: str
+    lam: float
+    lam_absolute: float
+    iterations: int
+    converged: bool
+    lam_choice: object = None
+
+
+_DEFAULT_LAM = {"paper": 10.0, "tikhonov": 0.0, "nnls": 0.0, "weighted_lsq": 0.0}
+
+
+def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | None = None,
+                sigma2=None, rel_threshold: float = c.DEFAULT_REL_THRESHOLD,
+                **opts) -> Result:
+    """Reconstruct the flux per element with one of :data:`METHODS`.
+
+    Parameters
+    ----------
+    T : scipy.sparse array or ndarray, shape (n_pixels, n_elements)
+        Transfer matrix, dimensionless, ≥ 0 (stack views with :func:`stack_views`).
+    a : ndarray, shape (n_pixels,)
+        Image in photons.
+    method : {"backprojection", "paper", "tikhonov", "nnls", "weighted_lsq", "mlem"}
+    lam : float, optional
+        Relative regularisation for the Tikhonov family; default 10 for ``"paper"``
+        (the paper's 2-D value), 0 otherwise. Not allowed together with ``lam_rule``.
+    lam_rule : {"gcv", "lcurve", "discrepancy"}, optional
+        Choose ``lam`` automatically with :func:`fluxcli.inverse.choose_lambda`
+        (weighted by ``1/sigma2`` for ``"weighted_lsq"``, unweighted otherwise).
+    sigma2 : float or ndarray, shape (n_pixels,), optional
+        Noise variance per pixel in photons². Required by ``"weighted_lsq"`` and by
+        ``lam_rule="discrepancy"``; when given, ``Result.sigma`` is filled in.
+    rel_threshold : float, optional
+        See :func:`observed_mask`.
+    **opts
+        Passed to the method: ``max_iter``, ``tol`` (paper); ``n_iter``, ``background``,
+        ``smooth``, ``adjacency``, ``rel_tol`` (mlem); ``weights`` (nnls); ``lambdas``,
+        ``tau``, ``gamma`` (lam_rule).
+
+    Returns
+    -------
+    Result
+    """
+    from fluxcli.inverse.regularisation import choose_lambda, uncertainty
+
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {', '.join(METHODS)}; got {method!r}.")
+    T = c.as_transfer(T)
+    a = c.as_pixels(a, T.shape[0], "image a (photons)")
+    choice_opts = {k: opts.pop(k) for k in ("lambdas", "tau", "gamma") if k in opts}
+    weighted = method == "weighted_lsq"
+    if weighted and sigma2 is None:
+        raise ValueError("method 'weighted_lsq' needs the noise variance sigma2 (photons²).")
+
+    choice = None
+    if lam_rule is not None:
+        if method not in _DEFAULT_LAM:
+            raise ValueError(f"lam_rule applies to the Tikhonov family, not to method {method!r}.")
+        if lam is not None:
+            raise ValueError("give either lam or lam_rule, not both.")
+        choice = choose_lambda(T, a, method=lam_rule, sigma2=sigma2, weighted=weighted,
+                               rel_threshold=rel_threshold, **choice_opts)
+        lam = choice.lam
+    elif choice_opts:
+        raise ValueError(f"options {sorted(choice_opts)} only apply with lam_rule.")
+    if lam is None:
+        lam = _DEFAULT_LAM.get(method, 0.0)
+    elif method not in _DEFAULT_LAM:
+        raise ValueError(f"method {method!r} takes no lam.")
+    lam = c.check_nonneg_number(lam, "lam")
+
+    allowed = {
+        "backprojection": set(),
+        "paper": {"max_iter", "tol"},
+        "tikhonov": set(),
+        "nnls": {"weights"},
+        "weighted_lsq": set(),
+        "mlem": {"n_iter", "background", "smooth", "adjacency", "rel_tol"},
+    }[method]
+    unknown = set(opts) - allowed
+    if unknown:
+        raise ValueError(f"unknown options for method {method!r}: {sorted(unknown)}.")
+
+    if method == "backprojection":
+        mask = c.observed(T, rel_threshold)
+        power = c.scatter(_backprojection(sp.csr_array(T[:, mask]), a)[0], mask)
+        it, conv, lam_abs = 1, True, 0.0
+    elif method == "paper":
+        power, it, conv, lam_abs = _paper_info(
+            T, a, lam=lam, max_iter=opts.get("max_iter", 10), tol=opts.get("tol", 0.01),
+            rel_threshold=rel_threshold)
+    elif method == "tikhonov":
+        mask = c.observed(T, rel_threshold)
+        b, it, conv, lam_abs = _tikhonov(sp.csr_array(T[:, mask]), a, lam, None)
+        power = c.scatter(b, mask)
+    elif method == "nnls":
+        power, it, conv, lam_abs = _nnls_info(T, a, weights=opts.get("weights"), lam=lam,
+                                              rel_threshold=rel_threshold)
+    elif method == "weighted_lsq":
+        power, it, conv, lam_abs = _nnls_info(
+            T, a, weights=_weights_from_sigma2(sigma2, a.size), lam=lam,
+            rel_threshold=rel_threshold)
+    else:
+        power, it, conv, lam_abs = _mlem_info(
+            T, a, n_iter=opts.get("n_iter", 200), background=opts.get("background", 0.0),
+            smooth=opts.get("smooth", 0.0), adjacency=opts.get("adjacency"),
+            rel_tol=opts.get("rel_tol", 1e-6), rel_threshold=rel_threshold)
+
+    mask = c.observed(T, rel_threshold)
+    fitted = T @ np.where(mask, power, 0.0)
+    sigma = np.full(power.shape, np.nan)
+    if sigma2 is not None and method != "backprojection":
+        # The scatter of the linear estimator at the method's λ under noise σ² (see
+        # uncertainty, kind="sampling"); MLEM as the weighted λ = 0 estimator, i.e. the
+        # inverse Fisher information when σ² is the model image.
+        sigma = uncertainty(T, a, power, sigma2=sigma2,
+                            lam=0.0 if method == "mlem" else lam,
+                            weighted=weighted or method == "mlem", kind="sampling",
+                            rel_threshold=rel_threshold)
+    return Result(power=power, observed=mask, sigma=sigma, fitted=fitted,
+                  residual=a - fitted, method=method, lam=lam, lam_absolute=lam_abs,
+                  iterations=int(it), converged=bool(conv), lam_choice=choice)

@@ -1,0 +1,308 @@
+"""``fluxmap reconstruct CONFIG``: from images to the flux leaving each surface element.
+
+Examples
+--------
+$ fluxmap reconstruct configs/paper-3d.yaml
+$ fluxmap reconstruct configs/paper-2d.yaml --jobs 2        # runs the configured sweep too
+$ fluxmap reconstruct configs/demo.yaml --set reconstruct.method=paper --set reconstruct.lambda=1
+
+Images come from ``<workdir>/simulation.h5`` (a chosen level and repeat) or from image
+files named per pose (``reconstruct.images``).  Each pose is reconstructed on its own and,
+with several poses, all of them jointly (their T and images stacked).  Saturated pixels
+are masked.  Elements no camera sees are reported as unobserved (NaN), never as zero.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+
+from .. import artefacts as A
+from .. import config as C
+from ..errors import UserError
+from ..imaging import noise as N
+from ..imaging.imagefiles import read_image
+from ..inverse import backprojection, error_l1, reconstruct as solve, total_ratio
+from .build_t import ensure_T, load_T
+from .context import RunContext
+
+
+@dataclass
+class Inputs:
+    images: np.ndarray  # (P, ny, nx) photons
+    valid: np.ndarray  # (P, ny, nx) bool: not saturated, finite
+    truth: np.ndarray | None  # (n_elements,) photons, or None
+    source: str
+    snr: np.ndarray | None = None  # (P,)
+
+
+def _simulation(cfg: C.LoadedConfig) -> Path:
+    path = cfg.workdir / "simulation.h5"
+    if not path.is_file():
+        raise UserError(f"reconstruct: no images: {path} does not exist (run 'fluxmap simulate' first) and "
+                        "reconstruct.images names no files.")
+    return path
+
+
+def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int) -> Inputs:
+    rc = cfg.model.reconstruct
+    nx, ny = cfg.model.system.camera.pixels
+    if rc.images is not None:
+        if len(rc.images.files) != n_poses:
+            raise UserError(f"reconstruct.images.files: {len(rc.images.files)} file(s) for {n_poses} pose(s).")
+        imgs, valid = [], []
+        model = None
+        if rc.images.units == "counts":
+            from .simulate import emccd_model
+
+            model = emccd_model(cfg.model.system.camera.sensor, rc.images.exposure_s)
+        for p in rc.images.files:
+            try:
+                img, _ = read_image(cfg.resolve(p))
+            except ValueError as e:
+                raise UserError(f"reconstruct.images.files: {e}") from None
+            if img.shape != (ny, nx):
+                raise UserError(f"reconstruct.images.files: {p} is {img.shape[1]} x {img.shape[0]} pixels; the "
+                                f"camera has {nx} x {ny}.")
+            ok = np.isfinite(img)
+            if model is not None:
+                ok &= ~N.saturated(img, model)
+                img = N.counts_to_photons(np.where(ok, img, 0), model)
+            imgs.append(img)
+            valid.append(ok)
+        return Inputs(np.array(imgs), np.array(valid), None, "files")
+    path = _simulation(cfg)
+    with A.open_artefact(path, "simulation") as f:
+        power = f["truth/power"][()]
+        if len(power) != n_elements:
+            raise UserError(f"reconstruct: {path} was simulated on {len(power)} elements; the subject now has "
+                            f"{n_elements}. Run 'fluxmap simulate' again.")
+        noisy = f["images/noisy"]
+        L, R, P = noisy.shape[:3]
+        if P != n_poses:
+            raise UserError(f"reconstruct: {path} holds {P} pose(s); the config has {n_poses}. Simulate again.")
+        if rc.level >= L or rc.repeat >= R:
+            raise UserError(f"reconstruct.level/repeat: {path} holds {L} level(s) x {R} repeat(s); asked for "
+                            f"level {rc.level}, repeat {rc.repeat}.")
+        imgs = (f["images/noiseless"][rc.level] if rc.noiseless else noisy[rc.level, rc.repeat]).astype(float)
+        valid = np.isfinite(imgs)
+        if "counts" in f["images"] and not rc.noiseless:
+            from .simulate import emccd_model
+
+            model = emccd_model(cfg.model.system.camera.sensor, float(f["images"].attrs["exposure_s"]))
+            valid &= ~N.saturated(f["images/counts"][rc.level, rc.repeat], model)
+        truth = power * f["truth/level_scale"][rc.level]
+        snr = f["images/max_snr"][rc.level]
+    return Inputs(imgs, valid, truth, f"{path} level {rc.level} " + ("noiseless" if rc.noiseless else f"repeat {rc.repeat}"), snr)
+
+
+def direct_roi(T_path: Path, image: np.ndarray) -> float:
+    """The older quantification: photons summed over the region the direct view covers."""
+    with A.open_artefact(T_path, "transfer") as f:
+        direct = A.read_csr(f["views"]["0"])
+    rows = np.diff(direct.indptr) > 0
+    return float(np.nansum(image.ravel()[rows]))
+
+
+def variance(a: np.ndarray, read_noise_photons: float) -> np.ndarray:
+    """Shot noise plus read noise, floored at one photon so empty pixels keep a weight."""
+    return np.maximum(a, 1.0) + read_noise_photons**2
+
+
+REGULARISED = ("paper", "tikhonov", "nnls", "weighted_lsq")
+
+
+def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSettings, read_noise: float):
+    """Solve on the valid pixels; returns the inverse.Result and the pixel mask used."""
+    keep = valid.ravel()
+    Tm, am = T[keep], a.ravel()[keep]
+    if m.method == "mlem":  # Poisson likelihood: bias-subtracted counts can dip below zero
+        am = np.maximum(am, 0.0)
+    kw: dict = {}
+    if m.method in REGULARISED:
+        if m.lam == "auto":
+            kw["lam_rule"] = m.lambda_rule
+        else:
+            kw["lam"] = float(m.lam)
+    if m.method == "paper":
+        kw.update(max_iter=m.max_iter, tol=m.tol)
+    if m.method == "mlem":
+        kw.update(n_iter=m.n_iter)
+    return solve(Tm, am, method=m.method, sigma2=variance(am, read_noise), **kw), keep
+
+
+def describe(m: C.MethodSettings) -> str:
+    if m.method in REGULARISED:
+        lam = f"auto/{m.lambda_rule}" if m.lam == "auto" else f"{m.lam:g}"
+        extra = f", {m.max_iter} it" if m.method == "paper" else ""
+        return f"{m.method}(lambda={lam}{extra})"
+    return f"{m.method}({m.n_iter} it)" if m.method == "mlem" else m.method
+
+
+def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
+    rc = cfg.model.reconstruct
+    views, placer, todo, _ = ensure_T(cfg, ctx, label="building T")
+    surface = placer.surface
+    P = len(todo)
+    inp = load_inputs(cfg, P, surface.n_elements)
+    nx, ny = cfg.model.system.camera.pixels
+    Ts = [load_T(pt.path) for _, pt in todo]
+    m = rc.settings()
+    ctx.say(f"reconstruct: {inp.source}; {describe(m)}, {P} pose(s)")
+    t0 = time.perf_counter()
+    per_pose = []
+    for k in range(P):
+        res, keep = run_method(Ts[k], inp.images[k], inp.valid[k], m, rc.read_noise_photons)
+        fitted = np.full(nx * ny, np.nan)
+        fitted[keep] = res.fitted
+        per_pose.append((res, fitted.reshape(ny, nx)))
+    joint = None
+    if rc.joint and P > 1:
+        Tj = sp.vstack(Ts).tocsr()
+        joint, _ = run_method(Tj, inp.images, inp.valid, m, rc.read_noise_photons)
+    seconds = time.perf_counter() - t0
+    main = joint if joint is not None else per_pose[0][0]
+    areas = surface.element_areas_mm2
+    out = cfg.workdir / "reconstruction.h5"
+    rows = []
+    with A.write_artefact(out, "reconstruction", config_sha256=cfg.sha256,
+                          inputs={"T": json.dumps([pt.key for _, pt in todo]), "images": inp.source}) as f:
+        A.write_surface(f.create_group("surface"), surface)
+        g = f.create_group("flux")
+        _write_flux(g, main, areas)
+        g.attrs["joint_over_poses"] = joint is not None
+        pp = f.create_group("per_pose")
+        pp.create_dataset("power", data=np.array([r.power for r, _ in per_pose])).attrs["unit"] = "photons"
+        pp.create_dataset("sigma", data=np.array([r.sigma for r, _ in per_pose])).attrs["unit"] = "photons"
+        pp.create_dataset("observed", data=np.array([r.observed for r, _ in per_pose]))
+        pp.create_dataset("total", data=[np.nansum(r.power) for r, _ in per_pose]).attrs["unit"] = "photons"
+        pp.create_dataset("lambda", data=[r.lam for r, _ in per_pose])
+        pp.create_dataset("vertices_mm", data=np.array([sc.surface.vertices_mm for sc, _ in todo]),
+                          compression="gzip").attrs["meaning"] = "the surface placed at each pose (faces as /surface/faces)"
+        pp.create_dataset("backprojection_total", data=[np.nansum(backprojection(Ts[k], inp.images[k].ravel()))
+                                                        for k in range(P)]).attrs["unit"] = "photons (T'a summed)"
+        pp.create_dataset("direct_roi_photons", data=[direct_roi(todo[k][1].path, inp.images[k]) for k in range(P)]
+                          ).attrs["meaning"] = "measured photons summed over the pixels the direct view reaches"
+        pp.create_dataset("heights_mm", data=[pt.pose.height_mm for _, pt in todo])
+        pp.create_dataset("rotations_deg", data=[pt.pose.rotation_deg for _, pt in todo])
+        fit = f.create_group("fit")
+        fitted = np.array([fi for _, fi in per_pose])
+        fit.create_dataset("measured", data=inp.images.astype(np.float32), compression="gzip").attrs["unit"] = "photons"
+        fit.create_dataset("fitted", data=fitted.astype(np.float32), compression="gzip").attrs["unit"] = "photons"
+        fit.create_dataset("residual", data=(inp.images - fitted).astype(np.float32), compression="gzip")
+        fit.create_dataset("valid", data=inp.valid, compression="gzip")
+        f.attrs["method"] = m.method
+        f.attrs["settings"] = json.dumps(m.model_dump(mode="json", by_alias=True))
+        f.attrs["lambda_used"] = float(main.lam) if main.lam is not None else np.nan
+        f.attrs["seconds"] = seconds
+        if inp.truth is not None:
+            t = f.create_group("truth")
+            t.create_dataset("power", data=inp.truth)
+            err = [error_l1(r.power, inp.truth) for r, _ in per_pose]
+            ratio = [total_ratio(r.power, inp.truth) for r, _ in per_pose]
+            t.create_dataset("error_per_pose", data=err)
+            t.create_dataset("total_ratio_per_pose", data=ratio)
+            t.attrs["error"] = error_l1(main.power, inp.truth)
+            t.attrs["total_ratio"] = total_ratio(main.power, inp.truth)
+        for k, (_, pt) in enumerate(todo):
+            r = per_pose[k][0]
+            row = [pt.pose.height_mm, pt.pose.rotation_deg, f"{np.nansum(r.power):.4g}",
+                   f"{r.observed.mean():.0%}", f"{r.lam:.3g}" if r.lam is not None else "-"]
+            if inp.truth is not None:
+                row += [f"{err[k]:.2%}", f"{ratio[k]:.3f}"]
+            rows.append(row)
+        if joint is not None:
+            row = ["joint", "", f"{np.nansum(joint.power):.4g}", f"{joint.observed.mean():.0%}",
+                   f"{joint.lam:.3g}" if joint.lam is not None else "-"]
+            if inp.truth is not None:
+                row += [f"{error_l1(joint.power, inp.truth):.2%}", f"{total_ratio(joint.power, inp.truth):.3f}"]
+            rows.append(row)
+        if rc.sweep is not None:
+            if inp.truth is None:
+                raise UserError("reconstruct.sweep: a sweep needs a simulation (ground truth), not image files.")
+            _sweep(cfg, ctx, f.create_group("sweep"), Ts, todo)
+    header = ["height_mm", "rotation_deg", "total photons", "observed", "lambda"]
+    if inp.truth is not None:
+        header += ["error", "total ratio"]
+    ctx.table(header, rows)
+    ctx.say(f"{seconds:.2f} s of solving")
+    return out
+
+
+def _write_flux(g, res, areas) -> None:
+    g.create_dataset("power", data=res.power).attrs["unit"] = "photons per element (NaN: unobserved)"
+    g.create_dataset("exitance", data=res.power / areas).attrs["unit"] = "photons mm^-2"
+    g.create_dataset("observed", data=res.observed)
+    g.create_dataset("sigma", data=res.sigma).attrs["unit"] = "photons (1 sd)"
+    g.create_dataset("total", data=np.nansum(res.power)).attrs["unit"] = "photons over observed elements"
+
+
+# ------------------------------------------------------------------ the study sweep
+def _sweep_cell(sim_path: str, T: sp.csr_matrix, pose: int, level: int, repeats: int,
+                methods: list[C.MethodSettings], read_noise: float, sensor: dict | None) -> np.ndarray:
+    """Errors (methods x repeats) of one (level, pose) cell; runs in a worker process."""
+    import h5py
+
+    out = np.zeros((len(methods), repeats))
+    with h5py.File(sim_path, "r") as f:
+        truth = f["truth/power"][()] * f["truth/level_scale"][level]
+        imgs = f["images/noisy"][level, :repeats, pose].astype(float)
+        counts = f["images/counts"][level, :repeats, pose] if "counts" in f["images"] else None
+    model = N.EMCCDModel(**sensor) if (sensor is not None and counts is not None) else None
+    for r in range(repeats):
+        valid = np.isfinite(imgs[r]) & (~N.saturated(counts[r], model) if model is not None else True)
+        for i, m in enumerate(methods):
+            res, _ = run_method(T, imgs[r], valid, m, read_noise)
+            out[i, r] = error_l1(res.power, truth)
+    return out
+
+
+def _sweep(cfg: C.LoadedConfig, ctx: RunContext, g, Ts, todo) -> None:
+    sw = cfg.model.reconstruct.sweep
+    path = _simulation(cfg)
+    with A.open_artefact(path, "simulation") as f:
+        L, R, P = f["images/noisy"].shape[:3]
+        snr = f["images/max_snr"][()]
+        levels = f["truth/levels_peak_photons"][()]
+        sensor = None
+        if "counts" in f["images"]:
+            sensor = cfg.model.system.camera.sensor.model_dump() | {"exposure_s": float(f["images"].attrs["exposure_s"])}
+    lv = list(sw.levels) if sw.levels is not None else list(range(L))
+    reps = min(sw.repeats or R, R)
+    methods = list(sw.methods)
+    cells = [(li, k) for li in lv for k in range(P)]
+    err = np.full((len(methods), L, P, reps), np.nan)
+    t0 = time.perf_counter()
+    args = [(str(path), Ts[k], k, li, reps, methods, cfg.model.reconstruct.read_noise_photons, sensor) for li, k in cells]
+    with ctx.progress("sweep", total=len(cells)) as advance:
+        if ctx.jobs > 1:
+            with ProcessPoolExecutor(max_workers=ctx.jobs) as ex:
+                for (li, k), e in zip(cells, ex.map(_sweep_cell, *zip(*args))):
+                    err[:, li, k] = e
+                    advance()
+        else:
+            for (li, k), a in zip(cells, args):
+                err[:, li, k] = _sweep_cell(*a)
+                advance()
+    names = [describe(m) for m in methods]
+    g.create_dataset("error", data=err).attrs["layout"] = "error[method, level, pose, repeat] (paper Eq. 15)"
+    g.create_dataset("mean", data=np.nanmean(err, axis=3))
+    g.create_dataset("sd", data=np.nanstd(err, axis=3, ddof=1) if reps > 1 else np.zeros(err.shape[:3]))
+    g.create_dataset("max_snr", data=snr)
+    g.create_dataset("levels_peak_photons", data=levels)
+    g.attrs["methods"] = json.dumps(names)
+    g.attrs["seconds"] = time.perf_counter() - t0
+    rows = []
+    for k, (_, pt) in enumerate(todo):
+        for li in lv:
+            rows.append([pt.pose.height_mm, f"{levels[li]:.0e}", f"{snr[li, k]:.1f}",
+                         *[f"{100 * np.mean(err[i, li, k]):.2f} ± {100 * np.std(err[i, li, k], ddof=1 if reps > 1 else 0):.2f}"
+                           for i in range(len(methods))]])
+    ctx.table(["height_mm", "peak", "max SNR", *[f"{n} error %" for n in names]], rows)
+    ctx.say(f"sweep: {len(cells)} cells x {reps} repeats x {len(methods)} methods in {time.perf_counter() - t0:.1f} s")

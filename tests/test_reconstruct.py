@@ -1,0 +1,117 @@
+"""reconstruct: from simulated or exported images back to the flux per element."""
+
+from __future__ import annotations
+
+import copy
+
+import h5py
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from fluxcli.cli import app
+
+runner = CliRunner()
+
+
+def run(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture
+def patch_config(minimal_config):
+    """A flat 6 x 4-element patch facing the camera, a little out of focus: every element
+    is seen, and a Gaussian patch of flux lies on it."""
+    cfg = copy.deepcopy(minimal_config)
+    cfg["system"]["camera"]["pixels"] = [48, 48]
+    cfg["system"]["camera"]["pixel_pitch_mm"] = 0.2
+    cfg["subject"]["surface"] = {"phantom": "patch", "size_mm": [24, 16], "n": [6, 4], "center_mm": [0, 0, 10]}
+    cfg["subject"]["poses"] = {"heights_mm": [0, 8]}
+    cfg["simulate"] = {"flux": {"kind": "gaussian", "width_mm": 6.0, "peak_photons": 1e7, "center_mm": [2, 1, 10]},
+                       "noise": {"model": "poisson", "peaks_photons": [1e7, 1e5], "repeats": 4, "seed": 2}}
+    return cfg
+
+
+def test_noiseless_data_with_the_same_T_recovers_the_truth(write_config, patch_config, tmp_path):
+    cfg = copy.deepcopy(patch_config)
+    cfg["simulate"]["transfer"] = {}
+    cfg["simulate"]["allow_inverse_crime"] = True
+    p = write_config(cfg)
+    assert run("simulate", p, "--quiet").exit_code == 0
+    for method in ("nnls", "weighted_lsq", "paper"):
+        over = ["--set", f"reconstruct.method={method}", "--set", "reconstruct.noiseless=true",
+                "--set", "reconstruct.lambda=1e-9"]
+        r = run("reconstruct", p, "--quiet", *over)
+        assert r.exit_code == 0, r.output
+        with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
+            assert f["flux/observed"][()].all()
+            truth = f["truth/power"][()]
+            got = f["flux/power"][()]
+            assert np.abs(got - truth).sum() / truth.sum() < 1e-3, method
+            assert f["per_pose/observed"][()].all()
+
+
+def test_noisy_reconstruction_beats_backprojection_and_sweeps(write_config, patch_config, tmp_path):
+    cfg = copy.deepcopy(patch_config)
+    cfg["reconstruct"] = {"sweep": {"methods": [{"method": "backprojection"},
+                                                {"method": "weighted_lsq", "lambda": "auto"}]}}
+    p = write_config(cfg)
+    assert run("simulate", p, "--quiet").exit_code == 0
+    r = run("reconstruct", p, "--jobs", "2")
+    assert r.exit_code == 0, r.output
+    with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
+        err = f["sweep/error"][()]
+        assert err.shape == (2, 2, 2, 4)
+        assert np.allclose(f["sweep/mean"][()], err.mean(axis=3))
+        assert np.all(err[0] > 0.99)  # backprojection: quantitatively useless (~100 %)
+        snr = f["sweep/max_snr"][()]
+        assert np.all(snr[0] > 10) and np.all(snr[1] < 3)
+        assert np.all(err[1, 0] < 0.10)  # SNR > 10: under 10 % (the paper's own bar)
+        assert np.all(err[1, 0].mean(axis=1) < err[1, 1].mean(axis=1))  # error grows as SNR falls
+        # the main result is level 0, repeat 0, joint over both poses
+        assert f["truth"].attrs["error"] == pytest.approx(
+            np.abs(f["flux/power"][()] - f["truth/power"][()]).sum() / f["truth/power"][()].sum())
+        assert f["truth"].attrs["error"] < 0.05  # both poses jointly do better than either
+        assert abs(f["truth"].attrs["total_ratio"] - 1) < 0.05
+        # uncertainty: the 1-sd band covers the truth about as often as it should
+        z = (f["flux/power"][()] - f["truth/power"][()]) / f["flux/sigma"][()]
+        assert 0.4 < np.mean(np.abs(z) < 1) <= 1.0
+        fit = f["fit/fitted"][()]
+        meas = f["fit/measured"][()]
+        assert np.allclose(f["fit/residual"][()], meas - fit, atol=1e-3)
+        # the discrepancy principle: the weighted residual matches the noise it was told of
+        seen = fit > 0
+        chi2 = ((meas - fit)[seen] ** 2 / np.maximum(meas[seen], 1.0)).sum() / seen.sum()
+        assert 0.7 < chi2 < 1.3
+
+
+def test_reconstruct_from_exported_count_images(write_config, patch_config, tmp_path):
+    cfg = copy.deepcopy(patch_config)
+    cfg["simulate"]["noise"] = {"model": "emccd", "peaks_photons": [1e7], "repeats": 1, "seed": 4}
+    cfg["simulate"]["export"] = {"format": "tiff"}
+    cfg["system"]["camera"]["sensor"] = {"em_gain": 20}
+    p = write_config(cfg)
+    assert run("simulate", p, "--quiet").exit_code == 0
+    assert run("reconstruct", p, "--quiet").exit_code == 0
+    with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
+        from_sim = f["flux/power"][()]
+    files = [f"run/images/level0/h{h:+g}_rot0_rep0.tif" for h in (0, 8)]
+    cfg["reconstruct"] = {"images": {"files": files, "units": "counts"}}
+    p = write_config(cfg)
+    r = run("reconstruct", p, "--quiet")
+    assert r.exit_code == 0, r.output
+    with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
+        assert "truth" not in f
+        assert np.allclose(f["flux/power"][()], from_sim, rtol=1e-6)
+
+
+def test_bad_reconstruction_input(write_config, patch_config):
+    p = write_config(patch_config)
+    r = run("reconstruct", p)
+    assert r.exit_code == 2 and "simulate" in " ".join(r.output.split())
+    cfg = copy.deepcopy(patch_config)
+    cfg["reconstruct"] = {"images": {"files": ["one.tif"]}}
+    r = run("reconstruct", write_config(cfg))
+    assert r.exit_code == 2 and "2 pose(s)" in " ".join(r.output.split())
+    r = run("reconstruct", p, "--set", "reconstruct.method=magic")
+    assert r.exit_code == 2 and "reconstruct.method" in r.output
