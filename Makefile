@@ -22,7 +22,9 @@ install: $(VENV)/.installed
 
 demo: $(VENV)/.installed
 	$(FLUXMAP) build-T configs/demo.yaml --jobs $(JOBS)
-	@echo "demo output: $(CURDIR)/runs/demo/transfer.h5 (T files in runs/demo/cache/T)"
+	$(FLUXMAP) simulate configs/demo.yaml --jobs $(JOBS)
+	$(FLUXMAP) reconstruct configs/demo.yaml --jobs $(JOBS)
+	@echo "demo output: $(CURDIR)/runs/demo/ (transfer.h5, simulation.h5, reconstruction.h5, images/)"
 
 test: $(VENV)/.installed
 	$(PY) -m pytest -q
