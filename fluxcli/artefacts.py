@@ -127,3 +127,19 @@ def canonical(x):
     if isinstance(x, (np.integer,)):
         return int(x)
     return x
+
+
+# ------------------------------------------------------------------ staleness
+def inputs_digest(**parts) -> str:
+    """sha256 of what a stage's output depends on (config sections as dicts, digests)."""
+    return cache_key(canonical({k: v for k, v in parts.items()}))
+
+
+def is_up_to_date(path: Path, kind: str, digest: str) -> bool:
+    """True when ``path`` is a readable ``kind`` artefact built from exactly ``digest``."""
+    try:
+        with h5py.File(path, "r") as f:
+            return (f.attrs.get("kind") == kind and int(f.attrs.get("schema_version", -1)) == SCHEMA_VERSIONS[kind]
+                    and f.attrs.get("inputs_digest") == digest)
+    except (OSError, KeyError):
+        return False

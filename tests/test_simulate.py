@@ -67,7 +67,9 @@ def test_gaussian_truth_images_and_determinism(write_config, sim_config, tmp_pat
         # Poisson: the mean over repeats and pixels follows the noiseless image
         assert noisy[0].sum() / 3 == pytest.approx(clean[0].sum(), rel=0.01)
     first = noisy.copy()
-    assert run("simulate", p, "--quiet").exit_code == 0
+    r = run("simulate", p)
+    assert r.exit_code == 0 and "up to date" in r.output  # nothing to redo
+    assert run("simulate", p, "--quiet", "--force").exit_code == 0
     with h5py.File(out) as f:
         assert np.array_equal(f["images/noisy"][()], first)  # same config, same bytes
     assert run("simulate", p, "--quiet", "--set", "simulate.noise.seed=6").exit_code == 0
@@ -100,7 +102,7 @@ def test_diffusion_truth_conserves_power_and_emccd_export(write_config, sim_conf
     assert notes["total_exitance_photons"] + notes["absorbed_photons"] == pytest.approx(1e8, rel=1e-6)
     assert power.sum() < 1e8
     # the tetrahedral mesh is cached, so a second run gives the same bytes
-    assert run("simulate", write_config(cfg), "--quiet").exit_code == 0
+    assert run("simulate", write_config(cfg), "--quiet", "--force").exit_code == 0
     with h5py.File(tmp_path / "run" / "simulation.h5") as f:
         assert np.array_equal(f["truth/power"][()], power)
         assert np.array_equal(f["images/counts"][()], counts)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import json
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -147,7 +147,18 @@ def describe(m: C.MethodSettings) -> str:
 
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     rc = cfg.model.reconstruct
-    views, placer, todo, _ = ensure_T(cfg, ctx, label="building T")
+    out = cfg.workdir / "reconstruction.h5"
+    m_ = cfg.model
+    sources = ([A.file_sha256(cfg.resolve(p)) for p in rc.images.files if cfg.resolve(p).is_file()]
+               if rc.images is not None else
+               [A.file_sha256(cfg.workdir / "simulation.h5")] if (cfg.workdir / "simulation.h5").is_file() else [])
+    digest = A.inputs_digest(system=m_.system.model_dump(mode="json"), subject=m_.subject.model_dump(mode="json"),
+                             transfer=m_.transfer.model_dump(mode="json"),
+                             reconstruct=rc.model_dump(mode="json", by_alias=True), images=sources)
+    if not ctx.force and A.is_up_to_date(out, "reconstruction", digest):
+        ctx.say(f"reconstruct: {out} is up to date (--force to redo)")
+        return out
+    views, placer, todo, _ = ensure_T(cfg, replace(ctx, force=False), label="building T")
     surface = placer.surface
     P = len(todo)
     inp = load_inputs(cfg, P, surface.n_elements)
@@ -169,10 +180,10 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     seconds = time.perf_counter() - t0
     main = joint if joint is not None else per_pose[0][0]
     areas = surface.element_areas_mm2
-    out = cfg.workdir / "reconstruction.h5"
     rows = []
     with A.write_artefact(out, "reconstruction", config_sha256=cfg.sha256,
                           inputs={"T": json.dumps([pt.key for _, pt in todo]), "images": inp.source}) as f:
+        f.attrs["inputs_digest"] = digest
         A.write_surface(f.create_group("surface"), surface)
         g = f.create_group("flux")
         _write_flux(g, main, areas)

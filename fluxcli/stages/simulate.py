@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,7 @@ from ..imaging.imagefiles import write_image
 from ..optics.raycast import OcclusionScene
 from ..scene import SubjectPlacer
 from ..surface.mesh import Surface
+from ..optics.transfer import ALGORITHM_VERSION
 from .build_t import cache_dir, ensure_T, load_T, plan
 from .context import RunContext
 
@@ -168,6 +170,14 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         raise UserError("simulate.transfer: the forward T would be the very T that reconstruct uses (an inverse "
                         "crime); sample it more finely, or set simulate.allow_inverse_crime: true.")
     surface = placer.surface
+    out = cfg.workdir / "simulation.h5"
+    m = cfg.model
+    digest = A.inputs_digest(system=m.system.model_dump(mode="json"), subject=m.subject.model_dump(mode="json"),
+                             surface=surface.digest(), transfer_fwd=tr_fwd.model_dump(mode="json"),
+                             simulate=sim.model_dump(mode="json"), version=ALGORITHM_VERSION)
+    if not ctx.force and A.is_up_to_date(out, "simulation", digest):
+        ctx.say(f"simulate: {out} is up to date (--force to redo)")
+        return out
     t0 = time.perf_counter()
     power, notes = truth_power(cfg, surface)
     if power.max() <= 0:
@@ -175,7 +185,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     truth_seconds = time.perf_counter() - t0
     ctx.say(f"simulate: truth '{sim.flux.kind}' on {surface.n_elements} elements, total "
             f"{power.sum():.4g} photons, peak {power.max():.4g} ({truth_seconds:.1f} s)")
-    views, placer, todo, built = ensure_T(cfg, ctx, tr_fwd, label="building forward T")
+    views, placer, todo, built = ensure_T(cfg, replace(ctx, force=False), tr_fwd, label="building forward T")
     lv = levels(cfg, power)
     scale = lv / power.max()
     nx, ny = cfg.model.system.camera.pixels
@@ -195,9 +205,9 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
                 if counts is not None:
                     counts[li, r, k] = c.reshape(ny, nx)
     snr = np.sqrt(clean.reshape(L, P, -1).max(axis=2))
-    out = cfg.workdir / "simulation.h5"
     with A.write_artefact(out, "simulation", config_sha256=cfg.sha256,
                           inputs={f"T_fwd_{k}": pt.key for k, (_, pt) in enumerate(todo)}) as f:
+        f.attrs["inputs_digest"] = digest
         A.write_surface(f.create_group("surface"), surface)
         g = f.create_group("truth")
         g.create_dataset("power", data=power).attrs["unit"] = "photons per exposure, per element"
