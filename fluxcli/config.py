@@ -303,15 +303,15 @@ class Simulate(Model):
 
 
 # --------------------------------------------------------------------------- reconstruct
-Method = Literal["backprojection", "paper", "tikhonov", "nnls", "weighted_lsq", "mlem"]
+Method = Literal["backprojection", "paper", "tikhonov", "nnls", "weighted_lsq", "mlem", "smooth"]
 
 
 class MethodSettings(Model):
-    method: Method = Field("weighted_lsq", description="backprojection | paper | tikhonov | nnls | weighted_lsq (noise-weighted NNLS) | mlem.")
+    method: Method = Field("smooth", description="smooth (default) | backprojection | paper | tikhonov | nnls | weighted_lsq | mlem.")
     lam: float | Literal["auto"] = Field("auto", alias="lambda",
                                           description="Regularisation in the paper's relative units (lambda~ = lambda max diag(T'T)), or auto.")
     lambda_rule: Literal["gcv", "lcurve", "discrepancy"] = Field("gcv", description="How 'auto' picks lambda.")
-    max_iter: int = Field(10, ge=1, description="paper: at most this many solves.")
+    max_iter: int = Field(10, ge=1, description="paper: at most this many solves; smooth: this many.")
     tol: float = Field(0.01, gt=0, description="paper: stop when the fit improves by less than this fraction.")
     n_iter: int = Field(500, ge=1, description="mlem: EM iterations.")
 
@@ -331,7 +331,7 @@ class Sweep(Model):
 
 
 class Reconstruct(Model):
-    method: Method = Field("weighted_lsq", description="The method of /flux (see MethodSettings).")
+    method: Method = Field("smooth", description="The method of /flux (see MethodSettings).")
     lam: float | Literal["auto"] = Field("auto", alias="lambda")
     lambda_rule: Literal["gcv", "lcurve", "discrepancy"] = Field(
         "gcv", description="gcv (default): robust to model error; discrepancy over-regularises when T_fwd != T.")

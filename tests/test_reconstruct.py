@@ -53,7 +53,7 @@ def test_noiseless_data_with_the_same_T_recovers_the_truth(write_config, patch_c
 
 def test_noisy_reconstruction_beats_backprojection_and_sweeps(write_config, patch_config, tmp_path):
     cfg = copy.deepcopy(patch_config)
-    cfg["reconstruct"] = {"lambda_rule": "discrepancy",
+    cfg["reconstruct"] = {"method": "weighted_lsq", "lambda_rule": "discrepancy",
                           "sweep": {"methods": [{"method": "backprojection"},
                                                 {"method": "weighted_lsq", "lambda": "auto"}]}}
     p = write_config(cfg)

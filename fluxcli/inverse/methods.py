@@ -49,7 +49,7 @@ __all__ = [
     "weighted_lsq",
 ]
 
-METHODS = ("backprojection", "paper", "tikhonov", "nnls", "weighted_lsq", "mlem")
+METHODS = ("backprojection", "paper", "tikhonov", "nnls", "weighted_lsq", "mlem", "smooth")
 
 
 # --------------------------------------------------------------------------- helpers
@@ -575,6 +575,19 @@ def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | 
         raise ValueError(f"method must be one of {', '.join(METHODS)}; got {method!r}.")
     T = c.as_transfer(T)
     a = c.as_pixels(a, T.shape[0], "image a (photons)")
+    if method == "smooth":
+        from fluxcli.inverse.smooth import smooth_iterated
+
+        if lam_rule not in (None, "gcv"):
+            raise ValueError("method 'smooth' chooses lambda by (modified) GCV only.")
+        unknown = set(opts) - {"adjacency", "n_iter", "gamma", "lambdas"}
+        if unknown or "adjacency" not in opts:
+            raise ValueError(f"method 'smooth' needs adjacency and takes n_iter, gamma, lambdas; got {sorted(opts)}.")
+        out = smooth_iterated(T, a, lam=lam, sigma2=sigma2, rel_threshold=rel_threshold, **opts)
+        fitted = T @ np.where(out["observed"], out["power"], 0.0)
+        return Result(power=out["power"], observed=out["observed"], sigma=out["sigma"], fitted=fitted,
+                      residual=a - fitted, method=method, lam=out["lam"], lam_absolute=out["lam_absolute"],
+                      iterations=out["iterations"], converged=True, lam_choice=out["gcv"])
     choice_opts = {k: opts.pop(k) for k in ("lambdas", "tau", "gamma") if k in opts}
     weighted = method == "weighted_lsq"
     if weighted and sigma2 is None:

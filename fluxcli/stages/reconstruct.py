@@ -115,11 +115,14 @@ def variance(a: np.ndarray, read_noise_photons: float) -> np.ndarray:
     return np.maximum(a, 1.0) + read_noise_photons**2
 
 
-REGULARISED = ("paper", "tikhonov", "nnls", "weighted_lsq")
+REGULARISED = ("paper", "tikhonov", "nnls", "weighted_lsq")  # lambda rules of fluxcli.inverse
 
 
-def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSettings, read_noise: float):
-    """Solve on the valid pixels; returns the inverse.Result and the pixel mask used."""
+def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSettings, read_noise: float,
+               adjacency=None):
+    """Solve on the valid pixels; returns the inverse.Result and the pixel mask used.
+
+    ``adjacency`` (elements touching) is what the smoothness prior of ``smooth`` needs."""
     keep = valid.ravel()
     Tm, am = T[keep], a.ravel()[keep]
     if m.method == "mlem":  # Poisson likelihood: bias-subtracted counts can dip below zero
@@ -134,10 +137,17 @@ def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSe
         kw.update(max_iter=m.max_iter, tol=m.tol)
     if m.method == "mlem":
         kw.update(n_iter=m.n_iter)
+    if m.method == "smooth":
+        if m.lam != "auto":
+            kw["lam"] = float(m.lam)
+        kw.update(adjacency=adjacency, n_iter=m.max_iter)
     return solve(Tm, am, method=m.method, sigma2=variance(am, read_noise), **kw), keep
 
 
 def describe(m: C.MethodSettings) -> str:
+    if m.method == "smooth":
+        lam = "auto/modified GCV" if m.lam == "auto" else f"{m.lam:g}"
+        return f"smooth(lambda={lam}, {m.max_iter} it)"
     if m.method in REGULARISED:
         lam = f"auto/{m.lambda_rule}" if m.lam == "auto" else f"{m.lam:g}"
         extra = f", {m.max_iter} it" if m.method == "paper" else ""
@@ -164,19 +174,20 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     inp = load_inputs(cfg, P, surface.n_elements)
     nx, ny = cfg.model.system.camera.pixels
     Ts = [load_T(pt.path) for _, pt in todo]
+    adjacency = surface.element_adjacency()
     m = rc.settings()
     ctx.say(f"reconstruct: {inp.source}; {describe(m)}, {P} pose(s)")
     t0 = time.perf_counter()
     per_pose = []
     for k in range(P):
-        res, keep = run_method(Ts[k], inp.images[k], inp.valid[k], m, rc.read_noise_photons)
+        res, keep = run_method(Ts[k], inp.images[k], inp.valid[k], m, rc.read_noise_photons, adjacency)
         fitted = np.full(nx * ny, np.nan)
         fitted[keep] = res.fitted
         per_pose.append((res, fitted.reshape(ny, nx)))
     joint = None
     if rc.joint and P > 1:
         Tj = sp.vstack(Ts).tocsr()
-        joint, _ = run_method(Tj, inp.images, inp.valid, m, rc.read_noise_photons)
+        joint, _ = run_method(Tj, inp.images, inp.valid, m, rc.read_noise_photons, adjacency)
     seconds = time.perf_counter() - t0
     main = joint if joint is not None else per_pose[0][0]
     areas = surface.element_areas_mm2
@@ -237,7 +248,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         if rc.sweep is not None:
             if inp.truth is None:
                 raise UserError("reconstruct.sweep: a sweep needs a simulation (ground truth), not image files.")
-            _sweep(cfg, ctx, f.create_group("sweep"), Ts, todo)
+            _sweep(cfg, ctx, f.create_group("sweep"), Ts, todo, adjacency)
     header = ["height_mm", "rotation_deg", "total photons", "observed", "lambda"]
     if inp.truth is not None:
         header += ["error", "total ratio"]
@@ -256,7 +267,7 @@ def _write_flux(g, res, areas) -> None:
 
 # ------------------------------------------------------------------ the study sweep
 def _sweep_cell(sim_path: str, T: sp.csr_matrix, pose: int, level: int, repeats: int,
-                methods: list[C.MethodSettings], read_noise: float, sensor: dict | None) -> np.ndarray:
+                methods: list[C.MethodSettings], read_noise: float, sensor: dict | None, adjacency) -> np.ndarray:
     """Errors (methods x repeats) of one (level, pose) cell; runs in a worker process."""
     import h5py
 
@@ -269,12 +280,12 @@ def _sweep_cell(sim_path: str, T: sp.csr_matrix, pose: int, level: int, repeats:
     for r in range(repeats):
         valid = np.isfinite(imgs[r]) & (~N.saturated(counts[r], model) if model is not None else True)
         for i, m in enumerate(methods):
-            res, _ = run_method(T, imgs[r], valid, m, read_noise)
+            res, _ = run_method(T, imgs[r], valid, m, read_noise, adjacency)
             out[i, r] = error_l1(res.power, truth)
     return out
 
 
-def _sweep(cfg: C.LoadedConfig, ctx: RunContext, g, Ts, todo) -> None:
+def _sweep(cfg: C.LoadedConfig, ctx: RunContext, g, Ts, todo, adjacency) -> None:
     sw = cfg.model.reconstruct.sweep
     path = _simulation(cfg)
     with A.open_artefact(path, "simulation") as f:
@@ -290,7 +301,8 @@ def _sweep(cfg: C.LoadedConfig, ctx: RunContext, g, Ts, todo) -> None:
     cells = [(li, k) for li in lv for k in range(P)]
     err = np.full((len(methods), L, P, reps), np.nan)
     t0 = time.perf_counter()
-    args = [(str(path), Ts[k], k, li, reps, methods, cfg.model.reconstruct.read_noise_photons, sensor) for li, k in cells]
+    args = [(str(path), Ts[k], k, li, reps, methods, cfg.model.reconstruct.read_noise_photons, sensor, adjacency)
+            for li, k in cells]
     with ctx.progress("sweep", total=len(cells)) as advance:
         if ctx.jobs > 1:
             with ProcessPoolExecutor(max_workers=ctx.jobs) as ex:

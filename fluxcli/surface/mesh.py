@@ -78,6 +78,20 @@ class Surface:
         out = np.stack([np.bincount(e, weights=an[:, k], minlength=self.n_elements) for k in range(3)], axis=1)
         return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
 
+    def element_adjacency(self):
+        """Sparse (n_elements, n_elements) 0/1 matrix: 1 where two elements share a vertex."""
+        import scipy.sparse as sp
+
+        ok = self.element_of_face >= 0
+        rows = np.repeat(self.element_of_face[ok], 3)
+        inc = sp.csr_matrix((np.ones(len(rows)), (rows, self.faces[ok].ravel())),
+                            shape=(self.n_elements, len(self.vertices_mm)))
+        adj = (inc @ inc.T).tocsr()
+        adj.setdiag(0)
+        adj.eliminate_zeros()
+        adj.data[:] = 1.0
+        return adj
+
     def boundary_edge_count(self) -> int:
         """Number of edges not shared by exactly two faces (0 for a closed manifold)."""
         e = np.sort(self.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
