@@ -25,7 +25,8 @@ demo: $(VENV)/.installed
 	$(FLUXMAP) build-T configs/demo.yaml --jobs $(JOBS)
 	$(FLUXMAP) simulate configs/demo.yaml --jobs $(JOBS)
 	$(FLUXMAP) reconstruct configs/demo.yaml --jobs $(JOBS)
-	@echo "demo output: $(CURDIR)/runs/demo/ (transfer.h5, simulation.h5, reconstruction.h5, images/)"
+	$(FLUXMAP) report configs/demo.yaml
+	@echo "demo report: $(CURDIR)/runs/demo/report/index.html"
 
 test: $(VENV)/.installed
 	$(PY) -m pytest -q

@@ -114,8 +114,13 @@ def reconstruct(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, fo
 @app.command("report")
 def report(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, force: bool = ForceOpt,
            jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
-    """Figures and an HTML page from the artefacts."""
-    _run(_not_built("report", "issue 5"), config, set_, force, jobs, quiet)
+    """Figures, summary.json and a self-contained HTML page, from the artefacts.
+
+    $ fluxmap report configs/paper-3d.yaml
+    """
+    from .stages import report as stage
+
+    _run(stage.run, config, set_, force, jobs, quiet)
 
 
 @app.command("calibrate")

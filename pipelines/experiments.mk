@@ -1,4 +1,4 @@
-# Reproducible experiments: each is build-T -> simulate -> reconstruct (-> report), chained
+# Reproducible experiments: each is build-T -> simulate -> reconstruct -> report, chained
 # by their HDF5 artefacts.  A stage whose inputs did not change skips itself, and T comes
 # from the content-addressed cache, so editing only reconstruction settings redoes only
 # reconstruct.  `make -j2 paper-2d paper-3d heights` runs them side by side.
@@ -11,8 +11,10 @@ runs/$(1)/simulation.h5: configs/$(1).yaml runs/$(1)/transfer.h5
 	$$(FLUXMAP) simulate $$< --jobs $$(JOBS)
 runs/$(1)/reconstruction.h5: configs/$(1).yaml runs/$(1)/simulation.h5
 	$$(FLUXMAP) reconstruct $$< --jobs $$(JOBS)
-$(1): runs/$(1)/reconstruction.h5
-	@echo "$(1): results in $$(CURDIR)/runs/$(1)/"
+runs/$(1)/report/index.html: configs/$(1).yaml runs/$(1)/reconstruction.h5
+	$$(FLUXMAP) report $$<
+$(1): runs/$(1)/report/index.html
+	@echo "$(1): report at $$(CURDIR)/runs/$(1)/report/index.html"
 .PHONY: $(1)
 endef
 

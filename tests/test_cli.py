@@ -149,7 +149,7 @@ def test_mirror_facing_away_from_the_camera(write_config, minimal_config):
     assert_user_error(run("build-T", write_config(cfg)), "faces away")
 
 
-@pytest.mark.parametrize("stage", ["calibrate", "capture-surface", "report"])
+@pytest.mark.parametrize("stage", ["calibrate", "capture-surface"])
 def test_stages_not_built_yet_say_so(stage, write_config, minimal_config):
     assert_user_error(run(stage, write_config(minimal_config)), "not built yet")
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -258,12 +259,9 @@ def merge_equal_angles(angles_deg: np.ndarray, values: np.ndarray, tol_deg: floa
     group = np.concatenate([[0], np.cumsum(np.diff(ang) > tol_deg)])
     n = group[-1] + 1 if len(group) else 0
     out_ang = np.array([ang[group == g].mean() for g in range(n)])
-    with np.errstate(invalid="ignore"):
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            out = np.stack([np.nanmean(vals[..., group == g], axis=-1) for g in range(n)], axis=-1) if n else vals
+    with warnings.catch_warnings():  # an all-NaN group is meant: it stays NaN (unobserved)
+        warnings.simplefilter("ignore", RuntimeWarning)
+        out = np.stack([np.nanmean(vals[..., group == g], axis=-1) for g in range(n)], axis=-1) if n else vals
     return out_ang, out
 
 
@@ -301,11 +299,7 @@ def summarise(st: Study, *, title: str, slice_axial_mm: float, view_names: list[
             row["collection_efficiency"] = {n: float(s @ areas / areas.sum())
                                             for n, s in zip(view_names, st.transfer[k].sensitivity_per_view)}
         poses.append(row)
-    totals = {"reconstruction": st.pose_total}
-    if st.direct_roi_photons is not None:
-        totals["direct_roi"] = st.direct_roi_photons
-    if st.backprojection_total is not None:
-        totals["backprojection"] = st.backprojection_total
+    totals = _totals(st)
     normalised = {k: (np.asarray(v, float) / np.nanmean(v)).tolist() if np.nanmean(v) != 0 else None
                   for k, v in totals.items()}
     out = {
@@ -325,7 +319,6 @@ def summarise(st: Study, *, title: str, slice_axial_mm: float, view_names: list[
         "totals_normalised_by_mean": normalised,
         "spreads": {k: spread(v) for k, v in totals.items()},
         "slice_axial_mm": slice_axial_mm,
-        "notes": st.notes,
     }
     if st.truth_power is not None:
         out["truth_total_photons"] = float(st.truth_power.sum())
@@ -344,11 +337,13 @@ def summarise(st: Study, *, title: str, slice_axial_mm: float, view_names: list[
 
 
 def chi2_per_pixel(st: Study) -> list[float | None]:
-    """Mean of residual² / max(measured, 1) over the fitted pixels of each pose (≈1 for
-    a fit down to the shot noise)."""
+    """Mean of residual² / max(measured, 1) over the fitted pixels that some view reaches
+    (all fitted pixels without the T files): ≈1 for a fit down to the shot noise."""
     out = []
-    for m, fi, v in zip(st.measured, st.fitted, st.valid):
+    for k, (m, fi, v) in enumerate(zip(st.measured, st.fitted, st.valid)):
         ok = v & np.isfinite(fi) & np.isfinite(m)
+        if st.transfer is not None:
+            ok &= np.any(st.transfer[k].footprints, axis=0)
         out.append(float(np.mean((m[ok] - fi[ok]) ** 2 / np.maximum(m[ok], 1.0))) if ok.any() else None)
     return out
 
@@ -431,12 +426,15 @@ def make_report(study: Study, out_dir: Path, *, title: str, geometry: Geometry, 
         "scale, and their difference on a symmetric diverging scale (white = 0), in photons per pixel. "
         "Direct and mirror views share one frame, as on the detector; outlines mark the pixels each view "
         "can reach. Grey: pixels left out of the fit (saturated or not finite). "
-        "χ²/pixel is the mean of residual² / max(measured, 1): about 1 when the fit reaches the shot noise.")
+        "χ²/pixel is the mean of residual² / max(measured, 1) over the pixels the views reach: about 1 when the "
+        "fit is as good as the shot noise allows.")
     labels = F.pose_labels(study.heights_mm, study.rotations_deg)
+    axis_labels = F.image_axis_labels(geometry.look, geometry.up)
     for k in range(study.n_poses):
         feet = study.transfer[k].footprints if study.transfer is not None else None
         fig = F.fit_figure(study.measured[k], study.fitted[k], study.valid[k], footprints=feet, view_names=names,
-                           title=f"pose {k + 1}: {labels[k]}", chi2=summary["poses"][k]["chi2_per_pixel"])
+                           title=f"pose {k + 1}: {labels[k]}", chi2=summary["poses"][k]["chi2_per_pixel"],
+                           axis_labels=axis_labels)
         page.figure(save(fig, f"fit_pose{k + 1}.png"), f"Pose {k + 1} ({labels[k]}).")
 
     # ---------------------------------------------------------------- 2. flux on the surface
@@ -455,22 +453,30 @@ def make_report(study: Study, out_dir: Path, *, title: str, geometry: Geometry, 
         clim = F.exitance_limits(study.pose_exitance, study.exitance, truth_ex)
         panels_cam, panels_rest = F.surface_panels(study, geometry, truth_ex, labels)
         try:
-            fig_cam, used = F.surface_figure(panels_cam, clim, renderer=renderer, columns=min(4, len(panels_cam)),
-                                             title="reconstructed exitance, each pose seen from the camera")
-            fig_rest, _ = F.surface_figure(panels_rest, clim, renderer=used, columns=None,
-                                           title="in a common orientation: the subject at rest")
+            fig_rest, used = F.surface_figure(panels_rest, clim, renderer=renderer, columns=None,
+                                              title="in a common orientation: the subject at rest")
+            fig_cam = None
+            if panels_cam:
+                fig_cam, _ = F.surface_figure(panels_cam, clim, renderer=used, columns=min(4, len(panels_cam)),
+                                              title="reconstructed exitance, each pose seen from the camera")
+            else:
+                study.notes.append("where each pose placed the surface is unknown (no /per_pose/vertices_mm and no "
+                                   "T files): the views from the camera are left out.")
             summary["renderer"] = used
             if used != "pyvista" and renderer == "auto":
                 study.notes.append("pyvista could not render off-screen here; the 3-D views were drawn with matplotlib.")
             page.text(
                 "Reconstructed exitance (photons mm⁻²) on the subject's surface, one colour scale for every panel. "
                 "Mid grey: elements no view observes (unknown, not zero); light grey: faces that are not elements "
-                "(e.g. cylinder caps). First, each pose's own reconstruction on the surface where that pose placed "
-                "it, seen from the camera (looking along the optical axis, the image's up at the top: the same "
-                "orientation as the images above, direct view). Then every reconstruction on the subject at rest, "
-                "seen from the camera side and turned 120° and 240° about its axis, so that the poses can be "
-                "compared element by element" + (", next to the joint reconstruction and the ground truth." if truth_ex is not None else "."))
-            page.figure(save(fig_cam, "surface_camera.png"), "Each pose from the camera.")
+                "(e.g. cylinder caps). "
+                + ("First, each pose's own reconstruction on the surface where that pose placed it, seen from the "
+                   "camera (looking along the optical axis, the image's up at the top: the orientation of the direct "
+                   "view in the images above). Then e" if fig_cam is not None else "E")
+                + "very reconstruction on the subject at rest, seen from the camera side and turned 120° and 240° "
+                "about its axis, so that the poses can be compared element by element"
+                + (", next to the joint reconstruction and the ground truth." if truth_ex is not None else "."))
+            if fig_cam is not None:
+                page.figure(save(fig_cam, "surface_camera.png"), "Each pose from the camera.")
             page.figure(save(fig_rest, "surface_common.png"), "All poses in the rest orientation.")
         except F.RenderError as e:
             study.notes.append(f"the 3-D views could not be drawn ({e}).")
@@ -557,6 +563,7 @@ def _write_text(path: Path, text: str) -> None:
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as fh:
             fh.write(text)
+        os.chmod(tmp, 0o644)  # mkstemp makes it private; a report is for reading
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):

@@ -28,7 +28,7 @@ def cylinder(*, radius_mm: float, length_mm: float, n_angular: int, n_axial: int
              cap_elements: bool = False) -> tuple[Surface, np.ndarray, np.ndarray]:
     """Closed cylinder along x, centred at the origin.
 
-    Side elements are numbered ``j = i_axial * n_angular + i_angular``; element
+    Side elements are numbered ``j = i_angular * n_axial + i_axial``; element
     ``i_angular = 0`` starts at the top (+z) and the angle runs from +z towards +y.
     Caps are occluders unless ``cap_elements`` (then one element each, after the side).
     """

@@ -1,0 +1,83 @@
+"""``fluxmap report CONFIG``: figures and one HTML page from the run's artefacts.
+
+Examples
+--------
+$ fluxmap report configs/paper-3d.yaml
+$ fluxmap report configs/paper-3d.yaml --set report.slice_axial_mm=10
+$ fluxmap report configs/paper-2d.yaml --set report.surface_views=false
+
+Writes ``<workdir>/report/index.html`` (self-contained: opens from disk), the figures as
+PNG files beside it, and ``summary.json`` with every number the page shows.  Reads
+``reconstruction.h5``, the T files it was solved with, and ``simulation.h5`` when the
+images came from a simulation.  A report already made from the same artefacts and
+settings is kept unless ``--force``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from .. import artefacts as A
+from .. import config as C
+from .. import report as R
+from ..errors import UserError
+from ..scene import SubjectPlacer, views_from_config
+from .build_t import cache_dir
+from .context import RunContext
+
+
+def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
+    rs = cfg.model.report
+    rec = cfg.workdir / "reconstruction.h5"
+    if not rec.is_file():
+        raise UserError(f"report: {rec} does not exist; run 'fluxmap reconstruct {cfg.path}' first "
+                        f"(after 'fluxmap simulate' or with reconstruct.images naming image files).")
+    out_dir = cfg.workdir / "report"
+    sim = cfg.workdir / "simulation.h5"
+    inputs = {"reconstruction.h5": A.file_sha256(rec)}
+    if sim.is_file():
+        inputs["simulation.h5"] = A.file_sha256(sim)
+    settings = rs.model_dump(mode="json") | {"config_sha256": cfg.sha256}
+    index = out_dir / "index.html"
+    if not ctx.force and index.is_file() and _previous(out_dir).get("provenance") == {"inputs": inputs, "settings": settings}:
+        ctx.say(f"report: up to date ({index}); --force redraws it")
+        return index
+
+    placer = SubjectPlacer(cfg)
+    cam = cfg.model.system.camera
+    geometry = R.Geometry(axis_point_mm=tuple(placer.axis_point), axis_direction=tuple(placer.axis),
+                          look=tuple(cam.pose.look), up=tuple(cam.pose.up),
+                          view_names=tuple(v.name for v in views_from_config(cfg.model.system)))
+    study = R.load(rec, t_cache_dir=cache_dir(cfg), simulation=sim if sim.is_file() else None)
+    if study.surface.n_elements != placer.surface.n_elements:
+        raise UserError(f"report: {rec} has {study.surface.n_elements} elements; the config's subject has "
+                        f"{placer.surface.n_elements}. Run 'fluxmap reconstruct {cfg.path}' again.")
+    _remove_old_figures(out_dir)
+    ctx.say(f"report: {study.n_poses} pose(s), {study.surface.n_elements} elements, method {study.method}")
+    index, summary = R.make_report(study, out_dir, title=rs.title or cfg.path.stem, geometry=geometry,
+                                   slice_axial_mm=rs.slice_axial_mm, surface_views=rs.surface_views,
+                                   extra={"provenance": {"inputs": inputs, "settings": settings}})
+    for note in summary["notes"]:
+        ctx.say(f"note: {note}")
+    sp = summary["spreads"]
+    ctx.say("spread over poses: " + ", ".join(f"{k} {v:.1%}" for k, v in sp.items() if v is not None))
+    if summary.get("error") is not None:
+        ctx.say(f"error {summary['error']:.2%}, total ratio {summary['total_ratio']:.3f}")
+    ctx.say(f"{len(summary['figures'])} figure(s); open {index}")
+    return index
+
+
+def _previous(out_dir: Path) -> dict:
+    try:
+        return json.loads((out_dir / "summary.json").read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _remove_old_figures(out_dir: Path) -> None:
+    """Figures of a previous report that this one might not redraw (e.g. fewer poses)."""
+    for name in _previous(out_dir).get("figures", []):
+        p = out_dir / Path(name).name
+        if p.suffix == ".png" and p.is_file():
+            p.unlink()

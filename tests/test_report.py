@@ -1,0 +1,275 @@
+"""report: the page, summary.json, the figures, the 3-D fallback, and a science regression check.
+
+A tiny pipeline (cylinder phantom of 16 x 6 elements, 40 x 40 px camera, two stage
+heights, Gaussian flux, seeded Poisson noise, a two-method sweep) runs once per module;
+its summary is compared with ``tests/data/report_expectations.json`` so that a change
+which worsens the reconstruction fails here.  To refresh the stored values after an
+intended improvement: ``FLUXMAP_WRITE_EXPECTATIONS=1 pytest tests/test_report.py``.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+import re
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import yaml
+
+from fluxcli import report as R
+from fluxcli.config import load_config
+from fluxcli.errors import UserError
+from fluxcli.report import figures as F
+from fluxcli.stages import reconstruct, report, simulate
+from fluxcli.stages.build_t import cache_dir
+from fluxcli.stages.context import RunContext
+
+ROOT = Path(__file__).resolve().parents[1]
+EXPECTATIONS = ROOT / "tests" / "data" / "report_expectations.json"
+QUIET = RunContext(quiet=True)
+
+
+def small_config(minimal: dict) -> dict:
+    """test_simulate's cylinder, with the method pinned so that the regression check
+    follows one method, not whatever the default becomes."""
+    cfg = copy.deepcopy(minimal)
+    cfg["system"]["camera"]["pixels"] = [40, 40]
+    cfg["system"]["camera"]["pixel_pitch_mm"] = 0.3
+    cfg["subject"]["surface"] = {"phantom": "cylinder", "radius_mm": 8, "length_mm": 24, "n_angular": 16, "n_axial": 6}
+    cfg["subject"]["poses"] = {"heights_mm": [0, 5]}
+    cfg["simulate"] = {"flux": {"kind": "gaussian", "width_mm": 4.0, "peak_photons": 1e6},
+                       "noise": {"model": "poisson", "peaks_photons": [1e7, 1e5], "repeats": 3, "seed": 5}}
+    wlsq = {"method": "weighted_lsq", "lambda": "auto", "lambda_rule": "discrepancy"}
+    cfg["reconstruct"] = dict(wlsq, sweep={"methods": [{"method": "backprojection"}, wlsq]})
+    return cfg
+
+
+def _minimal() -> dict:
+    # as conftest's minimal_config, which is function-scoped; the pipeline here runs once per module
+    cfg = yaml.safe_load((ROOT / "configs" / "minimal.yaml").read_text())
+    cfg["workdir"] = "run"
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+    """The pipeline up to the report; returns (config, index.html)."""
+    tmp = tmp_path_factory.mktemp("report")
+    path = tmp / "cfg.yaml"
+    path.write_text(yaml.safe_dump(small_config(_minimal())))
+    cfg = load_config(path)
+    simulate.run(cfg, QUIET)
+    reconstruct.run(cfg, QUIET)
+    index = report.run(cfg, QUIET)
+    return cfg, index
+
+
+def _summary(index: Path) -> dict:
+    return json.loads((index.parent / "summary.json").read_text())
+
+
+# ------------------------------------------------------------------ the page and the numbers
+def test_page_is_self_contained_and_shows_every_figure(small_run):
+    cfg, index = small_run
+    assert index == cfg.workdir / "report" / "index.html" and index.is_file()
+    text = index.read_text()
+    s = _summary(index)
+    figures = s["figures"]
+    for name in ("fit_pose1.png", "fit_pose2.png", "surface_camera.png", "surface_common.png", "slice.png",
+                 "totals.png", "sweep_error.png", "sensitivity.png"):
+        assert name in figures
+    for name in figures:
+        png = index.parent / name
+        assert png.is_file() and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert text.count('src="data:image/png;base64,') == len(figures)
+    # nothing is fetched from anywhere: every src is a data URI, every link an anchor on the page
+    assert all(v.startswith("data:image/png;base64,") for v in re.findall(r'src="([^"]*)"', text))
+    assert all(v.startswith("#") for v in re.findall(r'href="([^"]*)"', text))
+    assert "<script" not in text and "url(" not in text
+    assert s["renderer"] in ("pyvista", "matplotlib")
+    # the tables say what the paper's Table 1 and Fig. 18 say
+    assert "Maximum SNR" in text and "spread" in text
+
+
+def test_summary_numbers_are_the_artefacts_numbers(small_run):
+    cfg, index = small_run
+    s = _summary(index)
+    with h5py.File(cfg.workdir / "reconstruction.h5") as f:
+        totals = f["per_pose/total"][()]
+        roi = f["per_pose/direct_roi_photons"][()]
+        bp = f["per_pose/backprojection_total"][()]
+        err = f["truth/error_per_pose"][()]
+        ratio = f["truth/total_ratio_per_pose"][()]
+        joint_error = f["truth"].attrs["error"]
+        truth_total = f["truth/power"][()].sum()
+        sweep_mean = f["sweep/mean"][()]
+        power = f["flux/power"][()]
+        observed = f["flux/observed"][()]
+    with h5py.File(cfg.workdir / "simulation.h5") as f:
+        snr = f["images/max_snr"][()]
+    assert [p["total_photons"] for p in s["poses"]] == pytest.approx(totals, rel=1e-12)
+    assert [p["direct_roi_photons"] for p in s["poses"]] == pytest.approx(roi, rel=1e-12)
+    assert [p["error"] for p in s["poses"]] == pytest.approx(err, rel=1e-12)
+    assert [p["total_ratio"] for p in s["poses"]] == pytest.approx(ratio, rel=1e-12)
+    assert s["error"] == pytest.approx(joint_error, rel=1e-12)
+    assert s["truth_total_photons"] == pytest.approx(truth_total, rel=1e-12)
+    for name, v in (("reconstruction", totals), ("direct_roi", roi), ("backprojection", bp)):
+        assert s["spreads"][name] == pytest.approx((v.max() - v.min()) / v.mean(), rel=1e-9)
+        assert s["totals_normalised_by_mean"][name] == pytest.approx(v / v.mean(), rel=1e-9)
+    assert np.array(s["snr_table"]["max_snr"]) == pytest.approx(snr, rel=1e-6)
+    assert np.array(s["sweep"]["mean_error"], float) == pytest.approx(sweep_mean, rel=1e-12, nan_ok=True)
+    assert s["flux_total_photons"] == pytest.approx(np.nansum(power), rel=1e-12)
+    # the slice: unobserved elements are null (drawn as gaps), never zero
+    sl = s["slice"]
+    assert len(sl["angle_deg"]) == len(sl["exitance_joint"]) and sl["angle_deg"] == sorted(sl["angle_deg"])
+    assert not observed.all()
+    hidden = [i for i, e in enumerate(sl["elements"]) if not observed[e]]
+    assert hidden, "the slice should cross the unobserved underside"
+    assert None in sl["exitance_joint"]
+    assert all(v is None or v >= 0 for v in sl["exitance_joint"])
+
+
+def test_report_is_kept_when_up_to_date_and_redrawn_with_force(small_run):
+    cfg, index = small_run
+    before = index.stat().st_mtime_ns
+    assert report.run(cfg, QUIET) == index
+    assert index.stat().st_mtime_ns == before
+    assert report.run(cfg, RunContext(quiet=True, force=True)) == index
+    assert index.stat().st_mtime_ns != before
+
+
+def test_missing_reconstruction_names_the_command(write_config, minimal_config):
+    cfg = load_config(write_config(minimal_config))
+    with pytest.raises(UserError, match="fluxmap reconstruct"):
+        report.run(cfg, QUIET)
+
+
+# ------------------------------------------------------------------ 3-D views: pyvista and its fallback
+def _study(cfg):
+    return R.load(cfg.workdir / "reconstruction.h5", t_cache_dir=cache_dir(cfg))
+
+
+def _geometry(cfg):
+    from fluxcli.scene import SubjectPlacer
+
+    placer = SubjectPlacer(cfg)
+    return R.Geometry(tuple(placer.axis_point), tuple(placer.axis))
+
+
+def test_matplotlib_fallback_draws_the_surface_when_pyvista_fails(small_run, tmp_path, monkeypatch):
+    cfg, _ = small_run
+
+    class NoOpenGL:
+        def __init__(self, *a, **k):
+            raise RuntimeError("no OpenGL context")
+
+    monkeypatch.setattr(F, "_PyvistaRenderer", NoOpenGL)
+    index, s = R.make_report(_study(cfg), tmp_path / "fallback", title="t", geometry=_geometry(cfg))
+    assert s["renderer"] == "matplotlib"
+    assert any("matplotlib" in n for n in s["notes"])
+    assert "surface_common.png" in s["figures"] and (tmp_path / "fallback" / "surface_common.png").is_file()
+    with pytest.raises(F.RenderError):
+        F.render_panels(F.surface_panels(_study(cfg), _geometry(cfg), None, ["a", "b"])[0],
+                        F.Normalize(0, 1), F.colormaps["viridis"], renderer="pyvista")
+
+
+def test_both_renderers_put_the_surface_in_the_same_place(small_run):
+    """Top view of the subject at rest: pyvista and the matplotlib fallback agree on its
+    outline (same projection, scale and orientation) and on its colours."""
+    cfg, _ = small_run
+    st = _study(cfg)
+    cam, _ = F.surface_panels(st, _geometry(cfg), st.truth_exitance, ["1", "2"])
+    norm = F.Normalize(0, np.nanmax(st.pose_exitance))
+    cmap = F.colormaps["viridis"]
+    mpl, used = F.render_panels(cam[:1], norm, cmap, renderer="matplotlib")
+    assert used == "matplotlib"
+    try:
+        pv, used = F.render_panels(cam[:1], norm, cmap, renderer="pyvista")
+    except F.RenderError as e:
+        pytest.skip(f"no off-screen OpenGL here: {e}")
+    a, b = mpl[0].astype(float), pv[0].astype(float)
+    assert a.shape == b.shape
+    fa, fb = a.min(axis=2) < 240, b.min(axis=2) < 240  # not background
+    assert (fa & fb).sum() / (fa | fb).sum() > 0.9
+    both = fa & fb
+    assert np.median(np.abs(a[both] - b[both])) < 12  # colours agree (edges aside)
+
+
+# ------------------------------------------------------------------ a line detector (the 2-D study)
+def test_line_detector_plots_curves_and_flux_around_the_ring(write_config, tmp_path):
+    cfg = {"workdir": "run",
+           "system": {"camera": {"pixels": [128, 1], "pixel_pitch_mm": 0.104,
+                                 "lens": {"focal_length_mm": 23.9, "f_number": 1.4, "focus_distance_mm": 317.0},
+                                 "pose": {"lens_center_mm": [0, 0, 338.0]}}, "mirrors": []},
+           "subject": {"surface": {"phantom": "ring", "radius_mm": 25, "thickness_mm": 1, "n_elements": 48},
+                       "poses": {"heights_mm": [-40, 0]}},
+           "simulate": {"flux": {"kind": "gaussian", "width_mm": 8.0, "peak_photons": 1e7},
+                        "noise": {"model": "gaussian", "repeats": 1, "seed": 1}},
+           "reconstruct": {"method": "paper", "lambda": 10}}
+    c = load_config(write_config(cfg))
+    simulate.run(c, QUIET)
+    reconstruct.run(c, QUIET)
+    index = report.run(c, QUIET)
+    s = _summary(index)
+    assert "flux_ring.png" in s["figures"] and "fit_pose2.png" in s["figures"]
+    assert not any(n.startswith("surface_") for n in s["figures"])
+    assert len(s["slice"]["elements"]) == 48  # the whole ring
+    assert "snr_table" in s and "sweep" not in s
+
+
+# ------------------------------------------------------------------ science regression
+def _get(d, dotted: str):
+    for part in dotted.split("."):
+        d = d[int(part)] if isinstance(d, list) else d[part]
+    return d
+
+
+def test_science_does_not_get_worse(small_run):
+    """Errors may not grow by more than 20 % (+0.01), total ratios may not move by more
+    than 0.05, the spread of the totals over poses may not grow by more than 20 % (+0.02)."""
+    _, index = small_run
+    s = _summary(index)
+    if os.environ.get("FLUXMAP_WRITE_EXPECTATIONS"):
+        _write_expectations(s)
+    stored = json.loads(EXPECTATIONS.read_text())
+    failures = []
+    for check in stored["checks"]:
+        got, want = _get(s, check["key"]), check["value"]
+        if got is None:
+            failures.append(f"{check['key']}: missing")
+        elif check["rule"] == "at_most" and got > want * (1 + check["rel"]) + check["abs"]:
+            failures.append(f"{check['key']}: {got:.4g} > {want:.4g} x {1 + check['rel']} + {check['abs']}")
+        elif check["rule"] == "within" and abs(got - want) > check["abs"]:
+            failures.append(f"{check['key']}: {got:.4g} not within ±{check['abs']} of {want:.4g}")
+        elif check["rule"] == "at_least" and got < want - check["abs"]:
+            failures.append(f"{check['key']}: {got:.4g} < {want:.4g} − {check['abs']}")
+    assert not failures, "the reconstruction got worse than tests/data/report_expectations.json:\n" + "\n".join(failures)
+
+
+def _write_expectations(s: dict) -> None:
+    checks = [{"key": "error", "rule": "at_most", "rel": 0.2, "abs": 0.01},
+              {"key": "total_ratio", "rule": "within", "abs": 0.05},
+              {"key": "spreads.reconstruction", "rule": "at_most", "rel": 0.2, "abs": 0.02},
+              {"key": "flux_observed_fraction", "rule": "at_least", "abs": 0.05}]
+    for k in range(len(s["poses"])):
+        checks += [{"key": f"poses.{k}.error", "rule": "at_most", "rel": 0.2, "abs": 0.01},
+                   {"key": f"poses.{k}.total_ratio", "rule": "within", "abs": 0.05}]
+    sw = s["sweep"]
+    for i, name in enumerate(sw["methods"]):
+        for li in range(len(sw["levels_peak_photons"])):
+            for k in range(len(s["poses"])):
+                checks.append({"key": f"sweep.mean_error.{i}.{li}.{k}", "rule": "at_most", "rel": 0.2, "abs": 0.01,
+                               "what": f"{name}, level {li}, pose {k}"})
+    for c in checks:
+        c["value"] = _get(s, c["key"])
+    EXPECTATIONS.parent.mkdir(exist_ok=True)
+    EXPECTATIONS.write_text(json.dumps({
+        "about": "Summary values of tests/test_report.py's small pipeline (cylinder 16 x 6 elements, 40 x 40 px, "
+                 "heights 0 and 5 mm, Gaussian flux, Poisson noise seed 5, weighted_lsq with lambda by the "
+                 "discrepancy principle). at_most: got <= value x (1 + rel) + abs; within: |got - value| <= abs; "
+                 "at_least: got >= value - abs. Regenerate with FLUXMAP_WRITE_EXPECTATIONS=1 after an intended change.",
+        "checks": checks}, indent=1) + "\n")
