@@ -145,3 +145,20 @@ def test_bad_simulation_input(write_config, sim_config, minimal_config):
     assert_user_error(run("simulate", write_config(cfg)), "closed")
     no_sim = copy.deepcopy(minimal_config)
     assert_user_error(run("simulate", write_config(no_sim)), "simulate")
+
+
+def test_a_source_deeper_than_the_centre_and_one_deeper_than_the_subject(write_config, sim_config, tmp_path):
+    from fluxcli.config import load_config
+    from fluxcli.scene import SubjectPlacer
+    from fluxcli.stages.simulate import source_positions
+
+    cfg = copy.deepcopy(sim_config)
+    cfg["simulate"]["flux"] = {"kind": "diffusion", "wavelength_nm": 650, "mesh_edge_mm": 3.0,
+                               "optical": {650: {"mua_per_mm": 0.02, "musp_per_mm": 1.7}},
+                               "sources": [{"depth_mm": 12.0, "power_photons": 1e8}]}
+    loaded = load_config(write_config(cfg))
+    pos = source_positions(loaded.model.simulate.flux, SubjectPlacer(loaded).surface)
+    # the cylinder (radius 8) rests on z = 0: its top is z = 16, so 12 mm deep is z = 4
+    assert pos[0] == pytest.approx([0, 0, 4.0], abs=1e-3)
+    cfg["simulate"]["flux"]["sources"][0]["depth_mm"] = 16.5
+    assert_user_error(run("simulate", write_config(cfg)), "depth_mm", "deeper than the subject")

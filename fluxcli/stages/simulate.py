@@ -94,12 +94,13 @@ def source_positions(flux: C.DiffusionFlux, surface: Surface) -> np.ndarray:
         d = np.asarray(s.direction, float)
         d /= np.linalg.norm(d)
         t = scene.first_hit_mm(centre[None], d[None])[0]
-        if not np.isfinite(t):
+        back = scene.first_hit_mm(centre[None], -d[None])[0]
+        if not (np.isfinite(t) and np.isfinite(back)):
             raise UserError(f"simulate.flux.sources.{k}: no surface along direction {list(s.direction)} "
                             "from the subject's centre.")
-        if s.depth_mm >= t:
+        if s.depth_mm >= t + back:
             raise UserError(f"simulate.flux.sources.{k}.depth_mm: {s.depth_mm} mm is deeper than the subject "
-                            f"({t:.2f} mm from its centre to the surface along that direction).")
+                            f"({t + back:.2f} mm through, along that direction).")
         out.append(centre + (t - s.depth_mm) * d)
     return np.array(out)
 
