@@ -322,6 +322,7 @@ def summarise(st: Study, *, title: str, slice_axial_mm: float, view_names: list[
     }
     if st.truth_power is not None:
         out["truth_total_photons"] = float(st.truth_power.sum())
+        out["truth_observed_total_photons_per_pose"] = [float(st.truth_power[o].sum()) for o in st.pose_observed]
         out["error"] = st.error
         out["total_ratio"] = st.total_ratio
     if st.snr is not None:
@@ -505,7 +506,9 @@ def make_report(study: Study, out_dir: Path, *, title: str, geometry: Geometry, 
         + f" Spread, (max − min) / mean over poses: {spread_txt}.")
     fig = F.totals_figure(study.heights_mm, study.rotations_deg, {k: np.asarray(v, float) for k, v in _totals(study).items()},
                           truth_total=float(study.truth_power.sum()) if study.truth_power is not None else None,
-                          joint_total=float(np.nansum(study.power)) if study.joint else None, spreads=sp)
+                          joint_total=float(np.nansum(study.power)) if study.joint else None, spreads=sp,
+                          truth_observed=([float(study.truth_power[o].sum()) for o in study.pose_observed]
+                                          if study.truth_power is not None else None))
     page.figure(save(fig, "totals.png"), "Total flux per pose.")
     page.pose_table(summary)
 

@@ -512,7 +512,7 @@ def pose_axis(heights_mm, rotations_deg):
 
 
 def totals_figure(heights_mm, rotations_deg, totals: dict[str, np.ndarray], *, truth_total=None, joint_total=None,
-                  spreads: dict | None = None) -> Figure:
+                  spreads: dict | None = None, truth_observed=None) -> Figure:
     """Left: every total divided by its own mean over poses; right: reconstructed totals in photons."""
     x, xlabel, ticks = pose_axis(heights_mm, rotations_deg)
     fig = _figure(11.0, 4.3)
@@ -534,13 +534,16 @@ def totals_figure(heights_mm, rotations_deg, totals: dict[str, np.ndarray], *, t
     if joint_total is not None:
         ax2.axhline(joint_total, color="C1", ls="-.", label=f"joint over poses: {joint_total:.4g}")
     if truth_total is not None:
-        ax2.axhline(truth_total, color="k", ls="--", label=f"ground truth: {truth_total:.4g}")
+        ax2.axhline(truth_total, color="k", ls="--", label=f"ground truth, all elements: {truth_total:.4g}")
+    if truth_observed is not None:
+        # what a reconstruction can recover: light leaving elements that the pose's views see
+        ax2.plot(x, truth_observed, "x:", color="k", label="ground truth on the elements each pose observes")
     tops = [np.nanmax(totals["reconstruction"]), truth_total or 0.0, joint_total or 0.0]
     ax2.set_ylim(0, 1.12 * max(tops) if max(tops) > 0 else 1.0)
     ax2.set_ylabel(scaled(ax2.yaxis, max(np.nanmax(totals["reconstruction"]), truth_total or 0, joint_total or 0),
                           "total flux", "photons"))
     ax2.set_title("reconstructed total flux")
-    ax2.legend(fontsize=8, loc="lower right")
+    ax2.legend(fontsize=8, loc="center right")
     for a in (ax, ax2):
         a.set_xlabel(xlabel)
         a.grid(True, lw=0.4, alpha=0.5)
