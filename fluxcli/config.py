@@ -149,6 +149,7 @@ class RingPhantom(Model):
     radius_mm: float = Field(25.0, gt=0)
     thickness_mm: float = Field(1.0, gt=0, description="Extent along the ring axis (mm).")
     n_elements: int = Field(200, ge=3)
+    strips_per_element: int = Field(1, ge=1, description="Sub-elements along the arc (what reconstruct.unknowns: sub_elements solves for).")
 
 
 class SpherePhantom(Model):
@@ -314,6 +315,8 @@ class MethodSettings(Model):
     max_iter: int = Field(10, ge=1, description="paper: at most this many solves; smooth: this many.")
     tol: float = Field(0.01, gt=0, description="paper: stop when the fit improves by less than this fraction.")
     n_iter: int = Field(500, ge=1, description="mlem: EM iterations.")
+    unknowns: Literal["elements", "sub_elements"] = Field(
+        "elements", description="Solve per element, or per sub-element (phantom strips, else faces) summed per element.")
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
 
@@ -338,6 +341,7 @@ class Reconstruct(Model):
     max_iter: int = Field(10, ge=1)
     tol: float = Field(0.01, gt=0)
     n_iter: int = Field(500, ge=1)
+    unknowns: Literal["elements", "sub_elements"] = "elements"
     images: ImageFiles | None = Field(None, description="Images from files instead of simulation.h5.")
     level: int = Field(0, ge=0, description="Which signal level of the simulation to reconstruct.")
     repeat: int = Field(0, ge=0, description="Which noise repeat of the simulation to reconstruct.")
@@ -350,7 +354,7 @@ class Reconstruct(Model):
 
     def settings(self) -> MethodSettings:
         return MethodSettings(method=self.method, lam=self.lam, lambda_rule=self.lambda_rule,
-                              max_iter=self.max_iter, tol=self.tol, n_iter=self.n_iter)
+                              max_iter=self.max_iter, tol=self.tol, n_iter=self.n_iter, unknowns=self.unknowns)
 
 
 # --------------------------------------------------------------------------- report

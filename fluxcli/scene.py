@@ -93,7 +93,8 @@ class SubjectPlacer:
             surf, point, axis = phantoms.cylinder(radius_mm=s.radius_mm, length_mm=s.length_mm, n_angular=s.n_angular,
                                                   n_axial=s.n_axial, cap_elements=s.cap_elements)
         elif isinstance(s, C.RingPhantom):
-            surf, point, axis = phantoms.ring(radius_mm=s.radius_mm, thickness_mm=s.thickness_mm, n_elements=s.n_elements)
+            surf, point, axis = phantoms.ring(radius_mm=s.radius_mm, thickness_mm=s.thickness_mm, n_elements=s.n_elements,
+                                              strips_per_element=s.strips_per_element)
         elif isinstance(s, C.SpherePhantom):
             surf, point, axis = phantoms.sphere(radius_mm=s.radius_mm, n_latitude=s.n_latitude, n_longitude=s.n_longitude)
         elif isinstance(s, C.PatchPhantom):

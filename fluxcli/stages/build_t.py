@@ -58,10 +58,12 @@ def key_parts(scene: PlacedScene, views: list[View], tr: Transfer) -> dict:
     })
 
 
-def plan(cfg: LoadedConfig, transfer: Transfer | None = None) -> tuple[list[View], SubjectPlacer, list[tuple[PlacedScene, PoseT]]]:
+def plan(cfg: LoadedConfig, transfer: Transfer | None = None, unknowns: str = "elements"
+         ) -> tuple[list[View], SubjectPlacer, list[tuple[PlacedScene, PoseT]]]:
     """The views, the subject placer, and per pose its placed scene and cache entry.
 
-    ``transfer`` overrides ``cfg.model.transfer`` (simulate builds a finer T this way)."""
+    ``transfer`` overrides ``cfg.model.transfer`` (simulate builds a finer T this way);
+    ``unknowns="sub_elements"`` gives T's columns per sub-element (Surface.unknowns)."""
     tr = transfer or cfg.model.transfer
     views = views_from_config(cfg.model.system)
     placer = SubjectPlacer(cfg)
@@ -69,6 +71,8 @@ def plan(cfg: LoadedConfig, transfer: Transfer | None = None) -> tuple[list[View
     cdir = cache_dir(cfg)
     for pose in poses_from_config(cfg.model.subject):
         scene = placer.scene(pose, cfg.model.system)
+        if unknowns == "sub_elements":
+            scene = PlacedScene(scene.pose, scene.surface.unknowns()[0], scene.occluders)
         key = A.cache_key(key_parts(scene, views, tr))
         out.append((scene, PoseT(pose, key, cdir / f"{key}.h5")))
     return views, placer, out
@@ -134,13 +138,14 @@ def read_summary(path: Path, view_names: list[str], areas: np.ndarray) -> dict:
         return {"nnz": int(f["T"]["data"].shape[0]), "efficiency": eff, "seconds": float(f.attrs["build_seconds"])}
 
 
-def ensure_T(cfg: LoadedConfig, ctx: RunContext, transfer: Transfer | None = None, label: str = "building T"):
+def ensure_T(cfg: LoadedConfig, ctx: RunContext, transfer: Transfer | None = None, label: str = "building T",
+             unknowns: str = "elements"):
     """Build every pose's T that the cache lacks (all with ``ctx.force``).
 
     Returns views, placer, [(scene, PoseT)], and per key a summary dict (cached, seconds,
     nnz, efficiency per view)."""
     tr = transfer or cfg.model.transfer
-    views, placer, todo = plan(cfg, tr)
+    views, placer, todo = plan(cfg, tr, unknowns)
     names = [v.name for v in views]
     results: dict[str, dict] = {}
     need, seen = [], set()

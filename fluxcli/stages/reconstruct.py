@@ -118,11 +118,41 @@ def variance(a: np.ndarray, read_noise_photons: float) -> np.ndarray:
 REGULARISED = ("paper", "tikhonov", "nnls", "weighted_lsq")  # lambda rules of fluxcli.inverse
 
 
+@dataclass
+class Grid:
+    """The unknowns of a solve: the elements, or sub-elements summed back per element."""
+
+    Ts: list  # per pose, (n_pixels, n_unknowns)
+    adjacency: sp.csr_matrix  # unknowns touching (for smooth)
+    parent: np.ndarray | None  # unknown -> element; None when the unknowns are the elements
+    n_elements: int
+
+
+def make_grid(cfg: C.LoadedConfig, ctx: RunContext, surface, unknowns: str) -> Grid:
+    label = "building T" if unknowns == "elements" else "building T (sub-elements)"
+    _, _, todo, _ = ensure_T(cfg, replace(ctx, force=False), label=label, unknowns=unknowns)
+    grid_surface, parent = surface.unknowns() if unknowns == "sub_elements" else (surface, None)
+    return Grid([load_T(pt.path) for _, pt in todo], grid_surface.element_adjacency(), parent, surface.n_elements)
+
+
 def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSettings, read_noise: float,
-               adjacency=None):
+               adjacency=None, parent=None, n_elements: int | None = None):
     """Solve on the valid pixels; returns the inverse.Result and the pixel mask used.
 
-    ``adjacency`` (elements touching) is what the smoothness prior of ``smooth`` needs."""
+    ``adjacency`` (unknowns touching) is what the smoothness prior of ``smooth`` needs; with
+    ``parent`` the unknowns are sub-elements, summed back into ``n_elements`` elements (an
+    element counts as observed when any of its parts is; sigma is not propagated: NaN)."""
+    res, keep = _solve(T, a, valid, m, read_noise, adjacency)
+    if parent is None:
+        return res, keep
+    obs = res.observed
+    power = np.bincount(parent, weights=np.where(obs, res.power, 0.0), minlength=n_elements)
+    observed = np.bincount(parent, weights=obs.astype(float), minlength=n_elements) > 0
+    return replace(res, power=np.where(observed, power, np.nan), observed=observed,
+                   sigma=np.full(n_elements, np.nan)), keep
+
+
+def _solve(T, a, valid, m, read_noise, adjacency):
     keep = valid.ravel()
     Tm, am = T[keep], a.ravel()[keep]
     if m.method == "mlem":  # Poisson likelihood: bias-subtracted counts can dip below zero
@@ -145,6 +175,11 @@ def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSe
 
 
 def describe(m: C.MethodSettings) -> str:
+    base = _describe(m)
+    return base if m.unknowns == "elements" else f"{base} on sub-elements"
+
+
+def _describe(m: C.MethodSettings) -> str:
     if m.method == "smooth":
         lam = "auto/modified GCV" if m.lam == "auto" else f"{m.lam:g}"
         return f"smooth(lambda={lam}, {m.max_iter} it)"
@@ -173,21 +208,25 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     P = len(todo)
     inp = load_inputs(cfg, P, surface.n_elements)
     nx, ny = cfg.model.system.camera.pixels
-    Ts = [load_T(pt.path) for _, pt in todo]
-    adjacency = surface.element_adjacency()
     m = rc.settings()
+    grids = {u: make_grid(cfg, ctx, surface, u)
+             for u in {"elements", m.unknowns, *[s.unknowns for s in (rc.sweep.methods if rc.sweep else ())]}}
+    Ts = grids["elements"].Ts
+    gm = grids[m.unknowns]
     ctx.say(f"reconstruct: {inp.source}; {describe(m)}, {P} pose(s)")
     t0 = time.perf_counter()
     per_pose = []
     for k in range(P):
-        res, keep = run_method(Ts[k], inp.images[k], inp.valid[k], m, rc.read_noise_photons, adjacency)
+        res, keep = run_method(gm.Ts[k], inp.images[k], inp.valid[k], m, rc.read_noise_photons, gm.adjacency,
+                               gm.parent, gm.n_elements)
         fitted = np.full(nx * ny, np.nan)
         fitted[keep] = res.fitted
         per_pose.append((res, fitted.reshape(ny, nx)))
     joint = None
     if rc.joint and P > 1:
-        Tj = sp.vstack(Ts).tocsr()
-        joint, _ = run_method(Tj, inp.images, inp.valid, m, rc.read_noise_photons, adjacency)
+        Tj = sp.vstack(gm.Ts).tocsr()
+        joint, _ = run_method(Tj, inp.images, inp.valid, m, rc.read_noise_photons, gm.adjacency, gm.parent,
+                              gm.n_elements)
     seconds = time.perf_counter() - t0
     main = joint if joint is not None else per_pose[0][0]
     areas = surface.element_areas_mm2
@@ -248,7 +287,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         if rc.sweep is not None:
             if inp.truth is None:
                 raise UserError("reconstruct.sweep: a sweep needs a simulation (ground truth), not image files.")
-            _sweep(cfg, ctx, f.create_group("sweep"), Ts, todo, adjacency)
+            _sweep(cfg, ctx, f.create_group("sweep"), grids, todo)
     header = ["height_mm", "rotation_deg", "total photons", "observed", "lambda"]
     if inp.truth is not None:
         header += ["error", "total ratio"]
@@ -266,8 +305,8 @@ def _write_flux(g, res, areas) -> None:
 
 
 # ------------------------------------------------------------------ the study sweep
-def _sweep_cell(sim_path: str, T: sp.csr_matrix, pose: int, level: int, repeats: int,
-                methods: list[C.MethodSettings], read_noise: float, sensor: dict | None, adjacency) -> np.ndarray:
+def _sweep_cell(sim_path: str, grids_k: dict, pose: int, level: int, repeats: int,
+                methods: list[C.MethodSettings], read_noise: float, sensor: dict | None) -> np.ndarray:
     """Errors (methods x repeats) of one (level, pose) cell; runs in a worker process."""
     import h5py
 
@@ -280,12 +319,13 @@ def _sweep_cell(sim_path: str, T: sp.csr_matrix, pose: int, level: int, repeats:
     for r in range(repeats):
         valid = np.isfinite(imgs[r]) & (~N.saturated(counts[r], model) if model is not None else True)
         for i, m in enumerate(methods):
-            res, _ = run_method(T, imgs[r], valid, m, read_noise, adjacency)
+            T, adjacency, parent, n_el = grids_k[m.unknowns]
+            res, _ = run_method(T, imgs[r], valid, m, read_noise, adjacency, parent, n_el)
             out[i, r] = error_l1(res.power, truth)
     return out
 
 
-def _sweep(cfg: C.LoadedConfig, ctx: RunContext, g, Ts, todo, adjacency) -> None:
+def _sweep(cfg: C.LoadedConfig, ctx: RunContext, g, grids: dict, todo) -> None:
     sw = cfg.model.reconstruct.sweep
     path = _simulation(cfg)
     with A.open_artefact(path, "simulation") as f:
@@ -301,7 +341,10 @@ def _sweep(cfg: C.LoadedConfig, ctx: RunContext, g, Ts, todo, adjacency) -> None
     cells = [(li, k) for li in lv for k in range(P)]
     err = np.full((len(methods), L, P, reps), np.nan)
     t0 = time.perf_counter()
-    args = [(str(path), Ts[k], k, li, reps, methods, cfg.model.reconstruct.read_noise_photons, sensor, adjacency)
+    def per_pose(k):  # only what this pose's cell needs crosses to the worker
+        return {u: (gr.Ts[k], gr.adjacency, gr.parent, gr.n_elements) for u, gr in grids.items()}
+
+    args = [(str(path), per_pose(k), k, li, reps, methods, cfg.model.reconstruct.read_noise_photons, sensor)
             for li, k in cells]
     with ctx.progress("sweep", total=len(cells)) as advance:
         if ctx.jobs > 1:

@@ -32,6 +32,7 @@ class Surface:
     element_of_face: np.ndarray
     n_elements: int
     element_ids: np.ndarray | None = field(default=None, compare=False)
+    subelement_of_face: np.ndarray | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "vertices_mm", np.ascontiguousarray(self.vertices_mm, dtype=np.float64))
@@ -107,7 +108,25 @@ class Surface:
         """x -> R x + t (R proper or improper; an improper R flips the winding)."""
         v = self.vertices_mm @ np.asarray(rotation).T + np.asarray(translation_mm)
         faces = self.faces if np.linalg.det(rotation) > 0 else self.faces[:, ::-1]
-        return Surface(v, faces, self.element_of_face, self.n_elements, self.element_ids)
+        return Surface(v, faces, self.element_of_face, self.n_elements, self.element_ids, self.subelement_of_face)
+
+    def unknowns(self) -> tuple["Surface", np.ndarray]:
+        """The finer grid a reconstruction may solve on, and the element each part belongs to.
+
+        The parts are the generator's sub-elements (e.g. the ring's strips along the arc)
+        or, without them, every face that belongs to an element.
+        """
+        if self.subelement_of_face is not None:
+            sub = self.subelement_of_face
+        else:
+            sub = np.where(self.element_of_face >= 0, np.arange(len(self.faces)), -1)
+        ok = sub >= 0
+        ids, inv = np.unique(sub[ok], return_inverse=True)
+        eof = np.full(len(self.faces), -1, np.int64)
+        eof[ok] = inv
+        parent = np.zeros(len(ids), np.int64)
+        parent[inv] = self.element_of_face[ok]
+        return Surface(self.vertices_mm, self.faces, eof, len(ids)), parent
 
     def digest(self) -> str:
         """Content hash of the placed geometry (rounded to 1 nm, so float noise does not matter)."""

@@ -58,17 +58,22 @@ def cylinder(*, radius_mm: float, length_mm: float, n_angular: int, n_axial: int
     return surf, np.zeros(3), np.array([1.0, 0, 0])
 
 
-def ring(*, radius_mm: float, thickness_mm: float, n_elements: int) -> tuple[Surface, np.ndarray, np.ndarray]:
+def ring(*, radius_mm: float, thickness_mm: float, n_elements: int,
+         strips_per_element: int = 1) -> tuple[Surface, np.ndarray, np.ndarray]:
     """The paper's 2-D slice: an open cylindrical band of ``n_elements`` around the y axis.
 
     Element 0 is centred on the top (+z) and faces straight up; angles run towards +x.
+    Each element is made of ``strips_per_element`` strips along the arc (its sub-elements,
+    the paper's "9x in a single direction").
     """
-    phi = 2 * np.pi * (np.arange(n_elements) - 0.5) / n_elements
+    n_strips = n_elements * strips_per_element
+    phi = 2 * np.pi * (np.arange(n_strips) / strips_per_element - 0.5) / n_elements
     y = np.array([-thickness_mm / 2, thickness_mm / 2])
     verts = np.array([[radius_mm * np.sin(p), yi, radius_mm * np.cos(p)] for yi in y for p in phi])
-    quads = _grid_quads(n_elements, 1, wrap_a=True)
-    faces, elem = _split(quads, np.arange(n_elements))
-    surf = Surface(verts, faces, elem, n_elements)
+    quads = _grid_quads(n_strips, 1, wrap_a=True)
+    faces, strip = _split(quads, np.arange(n_strips))
+    surf = Surface(verts, faces, strip // strips_per_element, n_elements,
+                   subelement_of_face=strip if strips_per_element > 1 else None)
     return _orient_outward(surf, np.zeros(3)), np.zeros(3), np.array([0.0, 1, 0])
 
 
@@ -124,4 +129,5 @@ def _orient_outward(surf: Surface, centre: np.ndarray) -> Surface:
     c = surf.face_vertices_mm.mean(axis=1) - centre
     inward = np.einsum("ij,ij->i", surf.face_normals, c) < 0
     faces = np.where(inward[:, None], surf.faces[:, ::-1], surf.faces)
-    return Surface(surf.vertices_mm, faces, surf.element_of_face, surf.n_elements)
+    return Surface(surf.vertices_mm, faces, surf.element_of_face, surf.n_elements,
+                   subelement_of_face=surf.subelement_of_face)
