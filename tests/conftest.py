@@ -29,3 +29,18 @@ def minimal_config():
     cfg["system"]["camera"]["pixels"] = [48, 48]
     cfg["system"]["camera"]["pixel_pitch_mm"] = 0.25
     return cfg
+
+
+def cylinder_sim_config(minimal: dict, *, peaks_photons=(1e6, 1e4)) -> dict:
+    """A small cylinder phantom (16 x 6 elements) on a 40 x 40 camera at two stage heights,
+    with a seeded Gaussian-patch simulation: the pipeline the stage tests share."""
+    import copy
+
+    cfg = copy.deepcopy(minimal)
+    cfg["system"]["camera"]["pixels"] = [40, 40]
+    cfg["system"]["camera"]["pixel_pitch_mm"] = 0.3
+    cfg["subject"]["surface"] = {"phantom": "cylinder", "radius_mm": 8, "length_mm": 24, "n_angular": 16, "n_axial": 6}
+    cfg["subject"]["poses"] = {"heights_mm": [0, 5]}
+    cfg["simulate"] = {"flux": {"kind": "gaussian", "width_mm": 4.0, "peak_photons": 1e6},
+                       "noise": {"model": "poisson", "peaks_photons": list(peaks_photons), "repeats": 3, "seed": 5}}
+    return cfg

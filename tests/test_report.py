@@ -9,7 +9,6 @@ intended improvement: ``FLUXMAP_WRITE_EXPECTATIONS=1 pytest tests/test_report.py
 
 from __future__ import annotations
 
-import copy
 import json
 import os
 import re
@@ -19,6 +18,7 @@ import h5py
 import numpy as np
 import pytest
 import yaml
+from conftest import cylinder_sim_config
 
 from fluxcli import report as R
 from fluxcli.config import load_config
@@ -36,13 +36,7 @@ QUIET = RunContext(quiet=True)
 def small_config(minimal: dict) -> dict:
     """test_simulate's cylinder, with the method pinned so that the regression check
     follows one method, not whatever the default becomes."""
-    cfg = copy.deepcopy(minimal)
-    cfg["system"]["camera"]["pixels"] = [40, 40]
-    cfg["system"]["camera"]["pixel_pitch_mm"] = 0.3
-    cfg["subject"]["surface"] = {"phantom": "cylinder", "radius_mm": 8, "length_mm": 24, "n_angular": 16, "n_axial": 6}
-    cfg["subject"]["poses"] = {"heights_mm": [0, 5]}
-    cfg["simulate"] = {"flux": {"kind": "gaussian", "width_mm": 4.0, "peak_photons": 1e6},
-                       "noise": {"model": "poisson", "peaks_photons": [1e7, 1e5], "repeats": 3, "seed": 5}}
+    cfg = cylinder_sim_config(minimal, peaks_photons=(1e7, 1e5))
     wlsq = {"method": "weighted_lsq", "lambda": "auto", "lambda_rule": "discrepancy"}
     cfg["reconstruct"] = dict(wlsq, sweep={"methods": [{"method": "backprojection"}, wlsq]})
     return cfg

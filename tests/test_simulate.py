@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from conftest import cylinder_sim_config
 from fluxcli.cli import app
 from fluxcli.imaging.imagefiles import read_image
 from fluxcli.stages.build_t import load_T, plan
@@ -31,14 +32,7 @@ def assert_user_error(r, *words):
 
 @pytest.fixture
 def sim_config(minimal_config):
-    cfg = copy.deepcopy(minimal_config)
-    cfg["system"]["camera"]["pixels"] = [40, 40]
-    cfg["system"]["camera"]["pixel_pitch_mm"] = 0.3
-    cfg["subject"]["surface"] = {"phantom": "cylinder", "radius_mm": 8, "length_mm": 24, "n_angular": 16, "n_axial": 6}
-    cfg["subject"]["poses"] = {"heights_mm": [0, 5]}
-    cfg["simulate"] = {"flux": {"kind": "gaussian", "width_mm": 4.0, "peak_photons": 1e6},
-                       "noise": {"model": "poisson", "peaks_photons": [1e6, 1e4], "repeats": 3, "seed": 5}}
-    return cfg
+    return cylinder_sim_config(minimal_config)
 
 
 def test_gaussian_truth_images_and_determinism(write_config, sim_config, tmp_path):

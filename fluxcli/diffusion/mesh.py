@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..surface.mesh import edge_face_counts
+
 __all__ = ["check_closed", "tetrahedralize", "boundary_faces", "tet_volumes_mm3"]
 
 # Outward faces of a positively oriented tetrahedron (a, b, c, d).
@@ -46,8 +48,7 @@ def check_closed(vertices_mm, faces):
     vertices_mm, faces = _as_triangles(vertices_mm, faces)
     if len(faces) == 0:
         raise ValueError("surface is not closed: it has no faces.")
-    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    _, counts = np.unique(edges, axis=0, return_counts=True)
+    counts = edge_face_counts(faces)
     n_boundary = int(np.sum(counts == 1))
     n_nonmanifold = int(np.sum(counts > 2))
     if n_boundary or n_nonmanifold:

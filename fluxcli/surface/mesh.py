@@ -95,9 +95,7 @@ class Surface:
 
     def boundary_edge_count(self) -> int:
         """Number of edges not shared by exactly two faces (0 for a closed manifold)."""
-        e = np.sort(self.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-        _, counts = np.unique(e, axis=0, return_counts=True)
-        return int(np.count_nonzero(counts != 2))
+        return int(np.count_nonzero(edge_face_counts(self.faces) != 2))
 
     @property
     def is_closed(self) -> bool:
@@ -138,6 +136,12 @@ class Surface:
 
     def bounds_mm(self) -> tuple[np.ndarray, np.ndarray]:
         return self.vertices_mm.min(axis=0), self.vertices_mm.max(axis=0)
+
+
+def edge_face_counts(faces: np.ndarray) -> np.ndarray:
+    """How many faces use each distinct (undirected) edge of a triangle list (F, 3)."""
+    e = np.sort(np.asarray(faces)[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    return np.unique(e, axis=0, return_counts=True)[1]
 
 
 def merge(*surfaces: Surface) -> tuple[np.ndarray, np.ndarray]:
