@@ -31,6 +31,7 @@ from ..imaging.imagefiles import read_image
 from ..inverse import backprojection, error_l1, reconstruct as solve, total_ratio
 from .build_t import ensure_T, load_T
 from .context import RunContext
+from .outputs import export_3d
 
 
 @dataclass
@@ -293,6 +294,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         header += ["error", "total ratio"]
     ctx.table(header, rows)
     ctx.say(f"{seconds:.2f} s of solving")
+    export_3d(cfg, ctx, out)  # <workdir>/*.vtp for ParaView/pyvista, from the artefact
     return out
 
 

@@ -31,6 +31,7 @@ from ..surface.mesh import Surface
 from ..optics.transfer import ALGORITHM_VERSION
 from .build_t import cache_dir, ensure_T, load_T, plan
 from .context import RunContext
+from .outputs import export_3d
 
 
 def forward_transfer(cfg: C.LoadedConfig) -> C.Transfer:
@@ -240,6 +241,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     rows = [[pt.pose.height_mm, pt.pose.rotation_deg, *[f"{snr[li, k]:.1f}" for li in range(L)]]
             for k, (_, pt) in enumerate(todo)]
     ctx.table(["height_mm", "rotation_deg", *[f"SNR @ peak {x:.0e}" for x in lv]], rows)
+    export_3d(cfg, ctx, out)  # <workdir>/*.vtp for ParaView/pyvista, from the artefact
     return out
 
 

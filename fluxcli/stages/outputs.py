@@ -1,0 +1,109 @@
+"""Results people can open elsewhere: the flux on the 3-D surface as ``.vtp`` files.
+
+``<workdir>/reconstruction.vtp`` is made from ``reconstruction.h5`` and
+``<workdir>/simulation_truth.vtp`` from ``simulation.h5`` (the artefacts only, so that
+what ParaView shows is what the HDF5 file holds). The stages call :func:`export_3d` once,
+at their end.
+
+With an exposure time (``reconstruct.images.exposure_s`` or ``simulate.noise.exposure_s``
+given in the config) the files also hold rates and the Lambertian radiance in
+photons s⁻¹ cm⁻² sr⁻¹ (see :mod:`fluxcli.surface.units`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .. import artefacts as A
+from .. import config as C
+from ..surface import export as X
+from ..surface.units import UNITS, element_quantities
+
+
+def _given(model, key: str) -> bool:
+    return model is not None and key in model.model_fields_set
+
+
+def simulation_exposure_s(cfg: C.LoadedConfig) -> float | None:
+    """The simulated exposure when the config states it (the schema's default is not a measurement)."""
+    sim = cfg.model.simulate
+    return float(sim.noise.exposure_s) if sim is not None and _given(sim.noise, "exposure_s") else None
+
+
+def reconstruction_exposure_s(cfg: C.LoadedConfig) -> float | None:
+    """The exposure of the images reconstructed: the image files', else the simulation's."""
+    rc = cfg.model.reconstruct
+    if rc.images is not None:
+        return float(rc.images.exposure_s) if _given(rc.images, "exposure_s") else None
+    return simulation_exposure_s(cfg)
+
+
+def _quantities(prefix: str, power, areas, exposure_s, sigma=None) -> tuple[dict, dict]:
+    q = element_quantities(power, areas, exposure_s=exposure_s, sigma_photons=sigma)
+    return {prefix + k: v for k, v in q.items()}, {prefix + k: UNITS[k] for k in q}
+
+
+def reconstruction_vtp(rec_path: Path, out_path: Path, *, exposure_s: float | None) -> Path:
+    """Write the reconstruction (joint over poses when there are several) and, where the
+    artefact holds them, the ground truth and each pose's own reconstruction."""
+    with A.open_artefact(rec_path, "reconstruction") as f:
+        surface = A.read_surface(f["surface"])
+        fl = f["flux"]
+        observed = fl["observed"][()].astype(bool)
+        power = np.where(observed, fl["power"][()], np.nan)
+        sigma = np.where(observed, fl["sigma"][()], np.nan) if "sigma" in fl else None
+        truth = f["truth/power"][()] if "truth" in f and "power" in f["truth"] else None
+        pp = f["per_pose"] if "per_pose" in f else None
+        pose_power = pp["power"][()] if pp is not None and "power" in pp else None
+        pose_obs = pp["observed"][()].astype(bool) if pp is not None and "observed" in pp else None
+        method = str(f.attrs.get("method", ""))
+        joint = bool(fl.attrs.get("joint_over_poses", False))
+    areas = surface.element_areas_mm2
+    arrays, units = _quantities("", power, areas, exposure_s, sigma)
+    if truth is not None:
+        a, u = _quantities("truth_", truth, areas, exposure_s)
+        arrays |= a
+        units |= u
+    if pose_power is not None and pose_obs is not None and len(pose_power) > 1:
+        for k, (pw, ob) in enumerate(zip(pose_power, pose_obs)):
+            arrays[f"pose{k + 1}_power_photons"] = np.where(ob, pw, np.nan)
+            units[f"pose{k + 1}_power_photons"] = f"photons per exposure, pose {k + 1} alone"
+            arrays[f"pose{k + 1}_observed_state"] = ob.astype(np.int8)
+            units[f"pose{k + 1}_observed_state"] = "1 observed, 0 unobserved in this pose, -1 not an element"
+    field = {"method": method, "joint_over_poses": int(joint), "source": rec_path.name,
+             "exposure_s": exposure_s if exposure_s is not None else np.nan}
+    mesh = X.polydata(surface.vertices_mm, surface.faces, surface.element_of_face, arrays, observed=observed,
+                      units=units, field=field)
+    return X.write_vtp(out_path, mesh)
+
+
+def simulation_vtp(sim_path: Path, out_path: Path, *, exposure_s: float | None) -> Path:
+    """Write the simulated ground truth (every element observed by construction), per level."""
+    with A.open_artefact(sim_path, "simulation") as f:
+        surface = A.read_surface(f["surface"])
+        power = f["truth/power"][()]
+        scale = f["truth/level_scale"][()] if "level_scale" in f["truth"] else np.ones(1)
+        kind = str(f["truth"].attrs.get("kind", ""))
+    areas = surface.element_areas_mm2
+    arrays, units = _quantities("", power * scale[0], areas, exposure_s)
+    for li in range(1, len(scale)):
+        arrays[f"level{li}_power_photons"] = power * scale[li]
+        units[f"level{li}_power_photons"] = f"photons per exposure, signal level {li}"
+    field = {"truth_kind": kind, "source": sim_path.name, "level": 0,
+             "exposure_s": exposure_s if exposure_s is not None else np.nan}
+    mesh = X.polydata(surface.vertices_mm, surface.faces, surface.element_of_face, arrays,
+                      observed=np.ones(surface.n_elements, bool), units=units, field=field)
+    return X.write_vtp(out_path, mesh)
+
+
+def export_3d(cfg: C.LoadedConfig, ctx, artefact: Path) -> Path:
+    """The ``.vtp`` beside a reconstruction or simulation artefact (the stages' one-line call)."""
+    artefact = Path(artefact)
+    if artefact.stem == "reconstruction":
+        out = reconstruction_vtp(artefact, artefact.with_suffix(".vtp"), exposure_s=reconstruction_exposure_s(cfg))
+    else:
+        out = simulation_vtp(artefact, artefact.parent / "simulation_truth.vtp", exposure_s=simulation_exposure_s(cfg))
+    ctx.say(f"3-D surface for ParaView/pyvista: {out}")
+    return out

@@ -1,0 +1,178 @@
+"""Results people open elsewhere: the .vtp files, and the units they carry (radiance)."""
+
+from __future__ import annotations
+
+import copy
+
+import h5py
+import numpy as np
+import pytest
+from conftest import cylinder_sim_config
+from typer.testing import CliRunner
+
+from fluxcli.cli import app
+from fluxcli.surface.units import element_quantities, lambertian_radiance_per_cm2
+
+runner = CliRunner()
+
+
+def run(*args):
+    r = runner.invoke(app, [str(a) for a in args])
+    assert r.exit_code == 0, r.output
+    return r
+
+
+def _read_vtp_with_vtk(path):
+    """ParaView's reader: VTK's own XML PolyData reader, not pyvista's wrapper."""
+    import vtk
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    reader = vtk.vtkXMLPolyDataReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    poly = reader.GetOutput()
+    cd = poly.GetCellData()
+    arrays = {cd.GetArrayName(i): vtk_to_numpy(cd.GetArray(i)) for i in range(cd.GetNumberOfArrays())}
+    return poly, arrays
+
+
+@pytest.fixture(scope="module")
+def cylinder_run(tmp_path_factory):
+    """The shared small cylinder (caps are occluders, not elements), two heights, 2.5 s exposure."""
+    import yaml
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    minimal = yaml.safe_load((root / "configs" / "minimal.yaml").read_text())
+    minimal["workdir"] = "run"
+    cfg = cylinder_sim_config(minimal)
+    cfg["simulate"]["noise"]["exposure_s"] = 2.5
+    tmp = tmp_path_factory.mktemp("vtp")
+    p = tmp / "cfg.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    run("simulate", p, "--quiet")
+    run("reconstruct", p, "--quiet")
+    return tmp / "run"
+
+
+def test_reconstruction_vtp_holds_the_artefact_per_face(cylinder_run):
+    import pyvista as pv
+
+    t = 2.5
+    mesh = pv.read(cylinder_run / "reconstruction.vtp")
+    with h5py.File(cylinder_run / "reconstruction.h5") as f:
+        verts, faces = f["surface/vertices"][()], f["surface/faces"][()]
+        eof = f["surface/element_of_face"][()]
+        areas = f["surface/areas"][()]
+        power, observed, sigma = f["flux/power"][()], f["flux/observed"][()], f["flux/sigma"][()]
+        truth = f["truth/power"][()]
+        pose_power, pose_obs = f["per_pose/power"][()], f["per_pose/observed"][()]
+    assert (eof < 0).any() and observed.any()  # caps: faces that are no element
+    np.testing.assert_array_equal(mesh.points, verts)
+    np.testing.assert_array_equal(mesh.faces.reshape(-1, 4)[:, 1:], faces)
+    cd = mesh.cell_data
+    np.testing.assert_array_equal(cd["element_id"], eof)
+    # face by face, as a user would map it
+    for i, e in enumerate(eof):
+        if e < 0:
+            assert cd["observed_state"][i] == -1
+            assert np.isnan(cd["power_photons"][i]) and np.isnan(cd["truth_power_photons"][i])
+            continue
+        assert cd["observed_state"][i] == (1 if observed[e] else 0)
+        if observed[e]:
+            assert cd["power_photons"][i] == power[e]
+            assert cd["exitance_photons_per_mm2"][i] == pytest.approx(power[e] / areas[e], rel=1e-12)
+            assert cd["flux_photons_per_s"][i] == pytest.approx(power[e] / t, rel=1e-12)
+            assert cd["radiance_photons_per_s_per_cm2_per_sr"][i] == pytest.approx(
+                power[e] / areas[e] / t * 100 / np.pi, rel=1e-12)
+            np.testing.assert_equal(cd["sigma_photons"][i], sigma[e])
+        else:
+            assert np.isnan(cd["power_photons"][i])  # unobserved: unknown, never zero
+        assert cd["truth_power_photons"][i] == truth[e]
+        for k in range(len(pose_power)):
+            assert cd[f"pose{k + 1}_observed_state"][i] == int(pose_obs[k, e])
+    # the total: one value per element, summed over elements (not over faces)
+    first = np.unique(eof[eof >= 0], return_index=True)[1]
+    assert np.nansum(cd["power_photons"][np.flatnonzero(eof >= 0)[first]]) == pytest.approx(np.nansum(power), rel=1e-12)
+    units = "\n".join(mesh.field_data["units"])
+    assert "radiance_photons_per_s_per_cm2_per_sr: photons s^-1 cm^-2 sr^-1" in units
+    assert float(mesh.field_data["exposure_s"][0]) == t
+
+
+def test_vtp_is_vtk_xml_that_paraview_reads(cylinder_run):
+    path = cylinder_run / "reconstruction.vtp"
+    head = path.read_bytes()[:200]
+    assert b"<VTKFile" in head and b'type="PolyData"' in head
+    poly, arrays = _read_vtp_with_vtk(path)
+    with h5py.File(cylinder_run / "reconstruction.h5") as f:
+        n_faces = len(f["surface/faces"])
+        eof = f["surface/element_of_face"][()]
+    assert poly.GetNumberOfCells() == n_faces
+    np.testing.assert_array_equal(arrays["element_id"], eof)
+    # the simulated truth too, every element observed by construction
+    poly, arrays = _read_vtp_with_vtk(cylinder_run / "simulation_truth.vtp")
+    with h5py.File(cylinder_run / "simulation.h5") as f:
+        truth = f["truth/power"][()] * f["truth/level_scale"][0]
+    m = eof >= 0
+    np.testing.assert_allclose(arrays["power_photons"][m], truth[eof[m]], rtol=1e-12)
+    assert set(arrays["observed_state"][m]) == {1} and set(arrays["observed_state"][~m]) == {-1}
+    assert "level1_power_photons" in arrays
+
+
+def test_without_an_exposure_only_per_exposure_quantities(tmp_path, write_config, minimal_config):
+    q = element_quantities([2.0, np.nan], [4.0, 1.0])
+    assert set(q) == {"power_photons", "exitance_photons_per_mm2"}
+    assert q["exitance_photons_per_mm2"][0] == 0.5 and np.isnan(q["exitance_photons_per_mm2"][1])
+    with pytest.raises(ValueError):
+        element_quantities([1.0], [1.0], exposure_s=0.0)
+
+
+def test_radiance_of_a_steradian_cone():
+    # a Lambertian emitter of exitance M sends M/pi per steradian along its normal, per unit area:
+    # integrate L cos(theta) over the hemisphere numerically and get M back
+    m_per_s_mm2 = 3.0e4
+    L_cm2 = lambertian_radiance_per_cm2(m_per_s_mm2)
+    th = np.linspace(0, np.pi / 2, 20001)
+    hemi = np.trapezoid(np.cos(th) * np.sin(th), th) * 2 * np.pi  # = pi
+    assert L_cm2 / 100 * hemi == pytest.approx(m_per_s_mm2, rel=1e-6)
+
+
+def test_uniform_lambertian_emitter_reports_radiance_M_over_pi(write_config, minimal_config, tmp_path):
+    """A flat patch of uniform exitance M in the focal plane, facing the camera: the .vtp's
+    radiance is M / (pi t) in photons/s/cm^2/sr, and so is what the noiseless image says
+    through the closed form for an on-axis pixel: photons = L t A_pixel pi R^2 / (R^2 + u^2)."""
+    M, t = 2.0e5, 4.0  # photons/mm^2 per exposure, s
+    f_mm, N, u = 25.0, 4.0, 300.0
+    cfg = copy.deepcopy(minimal_config)
+    cfg["system"]["camera"] = {"pixels": [32, 32], "pixel_pitch_mm": 0.1,
+                               "lens": {"focal_length_mm": f_mm, "f_number": N, "focus_distance_mm": u},
+                               "pose": {"lens_center_mm": [0, 0, 320.0]}}
+    cfg["subject"]["surface"] = {"phantom": "patch", "size_mm": [12, 12], "n": [3, 3], "center_mm": [0, 0, 20.0]}
+    cfg["simulate"] = {"flux": {"kind": "uniform", "exitance_photons_per_mm2": M},
+                       "noise": {"model": "none", "exposure_s": t}}
+    cfg["reconstruct"] = {"noiseless": True}
+    p = write_config(cfg)
+    run("simulate", p, "--quiet")
+    run("reconstruct", p, "--quiet")
+    expected = M / t / np.pi * 100  # photons/s/cm^2/sr
+
+    import pyvista as pv
+
+    mesh = pv.read(tmp_path / "run" / "reconstruction.vtp")
+    L = mesh.cell_data["radiance_photons_per_s_per_cm2_per_sr"]
+    eid = mesh.cell_data["element_id"]
+    centre = L[eid == 4]  # the middle element of 3 x 3
+    np.testing.assert_allclose(centre, expected, rtol=0.03)
+    assert np.nanmean(L) == pytest.approx(expected, rel=0.05)
+    truth = pv.read(tmp_path / "run" / "simulation_truth.vtp").cell_data["radiance_photons_per_s_per_cm2_per_sr"]
+    np.testing.assert_allclose(truth, expected, rtol=1e-9)
+
+    # the image itself, through the closed form, with no fluxmap code in between
+    with h5py.File(tmp_path / "run" / "simulation.h5") as fh:
+        img = fh["images/noiseless"][0, 0]
+    v = 1 / (1 / f_mm - 1 / u)
+    a_pixel = (0.1 * u / v) ** 2  # mm^2 of the focal plane one pixel sees
+    R = f_mm / (2 * N)
+    per_pixel = img[15:17, 15:17].mean()  # the four pixels around the axis
+    L_image = per_pixel / (t * a_pixel * np.pi * R**2 / (R**2 + u**2)) * 100  # photons/s/cm^2/sr
+    assert L_image == pytest.approx(expected, rel=0.01)
