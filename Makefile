@@ -21,12 +21,15 @@ $(VENV)/.installed: pyproject.toml
 
 install: $(VENV)/.installed
 
+# The demo's artefacts carry a fixed creation time (SOURCE_DATE_EPOCH: the commit's), so that
+# every clone makes the same bytes; `make demo-check` compares them with a second run.
+DEMO_EPOCH := $(shell git log -1 --format=%ct 2>/dev/null || echo 0)
 demo: $(VENV)/.installed
-	$(FLUXMAP) build-T configs/demo.yaml --jobs $(JOBS)
-	$(FLUXMAP) simulate configs/demo.yaml --jobs $(JOBS)
-	$(FLUXMAP) reconstruct configs/demo.yaml --jobs $(JOBS)
-	$(FLUXMAP) report configs/demo.yaml
-	@echo "demo report: $(CURDIR)/runs/demo/report/index.html"
+	SOURCE_DATE_EPOCH=$(DEMO_EPOCH) $(FLUXMAP) build-T configs/demo.yaml --jobs $(JOBS)
+	SOURCE_DATE_EPOCH=$(DEMO_EPOCH) $(FLUXMAP) simulate configs/demo.yaml --jobs $(JOBS)
+	SOURCE_DATE_EPOCH=$(DEMO_EPOCH) $(FLUXMAP) reconstruct configs/demo.yaml --jobs $(JOBS)
+	SOURCE_DATE_EPOCH=$(DEMO_EPOCH) $(FLUXMAP) report configs/demo.yaml
+	@$(FLUXMAP) summary configs/demo.yaml
 
 test: $(VENV)/.installed
 	$(PY) -m pytest -q

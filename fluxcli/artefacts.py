@@ -40,7 +40,7 @@ def write_artefact(path: Path, kind: str, *, config_sha256: str = "", inputs: di
             f.attrs["fluxmap_version"] = __version__
             f.attrs["kind"] = kind
             f.attrs["schema_version"] = SCHEMA_VERSIONS[kind]
-            f.attrs["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+            f.attrs["created"] = created_utc()
             f.attrs["config_sha256"] = config_sha256
             f.attrs["inputs"] = json.dumps(inputs or {}, sort_keys=True)
             yield f
@@ -48,6 +48,14 @@ def write_artefact(path: Path, kind: str, *, config_sha256: str = "", inputs: di
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def created_utc() -> str:
+    """Now, or ``SOURCE_DATE_EPOCH`` when set (reproducible builds: the same inputs, the same bytes)."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH", "").strip()
+    when = (_dt.datetime.fromtimestamp(int(epoch), _dt.timezone.utc) if epoch.isdigit()
+            else _dt.datetime.now(_dt.timezone.utc))
+    return when.isoformat(timespec="seconds")
 
 
 def open_artefact(path: Path, kind: str) -> h5py.File:

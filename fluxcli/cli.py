@@ -58,6 +58,7 @@ STAGE_REQUIRES: dict[str, tuple[str, ...]] = {
     "report": _GEOMETRY,
     "calibrate": ("system", "system.camera", "calibrate"),
     "capture-surface": ("rig", "capture"),
+    "summary": (),
 }
 
 
@@ -123,6 +124,10 @@ _stage_command("reconstruct", "reconstruct", """Invert images into surface flux 
 _stage_command("report", "report", """Figures, summary.json and a self-contained HTML page, from the artefacts.
 
     $ fluxmap report configs/paper-3d.yaml
+    """)
+_stage_command("summary", "summary", """Per-pose totals, their spread, the truth, and where the report is, from the artefacts.
+
+    $ fluxmap summary configs/demo.yaml
     """)
 _stage_command("calibrate", None, """(Not built yet.) Derive the camera model from grid images.""")
 _stage_command("capture-surface", None, """(Not built yet.) Drive the rig (or its simulator) and capture the surface and images.""")
