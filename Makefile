@@ -1,5 +1,6 @@
 # fluxmap: reproducible set-up, tests, benchmarks and experiments.
 #   make demo   create .venv, install, run the demo pipeline, print where its output is
+#   make check-report   open the demo's report in headless Chromium: screenshot, console, 3-D view
 #   make test   create .venv if needed, install with test extras, run the test suite
 #   make bench  speed ratios measured in one run (slow checks included)
 #   make paper-2d | paper-3d | heights   the paper's experiments (pipelines/experiments.mk)
@@ -10,7 +11,7 @@ PY      = $(VENV)/bin/python
 FLUXMAP = $(VENV)/bin/fluxmap
 JOBS   ?= 2
 
-.PHONY: all demo test bench samples figures clean help
+.PHONY: all demo check-report test bench samples figures clean help
 all: test
 
 $(VENV)/.installed: pyproject.toml
@@ -31,6 +32,12 @@ demo: $(VENV)/.installed
 	SOURCE_DATE_EPOCH=$(DEMO_EPOCH) $(FLUXMAP) report configs/demo.yaml
 	@$(FLUXMAP) summary configs/demo.yaml
 
+# The demo's report in headless Chromium (Debian: apt-get install chromium): a screenshot, no console
+# errors, the 3-D view not blank.  Not part of `make test` (CI has no browser).
+check-report: $(VENV)/.installed
+	@test -f runs/demo/report/index.html || $(MAKE) demo
+	$(PY) -m fluxcli.report.browser_check runs/demo/report/index.html runs/demo/report/screenshot.png
+
 test: $(VENV)/.installed
 	$(PY) -m pytest -q
 
@@ -48,6 +55,6 @@ clean:
 	rm -rf runs .pytest_cache
 
 help:
-	@sed -n '2,5p' Makefile
+	@sed -n '2,6p' Makefile
 
 -include pipelines/*.mk

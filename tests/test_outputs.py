@@ -176,3 +176,38 @@ def test_uniform_lambertian_emitter_reports_radiance_M_over_pi(write_config, min
     per_pixel = img[15:17, 15:17].mean()  # the four pixels around the axis
     L_image = per_pixel / (t * a_pixel * np.pi * R**2 / (R**2 + u**2)) * 100  # photons/s/cm^2/sr
     assert L_image == pytest.approx(expected, rel=0.01)
+
+
+# ------------------------------------------------------------------ the report in a real browser
+def _chromium_or_skip():
+    from fluxcli.report import browser_check as B
+
+    if B.find_chromium() is None:
+        pytest.skip("no Chromium installed (Debian: apt-get install chromium); `make check-report` needs it too")
+    return B
+
+
+@pytest.mark.slow  # a browser run: `make bench` and `make check-report`, not `make test`
+def test_report_renders_its_3d_view_in_headless_chromium(cylinder_run, tmp_path):
+    B = _chromium_or_skip()
+    cfg = cylinder_run.parent / "cfg.yaml"
+    run("report", cfg, "--quiet")
+    index = cylinder_run / "report" / "index.html"
+    png = tmp_path / "report.png"
+    assert B.check(index, png) == []
+    from matplotlib.image import imread
+
+    rgb = (imread(png)[:, :, :3] * 255).astype(np.uint8)
+    t, b, l, r = B.scene_box(rgb)
+    assert (b - t) > 200 and (r - l) > 300
+
+
+@pytest.mark.slow
+def test_browser_check_catches_a_blank_view_and_console_errors(tmp_path):
+    B = _chromium_or_skip()
+    page = tmp_path / "bad.html"
+    page.write_text("<!DOCTYPE html><html><body><h1>no 3-D here</h1>"
+                    "<script>console.error('broken');</script></body></html>")
+    problems = B.check(page, tmp_path / "bad.png", height=600)
+    assert any("broken" in p for p in problems)
+    assert any("no 3-D scene" in p for p in problems)

@@ -1,5 +1,5 @@
 """The report page: one self-contained HTML file (PNGs embedded as data URIs, inline CSS,
-no scripts, no external links), built from the numbers in summary.json."""
+plotly.js inline for the 3-D view, no external links), built from the numbers in summary.json."""
 
 from __future__ import annotations
 
@@ -18,6 +18,9 @@ th, td { border: 1px solid #ccc; padding: 0.25em 0.6em; text-align: right; }
 th { background: #f3f3f3; } td.l, th.l { text-align: left; }
 .meta { color: #555; font-size: 0.9em; } .note { background: #fff8e1; padding: 0.5em 0.8em; border-left: 3px solid #f0b400; }
 nav a { margin-right: 1em; }
+.warnings { background: #fdecea; border-left: 4px solid #d93025; padding: 0.2em 1em; margin: 1em 0; }
+.warnings h2 { border: none; margin-top: 0.4em; } .warn { margin: 0.4em 0; } .ok { color: #1e7e34; }
+.plot3d { border: 1px solid #ddd; margin: 0.5em 0 1.5em 0; }
 """
 
 

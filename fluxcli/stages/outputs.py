@@ -107,3 +107,55 @@ def export_3d(cfg: C.LoadedConfig, ctx, artefact: Path) -> Path:
         out = simulation_vtp(artefact, artefact.parent / "simulation_truth.vtp", exposure_s=simulation_exposure_s(cfg))
     ctx.say(f"3-D surface for ParaView/pyvista: {out}")
     return out
+
+
+# ------------------------------------------------------------------ what the report records
+def rig_of(cfg: C.LoadedConfig):
+    """The camera and mirrors as the report's 3-D view draws them."""
+    from ..report.view3d import Rig
+    from ..scene import camera_from_config, mirror_names, plane_mirrors
+
+    cam = camera_from_config(cfg.model.system.camera)
+    mirrors = []
+    for name, m in zip(mirror_names(cfg.model.system), plane_mirrors(cfg.model.system)):
+        u, v = m.axis_u * m.half_size_mm[0], m.axis_v * m.half_size_mm[1]
+        mirrors.append((name, np.array([m.center_mm - u - v, m.center_mm + u - v, m.center_mm + u + v,
+                                        m.center_mm - u + v])))
+    return Rig(cam.center_mm, cam.axis, -cam.down, cam.aperture_radius_mm, cam.focus_distance_mm,
+               (cam.nx * cam.focal_pixel_mm, cam.ny * cam.focal_pixel_mm), mirrors)
+
+
+def record_of(cfg: C.LoadedConfig, digests: dict[str, str]) -> list[tuple[str, str]]:
+    """(label, value) rows: the settings and files a result was made with, for the report's record."""
+    m = cfg.model
+    cam = m.system.camera
+    lens = cam.lens
+    rows = [("config", f"{cfg.path} (sha256 {cfg.sha256[:16]}…)"),
+            ("camera", f"{cam.pixels[0]} × {cam.pixels[1]} pixels of {cam.pixel_pitch_mm:g} mm (binned); "
+                       f"lens centre {list(cam.pose.lens_center_mm)} mm looking {list(cam.pose.look)}, "
+                       f"up {list(cam.pose.up)}"),
+            ("lens", f"f = {lens.focal_length_mm:g} mm, aperture radius {lens.aperture_radius_mm:.3g} mm"
+                     + (f" (f/{lens.f_number:g})" if lens.f_number else "")
+                     + f", focused {lens.focus_distance_mm:g} mm in front"),
+            ("apertures", ", ".join(f"⌀{a.diameter_mm:g} mm at {a.distance_mm:g} mm" for a in cam.apertures) or "none"),
+            ("sensor", ", ".join(f"{k} {v:g}" for k, v in cam.sensor.model_dump().items())),
+            ("mirrors", "; ".join(f"{mm.name or f'mirror{k}'}: centre {list(mm.center_mm)} mm, normal "
+                                  f"{list(mm.normal)}, {mm.size_mm[0]:g} × {mm.size_mm[1]:g} mm, reflectance "
+                                  f"{mm.reflectance:g}" for k, mm in enumerate(m.system.mirrors)) or "none"),
+            ("poses", f"heights {list((m.subject.poses or C.Poses()).heights_mm)} mm × rotations "
+                      f"{list((m.subject.poses or C.Poses()).rotations_deg)}°")]
+    t = reconstruction_exposure_s(cfg)
+    rows.append(("exposure", f"{t:g} s" if t is not None else "not given (quantities per exposure; no rates)"))
+    rc = m.reconstruct
+    if rc.images is not None:
+        for k, p in enumerate(rc.images.files):
+            path = cfg.resolve(p)
+            rows.append((f"image, pose {k + 1}", f"{path} (sha256 {A.file_sha256(path)[:16]}…)" if path.is_file()
+                         else f"{path} (missing now)"))
+    elif m.simulate is not None:
+        rows.append(("images", f"simulated: truth '{m.simulate.flux.kind}', noise '{m.simulate.noise.model}' "
+                               f"(seed {m.simulate.noise.seed}); level {rc.level}, "
+                               + ("noiseless" if rc.noiseless else f"repeat {rc.repeat}")))
+    for name, digest in digests.items():
+        rows.append((f"artefact {name}", f"sha256 {digest}"))
+    return rows

@@ -25,6 +25,7 @@ from ..errors import UserError
 from ..scene import SubjectPlacer, views_from_config
 from .build_t import cache_dir
 from .context import RunContext
+from .outputs import reconstruction_exposure_s, record_of, rig_of
 
 
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
@@ -57,7 +58,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     ctx.say(f"report: {study.n_poses} pose(s), {study.surface.n_elements} elements, method {study.method}")
     index, summary = R.make_report(study, out_dir, title=rs.title or cfg.path.stem, geometry=geometry,
                                    slice_axial_mm=rs.slice_axial_mm, surface_views=rs.surface_views,
-                                   extra={"provenance": {"inputs": inputs, "settings": settings}})
+                                   extra={"provenance": {"inputs": inputs, "settings": settings}},
+                                   record=record_of(cfg, inputs), rig=rig_of(cfg), exposure_s=reconstruction_exposure_s(cfg))
     for note in summary["notes"]:
         ctx.say(f"note: {note}")
     sp = summary["spreads"]

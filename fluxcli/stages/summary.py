@@ -19,6 +19,7 @@ from .. import artefacts as A
 from .. import config as C
 from ..errors import UserError
 from .context import RunContext
+from ..report.notebook import observed_share
 from .outputs import reconstruction_exposure_s
 
 
@@ -26,13 +27,6 @@ def spread(values) -> float:
     """(max − min) / mean over the poses."""
     v = np.asarray(values, float)
     return float((v.max() - v.min()) / v.mean())
-
-
-def observed_share(pose_observed: np.ndarray, power: np.ndarray) -> np.ndarray:
-    """(P,) fraction of the total ``power`` (NaN unobserved: left out) on each pose's observed elements."""
-    b = np.where(np.isfinite(power), power, 0.0)
-    total = b.sum()
-    return np.array([b[o].sum() / total if total > 0 else np.nan for o in np.asarray(pose_observed, bool)])
 
 
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> None:
