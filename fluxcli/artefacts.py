@@ -44,18 +44,35 @@ def write_artefact(path: Path, kind: str, *, config_sha256: str = "", inputs: di
             f.attrs["config_sha256"] = config_sha256
             f.attrs["inputs"] = json.dumps(inputs or {}, sort_keys=True)
             yield f
+            if reproducible():
+                _forget_durations(f)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
 
 
-def created_utc() -> str:
-    """Now, or ``SOURCE_DATE_EPOCH`` when set (reproducible builds: the same inputs, the same bytes)."""
+def reproducible() -> _dt.datetime | None:
+    """The time of ``SOURCE_DATE_EPOCH`` when set (the reproducible-builds convention), else None.
+
+    Then every artefact records that time as ``created`` and no wall-clock durations
+    (attributes named ``*seconds`` become NaN): the same inputs give the same bytes."""
     epoch = os.environ.get("SOURCE_DATE_EPOCH", "").strip()
-    when = (_dt.datetime.fromtimestamp(int(epoch), _dt.timezone.utc) if epoch.isdigit()
-            else _dt.datetime.now(_dt.timezone.utc))
-    return when.isoformat(timespec="seconds")
+    return _dt.datetime.fromtimestamp(int(epoch), _dt.timezone.utc) if epoch.isdigit() else None
+
+
+def created_utc() -> str:
+    """Now, or the ``SOURCE_DATE_EPOCH`` time (see :func:`reproducible`)."""
+    return (reproducible() or _dt.datetime.now(_dt.timezone.utc)).isoformat(timespec="seconds")
+
+
+def _forget_durations(group: h5py.Group) -> None:
+    for name in list(group.attrs):
+        if name.endswith("seconds") and np.ndim(group.attrs[name]) == 0:
+            group.attrs[name] = np.nan
+    for item in group.values():
+        if isinstance(item, h5py.Group):
+            _forget_durations(item)
 
 
 def open_artefact(path: Path, kind: str) -> h5py.File:

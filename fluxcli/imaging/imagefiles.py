@@ -28,6 +28,7 @@ import base64
 import binascii
 import json
 import os
+import time
 import uuid
 from pathlib import Path
 
@@ -166,6 +167,9 @@ def write_image(
             spec.attribute(key, value)
     else:
         spec.attribute("ImageDescription", record)
+    epoch = os.environ.get("SOURCE_DATE_EPOCH", "").strip()
+    if epoch.isdigit():  # reproducible files: the fixed time, not now (TIFF's DateTime)
+        spec.attribute("DateTime", time.strftime("%Y:%m:%d %H:%M:%S", time.gmtime(int(epoch))))
 
     # Same directory so that os.replace is an atomic rename; same suffix so OIIO
     # picks the format.

@@ -410,7 +410,7 @@ def make_report(study: Study, out_dir: Path, *, title: str, geometry: Geometry, 
     page = Page(title)
     page.header(summary)
     from . import notebook  # warnings, what was measured with what, the share of light, the 3-D map
-    notebook.add_top(page, study, summary, record)
+    notebook.add_top(page, study, summary, record, exposure_s=exposure_s)
     notebook.add_3d_view(page, study, rig=rig, exposure_s=exposure_s)
 
     # ---------------------------------------------------------------- angles and the slice

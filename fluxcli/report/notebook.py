@@ -83,8 +83,10 @@ def _table(rows) -> str:
         + "</table>")
 
 
-def add_top(page, study, summary: dict, record: list[tuple[str, str]] | None = None) -> None:
-    """Warnings (first), the measurement record, and the per-pose share of the light."""
+def add_top(page, study, summary: dict, record: list[tuple[str, str]] | None = None, *,
+            exposure_s: float | None = None) -> None:
+    """Warnings (first), the measurement record, and the per-pose share of the light; with
+    the exposure, the totals as rates (photons/s)."""
     summary["observed_share"] = share_summary(study)
     warns = warnings_for(study, summary)
     summary["warnings"] = warns
@@ -94,6 +96,18 @@ def add_top(page, study, summary: dict, record: list[tuple[str, str]] | None = N
     else:
         page.parts.append('<p class="ok">No warnings: every pose fits its images to within the noise '
                           "(χ²/pixel near 1) and observes most of the light.</p>")
+    if exposure_s is not None:
+        rates = [("exposure", f"{exposure_s:g} s")]
+        rates += [(f"total flux, pose {k + 1} alone (photons/s)", f"{t / exposure_s:.4g}")
+                  for k, t in enumerate(study.pose_total)]
+        rates.append(("total flux, " + ("joint over poses" if study.joint else "first pose") + " (photons/s)",
+                      f"{np.nansum(study.power) / exposure_s:.4g}"))
+        if study.truth_power is not None:
+            rates.append(("ground-truth total (photons/s)", f"{study.truth_power.sum() / exposure_s:.4g}"))
+        page.parts.append('<h2 id="rates">Flux as a rate</h2>' + _table(rates))
+        summary["rates_photons_per_s"] = {"exposure_s": exposure_s,
+                                          "pose_total": (study.pose_total / exposure_s).tolist(),
+                                          "total": float(np.nansum(study.power) / exposure_s)}
     if record:
         page.parts.append('<h2 id="record">What was measured, with what</h2>' + _table(record))
         summary["record"] = [list(r) for r in record]

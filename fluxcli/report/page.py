@@ -111,7 +111,7 @@ class Page:
         if "direct_roi_photons" in poses[0]:
             cols.append(("direct ROI (photons)", lambda k, p: fmt(p["direct_roi_photons"])))
         if "backprojection_total" in poses[0]:
-            cols.append(("backprojection Σ Tᵀa (photons)", lambda k, p: fmt(p["backprojection_total"])))
+            cols.append(("backprojection Σ Tᵀa (a.u., not a flux)", lambda k, p: fmt(p["backprojection_total"])))
         cols.append(("reconstructed total (photons)", lambda k, p: fmt(p["total_photons"])))
         for key, name in (("direct_roi", "ROI / mean"), ("backprojection", "backproj. / mean"),
                           ("reconstruction", "recon. / mean")):
@@ -134,7 +134,7 @@ class Page:
         sp = s.get("spreads", {})
         spread_row = ["spread", "", ""] + [""] * (len(cols) - 2)
         names = [c for c, _ in cols]
-        for key, col in (("direct_roi", "direct ROI (photons)"), ("backprojection", "backprojection Σ Tᵀa (photons)"),
+        for key, col in (("direct_roi", "direct ROI (photons)"), ("backprojection", "backprojection Σ Tᵀa (a.u., not a flux)"),
                          ("reconstruction", "reconstructed total (photons)")):
             if col in names and sp.get(key) is not None:
                 spread_row[1 + names.index(col)] = fmt(sp[key], "%")

@@ -248,7 +248,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         pp.create_dataset("vertices_mm", data=np.array([sc.surface.vertices_mm for sc, _ in todo]),
                           compression="gzip").attrs["meaning"] = "the surface placed at each pose (faces as /surface/faces)"
         pp.create_dataset("backprojection_total", data=[np.nansum(backprojection(Ts[k], inp.images[k].ravel()))
-                                                        for k in range(P)]).attrs["unit"] = "photons (T'a summed)"
+                                                        for k in range(P)]).attrs["unit"] = "a.u.: sum of T'a (photons weighted by the dimensionless T; not a flux)"
         pp.create_dataset("direct_roi_photons", data=[direct_roi(todo[k][1].path, inp.images[k]) for k in range(P)]
                           ).attrs["meaning"] = "measured photons summed over the pixels the direct view reaches"
         pp.create_dataset("heights_mm", data=[pt.pose.height_mm for _, pt in todo])
