@@ -22,10 +22,11 @@ app = typer.Typer(
     "Each stage reads a YAML config and the HDF5 artefacts of earlier stages, and writes its own.",
     context_settings={"help_option_names": ["-h", "--help"]},
     pretty_exceptions_enable=False,
+    rich_markup_mode=None,  # plain click help: flags show as '--force', not '--force <bool>'
 )
 
-ConfigArg = typer.Argument(..., help="The experiment's YAML config.", show_default=False)
-SetOpt = typer.Option(None, "--set", help="Override a config key: dotted.key=value (repeatable).")
+ConfigArg = typer.Argument(..., help="The experiment's YAML config.", show_default=False, metavar="CONFIG.yaml")
+SetOpt = typer.Option(None, "--set", metavar="KEY=VALUE", help="Override a config key: dotted.key=value (repeatable).")
 ForceOpt = typer.Option(False, "--force", help="Recompute even when an up-to-date artefact exists.")
 JobsOpt = typer.Option(1, "--jobs", "-j", min=1, help="Worker processes.")
 QuietOpt = typer.Option(False, "--quiet", "-q", help="Print nothing but errors.")
