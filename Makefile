@@ -11,7 +11,7 @@ PY      = $(VENV)/bin/python
 FLUXMAP = $(VENV)/bin/fluxmap
 JOBS   ?= 2
 
-.PHONY: all demo check-report test bench samples figures clean help
+.PHONY: all demo check-report config-reference test bench samples figures clean help
 all: test
 
 $(VENV)/.installed: pyproject.toml
@@ -47,6 +47,10 @@ bench: $(VENV)/.installed
 
 samples: $(VENV)/.installed
 	$(PY) data-samples/make_samples.py
+
+# docs/config-reference.md from the schema (tests/test_docs.py fails when it is out of date)
+config-reference: $(VENV)/.installed
+	$(PY) docs/make_config_reference.py
 
 figures: $(VENV)/.installed
 	$(PY) docs/make_figures.py
