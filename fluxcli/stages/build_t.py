@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -21,6 +20,7 @@ from .. import artefacts as A
 from ..config import LoadedConfig, Transfer
 from ..optics.transfer import ALGORITHM_VERSION, LensSampling, PairwiseSampling, TransferResult, View, build_transfer
 from ..scene import PlacedScene, Pose, SubjectPlacer, poses_from_config, views_from_config
+from ..progress import run_tasks
 from .context import RunContext
 
 
@@ -78,14 +78,15 @@ def plan(cfg: LoadedConfig, transfer: Transfer | None = None, unknowns: str = "e
     return views, placer, out
 
 
-def _build_and_store(scene: PlacedScene, views: list[View], tr: Transfer, target: Path, config_sha: str) -> dict:
+def _build_and_store(scene: PlacedScene, views: list[View], tr: Transfer, target: Path, config_sha: str,
+                     progress=None) -> dict:
     """Worker: compute T for one pose and write it atomically; returns a summary."""
     t0 = time.perf_counter()
     res = build_transfer(
         scene.surface, views, scene.occluders, estimator=tr.estimator,
         lens_sampling=LensSampling(**tr.lens.model_dump()),
         pairwise_sampling=PairwiseSampling(**tr.pairwise.model_dump()),
-        ray_offset_mm=tr.ray_offset_mm, rays_per_batch=tr.rays_per_batch,
+        ray_offset_mm=tr.ray_offset_mm, rays_per_batch=tr.rays_per_batch, progress=progress,
     )
     seconds = time.perf_counter() - t0
     write_T(target, res, scene, tr.estimator, seconds, config_sha)
@@ -156,17 +157,10 @@ def ensure_T(cfg: LoadedConfig, ctx: RunContext, transfer: Transfer | None = Non
     for s, p in todo:
         if p.key not in seen:
             results[p.key] = read_summary(p.path, names, s.surface.element_areas_mm2) | {"cached": True}
-    with ctx.progress(label, total=len(need)) as advance:
-        if ctx.jobs > 1 and len(need) > 1:
-            with ProcessPoolExecutor(max_workers=ctx.jobs) as ex:
-                futs = {ex.submit(_build_and_store, s, views, tr, p.path, cfg.sha256): p for s, p in need}
-                for fut in futs:
-                    results[futs[fut].key] = fut.result() | {"cached": False}
-                    advance()
-        else:
-            for s, p in need:
-                results[p.key] = _build_and_store(s, views, tr, p.path, cfg.sha256) | {"cached": False}
-                advance()
+    # one bar over the poses, advanced after every batch of rays in every worker (with an ETA)
+    built = run_tasks(_build_and_store, [(s, views, tr, p.path, cfg.sha256) for s, p in need], label=label,
+                      jobs=ctx.jobs, quiet=ctx.quiet)
+    results |= {p.key: r | {"cached": False} for (_, p), r in zip(need, built)}
     return views, placer, todo, results
 
 
