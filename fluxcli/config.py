@@ -434,9 +434,8 @@ class Config(Model):
     reconstruct: Reconstruct = Reconstruct()
     report: ReportSettings = ReportSettings()
     calibrate: dict[str, Any] | None = None
-    rig: Rig | None = Field(None, description="The devices of the rig (issue 11).")
     capture: dict[str, Any] | None = None
-    rig: dict[str, Any] | None = None
+    rig: Rig | None = Field(None, description="The devices of the rig (issue 11).")
 
 
 class LoadedConfig:
