@@ -251,9 +251,30 @@ class AptLabJack:
             elif time.monotonic() > deadline:
                 raise _Silent(self._buf)
 
-    def _exchange(self, request: bytes, reply_id: int, data_size: int) -> apt.Message:
-        self._port.reset_input_buffer()
+    def _drain(self) -> None:
+        """Read what is waiting before a request: skip stale and unsolicited messages and noise,
+        but raise on an error report (e.g. a refused move), which must not go unnoticed."""
+        raw = self._buf
+        while getattr(self._port, "in_waiting", 0):
+            chunk = self._port.read(self._port.in_waiting)
+            if not chunk:
+                break
+            raw += chunk
         self._buf = b""
+        while len(raw) >= 6:
+            msg, used = apt.decode(raw)
+            if msg is None:
+                break
+            if msg.dest != apt.HOST or msg.src != apt.USB_UNIT:
+                raw = raw[1:]  # noise: slide until something frames
+                continue
+            raw = raw[used:]
+            if msg.msgid in (apt.HW_RESPONSE, apt.HW_RICHRESPONSE):
+                raise DeviceError(self.device, self.url, f"the controller reported an error "
+                                  f"{_describe_error(msg)}", msg.encode())
+
+    def _exchange(self, request: bytes, reply_id: int, data_size: int) -> apt.Message:
+        self._drain()
         self._port.write(request)
         deadline = time.monotonic() + self.timeout_s
         while True:
@@ -263,8 +284,8 @@ class AptLabJack:
                     raise _Garbled(msg.encode())
                 return msg
             if msg.msgid in (apt.HW_RESPONSE, apt.HW_RICHRESPONSE):
-                raise DeviceError(self.device, self.url, f"{apt.NAMES.get(int.from_bytes(request[:2], 'little'))} "
-                                  f"was answered with an error: {_describe_error(msg)}", msg.encode())
+                raise DeviceError(self.device, self.url, f"the controller reported an error "
+                                  f"{_describe_error(msg)}", msg.encode())
             # unsolicited (move completed/stopped, homed, status update) or unknown: skip
 
     def _query(self, request: bytes, reply_id: int, data_size: int) -> apt.Message:
@@ -296,7 +317,7 @@ def _describe_error(msg: apt.Message) -> str:
     if msg.msgid == apt.HW_RICHRESPONSE and msg.data is not None and len(msg.data) >= 4:
         mid, code = struct.unpack_from("<HH", msg.data)
         notes = msg.data[4:68].split(b"\x00")[0].decode("latin-1").strip()
-        return f"code {code} on 0x{mid:04X}: {notes!r}"
+        return f"(code {code}) about {apt.NAMES.get(mid, f'0x{mid:04X}')}: {notes!r}"
     if msg.data is not None:
-        return f"HW_RESPONSE {msg.data.hex()}"
-    return f"HW_RESPONSE p1={msg.param1} p2={msg.param2}"
+        return f"(HW_RESPONSE {msg.data.hex()})"
+    return f"(HW_RESPONSE p1={msg.param1} p2={msg.param2})"

@@ -217,7 +217,8 @@ class FW102C:
             except _Silent as e:
                 last = e.args[0]
                 problem = f"no prompt within {bound_s:.3g} s after '{cmd}'"
-                if not retry:  # a move that does not finish: retrying would not help
+                if not retry and cmd.encode() in last:
+                    # echoed but no prompt: the wheel took the move and did not finish it; resending would not help
                     raise DeviceError(self.device, self.url, problem + " (a stalled or blocked wheel?)",
                                       last) from None
             except (serial.SerialException, OSError) as e:
