@@ -114,7 +114,7 @@ class LabJackSimulator(SerialSimulator):
         self.acceleration_scale = float(acceleration_scale)
         self.serial_number, self.model, self.firmware = serial_number, model, tuple(firmware)
         self.updates_default = updates
-        self.enabled = False
+        self.enabled = True  # channels come up enabled; MOD_SET_CHANENABLESTATE can disable them
         self.homed = False
         self.identify_count = 0
         self.log: list[apt.Message] = []  # every message received, for tests
