@@ -56,17 +56,18 @@ def pytest_addoption(parser):
     group.addoption("--labjack-home", action="store_true", help="Also home the lab jack (only with nothing on it).")
 
 
+def _real_port(request, option: str, what: str) -> str:
+    port = request.config.getoption(option)
+    if not port:
+        pytest.skip(f"no real {what}: give {option} PORT")
+    return port
+
+
 @pytest.fixture
 def fw102c_port(request):
-    port = request.config.getoption("--fw102c")
-    if not port:
-        pytest.skip("no real FW102C: give --fw102c PORT")
-    return port
+    return _real_port(request, "--fw102c", "FW102C")
 
 
 @pytest.fixture
 def labjack_port(request):
-    port = request.config.getoption("--labjack")
-    if not port:
-        pytest.skip("no real lab jack: give --labjack PORT")
-    return port
+    return _real_port(request, "--labjack", "lab jack")

@@ -16,7 +16,7 @@ import serial
 
 from . import apt
 from .errors import DeviceError
-from .transport import open_port
+from .transport import SerialDriver
 
 
 class _Garbled(Exception):
@@ -27,7 +27,7 @@ class _Silent(Exception):
     """No reply before the deadline."""
 
 
-class AptLabJack:
+class AptLabJack(SerialDriver):
     """The vertical stage.
 
     Parameters
@@ -76,18 +76,8 @@ class AptLabJack:
         self.tolerance_counts = max(1, round(0.001 * self.counts_per_mm))  # 1 um
         self.default_velparams: tuple[int, int, int] | None = None
         self._info: dict | None = None
-        if isinstance(port, str):
-            self.url = port
-            self._port = open_port(port, timeout_s=0.02, rtscts=True, device=self.device)
-        else:
-            self.url = getattr(port, "port", None) or getattr(port, "name", None) or repr(port)
-            self._port = port
         self._buf = b""
-        try:
-            self._connect()
-        except BaseException:
-            self.close()
-            raise
+        self._open(port, rtscts=True)
 
     # ------------------------------------------------------------------ public
     def identify(self) -> str:
@@ -160,21 +150,6 @@ class AptLabJack:
         """Stop any motion (immediate or profiled) and wait until the stage is still."""
         self._send(apt.short(apt.MOT_MOVE_STOP, self.channel, 1 if immediate else 2))
         self._wait_still(0.0, "stop")
-
-    def close(self) -> None:
-        """Close the port."""
-        port, self._port = getattr(self, "_port", None), None
-        if port is not None:
-            try:
-                port.close()
-            except Exception:  # noqa: BLE001 - closing must not mask the real error
-                pass
-
-    def __enter__(self) -> "AptLabJack":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     # ------------------------------------------------------------------ connect
     def _connect(self) -> None:
@@ -305,11 +280,7 @@ class AptLabJack:
         raise DeviceError(self.device, self.url, f"{problem} ({self.retries + 1} attempts)", last)
 
     def _reopen(self) -> None:
-        try:
-            self._port.close()
-            self._port.open()
-        except (serial.SerialException, OSError, AttributeError):
-            pass
+        super()._reopen()
         self._buf = b""
 
 

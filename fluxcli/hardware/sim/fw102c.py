@@ -12,7 +12,7 @@ from __future__ import annotations
 import threading
 import time
 
-from .base import Link, SerialSimulator, garbage_bytes
+from .base import Link, SerialSimulator
 
 IDN = "THORLABS FW102C/FW212C Filter Wheel version 1.04"
 S_PER_POSITION = {1: 1.0, 0: 2.0}  # speed mode -> seconds per position
@@ -111,22 +111,12 @@ class FW102CSimulator(SerialSimulator):
     def _handle(self, link: Link, raw: bytes) -> None:
         cmd = raw.replace(b"\n", b"").replace(b"\x00", b"").decode("latin-1").strip()
         self.log.append(raw + b"\r")
-        names = (cmd,)
-        fault = self.faults.take(names, ("no_reply", "late_reply", "garbage", "drop", "error_reply"))
-        if fault is not None:
-            if fault.kind == "no_reply":
-                return
-            if fault.kind == "drop":
-                link.close()
-                return
-            if fault.kind == "late_reply":
-                if not self.sleep(fault.delay_s):
-                    return
-            if fault.kind == "garbage":
-                link.write(garbage_bytes())
-            if fault.kind == "error_reply":
-                link.write(raw + b"\rCommand error CMD_NOT_DEFINED\n> ")
-                return
+        go_on, fault = self.line_fault(link, (cmd,), ("error_reply",))
+        if not go_on:
+            return
+        if fault is not None and fault.kind == "error_reply":
+            link.write(raw + b"\rCommand error CMD_NOT_DEFINED\n> ")
+            return
         link.write(raw + b"\r")  # the echo
         reply, error = self._execute(cmd)
         out = b""

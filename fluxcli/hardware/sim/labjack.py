@@ -14,7 +14,7 @@ import threading
 import time
 
 from .. import apt
-from .base import Link, SerialSimulator, garbage_bytes
+from .base import Link, SerialSimulator
 
 MAX_VELOCITY_MM_S = 1.1
 HOME_VELOCITY_MM_S = 0.4
@@ -283,22 +283,13 @@ class LabJackSimulator(SerialSimulator):
         to = msg.src
         names = (msg.name, f"0x{msg.msgid:04X}")
         is_move = msg.msgid in (apt.MOT_MOVE_ABSOLUTE, apt.MOT_MOVE_RELATIVE, apt.MOT_MOVE_HOME)
-        kinds = ("no_reply", "late_reply", "garbage", "drop", "error_reply") + (("stall", "wrong_position") if is_move else ())
-        fault = self.faults.take(names, kinds)
-        if fault is not None:
-            if fault.kind == "no_reply":
-                return
-            if fault.kind == "drop":
-                link.close()
-                return
-            if fault.kind == "late_reply" and not self.sleep(fault.delay_s):
-                return
-            if fault.kind == "garbage":
-                link.write(garbage_bytes())
-            if fault.kind == "error_reply":
-                notes = b"simulated fault: command refused"
-                self._reply(link, apt.HW_RICHRESPONSE, apt.RICHRESPONSE.pack(msg.msgid, 0x0B, notes), to=to)
-                return
+        go_on, fault = self.line_fault(link, names, ("error_reply",) + (("stall", "wrong_position") if is_move else ()))
+        if not go_on:
+            return
+        if fault is not None and fault.kind == "error_reply":
+            notes = b"simulated fault: command refused"
+            self._reply(link, apt.HW_RICHRESPONSE, apt.RICHRESPONSE.pack(msg.msgid, 0x0B, notes), to=to)
+            return
         move_fault = fault if fault is not None and fault.kind in ("stall", "wrong_position") else None
         d = msg.data or b""
         mid = msg.msgid
