@@ -129,8 +129,10 @@ def _read_until(port, end: bytes, timeout_s=5.0) -> bytes:
 
 def test_plain_pyserial_drives_the_wheel_on_a_pty(served_pty):
     with serial.Serial(served_pty["filter_wheel"], 115200, timeout=0.1) as port:
+        port.write(b"\r")     # the usual greeting: a bare CR, answered with noise and an error
+        assert _read_until(port, b"> ") == b"\x00\rCommand error CMD_NOT_DEFINED\n> "
         port.write(b"pos=4\r")
-        assert _read_until(port, b"> ").lstrip(b"\x00") == b"pos=4\r> "
+        assert _read_until(port, b"> ") == b"pos=4\r> "
         port.write(b"pos?\r")
         assert _read_until(port, b"> ") == b"pos?\r4\r> "
         port.write(b"pos=9\r")

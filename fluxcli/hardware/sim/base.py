@@ -94,6 +94,7 @@ class Link:
         self._io = read_fd_or_sock
         self.kind = kind
         self.closed = False
+        self.fresh = True  # nothing received yet (a device may greet its first command differently)
         self.wlock = threading.Lock()
 
     def read(self, timeout_s: float) -> bytes:
