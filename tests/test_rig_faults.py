@@ -207,3 +207,14 @@ def test_faults_from_the_rig_config():
     finally:
         for s in sims.values():
             s.stop()
+
+
+def test_a_fault_on_an_unknown_command_is_a_config_error():
+    from fluxcli.config import Rig
+    from fluxcli.errors import UserError
+    from fluxcli.hardware.rig import start_simulators
+
+    rig = Rig.model_validate({"stage": {"port": "pty", "counts_per_mm": CPM,
+                                        "faults": [{"kind": "stall", "on": "MOT_MOVE_ABSOLUT"}, {"kind": "stall", "on": "MOVE"}]}})
+    with pytest.raises(UserError, match=r"'rig.stage.faults.1.on': 'MOVE' is not"):
+        start_simulators(rig)

@@ -6,6 +6,7 @@ conversation is written by fluxmap's own APT code.
 """
 
 import struct
+import time
 
 import pytest
 import thorlabs_apt_protocol as tap
@@ -182,7 +183,11 @@ def test_apt_move_skips_unsolicited_messages_and_reads_back():
 
 
 def test_apt_home_and_stop_only_when_asked():
+    home_params = reply(0x0442, struct.pack("<HHHll", 1, 2, 1, round(0.4 * CPM * 53.68), 0))
+    hp, = decoded(home_params)
+    assert (hp.home_dir, hp.home_velocity) == (2, round(0.4 * CPM * 53.68))
     port = ScriptedPort(APT_CONNECT + [
+        (tap.mot_req_homeparams(UNIT, HOST, 1), home_params),
         (tap.mot_move_home(UNIT, HOST, 1), b""),
         (req_statusbits(), status(MOVING | 0x200)),
         (req_statusbits(), struct.pack("<HBBBB", 0x0444, 1, 0, HOST, UNIT) + status(IDLE | 0x400)),
@@ -231,3 +236,39 @@ def test_apt_velocity_not_taken_is_refused():
     script = APT_CONNECT[:5] + [(tap.mot_req_velparams(UNIT, HOST, 1), VEL_DEFAULT)]
     with pytest.raises(DeviceError, match="velocity parameters"):
         AptLabJack(ScriptedPort(script), counts_per_mm=CPM)
+
+
+class _Babbler(ScriptedPort):
+    """After the recorded conversation, the device only babbles: ``chatter`` on every read, for ever."""
+
+    def __init__(self, conversation, chatter: bytes):
+        super().__init__(conversation)
+        self.chatter = chatter
+
+    def read(self, size: int = 1) -> bytes:
+        out = super().read(size)
+        if out or self.conversation:
+            return out
+        time.sleep(0.001)
+        return self.chatter
+
+    @property
+    def in_waiting(self) -> int:
+        return max(1, len(self._rx))
+
+
+def test_a_device_that_only_babbles_is_still_bounded():
+    """A stream of status updates (APT) or of noise (FW102C) must not keep a wait alive."""
+    update = reply(0x0481, struct.pack("<HllI", 1, 0, 0, IDLE))
+    port = _Babbler(APT_CONNECT + [(tap.mot_req_poscounter(UNIT, HOST, 1), b"")], update)
+    jack = AptLabJack(port, counts_per_mm=CPM, timeout_s=0.2, retries=0)
+    t0 = time.monotonic()
+    with pytest.raises(DeviceError, match="no reply to MOT_REQ_POSCOUNTER within 0.2 s"):
+        jack.position_mm()
+    assert time.monotonic() - t0 < 1.0
+    wheel_port = _Babbler(CONNECT + [(b"pos?\r", b"")], b"\x93")
+    wheel = FW102C(wheel_port, timeout_s=0.2, retries=0)
+    t0 = time.monotonic()
+    with pytest.raises(DeviceError, match="no prompt within 0.2 s after 'pos\\?'"):
+        wheel.position
+    assert time.monotonic() - t0 < 1.0

@@ -137,10 +137,14 @@ class AptLabJack(SerialDriver):
 
     def home(self) -> float:
         """Home (towards the lower limit) and wait; return the height read back (mm).  Only when asked."""
+        msg = self._query(apt.short(apt.MOT_REQ_HOMEPARAMS, self.channel), apt.MOT_GET_HOMEPARAMS,
+                          data_size=apt.HOMEPARAMS.size)
+        home_velocity = apt.HOMEPARAMS.unpack(msg.data[:apt.HOMEPARAMS.size])[3]
+        home_mm_s = max(home_velocity / (self.counts_per_mm * self.velocity_scale), 0.01)
         self._send(apt.short(apt.MOT_MOVE_HOME, self.channel))
         span = self.travel_mm[1] - self.travel_mm[0]
-        # homing runs at about 0.4 mm/s, slower than moves: bound it by the whole travel
-        status, pos = self._wait_still(span, "homing", velocity_mm_s=min(self.velocity_mm_s, 0.4))
+        # homing runs at the controller's homing velocity (about 0.4 mm/s): bound it by the whole travel
+        status, pos = self._wait_still(span, "homing", velocity_mm_s=home_mm_s)
         if not status & apt.ST_HOMED:
             raise DeviceError(self.device, self.url, f"homing ended without the homed bit (status 0x{status:08X})",
                               show_said=False)
@@ -220,11 +224,9 @@ class AptLabJack(SerialDriver):
                 msgid, dest, src, _, length = apt.parse_header(self._buf[:6])
                 if dest != apt.HOST or src != apt.USB_UNIT or (length or 0) > apt.MAX_DATA:
                     raise _Garbled(self._buf)
-            chunk = self._port.read(max(1, getattr(self._port, "in_waiting", 0) or 0))
-            if chunk:
-                self._buf += chunk
-            elif time.monotonic() > deadline:
-                raise _Silent(self._buf)
+            if time.monotonic() > deadline:  # checked even while bytes keep coming
+                raise _Silent(self._buf[-200:])
+            self._buf += self._port.read(max(1, getattr(self._port, "in_waiting", 0) or 0))
 
     def _drain(self) -> None:
         """Read what is waiting before a request: skip stale and unsolicited messages and noise,
@@ -261,7 +263,9 @@ class AptLabJack(SerialDriver):
             if msg.msgid in (apt.HW_RESPONSE, apt.HW_RICHRESPONSE):
                 raise DeviceError(self.device, self.url, f"the controller reported an error "
                                   f"{_describe_error(msg)}", msg.encode())
-            # unsolicited (move completed/stopped, homed, status update) or unknown: skip
+            # unsolicited (move completed/stopped, homed, status update) or unknown: skip, within the bound
+            if time.monotonic() > deadline:
+                raise _Silent(msg.encode())
 
     def _query(self, request: bytes, reply_id: int, data_size: int) -> apt.Message:
         name = apt.NAMES.get(int.from_bytes(request[:2], "little"), "?")

@@ -146,12 +146,11 @@ class FW102C(SerialDriver):
         buf = b""
         while True:
             chunk = self._port.read(max(1, getattr(self._port, "in_waiting", 0) or 0))
-            if chunk:
-                buf += chunk
-                if buf.endswith(PROMPT):
-                    return buf
-            elif time.monotonic() > deadline:
-                raise _Silent(buf)
+            buf += chunk
+            if chunk and buf.endswith(PROMPT):
+                return buf
+            if time.monotonic() > deadline:  # checked even while bytes keep coming (a noisy line)
+                raise _Silent(buf[-200:])
 
     def _exchange(self, cmd: str, bound_s: float) -> list[str]:
         """Send ``cmd``; return the reply lines after the echo.  Raises _Garbled/_Silent/DeviceError."""
