@@ -174,3 +174,18 @@ def test_serve_refuses_a_device_path_and_a_config_without_rig(tmp_path):
     r = subprocess.run([sys.executable, "-m", "fluxcli.cli", "rig", "serve", str(empty)],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "'rig'" in r.stderr
+
+
+def test_serve_on_a_busy_port_exits_2_naming_the_device(tmp_path):
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen(1)
+        port = busy.getsockname()[1]
+        cfg = tmp_path / "busy.yaml"
+        cfg.write_text(yaml.safe_dump({"rig": {"filter_wheel": {"port": f"socket://127.0.0.1:{port}"}}}))
+        r = subprocess.run([sys.executable, "-m", "fluxcli.cli", "rig", "serve", str(cfg)],
+                           capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "rig.filter_wheel simulator on socket://127.0.0.1:" in r.stderr and "cannot serve there" in r.stderr
