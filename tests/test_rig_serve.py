@@ -115,6 +115,19 @@ def test_pylablib_kinesis_motor_over_socket(served_socket):
         assert motor.get_velocity_parameters().max_velocity == round(0.8 * CPM * 53.68)
         motor.home(force=True, sync=True, timeout=20)
         assert motor.get_position() == 0 and "homed" in motor.get_status()
+        info = motor.get_full_info()   # every parameter block it knows is answered
+        assert info["gen_move_parameters"].backlash_distance == round(0.05 * CPM)
+        # pylablib's "-" is APT direction 1 (forward, up) for KinesisMotor: drivers disagree on the names
+        motor.jog("-", kind="builtin")
+        motor.wait_move(timeout=10)
+        assert motor.get_position() == motor.get_jog_parameters().step_size
+        motor.jog("-", kind="continuous")
+        time.sleep(0.05)
+        assert motor.is_moving()
+        motor.stop(immediate=False, sync=True, timeout=10)
+        stopped = motor.get_position()
+        time.sleep(0.05)
+        assert not motor.is_moving() and motor.get_position() == stopped > 0
     finally:
         motor.close()
 
