@@ -218,3 +218,17 @@ def test_a_fault_on_an_unknown_command_is_a_config_error():
                                         "faults": [{"kind": "stall", "on": "MOT_MOVE_ABSOLUT"}, {"kind": "stall", "on": "MOVE"}]}})
     with pytest.raises(UserError, match=r"'rig.stage.faults.1.on': 'MOVE' is not"):
         start_simulators(rig)
+
+
+def test_swapped_ports_name_the_device_expected_there():
+    wheel_sim, jack_sim = FW102CSimulator(time_scale=TS), LabJackSimulator(time_scale=TS)
+    wheel_sim.start("pty")
+    jack_sim.start("pty")
+    try:
+        with pytest.raises(DeviceError, match=r"filter wheel \(FW102C\) on /dev/pts/\d+: no prompt .* is this the filter wheel"):
+            bounded(lambda: FW102C(jack_sim.url, timeout_s=0.2))
+        with pytest.raises(DeviceError, match=r"stage \(APT lab jack\) on /dev/pts/\d+: no reply to HW_REQ_INFO .* APT controller"):
+            bounded(lambda: AptLabJack(wheel_sim.url, counts_per_mm=CPM, timeout_s=0.2))
+    finally:
+        wheel_sim.stop()
+        jack_sim.stop()

@@ -159,7 +159,11 @@ class AptLabJack(SerialDriver):
     def _connect(self) -> None:
         self._port.reset_input_buffer()
         self._send(apt.short(apt.HW_STOP_UPDATEMSGS))  # we poll; a stream of 0x0481 would only be skipped
-        info = self.info()
+        try:
+            info = self.info()
+        except DeviceError as e:
+            raise DeviceError(self.device, self.url, e.problem + "; is this the stage's APT controller, "
+                              "and is it powered?", e.said) from None
         if info["n_channels"] < self.channel:
             raise DeviceError(self.device, self.url, f"the controller has {info['n_channels']} channel(s), "
                               f"channel {self.channel} was asked for", show_said=False)
