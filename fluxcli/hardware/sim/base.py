@@ -123,7 +123,10 @@ class Link:
                 if self.kind == "pty":
                     view = memoryview(data)
                     while view:
-                        n = os.write(self._io, view)
+                        try:
+                            n = os.write(self._io, view)
+                        except BlockingIOError:
+                            return  # nobody reads the pty and its buffer is full: the bytes are lost, as on a wire
                         view = view[n:]
                 else:
                     self._io.sendall(data)
@@ -175,6 +178,7 @@ class SerialSimulator:
             tty.setraw(slave)  # no echo, no \r -> \n translation: the bytes go through as sent
             attrs = termios.tcgetattr(slave)
             termios.tcsetattr(slave, termios.TCSANOW, attrs)
+            os.set_blocking(master, False)  # a full pty (no reader) must not block the device
             self._pty_fds = (master, slave)  # keep the slave open: a client closing it must not kill the master
             self.url = os.ttyname(slave)
             link = Link(master, "pty")
