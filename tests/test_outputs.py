@@ -211,3 +211,21 @@ def test_browser_check_catches_a_blank_view_and_console_errors(tmp_path):
     problems = B.check(page, tmp_path / "bad.png", height=600)
     assert any("broken" in p for p in problems)
     assert any("no 3-D scene" in p for p in problems)
+
+
+def test_report_warnings_name_a_pose_that_sees_half_the_light_and_a_bad_fit(cylinder_run):
+    from types import SimpleNamespace
+
+    from fluxcli.report.notebook import observed_share, warnings_for
+
+    # half the power on elements the first pose sees, all of it for the second; NaN counts as nothing
+    power = np.array([1.0, 1.0, 2.0, np.nan])
+    obs = np.array([[True, True, False, False], [True, True, True, True]])
+    np.testing.assert_allclose(observed_share(obs, power), [0.5, 1.0])
+    study = SimpleNamespace(reconstruction_path=cylinder_run / "reconstruction.h5")
+    summary = {"observed_share": {"per_pose": [0.5, 1.0], "basis": "of the true light"},
+               "poses": [{"chi2_per_pixel": 1.1}, {"chi2_per_pixel": 7.0}]}
+    w = warnings_for(study, summary)
+    assert any(s.startswith("pose 1 observes only 50%") for s in w)
+    assert any(s.startswith("pose 2: χ²/pixel = 7") for s in w)
+    assert not any(s.startswith("pose 2 observes") or s.startswith("pose 1: χ²") for s in w)
