@@ -19,14 +19,9 @@ from .. import artefacts as A
 from .. import config as C
 from ..errors import UserError
 from .context import RunContext
+from ..report import spread
 from ..report.notebook import observed_share
 from .outputs import reconstruction_exposure_s
-
-
-def spread(values) -> float:
-    """(max − min) / mean over the poses."""
-    v = np.asarray(values, float)
-    return float((v.max() - v.min()) / v.mean())
 
 
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> None:
