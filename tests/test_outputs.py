@@ -229,3 +229,14 @@ def test_report_warnings_name_a_pose_that_sees_half_the_light_and_a_bad_fit(cyli
     assert any(s.startswith("pose 1 observes only 50%") for s in w)
     assert any(s.startswith("pose 2: χ²/pixel = 7") for s in w)
     assert not any(s.startswith("pose 2 observes") or s.startswith("pose 1: χ²") for s in w)
+
+
+def test_summary_prints_per_pose_totals_spreads_and_rates(cylinder_run):
+    out = run("summary", cylinder_run.parent / "cfg.yaml").output
+    with h5py.File(cylinder_run / "reconstruction.h5") as f:
+        totals = f["per_pose/total"][()]
+        roi = f["per_pose/direct_roi_photons"][()]
+    assert "exposure 2.5 s" in out and "fluxmap total (photons/s)" in out
+    assert f"{totals[0] / 2.5:.4g}" in out and f"{roi[0]:.4g}" in out
+    assert f"fluxmap total {(totals.max() - totals.min()) / totals.mean():.1%}" in out
+    assert out.rstrip().splitlines()[-1].startswith("report:")
