@@ -131,10 +131,19 @@ def calibrate(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, forc
 
 
 @app.command("capture-surface")
-def capture_surface(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, force: bool = ForceOpt,
+def capture_surface(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt,
+                    force: bool = typer.Option(False, "--force", help="Start the capture over (replaces capture.h5)."),
+                    resume: bool = typer.Option(False, "--resume", help="Continue capture.h5: take only the frames it lacks."),
                     jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
-    """Drive the rig (or its simulator) and capture the surface and images."""
-    _run(_not_built("capture-surface", "no issue yet"), config, set_, force, jobs, quiet)
+    """Drive the rig (or its simulators) and acquire the emission images of the plan in 'capture:'.
+
+    $ fluxmap capture-surface configs/demo-rig.yaml --resume
+    """
+    from functools import partial
+
+    from .stages import capture as stage
+
+    _run(partial(stage.run, resume=resume), config, set_, force, jobs, quiet)
 
 
 def main() -> None:

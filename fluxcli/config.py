@@ -327,6 +327,11 @@ class ImageFiles(Model):
     exposure_s: float = Field(1.0, gt=0)
 
 
+class CaptureSource(Model):
+    capture: Path = Field(description="A capture artefact (capture.h5 of capture-surface): relative to the config file, else to the workdir.")
+    filter: str | None = Field(None, description="Whose frames to use, by filter name (default: the capture's only filter).")
+
+
 class Sweep(Model):
     methods: tuple[MethodSettings, ...] = Field(description="Methods compared in the study.")
     levels: tuple[int, ...] | None = Field(None, description="Signal-level indices (default all).")
@@ -342,7 +347,7 @@ class Reconstruct(Model):
     tol: float = Field(0.01, gt=0)
     n_iter: int = Field(500, ge=1)
     unknowns: Literal["elements", "sub_elements"] = "elements"
-    images: ImageFiles | None = Field(None, description="Images from files instead of simulation.h5.")
+    images: ImageFiles | CaptureSource | None = Field(None, description="Images from files, or from a capture, instead of simulation.h5.")
     level: int = Field(0, ge=0, description="Which signal level of the simulation to reconstruct.")
     repeat: int = Field(0, ge=0, description="Which noise repeat of the simulation to reconstruct.")
     noiseless: bool = Field(False, description="Reconstruct the simulation's noiseless images.")
@@ -364,6 +369,26 @@ class ReportSettings(Model):
     surface_views: bool = Field(True, description="Render the flux on the 3-D surface (pyvista, off-screen).")
 
 
+# --------------------------------------------------------------------------- capture (acquisition)
+class Capture(Model):
+    """The acquisition plan of ``fluxmap capture-surface``: darks first, then per height, per filter, repeats."""
+
+    heights_mm: tuple[float, ...] = Field(min_length=1, description="Stage heights to image at (mm), in this order.")
+    filters: tuple[str, ...] = Field(("open",), min_length=1, description="Filter names (keys of rig.filter_wheel.filters), in this order.")
+    exposure_s: float = Field(1.0, gt=0, description="Exposure of every frame (s).")
+    em_gain: float = Field(300.0, ge=1, description="EM gain of every frame.")
+    repeats: int = Field(1, ge=1, description="Frames per height and filter.")
+    darks: int = Field(4, ge=0, description="Dark frames (shutter closed, same exposure and gain), taken first.")
+    seed: int = Field(0, ge=0, description="Simulated camera: frame k's noise comes from the seed (seed, k).")
+
+    @field_validator("heights_mm", "filters")
+    @classmethod
+    def _distinct(cls, v):
+        if len(set(v)) != len(v):
+            raise ValueError("list the same value only once (use repeats for more frames)")
+        return v
+
+
 # --------------------------------------------------------------------------- top level
 class Config(Model):
     workdir: Path | None = Field(None, description="Output folder (default runs/<config name>), relative to the config file.")
@@ -375,7 +400,7 @@ class Config(Model):
     reconstruct: Reconstruct = Reconstruct()
     report: ReportSettings = ReportSettings()
     calibrate: dict[str, Any] | None = None
-    capture: dict[str, Any] | None = None
+    capture: Capture | None = Field(None, description="The acquisition plan of capture-surface.")
 
 
 class LoadedConfig:
@@ -450,7 +475,7 @@ def _format_validation_error(err: ValidationError, path: Path) -> str:
 # pydantic puts union member names into error locations; they are not keys the user wrote.
 _UNION_TAGS = {"cylinder", "ring", "sphere", "patch", "MeshSurface", "ArtefactSurface",
                "gaussian", "uniform", "file", "diffusion", "float", "literal['auto']",
-               "function-after[_check(), Lens]", "tagged-union[CylinderPhantom,RingPhantom,SpherePhantom,PatchPhantom]"}
+               "function-after[_check(), Lens]", "ImageFiles", "CaptureSource", "tagged-union[CylinderPhantom,RingPhantom,SpherePhantom,PatchPhantom]"}
 
 
 def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -> LoadedConfig:

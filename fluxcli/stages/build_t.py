@@ -201,3 +201,16 @@ def run(cfg: LoadedConfig, ctx: RunContext) -> Path:
         f.attrs["estimator"] = cfg.model.transfer.estimator
     ctx.say(f"index written to {index}")
     return index
+
+
+def ensure_pose_T(cfg: LoadedConfig, pose: Pose, transfer: Transfer | None = None,
+                  placer: SubjectPlacer | None = None):
+    """T (CSR) of one pose that need not be in ``subject.poses`` (the simulated rig renders
+    at the stage's physical height), from the cache or built and cached."""
+    tr = transfer or cfg.model.transfer
+    views = views_from_config(cfg.model.system)
+    scene = (placer or SubjectPlacer(cfg)).scene(pose, cfg.model.system)
+    path = cache_dir(cfg) / f"{A.cache_key(key_parts(scene, views, tr))}.h5"
+    if not path.is_file():
+        _build_and_store(scene, views, tr, path, cfg.sha256)
+    return load_T(path)

@@ -50,9 +50,54 @@ def _simulation(cfg: C.LoadedConfig) -> Path:
     return path
 
 
+def _capture_path(cfg: C.LoadedConfig) -> Path:
+    p = cfg.model.reconstruct.images.capture
+    first = cfg.resolve(p)
+    return first if first.is_file() or p.is_absolute() else cfg.workdir / p
+
+
+def _from_capture(cfg: C.LoadedConfig, n_elements: int) -> Inputs:
+    """One image per pose (= stage height) from a capture: darks subtracted, counts -> photons."""
+    from ..acquisition import read_capture
+    from ..scene import poses_from_config
+    from .simulate import emccd_model
+
+    src = cfg.model.reconstruct.images
+    path = _capture_path(cfg)
+    cap = read_capture(path, src.filter)
+    poses = [p.height_mm for p in poses_from_config(cfg.model.subject)]
+    order = [int(np.argmin(np.abs(cap.heights_mm - h))) for h in poses]
+    if len(poses) != len(cap.heights_mm) or np.any(np.abs(cap.heights_mm[order] - poses) > 1e-6):
+        raise UserError(f"reconstruct.images.capture: {path} was captured at stage heights "
+                        f"{cap.heights_mm.tolist()} mm, but subject.poses asks for heights {poses} mm; they must "
+                        "match one to one (one pose per captured height, no rotations).")
+    photons, valid = cap.photons(emccd_model(cfg.model.system.camera.sensor, cap.exposure_s))
+    nx, ny = cfg.model.system.camera.pixels
+    if photons.shape[1:] != (ny, nx):
+        raise UserError(f"reconstruct.images.capture: {path} holds {photons.shape[2]} x {photons.shape[1]} pixel "
+                        f"frames; system.camera.pixels is {nx} x {ny}.")
+    truth = cap.truth_power if cap.truth_power is not None and len(cap.truth_power) == n_elements else None
+    return Inputs(photons[order], valid[order] & np.isfinite(photons[order]), truth,
+                  f"{path} filter {cap.filter}, {cap.repeats} repeat(s) averaged, {cap.n_darks} dark(s) subtracted")
+
+
+def _image_sources(cfg: C.LoadedConfig) -> list[str]:
+    """sha256 of the image files reconstruct reads (what makes its output stale)."""
+    rc = cfg.model.reconstruct
+    if isinstance(rc.images, C.CaptureSource):
+        p = _capture_path(cfg)
+        return [A.file_sha256(p)] if p.is_file() else []
+    if rc.images is not None:
+        return [A.file_sha256(cfg.resolve(p)) for p in rc.images.files if cfg.resolve(p).is_file()]
+    sim = cfg.workdir / "simulation.h5"
+    return [A.file_sha256(sim)] if sim.is_file() else []
+
+
 def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int) -> Inputs:
     rc = cfg.model.reconstruct
     nx, ny = cfg.model.system.camera.pixels
+    if isinstance(rc.images, C.CaptureSource):
+        return _from_capture(cfg, n_elements)
     if rc.images is not None:
         if len(rc.images.files) != n_poses:
             raise UserError(f"reconstruct.images.files: {len(rc.images.files)} file(s) for {n_poses} pose(s).")
@@ -194,9 +239,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     rc = cfg.model.reconstruct
     out = cfg.workdir / "reconstruction.h5"
     m_ = cfg.model
-    sources = ([A.file_sha256(cfg.resolve(p)) for p in rc.images.files if cfg.resolve(p).is_file()]
-               if rc.images is not None else
-               [A.file_sha256(cfg.workdir / "simulation.h5")] if (cfg.workdir / "simulation.h5").is_file() else [])
+    sources = _image_sources(cfg)
     digest = A.inputs_digest(system=m_.system.model_dump(mode="json"), subject=m_.subject.model_dump(mode="json"),
                              transfer=m_.transfer.model_dump(mode="json"),
                              reconstruct=rc.model_dump(mode="json", by_alias=True), images=sources)
