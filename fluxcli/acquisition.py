@@ -52,6 +52,19 @@ _META = {  # per-frame metadata read back from the devices: name -> (dtype, unit
 }
 
 
+A.register(A.Kind(KIND, 1, "fluxmap capture-surface --resume", "emission images acquired on the rig, frame by frame", (
+    A.Dataset("frames/counts", "ADC counts", "counts[frame, row, col]; frame k is plan slot k"),
+    *[A.Dataset(f"frames/{name}", unit, "per frame, read back from the devices") for name, (_, unit) in _META.items()],
+    A.Dataset("frames/committed", "", "1 once frame k and its metadata are durable (written last)"),
+    A.Dataset("plan/dark", "", "1 for a dark frame (shutter closed)"),
+    A.Dataset("plan/height_mm", "mm", "planned stage height of each frame"),
+    A.Dataset("plan/filter", "", "planned filter of each frame"),
+    A.Dataset("plan/repeat", "", "repeat index of each frame"),
+    A.Dataset("truth", "photons per element per exposure (subject at rest)",
+              "simulated camera: what each filter passes, per element", required=False),
+)))
+
+
 class Interrupted(Exception):
     """The acquisition stopped at a frame boundary because it was asked to (Ctrl-C)."""
 
@@ -126,14 +139,6 @@ def _fsync(f: h5py.File) -> None:
     os.fsync(f.id.get_vfd_handle())
 
 
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 class CaptureFile:
     """``capture.h5`` opened for appending frames (see the module docstring for the layout)."""
 
@@ -145,16 +150,17 @@ class CaptureFile:
 
     # ------------------------------------------------------------ create / open
     @classmethod
-    def create(cls, path: Path, plan: Plan, *, config_sha256: str = "", truth: dict[str, np.ndarray] | None = None,
-               truth_unit: str = "", pause_s: float = 0.0) -> "CaptureFile":
-        """Write the whole skeleton under a temporary name, then rename it to ``path``.
+    def create(cls, path: Path, plan: Plan, *, config_sha256: str = "", provenance: A.Provenance | None = None,
+               truth: dict[str, np.ndarray] | None = None, truth_unit: str = "", pause_s: float = 0.0) -> "CaptureFile":
+        """Write the whole skeleton under a temporary name, then rename it to ``path``
+        (the artefacts' atomic writer: fsync, rename, fsync of the folder).
 
         ``pause_s`` sleeps between the creation steps; the kill test uses it to land
         SIGKILLs inside the creation window (0 otherwise)."""
         path = Path(path)
         frames = plan.frames()
         n, (ny, nx) = len(frames), plan.shape
-        with A.write_artefact(path, KIND, config_sha256=config_sha256) as f:
+        with A.write_artefact(path, KIND, config_sha256=config_sha256, provenance=provenance) as f:
             f.attrs["plan"] = json.dumps(plan.as_dict(), sort_keys=True)
             f.attrs["layout"] = "frames/counts[frame, row, col]; frame k is plan slot k; committed[k] = 1 when durable"
             time.sleep(pause_s)
@@ -177,9 +183,6 @@ class CaptureFile:
                 for name, power in truth.items():
                     t.create_group(name).create_dataset("power", data=np.asarray(power, float))
             time.sleep(pause_s)
-        with open(path, "rb") as fh:
-            os.fsync(fh.fileno())
-        _fsync_dir(path.parent)
         return cls._open(path, plan)
 
     @classmethod

@@ -103,9 +103,9 @@ class SimulatedScene:
     def render(self, height_mm: float, name: str) -> np.ndarray:
         key = (round(float(height_mm), 6), name)
         if key not in self._images:
+            from ..pipeline import ensure_pose_T
             from ..scene import Pose
-            from .build_t import ensure_pose_T
-            from .simulate import forward_transfer
+            from .simulate import forward_transfer  # the forward T's sampling, as simulate uses
 
             rot = (self.cfg.model.subject.poses or C.Poses()).rotations_deg[0]
             T = ensure_pose_T(self.cfg, Pose(key[0], float(rot)), forward_transfer(self.cfg), self.placer)
@@ -136,7 +136,7 @@ def _check(cfg: C.LoadedConfig) -> tuple[C.Capture, C.Rig]:
 
 
 def _camera(cfg: C.LoadedConfig, cap: C.Capture, rig: C.Rig, sims: dict, wheel, stage, scene):
-    from .simulate import emccd_model
+    from ..pipeline import emccd_model
 
     cc = rig.camera or C.RigCamera()
     if cc.backend == "dcam":
@@ -160,7 +160,8 @@ def _camera(cfg: C.LoadedConfig, cap: C.Capture, rig: C.Rig, sims: dict, wheel, 
 
 @contextlib.contextmanager
 def _stop_on_signals(ctx: RunContext):
-    """SIGINT/SIGTERM set a flag that the frame loop checks between frames."""
+    """Ctrl-C (SIGINT) sets a flag that the frame loop checks between frames.  (SIGTERM
+    keeps the CLI's handling: it unwinds at once, through the same clean-up.)"""
     stop = threading.Event()
 
     def handler(signum, frame):
@@ -168,7 +169,7 @@ def _stop_on_signals(ctx: RunContext):
             ctx.say("capture-surface: stopping after this frame ...")
         stop.set()
 
-    old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    old = {s: signal.signal(s, handler) for s in (signal.SIGINT,)}
     try:
         yield stop.is_set
     finally:
@@ -182,8 +183,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext, resume: bool = False) -> Path:
 
     cap, rig = _check(cfg)
     out = cfg.workdir / "capture.h5"
-    for stale in out.parent.glob(f".{out.name}.*.tmp"):  # a creation that was killed
-        stale.unlink(missing_ok=True)
+    A.clean_stale_temps(out.parent)  # e.g. a capture.h5 whose creation was killed
     if out.exists() and not resume:
         if not ctx.force:
             raise UserError(f"capture-surface: {out} exists; continue it with --resume, or start over with --force.")
@@ -206,7 +206,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext, resume: bool = False) -> Path:
         else:
             truth = ({f: scene.power_rate(f) * cap.exposure_s for f in cap.filters} if scene is not None else None)
             ctx.say(f"capture-surface: creating {out}")
-            capfile = CaptureFile.create(out, plan, config_sha256=cfg.sha256, truth=truth,
+            prov = A.Provenance(config=cfg.model.model_dump(mode="json", by_alias=True))
+            capfile = CaptureFile.create(out, plan, config_sha256=cfg.sha256, provenance=prov, truth=truth,
                                          truth_unit="photons per element per exposure (subject at rest)",
                                          pause_s=float(os.environ.get(CREATE_PAUSE_ENV, "0") or 0))
         stack.callback(capfile.close)
