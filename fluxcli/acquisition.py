@@ -40,29 +40,10 @@ from .imaging import noise as N
 __all__ = ["Frame", "Plan", "CaptureFile", "RigDevices", "acquire", "read_capture", "CaptureImages", "Interrupted"]
 
 KIND = "capture"
-_META = {  # per-frame metadata read back from the devices: name -> (dtype, unit)
-    "time_unix": ("f8", "s since 1970-01-01 UTC, when the frame was read out"),
-    "stage_height_mm": ("f8", "mm, read back from the stage"),
-    "filter_position": ("i4", "filter-wheel position read back (1-based)"),
-    "filter_name": ("S32", "name of that position in rig.filter_wheel.filters"),
-    "exposure_s": ("f8", "s, read back from the camera"),
-    "em_gain": ("f8", "EM gain read back from the camera"),
-    "temperature_c": ("f8", "sensor temperature read back (deg C)"),
-    "shutter_open": ("u1", "1 light frame, 0 dark frame"),
+_META = {  # per-frame metadata read back from the devices (units: artefacts.kinds "capture")
+    "time_unix": "f8", "stage_height_mm": "f8", "filter_position": "i4", "filter_name": "S32",
+    "exposure_s": "f8", "em_gain": "f8", "temperature_c": "f8", "shutter_open": "u1",
 }
-
-
-A.register(A.Kind(KIND, 1, "fluxmap capture-surface --resume", "emission images acquired on the rig, frame by frame", (
-    A.Dataset("frames/counts", "ADC counts", "counts[frame, row, col]; frame k is plan slot k"),
-    *[A.Dataset(f"frames/{name}", unit, "per frame, read back from the devices") for name, (_, unit) in _META.items()],
-    A.Dataset("frames/committed", "", "1 once frame k and its metadata are durable (written last)"),
-    A.Dataset("plan/dark", "", "1 for a dark frame (shutter closed)"),
-    A.Dataset("plan/height_mm", "mm", "planned stage height of each frame"),
-    A.Dataset("plan/filter", "", "planned filter of each frame"),
-    A.Dataset("plan/repeat", "", "repeat index of each frame"),
-    A.Dataset("truth", "photons per element per exposure (subject at rest)",
-              "simulated camera: what each filter passes, per element", required=False),
-)))
 
 
 class Interrupted(Exception):
@@ -164,19 +145,17 @@ class CaptureFile:
             f.attrs["plan"] = json.dumps(plan.as_dict(), sort_keys=True)
             f.attrs["layout"] = "frames/counts[frame, row, col]; frame k is plan slot k; committed[k] = 1 when durable"
             time.sleep(pause_s)
-            p = f.create_group("plan")
-            p.create_dataset("dark", data=np.array([fr.dark for fr in frames], np.uint8))
-            p.create_dataset("height_mm", data=np.array([fr.height_mm for fr in frames], float)).attrs["unit"] = "mm"
-            p.create_dataset("filter", data=np.array([fr.filter.encode() for fr in frames], "S32"))
-            p.create_dataset("repeat", data=np.array([fr.repeat for fr in frames], np.int32))
-            g = f.create_group("frames")
+            A.put(f, "plan/dark", np.array([fr.dark for fr in frames], np.uint8))
+            A.put(f, "plan/height_mm", np.array([fr.height_mm for fr in frames], float))
+            A.put(f, "plan/filter", np.array([fr.filter.encode() for fr in frames], "S32"))
+            A.put(f, "plan/repeat", np.array([fr.repeat for fr in frames], np.int32))
             # data= writes the zeros: contiguous storage allocated now, so writing a frame
             # later changes no HDF5 metadata
-            g.create_dataset("counts", data=np.zeros((n, ny, nx), np.uint16)).attrs["unit"] = "ADC counts"
+            A.put(f, "frames/counts", np.zeros((n, ny, nx), np.uint16))
             time.sleep(pause_s)
-            for name, (dtype, unit) in _META.items():
-                g.create_dataset(name, data=np.zeros(n, dtype)).attrs["unit"] = unit
-            g.create_dataset("committed", data=np.zeros(n, np.uint8))
+            for name, dtype in _META.items():
+                A.put(f, f"frames/{name}", np.zeros(n, dtype))
+            A.put(f, "frames/committed", np.zeros(n, np.uint8))
             if truth:
                 t = f.create_group("truth")
                 t.attrs["unit"] = truth_unit

@@ -355,7 +355,7 @@ def _write_geometry(g, cfg: C.LoadedConfig, placer, views, todo) -> None:
     g.attrs["camera_up"] = np.asarray(cam.pose.up, float)
     g.attrs["view_names"] = json.dumps([v.name for v in views])
     g.attrs["T_files"] = json.dumps([str(pt.path) for _, pt in todo])
-    files = cfg.model.reconstruct.images.files if cfg.model.reconstruct.images is not None else None
+    files = getattr(cfg.model.reconstruct.images, "files", None)  # image files (not a capture)
     g.attrs["image_files"] = json.dumps([str(cfg.resolve(p)) for p in files] if files else [])
 
 
