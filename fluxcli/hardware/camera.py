@@ -125,12 +125,15 @@ class SimulatedEmccd(Camera):
         Accepted EM gains.
     time_scale : float
         The exposure takes ``exposure_s * time_scale`` seconds of wall time.
+    shape : (int, int), optional
+        ``(ny, nx)`` of ``render``'s images, when known without rendering one.
     """
 
     def __init__(self, render: Callable[[float, str], np.ndarray], *, stage_height_mm: Callable[[], float],
                  filter_name: Callable[[], str], sensor: N.EMCCDModel, seed: int = 0, native_binning: int = 1,
                  setpoint_c: float = -65.0, ambient_c: float = 20.0, dark_doubling_c: float = 6.3,
-                 em_gain_range: tuple[float, float] = (1.0, 1200.0), time_scale: float = 1.0):
+                 em_gain_range: tuple[float, float] = (1.0, 1200.0), time_scale: float = 1.0,
+                 shape: tuple[int, int] | None = None):
         self._render = render
         self._height = stage_height_mm
         self._filter = filter_name
@@ -148,7 +151,7 @@ class SimulatedEmccd(Camera):
         self.cooler_on = True
         self.shutter_open = False
         self._next_frame = 0
-        self._shape: tuple[int, int] | None = None
+        self._shape = None if shape is None else (int(shape[0]), int(shape[1]))
 
     # ---------------------------------------------------------------- settings
     @property
@@ -207,8 +210,8 @@ class SimulatedEmccd(Camera):
 
     def _expected_photons(self, *, open_shutter: bool) -> np.ndarray:
         rate = np.asarray(self._render(float(self._height()), str(self._filter())), dtype=np.float64)
-        if rate.ndim != 2:
-            raise ValueError(f"render must return a 2-D image [ny, nx], got shape {rate.shape}")
+        if rate.ndim != 2 or (self._shape is not None and rate.shape != self._shape):
+            raise ValueError(f"render must return a 2-D image {self._shape or '[ny, nx]'}, got shape {rate.shape}")
         return rate * self._exposure_s if open_shutter else np.zeros_like(rate)
 
     def snap(self) -> np.ndarray:

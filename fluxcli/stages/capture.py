@@ -155,7 +155,7 @@ def _camera(cfg: C.LoadedConfig, cap: C.Capture, rig: C.Rig, sims: dict, wheel, 
                           sensor=emccd_model(cfg.model.system.camera.sensor, cap.exposure_s), seed=cap.seed,
                           native_binning=cc.binning, setpoint_c=cc.setpoint_c, ambient_c=cc.ambient_c,
                           dark_doubling_c=cc.dark_doubling_c, em_gain_range=tuple(cc.em_gain_range),
-                          time_scale=rig.time_scale)
+                          time_scale=rig.time_scale, shape=tuple(reversed(cfg.model.system.camera.pixels)))
 
 
 @contextlib.contextmanager
