@@ -234,3 +234,60 @@ def test_reconstruct_from_the_capture_recovers_the_total(reference, tmp_path):
     r = run("reconstruct", p, "--force")
     text = " ".join(r.output.split())
     assert r.exit_code == 2 and "[0.0, 1.0]" in text and "[0.0, 10.0]" in text
+
+
+def test_counts_to_photons_subtracts_the_dark_level_without_bias():
+    """N = (C - D) g / (G QE): the mean over many pixels recovers the photons per pixel,
+    whatever the bias, dark current and CIC (they are in the dark frames too)."""
+    from fluxcli.acquisition import CaptureImages
+    from fluxcli.hardware.camera import SimulatedEmccd
+    from fluxcli.imaging.noise import EMCCDModel
+
+    sensor = EMCCDModel(quantum_efficiency=0.7, em_gain=50.0, read_noise_e=30.0, bias_counts=321.0,
+                        electrons_per_count=8.0, dark_current_e_per_s=2.0, cic_e_per_pixel=0.1, exposure_s=0.5)
+    N = np.linspace(5.0, 40.0, 64 * 64).reshape(64, 64)  # photons per exposure
+    cam = SimulatedEmccd(lambda h, f: N / 0.5, stage_height_mm=lambda: 0.0, filter_name=lambda: "open",
+                         sensor=sensor, seed=1, time_scale=0.0)
+    darks = cam.sequence(6)
+    cam.shutter_open = True
+    light = cam.sequence(4)
+    images = CaptureImages(np.array([0.0]), np.array([0.0]), light.astype(float).mean(axis=0)[None],
+                           light.max(axis=0)[None], float(darks.astype(float).mean()), 6, 4, 0.5, 50.0, "open", None)
+    # the sensor's bias/dark/CIC are deliberately wrong here: the dark frames must carry them
+    wrong = EMCCDModel(quantum_efficiency=0.7, electrons_per_count=8.0, bias_counts=0.0, dark_current_e_per_s=99.0)
+    photons, valid = images.photons(wrong)
+    assert valid.all()
+    var_one = 2 * (0.7 * N + 1.1) / 0.7**2 / 4  # F^2 = 2, averaged over 4 repeats (read noise negligible at G=50)
+    assert abs(photons.mean() - N.mean()) < 5 * np.sqrt(var_one.sum()) / N.size + 0.05
+    # unbiased per level: compare the lower and upper halves of the ramp
+    assert photons[0, :32].mean() == pytest.approx(N[:32].mean(), rel=0.03)
+    assert photons[0, 32:].mean() == pytest.approx(N[32:].mean(), rel=0.03)
+
+
+def test_ctrl_c_end_to_end_exits_130_with_a_consistent_file(reference, tmp_path):
+    cfg, ref_path = reference
+    ref_counts, *_ = frames(ref_path)
+    path = tmp_path / "cfg.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    p = _start(path, dict(os.environ))
+    _wait_for(p, "frames to take")
+    time.sleep(0.3)
+    p.send_signal(signal.SIGINT)
+    rest = p.communicate(timeout=30)[0]
+    assert p.returncode == 130, rest
+    assert "shutter closed, stage stopped" in " ".join(rest.split())
+    counts, committed, *_ = frames(tmp_path / "run" / "capture.h5")
+    n = int(committed.sum())
+    assert 0 < n < len(committed) and committed[:n].all()  # stopped between frames, in plan order
+    assert np.array_equal(counts[:n], ref_counts[:n])
+
+
+def test_a_wavelength_needs_a_diffusion_truth(reference, tmp_path):
+    cfg, _ = reference
+    cfg = copy.deepcopy(cfg)
+    cfg["rig"]["camera"]["filters"]["580nm"] = {"wavelength_nm": 580}
+    p = tmp_path / "cfg.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    r = run("capture-surface", p)
+    assert r.exit_code == 2 and "rig.camera.filters.580nm.wavelength_nm" in r.output
+    assert not (tmp_path / "run" / "capture.h5").exists()

@@ -48,9 +48,9 @@ class SimulatedScene:
     finer than reconstruction's) of the subject at the given stage height, from the T cache."""
 
     def __init__(self, cfg: C.LoadedConfig):
-        if cfg.model.simulate is None:
-            raise UserError(f"config {cfg.path}: the simulated camera (rig.camera.backend: simulated) needs "
-                            "'simulate.flux': what the subject emits.")
+        # what the simulated camera looks at: the geometry, and what the subject emits
+        C.require(cfg, "capture-surface with rig.camera.backend: simulated",
+                  ("system", "system.camera.lens", "system.camera.pose", "subject", "simulate"))
         self.cfg = cfg
         self.light = dict((cfg.model.rig.camera or C.RigCamera()).filters)
         self._placer = None
@@ -185,16 +185,17 @@ def _stop_on_signals(ctx: RunContext):
 # ------------------------------------------------------------------ the stage
 def run(cfg: C.LoadedConfig, ctx: RunContext, resume: bool = False) -> Path:
     from ..hardware.rig import open_devices, start_simulators
+    from ..pipeline import provenance
 
     cap, rig = _check(cfg)
+    cc = rig.camera or C.RigCamera()
+    scene = SimulatedScene(cfg) if cc.backend == "simulated" else None  # config checked before any file is touched
     out = cfg.workdir / "capture.h5"
     A.clean_stale_temps(out.parent)  # e.g. a capture.h5 whose creation was killed
     if out.exists() and not resume:
         if not ctx.force:
             raise UserError(f"capture-surface: {out} exists; continue it with --resume, or start over with --force.")
         out.unlink()
-    cc = rig.camera or C.RigCamera()
-    scene = SimulatedScene(cfg) if cc.backend == "simulated" else None
     with _stop_on_signals(ctx) as stop_requested, contextlib.ExitStack() as stack:
         sims = start_simulators(rig)
         stack.callback(lambda: [s.stop() for s in sims.values()])
@@ -211,7 +212,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext, resume: bool = False) -> Path:
         else:
             truth = ({f: scene.power_rate(f) * cap.exposure_s for f in cap.filters} if scene is not None else None)
             ctx.say(f"capture-surface: creating {out}")
-            prov = A.Provenance(config=cfg.model.model_dump(mode="json", by_alias=True))
+            prov = (provenance(cfg) if scene is not None  # the geometry the simulated camera rendered
+                    else A.Provenance(config=cfg.model.model_dump(mode="json", by_alias=True)))
             capfile = CaptureFile.create(out, plan, config_sha256=cfg.sha256, provenance=prov, truth=truth,
                                          truth_unit="photons per element per exposure (subject at rest)",
                                          pause_s=float(os.environ.get(CREATE_PAUSE_ENV, "0") or 0))
