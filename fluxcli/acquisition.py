@@ -275,6 +275,18 @@ class CaptureImages:
     em_gain: float
     filter: str
     truth_power: np.ndarray | None  # photons per element per exposure, when the camera was simulated
+    path: Path | None = None
+
+    def pose_order(self, heights_mm) -> list[int]:
+        """Which captured height serves each pose (``heights_mm`` in pose order); UserError
+        naming both lists unless they match one to one (to 1 nm)."""
+        heights = np.asarray(heights_mm, float)
+        order = [int(np.argmin(np.abs(self.heights_mm - h))) for h in heights]
+        if len(heights) != len(self.heights_mm) or np.any(np.abs(self.heights_mm[order] - heights) > 1e-6):
+            raise UserError(f"reconstruct.images.capture: {self.path} was captured at stage heights "
+                            f"{self.heights_mm.tolist()} mm, but subject.poses asks for heights {heights.tolist()} "
+                            "mm; they must match one to one (one pose per captured height, no rotations).")
+        return order
 
     def photons(self, sensor: "N.EMCCDModel") -> tuple[np.ndarray, np.ndarray]:
         """Photons per pixel per exposure ``(P, ny, nx)`` and the mask of usable pixels.
@@ -335,4 +347,4 @@ def read_capture(path: Path, filter: str | None = None) -> CaptureImages:
                             f"exposures {sorted(set(exps) | set(dexps))} s; darks and light frames must share one.")
         truth = f[f"truth/{filter}/power"][()] if f"truth/{filter}" in f else None
     return CaptureImages(heights, np.array(read), np.array(mean), np.array(mx), dark_mean, int(dark.sum()),
-                         int(plan["repeats"]), float(exps[0]), float(gains[0]), filter, truth)
+                         int(plan["repeats"]), float(exps[0]), float(gains[0]), filter, truth, path)

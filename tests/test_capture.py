@@ -116,7 +116,7 @@ def test_sigkill_at_random_instants_then_resume_is_bit_identical(reference, tmp_
             _wait_for(p, "frames to take")
             time.sleep(rng.uniform(0.0, 0.8))
         else:  # anywhere from start-up on
-            time.sleep(rng.uniform(0.0, 1.5))
+            time.sleep(rng.uniform(0.0, 1.0))
         if p.poll() is None:
             os.kill(p.pid, signal.SIGKILL)
             kills += 1

@@ -63,15 +63,9 @@ def _from_capture(cfg: C.LoadedConfig, n_elements: int) -> Inputs:
     from ..acquisition import read_capture
     from ..scene import poses_from_config
 
-    src = cfg.model.reconstruct.images
     path = _capture_path(cfg)
-    cap = read_capture(path, src.filter)
-    poses = [p.height_mm for p in poses_from_config(cfg.model.subject)]
-    order = [int(np.argmin(np.abs(cap.heights_mm - h))) for h in poses]
-    if len(poses) != len(cap.heights_mm) or np.any(np.abs(cap.heights_mm[order] - poses) > 1e-6):
-        raise UserError(f"reconstruct.images.capture: {path} was captured at stage heights "
-                        f"{cap.heights_mm.tolist()} mm, but subject.poses asks for heights {poses} mm; they must "
-                        "match one to one (one pose per captured height, no rotations).")
+    cap = read_capture(path, cfg.model.reconstruct.images.filter)
+    order = cap.pose_order([p.height_mm for p in poses_from_config(cfg.model.subject)])
     photons, valid = cap.photons(emccd_model(cfg.model.system.camera.sensor, cap.exposure_s))
     nx, ny = cfg.model.system.camera.pixels
     if photons.shape[1:] != (ny, nx):
