@@ -1,7 +1,7 @@
 """Crash-safe acquisition of emission images: the plan, ``capture.h5``, the frame loop, the reader.
 
-The plan (:class:`Plan`) lists every frame: first the dark frames (shutter closed), then
-for each stage height, each filter, ``repeats`` frames.  Frame ``k`` of the plan has slot
+The plan (:class:`Plan`) lists every frame: first the dark frames (shutter closed) of each
+exposure time, then for each stage height, each filter, each exposure, ``repeats`` frames.  Frame ``k`` of the plan has slot
 ``k`` in ``capture.h5``:
 
 ``/frames/counts``           uint16 ``[n_frames, ny, nx]`` ADC counts, row 0 first
@@ -11,7 +11,7 @@ for each stage height, each filter, ``repeats`` frames.  Frame ``k`` of the plan
                              ``shutter_open``
 ``/frames/committed``        uint8 ``[n_frames]``: 1 once the frame and its metadata are durable
 ``/plan/...``                what each slot is meant to hold (dark, height_mm, filter, repeat)
-``/truth/<filter>/power``    (simulated camera only) photons per element per exposure
+``/truth/<filter>/power``    (simulated camera only) photons per element per second
 
 Why it survives a kill at any instant: the skeleton is written in full (every dataset
 contiguous and allocated, zero-filled) under a temporary name and renamed into place, so
@@ -57,12 +57,13 @@ class Frame:
     height_mm: float
     filter: str
     repeat: int
+    exposure_s: float
 
     @property
     def label(self) -> str:
         if self.dark:
-            return f"dark {self.repeat + 1}"
-        return f"h={self.height_mm:g} mm, {self.filter}, repeat {self.repeat + 1}"
+            return f"dark {self.repeat + 1} ({self.exposure_s:g} s)"
+        return f"h={self.height_mm:g} mm, {self.filter}, {self.exposure_s:g} s, repeat {self.repeat + 1}"
 
 
 @dataclass(frozen=True)
@@ -71,7 +72,7 @@ class Plan:
 
     heights_mm: tuple[float, ...]
     filters: tuple[str, ...]
-    exposure_s: float
+    exposures_s: tuple[float, ...]
     em_gain: float
     repeats: int
     darks: int
@@ -81,11 +82,15 @@ class Plan:
     scene: str = ""  # digest of what a simulated camera renders ("" for a real camera)
 
     def frames(self) -> list[Frame]:
-        out = [Frame(r, True, self.heights_mm[0], self.filters[0], r) for r in range(self.darks)]
+        out: list[Frame] = []
+        for e in self.exposures_s:
+            for r in range(self.darks):
+                out.append(Frame(len(out), True, self.heights_mm[0], self.filters[0], r, e))
         for h in self.heights_mm:
             for name in self.filters:
-                for r in range(self.repeats):
-                    out.append(Frame(len(out), False, h, name, r))
+                for e in self.exposures_s:
+                    for r in range(self.repeats):
+                        out.append(Frame(len(out), False, h, name, r, e))
         return out
 
     def as_dict(self) -> dict:
@@ -94,7 +99,8 @@ class Plan:
     def differences(self, other: dict) -> list[str]:
         """What differs between this plan and ``other`` (a stored plan), in words."""
         mine = self.as_dict()
-        names = {"scene": "the simulated scene (system, subject, simulate, rig.camera)", "shape": "frame shape"}
+        names = {"scene": "the simulated scene (system, subject, simulate, rig.camera)", "shape": "frame shape",
+                 "exposures_s": "capture.exposure_s"}
         return [f"{names.get(k, 'capture.' + k)}: file has {other.get(k)!r}, config has {mine[k]!r}"
                 for k in mine if other.get(k) != mine[k]]
 
@@ -149,6 +155,7 @@ class CaptureFile:
             A.put(f, "plan/height_mm", np.array([fr.height_mm for fr in frames], float))
             A.put(f, "plan/filter", np.array([fr.filter.encode() for fr in frames], "S32"))
             A.put(f, "plan/repeat", np.array([fr.repeat for fr in frames], np.int32))
+            A.put(f, "plan/exposure_s", np.array([fr.exposure_s for fr in frames], float))
             # data= writes the zeros: contiguous storage allocated now, so writing a frame
             # later changes no HDF5 metadata
             A.put(f, "frames/counts", np.zeros((n, ny, nx), np.uint16))
@@ -214,7 +221,6 @@ def acquire(plan: Plan, out: CaptureFile, rig: RigDevices, *, stop_requested: Ca
             return 0
         on_step("camera settings")
         cam.cooler_on = True
-        cam.exposure_s = plan.exposure_s
         cam.em_gain = plan.em_gain
         for fr in todo:
             if stop_requested():
@@ -230,6 +236,8 @@ def acquire(plan: Plan, out: CaptureFile, rig: RigDevices, *, stop_requested: Ca
                     on_step(f"stage -> {fr.height_mm:g} mm")
                     rig.stage.move_to_mm(fr.height_mm)
                 cam.shutter_open = True
+            if cam.exposure_s != fr.exposure_s:
+                cam.exposure_s = fr.exposure_s
             on_step(fr.label)
             cam.set_frame_index(fr.index)
             counts = cam.snap()
@@ -274,7 +282,7 @@ class CaptureImages:
     exposure_s: float
     em_gain: float
     filter: str
-    truth_power: np.ndarray | None  # photons per element per exposure, when the camera was simulated
+    truth_power: np.ndarray | None  # photons per element per exposure_s, when the camera was simulated
     path: Path | None = None
 
     def pose_order(self, heights_mm) -> list[int]:
@@ -303,11 +311,12 @@ class CaptureImages:
         return N.counts_to_photons(self.counts_mean, model), valid
 
 
-def read_capture(path: Path, filter: str | None = None) -> CaptureImages:
-    """Read a complete capture: per planned height the mean of its light frames for ``filter``.
+def read_capture(path: Path, filter: str | None = None, exposure_s: float | None = None) -> CaptureImages:
+    """Read a complete capture: per planned height the mean of its light frames for ``filter``
+    at ``exposure_s``, and the mean of the dark frames at that exposure.
 
-    Raises UserError when the capture is incomplete, has no dark frames, or ``filter`` is
-    not one of its filters (``None`` is allowed when the capture has only one)."""
+    Raises UserError when the capture is incomplete, has no dark frames, or ``filter`` /
+    ``exposure_s`` is not one of its own (``None`` is allowed when it has only one)."""
     path = Path(path)
     with A.open_artefact(path, KIND) as f:
         plan = json.loads(f.attrs["plan"])
@@ -315,36 +324,42 @@ def read_capture(path: Path, filter: str | None = None) -> CaptureImages:
         if not committed.all():
             raise UserError(f"capture {path} is incomplete: {committed.sum()} of {committed.size} frames; finish it "
                             "with 'fluxmap capture-surface CONFIG --resume'.")
-        filters = list(plan["filters"])
-        if filter is None:
-            if len(filters) != 1:
-                raise UserError(f"reconstruct.images.filter: capture {path} holds filters {filters}; name one.")
-            filter = filters[0]
-        if filter not in filters:
-            raise UserError(f"reconstruct.images.filter: {filter!r} is not in capture {path} (it holds {filters}).")
+        filter = _one_of(path, "filter", filter, list(plan["filters"]))
+        exposure_s = float(_one_of(path, "exposure_s", exposure_s, [float(e) for e in plan["exposures_s"]]))
+        pe = f["plan/exposure_s"][()]
         dark = f["plan/dark"][()].astype(bool)
-        if not dark.any():
-            raise UserError(f"capture {path} has no dark frames (capture.darks: 0), so bias and dark signal cannot "
-                            "be subtracted; capture at least one.")
+        if not (dark & (pe == exposure_s)).any():
+            raise UserError(f"capture {path} has no dark frames at {exposure_s:g} s (capture.darks: 0), so bias and "
+                            "dark signal cannot be subtracted; capture at least one.")
         fr = f["frames"]
         counts = fr["counts"]
-        dark_mean = float(np.mean([counts[k].astype(float).mean() for k in np.flatnonzero(dark)]))
+        darks = np.flatnonzero(dark & (pe == exposure_s))
+        dark_mean = float(np.mean([counts[k].astype(float).mean() for k in darks]))
         pf = np.char.decode(f["plan/filter"][()])
         ph = f["plan/height_mm"][()]
         heights = np.array(plan["heights_mm"], float)
-        mean, mx, read = [], [], []
+        mean, mx, read, used = [], [], [], []
         for h in heights:
-            sel = np.flatnonzero(~dark & (pf == filter) & (ph == h))
+            sel = np.flatnonzero(~dark & (pf == filter) & (ph == h) & (pe == exposure_s))
             stack = counts[sel[0]:sel[-1] + 1][sel - sel[0]]
             mean.append(stack.astype(float).mean(axis=0))
             mx.append(stack.max(axis=0))
             read.append(float(fr["stage_height_mm"][sel].mean()))
-        light = ~dark
-        gains, exps = np.unique(fr["em_gain"][light]), np.unique(fr["exposure_s"][light])
-        dgains, dexps = np.unique(fr["em_gain"][dark]), np.unique(fr["exposure_s"][dark])
-        if len(gains) != 1 or len(exps) != 1 or set(dgains) != set(gains) or set(dexps) != set(exps):
-            raise UserError(f"capture {path}: frames were read out at EM gains {sorted(set(gains) | set(dgains))} and "
-                            f"exposures {sorted(set(exps) | set(dexps))} s; darks and light frames must share one.")
-        truth = f[f"truth/{filter}/power"][()] if f"truth/{filter}" in f else None
-    return CaptureImages(heights, np.array(read), np.array(mean), np.array(mx), dark_mean, int(dark.sum()),
-                         int(plan["repeats"]), float(exps[0]), float(gains[0]), filter, truth, path)
+            used.extend(sel)
+        gains = np.unique(np.concatenate([fr["em_gain"][np.array(used)], fr["em_gain"][darks]]))
+        if len(gains) != 1:
+            raise UserError(f"capture {path}: its frames were read out at EM gains {gains.tolist()}; darks and "
+                            "light frames must share one.")
+        truth = f[f"truth/{filter}/power"][()] * exposure_s if f"truth/{filter}" in f else None
+    return CaptureImages(heights, np.array(read), np.array(mean), np.array(mx), dark_mean, len(darks),
+                         int(plan["repeats"]), exposure_s, float(gains[0]), filter, truth, path)
+
+
+def _one_of(path: Path, key: str, value, choices: list):
+    if value is None:
+        if len(choices) != 1:
+            raise UserError(f"reconstruct.images.{key}: capture {path} holds {key} {choices}; name one.")
+        return choices[0]
+    if value not in choices:
+        raise UserError(f"reconstruct.images.{key}: {value!r} is not in capture {path} (it holds {choices}).")
+    return value

@@ -330,6 +330,7 @@ class ImageFiles(Model):
 class CaptureSource(Model):
     capture: Path = Field(description="A capture artefact (capture.h5 of capture-surface): relative to the config file, else to the workdir.")
     filter: str | None = Field(None, description="Whose frames to use, by filter name (default: the capture's only filter).")
+    exposure_s: float | None = Field(None, gt=0, description="Which exposure time's frames (s) (default: the capture's only one).")
 
 
 class Sweep(Model):
@@ -445,7 +446,7 @@ class Capture(Model):
 
     heights_mm: tuple[float, ...] = Field(min_length=1, description="Stage heights to image at (mm), in this order.")
     filters: tuple[str, ...] = Field(("open",), min_length=1, description="Filter names (keys of rig.filter_wheel.filters), in this order.")
-    exposure_s: float = Field(1.0, gt=0, description="Exposure of every frame (s).")
+    exposure_s: float | tuple[float, ...] = Field(1.0, description="Exposure time (s), or several: each height and filter is taken at each.")
     em_gain: float = Field(300.0, ge=1, description="EM gain of every frame.")
     repeats: int = Field(1, ge=1, description="Frames per height and filter.")
     darks: int = Field(4, ge=0, description="Dark frames (shutter closed, same exposure and gain), taken first.")
@@ -457,6 +458,18 @@ class Capture(Model):
         if len(set(v)) != len(v):
             raise ValueError("list the same value only once (use repeats for more frames)")
         return v
+
+    @field_validator("exposure_s")
+    @classmethod
+    def _exposures(cls, v):
+        many = v if isinstance(v, tuple) else (v,)
+        if not many or min(many) <= 0 or len(set(many)) != len(many):
+            raise ValueError("give one or more distinct positive exposure times (s)")
+        return v
+
+    @property
+    def exposures_s(self) -> tuple[float, ...]:
+        return tuple(self.exposure_s) if isinstance(self.exposure_s, tuple) else (float(self.exposure_s),)
 
 
 # --------------------------------------------------------------------------- top level

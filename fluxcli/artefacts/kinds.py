@@ -138,6 +138,7 @@ register(Kind("capture", 1, "fluxmap capture-surface", "emission images acquired
     Dataset("plan/height_mm", "mm", "planned stage height of each frame"),
     Dataset("plan/filter", "", "planned filter of each frame"),
     Dataset("plan/repeat", "", "repeat index of each frame"),
-    Dataset("truth", "photons per element per exposure (subject at rest)",
+    Dataset("plan/exposure_s", "s", "planned exposure time of each frame"),
+    Dataset("truth", "photons per element per second (subject at rest)",
             "simulated camera only: truth/<filter>/power, what reaches the camera through each filter", required=False),
 )))

@@ -157,7 +157,7 @@ def _camera(cfg: C.LoadedConfig, cap: C.Capture, rig: C.Rig, sims: dict, wheel, 
     height = (lambda: sims["stage"].position_mm) if "stage" in sims else stage.position_mm
     pos = (lambda: sims["filter_wheel"].position) if "filter_wheel" in sims else (lambda: wheel.position)
     return SimulatedEmccd(scene.render, stage_height_mm=height, filter_name=lambda: positions.get(pos(), f"position {pos()}"),
-                          sensor=emccd_model(cfg.model.system.camera.sensor, cap.exposure_s), seed=cap.seed,
+                          sensor=emccd_model(cfg.model.system.camera.sensor, cap.exposures_s[0]), seed=cap.seed,
                           native_binning=cc.binning, setpoint_c=cc.setpoint_c, ambient_c=cc.ambient_c,
                           dark_doubling_c=cc.dark_doubling_c, em_gain_range=tuple(cc.em_gain_range),
                           time_scale=rig.time_scale, shape=tuple(reversed(cfg.model.system.camera.pixels)))
@@ -204,18 +204,18 @@ def run(cfg: C.LoadedConfig, ctx: RunContext, resume: bool = False) -> Path:
         stack.callback(stage.close)
         camera = _camera(cfg, cap, rig, sims, wheel, stage, scene)
         stack.callback(camera.close)
-        plan = Plan(heights_mm=tuple(cap.heights_mm), filters=tuple(cap.filters), exposure_s=cap.exposure_s,
+        plan = Plan(heights_mm=tuple(cap.heights_mm), filters=tuple(cap.filters), exposures_s=cap.exposures_s,
                     em_gain=cap.em_gain, repeats=cap.repeats, darks=cap.darks, seed=cap.seed,
                     shape=tuple(camera.shape), camera=cc.backend, scene=scene.digest if scene else "")
         if out.exists():
             capfile = CaptureFile.resume(out, plan)
         else:
-            truth = ({f: scene.power_rate(f) * cap.exposure_s for f in cap.filters} if scene is not None else None)
+            truth = ({f: scene.power_rate(f) for f in cap.filters} if scene is not None else None)
             ctx.say(f"capture-surface: creating {out}")
             prov = (provenance(cfg) if scene is not None  # the geometry the simulated camera rendered
                     else A.Provenance(config=cfg.model.model_dump(mode="json", by_alias=True)))
             capfile = CaptureFile.create(out, plan, config_sha256=cfg.sha256, provenance=prov, truth=truth,
-                                         truth_unit="photons per element per exposure (subject at rest)",
+                                         truth_unit="photons per element per second (subject at rest)",
                                          pause_s=float(os.environ.get(CREATE_PAUSE_ENV, "0") or 0))
         stack.callback(capfile.close)
         total, done = len(plan.frames()), int(capfile.committed.sum())

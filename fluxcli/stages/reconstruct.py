@@ -64,7 +64,8 @@ def _from_capture(cfg: C.LoadedConfig, n_elements: int) -> Inputs:
     from ..scene import poses_from_config
 
     path = _capture_path(cfg)
-    cap = read_capture(path, cfg.model.reconstruct.images.filter)
+    src = cfg.model.reconstruct.images
+    cap = read_capture(path, src.filter, src.exposure_s)
     order = cap.pose_order([p.height_mm for p in poses_from_config(cfg.model.subject)])
     photons, valid = cap.photons(emccd_model(cfg.model.system.camera.sensor, cap.exposure_s))
     nx, ny = cfg.model.system.camera.pixels
