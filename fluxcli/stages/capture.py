@@ -106,7 +106,9 @@ class SimulatedScene:
         return self._rates[name]
 
     def render(self, height_mm: float, name: str) -> np.ndarray:
-        key = (round(float(height_mm), 6), name)
+        # 0.1 um is far below any depth of field: the stage's microstep rounding (~7 nm)
+        # then reuses the T of the planned height instead of building another
+        key = (round(float(height_mm), 4), name)
         if key not in self._images:
             from ..pipeline import ensure_pose_T
             from ..scene import Pose
@@ -222,6 +224,10 @@ def run(cfg: C.LoadedConfig, ctx: RunContext, resume: bool = False) -> Path:
         if done == total:
             ctx.say(f"capture-surface: {out} already holds all {total} frames")
             return out
+        if scene is not None:  # T and truth ready before the devices move (the frames then flow)
+            for h, name in dict.fromkeys((fr.height_mm, fr.filter) for fr in plan.frames()
+                                         if not fr.dark and not capfile.committed[fr.index]):
+                scene.render(h, name)
         ctx.say(f"capture-surface: {total - done} of {total} frames to take"
                 + (f" ({done} already in {out.name})" if done else ""))
         try:
