@@ -217,7 +217,7 @@ def rig_serve(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt) -> N
     Prints one line per device, `<device> <url-or-pty-path>`, then `ready`.  A port `pty`
     makes a new pseudo terminal, `socket://HOST:PORT` listens there (PORT 0: any free port).
 
-    $ fluxmap rig serve configs/demo-rig.yaml
+    $ fluxmap rig serve configs/rig-sim.yaml
     """
     from .stages import rig_serve as stage
 

@@ -16,7 +16,7 @@ import serial
 
 from . import apt
 from .errors import DeviceError
-from .transport import open_port
+from .transport import SerialDriver
 
 
 class _Garbled(Exception):
@@ -27,7 +27,7 @@ class _Silent(Exception):
     """No reply before the deadline."""
 
 
-class AptLabJack:
+class AptLabJack(SerialDriver):
     """The vertical stage.
 
     Parameters
@@ -76,18 +76,8 @@ class AptLabJack:
         self.tolerance_counts = max(1, round(0.001 * self.counts_per_mm))  # 1 um
         self.default_velparams: tuple[int, int, int] | None = None
         self._info: dict | None = None
-        if isinstance(port, str):
-            self.url = port
-            self._port = open_port(port, timeout_s=0.02, rtscts=True, device=self.device)
-        else:
-            self.url = getattr(port, "port", None) or getattr(port, "name", None) or repr(port)
-            self._port = port
         self._buf = b""
-        try:
-            self._connect()
-        except BaseException:
-            self.close()
-            raise
+        self._open(port, rtscts=True)
 
     # ------------------------------------------------------------------ public
     def identify(self) -> str:
@@ -147,10 +137,14 @@ class AptLabJack:
 
     def home(self) -> float:
         """Home (towards the lower limit) and wait; return the height read back (mm).  Only when asked."""
+        msg = self._query(apt.short(apt.MOT_REQ_HOMEPARAMS, self.channel), apt.MOT_GET_HOMEPARAMS,
+                          data_size=apt.HOMEPARAMS.size)
+        home_velocity = apt.HOMEPARAMS.unpack(msg.data[:apt.HOMEPARAMS.size])[3]
+        home_mm_s = max(home_velocity / (self.counts_per_mm * self.velocity_scale), 0.01)
         self._send(apt.short(apt.MOT_MOVE_HOME, self.channel))
         span = self.travel_mm[1] - self.travel_mm[0]
-        # homing runs at about 0.4 mm/s, slower than moves: bound it by the whole travel
-        status, pos = self._wait_still(span, "homing", velocity_mm_s=min(self.velocity_mm_s, 0.4))
+        # homing runs at the controller's homing velocity (about 0.4 mm/s): bound it by the whole travel
+        status, pos = self._wait_still(span, "homing", velocity_mm_s=home_mm_s)
         if not status & apt.ST_HOMED:
             raise DeviceError(self.device, self.url, f"homing ended without the homed bit (status 0x{status:08X})",
                               show_said=False)
@@ -161,26 +155,15 @@ class AptLabJack:
         self._send(apt.short(apt.MOT_MOVE_STOP, self.channel, 1 if immediate else 2))
         self._wait_still(0.0, "stop")
 
-    def close(self) -> None:
-        """Close the port."""
-        port, self._port = getattr(self, "_port", None), None
-        if port is not None:
-            try:
-                port.close()
-            except Exception:  # noqa: BLE001 - closing must not mask the real error
-                pass
-
-    def __enter__(self) -> "AptLabJack":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
     # ------------------------------------------------------------------ connect
     def _connect(self) -> None:
         self._port.reset_input_buffer()
         self._send(apt.short(apt.HW_STOP_UPDATEMSGS))  # we poll; a stream of 0x0481 would only be skipped
-        info = self.info()
+        try:
+            info = self.info()
+        except DeviceError as e:
+            raise DeviceError(self.device, self.url, e.problem + "; is this the stage's APT controller, "
+                              "and is it powered?", e.said) from None
         if info["n_channels"] < self.channel:
             raise DeviceError(self.device, self.url, f"the controller has {info['n_channels']} channel(s), "
                               f"channel {self.channel} was asked for", show_said=False)
@@ -245,15 +228,34 @@ class AptLabJack:
                 msgid, dest, src, _, length = apt.parse_header(self._buf[:6])
                 if dest != apt.HOST or src != apt.USB_UNIT or (length or 0) > apt.MAX_DATA:
                     raise _Garbled(self._buf)
-            chunk = self._port.read(max(1, getattr(self._port, "in_waiting", 0) or 0))
-            if chunk:
-                self._buf += chunk
-            elif time.monotonic() > deadline:
-                raise _Silent(self._buf)
+            if time.monotonic() > deadline:  # checked even while bytes keep coming
+                raise _Silent(self._buf[-200:])
+            self._buf += self._port.read(max(1, getattr(self._port, "in_waiting", 0) or 0))
+
+    def _drain(self) -> None:
+        """Read what is waiting before a request: skip stale and unsolicited messages and noise,
+        but raise on an error report (e.g. a refused move), which must not go unnoticed."""
+        raw = self._buf
+        while getattr(self._port, "in_waiting", 0):
+            chunk = self._port.read(self._port.in_waiting)
+            if not chunk:
+                break
+            raw += chunk
+        self._buf = b""
+        while len(raw) >= 6:
+            msg, used = apt.decode(raw)
+            if msg is None:
+                break
+            if msg.dest != apt.HOST or msg.src != apt.USB_UNIT:
+                raw = raw[1:]  # noise: slide until something frames
+                continue
+            raw = raw[used:]
+            if msg.msgid in (apt.HW_RESPONSE, apt.HW_RICHRESPONSE):
+                raise DeviceError(self.device, self.url, f"the controller reported an error "
+                                  f"{_describe_error(msg)}", msg.encode())
 
     def _exchange(self, request: bytes, reply_id: int, data_size: int) -> apt.Message:
-        self._port.reset_input_buffer()
-        self._buf = b""
+        self._drain()
         self._port.write(request)
         deadline = time.monotonic() + self.timeout_s
         while True:
@@ -263,9 +265,11 @@ class AptLabJack:
                     raise _Garbled(msg.encode())
                 return msg
             if msg.msgid in (apt.HW_RESPONSE, apt.HW_RICHRESPONSE):
-                raise DeviceError(self.device, self.url, f"{apt.NAMES.get(int.from_bytes(request[:2], 'little'))} "
-                                  f"was answered with an error: {_describe_error(msg)}", msg.encode())
-            # unsolicited (move completed/stopped, homed, status update) or unknown: skip
+                raise DeviceError(self.device, self.url, f"the controller reported an error "
+                                  f"{_describe_error(msg)}", msg.encode())
+            # unsolicited (move completed/stopped, homed, status update) or unknown: skip, within the bound
+            if time.monotonic() > deadline:
+                raise _Silent(msg.encode())
 
     def _query(self, request: bytes, reply_id: int, data_size: int) -> apt.Message:
         name = apt.NAMES.get(int.from_bytes(request[:2], "little"), "?")
@@ -284,11 +288,7 @@ class AptLabJack:
         raise DeviceError(self.device, self.url, f"{problem} ({self.retries + 1} attempts)", last)
 
     def _reopen(self) -> None:
-        try:
-            self._port.close()
-            self._port.open()
-        except (serial.SerialException, OSError, AttributeError):
-            pass
+        super()._reopen()
         self._buf = b""
 
 
@@ -296,7 +296,7 @@ def _describe_error(msg: apt.Message) -> str:
     if msg.msgid == apt.HW_RICHRESPONSE and msg.data is not None and len(msg.data) >= 4:
         mid, code = struct.unpack_from("<HH", msg.data)
         notes = msg.data[4:68].split(b"\x00")[0].decode("latin-1").strip()
-        return f"code {code} on 0x{mid:04X}: {notes!r}"
+        return f"(code {code}) about {apt.NAMES.get(mid, f'0x{mid:04X}')}: {notes!r}"
     if msg.data is not None:
-        return f"HW_RESPONSE {msg.data.hex()}"
-    return f"HW_RESPONSE p1={msg.param1} p2={msg.param2}"
+        return f"(HW_RESPONSE {msg.data.hex()})"
+    return f"(HW_RESPONSE p1={msg.param1} p2={msg.param2})"

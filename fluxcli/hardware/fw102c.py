@@ -13,7 +13,7 @@ import time
 import serial
 
 from .errors import DeviceError
-from .transport import open_port
+from .transport import SerialDriver
 
 PROMPT = b"> "
 #: Seconds per position at slow speed (fast is about 1 s); bounds the wait for a move.
@@ -28,7 +28,7 @@ class _Silent(Exception):
     """No prompt before the deadline."""
 
 
-class FW102C:
+class FW102C(SerialDriver):
     """The filter wheel.
 
     Parameters
@@ -67,17 +67,7 @@ class FW102C:
         for name, pos in self.filters.items():
             if not 1 <= pos <= positions:
                 raise ValueError(f"filter {name!r} is at position {pos}, outside 1..{positions}")
-        if isinstance(port, str):
-            self.url = port
-            self._port = open_port(port, timeout_s=0.02, device=self.device)
-        else:
-            self.url = getattr(port, "port", None) or getattr(port, "name", None) or repr(port)
-            self._port = port
-        try:
-            self._connect()
-        except BaseException:
-            self.close()
-            raise
+        self._open(port)
 
     # ------------------------------------------------------------------ public
     def identify(self) -> str:
@@ -136,21 +126,6 @@ class FW102C:
         """Fast (1) or slow (0) moves."""
         self._command(f"speed={1 if fast else 0}", self.timeout_s)
 
-    def close(self) -> None:
-        """Close the port (only one this driver opened itself is closed)."""
-        port, self._port = getattr(self, "_port", None), None
-        if port is not None:
-            try:
-                port.close()
-            except Exception:  # noqa: BLE001 - closing must not mask the real error
-                pass
-
-    def __enter__(self) -> "FW102C":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
     # ------------------------------------------------------------------ wire
     def _connect(self) -> None:
         """A bare \\r gets the wheel's parser in step (it answers CMD_NOT_DEFINED); then check pcount."""
@@ -171,12 +146,11 @@ class FW102C:
         buf = b""
         while True:
             chunk = self._port.read(max(1, getattr(self._port, "in_waiting", 0) or 0))
-            if chunk:
-                buf += chunk
-                if buf.endswith(PROMPT):
-                    return buf
-            elif time.monotonic() > deadline:
-                raise _Silent(buf)
+            buf += chunk
+            if chunk and buf.endswith(PROMPT):
+                return buf
+            if time.monotonic() > deadline:  # checked even while bytes keep coming (a noisy line)
+                raise _Silent(buf[-200:])
 
     def _exchange(self, cmd: str, bound_s: float) -> list[str]:
         """Send ``cmd``; return the reply lines after the echo.  Raises _Garbled/_Silent/DeviceError."""
@@ -217,7 +191,8 @@ class FW102C:
             except _Silent as e:
                 last = e.args[0]
                 problem = f"no prompt within {bound_s:.3g} s after '{cmd}'"
-                if not retry:  # a move that does not finish: retrying would not help
+                if not retry and cmd.encode() in last:
+                    # echoed but no prompt: the wheel took the move and did not finish it; resending would not help
                     raise DeviceError(self.device, self.url, problem + " (a stalled or blocked wheel?)",
                                       last) from None
             except (serial.SerialException, OSError) as e:
@@ -242,13 +217,6 @@ class FW102C:
             except ValueError:
                 continue  # noise in the value line: ask again
         raise DeviceError(self.device, self.url, f"'{cmd}' did not give a number", said)
-
-    def _reopen(self) -> None:
-        try:
-            self._port.close()
-            self._port.open()
-        except (serial.SerialException, OSError, AttributeError):
-            pass
 
 
 def _looks_like_echo(line: str) -> bool:

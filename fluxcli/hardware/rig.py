@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from urllib.parse import urlparse
 
+from ..errors import UserError
+from . import apt
 from .apt_labjack import AptLabJack
 from .errors import DeviceError
 from .fw102c import FW102C
@@ -28,8 +30,26 @@ def is_simulator_port(port: str) -> bool:
     return False
 
 
-def _faults(section) -> list[dict]:
-    return [f.model_dump() if hasattr(f, "model_dump") else dict(f) for f in (section.faults or ())]
+FW102C_COMMANDS = ("*idn?", "pos", "pcount", "trig", "speed", "sensors", "baud", "save")
+
+
+def _faults(name: str, section) -> list[dict]:
+    """The section's faults as dicts, each ``on`` checked against what the device understands."""
+    faults = [f.model_dump() if hasattr(f, "model_dump") else dict(f) for f in (section.faults or ())]
+    for i, fault in enumerate(faults):
+        on = str(fault.get("on", "*"))
+        if on == "*":
+            continue
+        if name == "stage":
+            known = {n.lower() for n in apt.NAMES.values()} | {f"0x{m:04x}" for m in apt.NAMES}
+            ok = any(k.startswith(on.lower()) for k in known)
+            what = "an APT message name or id (MOT_MOVE_ABSOLUTE, 0x0453)"
+        else:
+            ok = any(on.startswith(c) or c.startswith(on) for c in FW102C_COMMANDS)
+            what = "an FW102C command prefix (pos=, pos?, *idn?)"
+        if not ok:
+            raise UserError(f"'rig.{name}.faults.{i}.on': {on!r} is not '*' or {what}.")
+    return faults
 
 
 def make_simulator(name: str, rig_section):
@@ -37,10 +57,10 @@ def make_simulator(name: str, rig_section):
     section = getattr(rig_section, name)
     if name == "filter_wheel":
         return FW102CSimulator(positions=section.positions, time_scale=rig_section.time_scale,
-                               faults=_faults(section))
+                               faults=_faults(name, section))
     if name == "stage":
         return LabJackSimulator(counts_per_mm=section.counts_per_mm, travel_mm=tuple(section.travel_mm),
-                                time_scale=rig_section.time_scale, faults=_faults(section),
+                                time_scale=rig_section.time_scale, faults=_faults(name, section),
                                 velocity_scale=section.velocity_scale,
                                 acceleration_scale=section.acceleration_scale)
     raise ValueError(f"no simulator for device {name!r}")

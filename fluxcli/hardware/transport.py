@@ -52,3 +52,52 @@ def open_port(url: str, *, baudrate: int = 115200, timeout_s: float = 0.05, rtsc
         if isinstance(e, PermissionError) or "Permission denied" in str(e):
             hint = " Add yourself to the 'dialout' group or install a udev rule (see the README's Hardware section)."
         raise DeviceError(device, url, f"cannot open the port: {e}.{hint}", show_said=False) from None
+
+
+class SerialDriver:
+    """What the drivers share: the port (opened here from a URL, or given), closing, reopening.
+
+    Subclasses set ``device`` (a name for messages), implement ``_connect`` (the greeting) and
+    call :meth:`_open` at the end of ``__init__``.
+    """
+
+    device = "device"
+
+    def _open(self, port: "str | serial.SerialBase", *, rtscts: bool = False) -> None:
+        if isinstance(port, str):
+            self.url = port
+            self._port = open_port(port, timeout_s=0.02, rtscts=rtscts, device=self.device)
+        else:
+            self.url = getattr(port, "port", None) or getattr(port, "name", None) or repr(port)
+            self._port = port
+        try:
+            self._connect()
+        except BaseException:
+            self.close()
+            raise
+
+    def _connect(self) -> None:  # pragma: no cover - each driver greets its device
+        raise NotImplementedError
+
+    def _reopen(self) -> None:
+        """After a dropped connection: close and open again (a socket reconnects)."""
+        try:
+            self._port.close()
+            self._port.open()
+        except (serial.SerialException, OSError, AttributeError):
+            pass
+
+    def close(self) -> None:
+        """Close the port."""
+        port, self._port = getattr(self, "_port", None), None
+        if port is not None:
+            try:
+                port.close()
+            except Exception:  # noqa: BLE001 - closing must not mask the real error
+                pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -26,6 +26,9 @@ class Fault:
     """One injected fault.
 
     kind : no_reply | late_reply | garbage | drop | error_reply | stall | wrong_position
+        (drop closes a socket connection -- the client may reconnect; a pty cannot be dropped, so
+        there the command is lost as with no_reply.  stall: a wheel that never gives the prompt,
+        a stage that stops halfway with its moving bit set until told to stop.)
     on : which command it hits: ``"*"`` (any), an FW102C command prefix (``"pos="``, ``"pos?"``)
         or an APT message name or id (``"MOT_MOVE_ABSOLUTE"``, ``"0x0453"``).
     count : how many times it fires (0: every time).
@@ -91,6 +94,7 @@ class Link:
         self._io = read_fd_or_sock
         self.kind = kind
         self.closed = False
+        self.fresh = True  # nothing received yet (a device may greet its first command differently)
         self.wlock = threading.Lock()
 
     def read(self, timeout_s: float) -> bytes:
@@ -119,7 +123,10 @@ class Link:
                 if self.kind == "pty":
                     view = memoryview(data)
                     while view:
-                        n = os.write(self._io, view)
+                        try:
+                            n = os.write(self._io, view)
+                        except BlockingIOError:
+                            return  # nobody reads the pty and its buffer is full: the bytes are lost, as on a wire
                         view = view[n:]
                 else:
                     self._io.sendall(data)
@@ -171,6 +178,7 @@ class SerialSimulator:
             tty.setraw(slave)  # no echo, no \r -> \n translation: the bytes go through as sent
             attrs = termios.tcgetattr(slave)
             termios.tcsetattr(slave, termios.TCSANOW, attrs)
+            os.set_blocking(master, False)  # a full pty (no reader) must not block the device
             self._pty_fds = (master, slave)  # keep the slave open: a client closing it must not kill the master
             self.url = os.ttyname(slave)
             link = Link(master, "pty")
@@ -253,6 +261,24 @@ class SerialSimulator:
     @property
     def stopping(self) -> bool:
         return self._stop.is_set()
+
+    def line_fault(self, link: Link, names: tuple[str, ...], kinds: tuple[str, ...] = ()) -> tuple[bool, Fault | None]:
+        """Apply the line faults armed for a command known by ``names`` (no_reply, drop, late_reply,
+        garbage), and take one of the device's own ``kinds``.  Returns ``(go_on, fault)``: go_on is
+        False when the command is lost (no reply, dropped, or stopped meanwhile)."""
+        fault = self.faults.take(names, ("no_reply", "late_reply", "garbage", "drop") + kinds)
+        if fault is None:
+            return True, None
+        if fault.kind == "no_reply":
+            return False, fault
+        if fault.kind == "drop":  # a socket is closed; a pty cannot be dropped: the command is lost
+            link.close()
+            return False, fault
+        if fault.kind == "late_reply" and not self.sleep(fault.delay_s):
+            return False, fault
+        if fault.kind == "garbage":
+            link.write(garbage_bytes())
+        return True, fault
 
 
 def garbage_bytes(n: int = 7) -> bytes:

@@ -3,8 +3,9 @@
 Echoes every command with its ``\\r``, prints reply lines ending in ``\\r`` (error lines end in
 ``\\n``), then the prompt ``> ``, which after ``pos=n`` comes only once the wheel is in position
 (about 1 s per position at fast speed, 2 s at slow, the shorter way round, x ``time_scale``).
-Commands that arrive during a move wait, as on the device.  At connect it sends a stray
-``\\x00``.
+Commands that arrive during a move wait, as on the device.  A bare ``\\r`` as the first thing
+on a connection gets ``CMD_NOT_DEFINED`` after a stray ``\\x00`` (the connect noise of hardware.md);
+a client that starts with a real command sees no noise.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from __future__ import annotations
 import threading
 import time
 
-from .base import Link, SerialSimulator, garbage_bytes
+from .base import Link, SerialSimulator
 
 IDN = "THORLABS FW102C/FW212C Filter Wheel version 1.04"
 S_PER_POSITION = {1: 1.0, 0: 2.0}  # speed mode -> seconds per position
@@ -32,7 +33,7 @@ class FW102CSimulator(SerialSimulator):
     faults : list of dict or Faults, optional
         Injected faults (see :class:`~fluxcli.hardware.sim.base.Fault`); ``on`` is a command prefix.
     connect_noise : bool
-        Send a stray ``\\x00`` when a client connects (socket) or at start (pty).
+        Answer a bare ``\\r`` first on a connection with a stray ``\\x00`` before the error.
     """
 
     name = "filter_wheel"
@@ -94,8 +95,6 @@ class FW102CSimulator(SerialSimulator):
 
     # ------------------------------------------------------------------ wire
     def serve(self, link: Link) -> None:
-        if self.connect_noise:
-            link.write(b"\x00")
         buf = b""
         while not self.stopping and not link.closed:
             data = link.read(0.02)
@@ -111,22 +110,16 @@ class FW102CSimulator(SerialSimulator):
     def _handle(self, link: Link, raw: bytes) -> None:
         cmd = raw.replace(b"\n", b"").replace(b"\x00", b"").decode("latin-1").strip()
         self.log.append(raw + b"\r")
-        names = (cmd,)
-        fault = self.faults.take(names, ("no_reply", "late_reply", "garbage", "drop", "error_reply"))
-        if fault is not None:
-            if fault.kind == "no_reply":
-                return
-            if fault.kind == "drop":
-                link.close()
-                return
-            if fault.kind == "late_reply":
-                if not self.sleep(fault.delay_s):
-                    return
-            if fault.kind == "garbage":
-                link.write(garbage_bytes())
-            if fault.kind == "error_reply":
-                link.write(raw + b"\rCommand error CMD_NOT_DEFINED\n> ")
-                return
+        if link.fresh:
+            link.fresh = False
+            if self.connect_noise and not cmd:
+                link.write(b"\x00")
+        go_on, fault = self.line_fault(link, (cmd,), ("error_reply",))
+        if not go_on:
+            return
+        if fault is not None and fault.kind == "error_reply":
+            link.write(raw + b"\rCommand error CMD_NOT_DEFINED\n> ")
+            return
         link.write(raw + b"\r")  # the echo
         reply, error = self._execute(cmd)
         out = b""

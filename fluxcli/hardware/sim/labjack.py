@@ -4,20 +4,25 @@ Moves follow a trapezoidal velocity profile with the velocity parameters the cli
 (device units converted with ``velocity_scale``/``acceleration_scale``), x ``time_scale``;
 status bits and the position counter evolve during a move.  MOVE_COMPLETED, MOVE_STOPPED and
 MOVE_HOMED are sent unsolicited, status updates (0x0481) every 100 ms x time_scale after
-HW_START_UPDATEMSGS.  Unknown messages are ignored, as a controller does.
+HW_START_UPDATEMSGS.  Parameter blocks (velocity, homing, jog, limit switches, backlash, power,
+relative/absolute move) are stored and given back; jogs and velocity moves take direction 1 as
+increasing position (hardware.md: do not trust direction names).  Unknown messages are ignored,
+as a controller does.
 """
 
 from __future__ import annotations
 
 import math
+import struct
 import threading
 import time
 
 from .. import apt
-from .base import Link, SerialSimulator, garbage_bytes
+from .base import Link, SerialSimulator
 
 MAX_VELOCITY_MM_S = 1.1
 HOME_VELOCITY_MM_S = 0.4
+BACKLASH_MM = 0.05
 
 
 class _Motion:
@@ -114,7 +119,7 @@ class LabJackSimulator(SerialSimulator):
         self.acceleration_scale = float(acceleration_scale)
         self.serial_number, self.model, self.firmware = serial_number, model, tuple(firmware)
         self.updates_default = updates
-        self.enabled = False
+        self.enabled = True  # channels come up enabled; MOD_SET_CHANENABLESTATE can disable them
         self.homed = False
         self.identify_count = 0
         self.log: list[apt.Message] = []  # every message received, for tests
@@ -125,6 +130,17 @@ class LabJackSimulator(SerialSimulator):
         # defaults a driver must not trust: 1 mm/s, 1 mm/s^2
         self.velparams = (0, self._acc_units(1.0), self._vel_units(1.0))
         self.homeparams = (1, 2, 1, self._vel_units(HOME_VELOCITY_MM_S), 0)
+        # other parameter blocks, stored as sent and given back on request (payload after the channel)
+        self.params: dict[int, bytes] = {
+            apt.MOT_SET_JOGPARAMS: struct.pack("<HiiiiH", 2, round(0.1 * self.counts_per_mm), 0,
+                                               self._acc_units(1.0), self._vel_units(0.5), 2),
+            apt.MOT_SET_LIMSWITCHPARAMS: struct.pack("<HHiiH", 2, 2, round(self.travel_mm[1] * self.counts_per_mm),
+                                                     round(self.travel_mm[0] * self.counts_per_mm), 1),
+            apt.MOT_SET_GENMOVEPARAMS: struct.pack("<i", round(BACKLASH_MM * self.counts_per_mm)),
+            apt.MOT_SET_POWERPARAMS: struct.pack("<HH", 10, 30),
+            apt.MOT_SET_MOVERELPARAMS: struct.pack("<i", 0),
+            apt.MOT_SET_MOVEABSPARAMS: struct.pack("<i", 0),
+        }
 
     # ------------------------------------------------------------------ units
     def _vel_units(self, mm_s: float) -> int:
@@ -282,23 +298,15 @@ class LabJackSimulator(SerialSimulator):
             return  # not for us
         to = msg.src
         names = (msg.name, f"0x{msg.msgid:04X}")
-        is_move = msg.msgid in (apt.MOT_MOVE_ABSOLUTE, apt.MOT_MOVE_RELATIVE, apt.MOT_MOVE_HOME)
-        kinds = ("no_reply", "late_reply", "garbage", "drop", "error_reply") + (("stall", "wrong_position") if is_move else ())
-        fault = self.faults.take(names, kinds)
-        if fault is not None:
-            if fault.kind == "no_reply":
-                return
-            if fault.kind == "drop":
-                link.close()
-                return
-            if fault.kind == "late_reply" and not self.sleep(fault.delay_s):
-                return
-            if fault.kind == "garbage":
-                link.write(garbage_bytes())
-            if fault.kind == "error_reply":
-                notes = b"simulated fault: command refused"
-                self._reply(link, apt.HW_RICHRESPONSE, apt.RICHRESPONSE.pack(msg.msgid, 0x0B, notes), to=to)
-                return
+        is_move = msg.msgid in (apt.MOT_MOVE_ABSOLUTE, apt.MOT_MOVE_RELATIVE, apt.MOT_MOVE_HOME, apt.MOT_MOVE_JOG,
+                                apt.MOT_MOVE_VELOCITY)
+        go_on, fault = self.line_fault(link, names, ("error_reply",) + (("stall", "wrong_position") if is_move else ()))
+        if not go_on:
+            return
+        if fault is not None and fault.kind == "error_reply":
+            notes = b"simulated fault: command refused"
+            self._reply(link, apt.HW_RICHRESPONSE, apt.RICHRESPONSE.pack(msg.msgid, 0x0B, notes), to=to)
+            return
         move_fault = fault if fault is not None and fault.kind in ("stall", "wrong_position") else None
         d = msg.data or b""
         mid = msg.msgid
@@ -329,12 +337,28 @@ class LabJackSimulator(SerialSimulator):
             if self.enabled:
                 self.homed = False
                 self._start(self.travel_mm[0] * self.counts_per_mm + self._offset, link, "home", move_fault)
-        elif mid == apt.MOT_MOVE_ABSOLUTE and len(d) >= 6:
+        elif mid == apt.MOT_MOVE_ABSOLUTE:  # with a position, or header only: the stored MOVEABSPARAMS
             if self.enabled:
-                self._start(apt.POSCOUNTER.unpack_from(d)[1], link, "move", move_fault)
-        elif mid == apt.MOT_MOVE_RELATIVE and len(d) >= 6:
+                pos = struct.unpack_from("<i", d, 2)[0] if len(d) >= 6 else \
+                    struct.unpack("<i", self.params[apt.MOT_SET_MOVEABSPARAMS])[0]
+                self._start(pos, link, "move", move_fault)
+        elif mid == apt.MOT_MOVE_RELATIVE:
             if self.enabled:
-                self._start(self.position_counter + apt.POSCOUNTER.unpack_from(d)[1], link, "move", move_fault)
+                dist = struct.unpack_from("<i", d, 2)[0] if len(d) >= 6 else \
+                    struct.unpack("<i", self.params[apt.MOT_SET_MOVERELPARAMS])[0]
+                self._start(self.position_counter + dist, link, "move", move_fault)
+        elif mid == apt.MOT_MOVE_JOG:  # p2: 1 forward, 2 reverse; a step of the jog step size
+            if self.enabled:
+                step = struct.unpack_from("<i", self.params[apt.MOT_SET_JOGPARAMS], 2)[0]
+                self._start(self.position_counter + (step if msg.param2 == 1 else -step), link, "move", move_fault)
+        elif mid == apt.MOT_MOVE_VELOCITY:  # p2: 1 forward, 2 reverse; runs until stopped or at a limit
+            if self.enabled:
+                end = self.travel_mm[1] if msg.param2 == 1 else self.travel_mm[0]
+                self._start(end * self.counts_per_mm + self._offset, link, "move", move_fault)
+        elif mid in self.params and len(d) >= 2 + len(self.params[mid]):
+            self.params[mid] = d[2:2 + len(self.params[mid])]
+        elif mid - 1 in self.params:  # a REQ: answer with the GET (REQ + 1)
+            self._reply(link, mid + 1, struct.pack("<H", msg.param1 or 1) + self.params[mid - 1], to=to)
         elif mid == apt.MOT_MOVE_STOP:
             self._stop_motion(immediate=msg.param2 != 2)
         elif mid == apt.MOT_REQ_STATUSUPDATE:
