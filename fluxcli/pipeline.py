@@ -160,7 +160,7 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
     prov = provenance(cfg, placer.surface.digest())
     with ctx.progress(label, total=len(need)) as advance:
         if ctx.jobs > 1 and len(need) > 1:
-            with worker_pool(min(ctx.jobs, len(need))) as ex:
+            with worker_pool(min(ctx.jobs, len(need)), temp_dirs=(cache_dir(cfg),)) as ex:
                 futs = {ex.submit(_build_and_store, s, views, tr, p.path, cfg.sha256, prov): p for s, p in need}
                 for fut in as_completed(futs):
                     results[futs[fut].key] = fut.result() | {"cached": False}
