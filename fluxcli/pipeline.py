@@ -6,6 +6,7 @@ Stages import this module, never each other.
 
 from __future__ import annotations
 
+import os
 import time
 from concurrent.futures import as_completed
 from dataclasses import dataclass
@@ -34,6 +35,36 @@ class PoseT:
     path: Path
 
 
+# ------------------------------------------------------------------ before any compute
+def check_writable(folder: Path, key: str) -> None:
+    """Make sure ``folder`` exists (creating it) and a file can be written in it; the
+    message names the config key that chose it."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise UserError(f"{key}: {folder} is a file, not a folder; choose another path.") from None
+    except OSError as e:
+        raise UserError(f"{key}: cannot create the folder {folder} ({e.strerror or e}); "
+                        "choose a path you can write to.") from None
+    if not folder.is_dir():
+        raise UserError(f"{key}: {folder} is not a folder; choose another path.")
+    probe = folder / f".fluxmap-write-test.{os.getpid()}"
+    try:
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise UserError(f"{key}: cannot write in {folder} ({e.strerror or e}); choose a folder you can "
+                        "write to, or fix its permissions.") from None
+
+
+def check_folders(cfg: LoadedConfig, *, cache: bool = True) -> None:
+    """The workdir (and the T cache) must be writable before a stage computes anything."""
+    check_writable(cfg.workdir, "workdir")
+    if cache:
+        check_writable(cache_dir(cfg), "transfer.cache_dir" if cfg.model.transfer.cache_dir else "workdir")
+
+
 # ------------------------------------------------------------------ provenance
 def geometry_of(cfg: LoadedConfig, surface_sha256: str | None = None) -> dict:
     """The set-up an artefact is made for: system (camera, lens, sensor, apertures, mirrors,
@@ -49,6 +80,17 @@ def geometry_of(cfg: LoadedConfig, surface_sha256: str | None = None) -> dict:
 def provenance(cfg: LoadedConfig, surface_sha256: str | None = None) -> A.Provenance:
     return A.Provenance(config=cfg.model.model_dump(mode="json", by_alias=True),
                         geometry=geometry_of(cfg, surface_sha256))
+
+
+def announce(ctx, placer: SubjectPlacer) -> None:
+    """Say what a mesh file yielded, and warn about what was repaired in it (once per run)."""
+    for k, note in enumerate(placer.notes):
+        if k == 0:
+            if note not in ctx.warned:
+                ctx.warned.add(note)
+                ctx.say(note)
+        else:
+            ctx.warn(note)
 
 
 # ------------------------------------------------------------------ the sensor
@@ -142,6 +184,7 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
     nnz, efficiency per view)."""
     tr = transfer or cfg.model.transfer
     views, placer, todo = plan(cfg, tr, unknowns)
+    announce(ctx, placer)
     names = [v.name for v in views]
     results: dict[str, dict] = {}
     need, seen = [], set()

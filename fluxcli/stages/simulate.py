@@ -31,7 +31,7 @@ from ..scene import SubjectPlacer
 from ..surface.mesh import Surface
 from ..optics.transfer import ALGORITHM_VERSION
 from ..artefacts.transfer import load_T
-from ..pipeline import cache_dir, emccd_model, ensure_T, plan, provenance
+from ..pipeline import cache_dir, check_folders, emccd_model, ensure_T, plan, provenance
 from .context import RunContext
 
 
@@ -166,6 +166,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     sim = cfg.model.simulate
     if sim is None:
         raise UserError(f"config {cfg.path}: 'simulate': section is missing (flux, noise, ...); see the README.")
+    check_folders(cfg)
     tr_fwd = forward_transfer(cfg)
     views, placer, todo = plan(cfg, tr_fwd)
     _, _, todo_rec = plan(cfg)
