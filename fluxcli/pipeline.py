@@ -65,6 +65,39 @@ def check_folders(cfg: LoadedConfig, *, cache: bool = True) -> None:
         check_writable(cache_dir(cfg), "transfer.cache_dir" if cfg.model.transfer.cache_dir else "workdir")
 
 
+# ------------------------------------------------------------------ sizes, before allocating
+def available_memory_bytes() -> int:
+    """Memory the OS says can be allocated now (MemAvailable), else the physical memory."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return 1 << 62
+
+
+def _gb(n: float) -> str:
+    return f"{n / 1e9:.3g} GB" if n >= 1e8 else f"{n / 1e6:.3g} MB"
+
+
+def check_memory(need_bytes: float, what: str, keys: str) -> None:
+    """Refuse work whose estimated memory exceeds what is available, naming the keys to change."""
+    avail = available_memory_bytes()
+    if need_bytes > 0.8 * avail:
+        raise UserError(f"{what} would need about {_gb(need_bytes)} of memory; {_gb(avail)} is available. "
+                        f"Reduce {keys}.")
+
+
+def transfer_bytes(n_pixels: int, n_views: int, n_elements: int) -> float:
+    """Rough peak memory of building one pose's T: CSR row pointers per view and combined,
+    the pending COO pieces, and per-element sampling arrays."""
+    return 8.0 * n_pixels * (2 * n_views + 4) + 2000.0 * n_elements
+
+
 # ------------------------------------------------------------------ provenance
 def geometry_of(cfg: LoadedConfig, surface_sha256: str | None = None) -> dict:
     """The set-up an artefact is made for: system (camera, lens, sensor, apertures, mirrors,
@@ -185,6 +218,12 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
     tr = transfer or cfg.model.transfer
     views, placer, todo = plan(cfg, tr, unknowns)
     announce(ctx, placer)
+    nx, ny = cfg.model.system.camera.pixels
+    n_el = todo[0][0].surface.n_elements if todo else 0
+    check_memory(transfer_bytes(nx * ny, len(views), n_el) * max(1, min(ctx.jobs, len(todo))),
+                 f"building T ({nx} x {ny} pixels, {len(views)} view(s), {n_el} elements"
+                 + (f", {ctx.jobs} jobs)" if ctx.jobs > 1 else ")"),
+                 "system.camera.pixels (bin the sensor), the elements of subject.surface, or --jobs")
     names = [v.name for v in views]
     results: dict[str, dict] = {}
     need, seen = [], set()

@@ -30,7 +30,7 @@ from ..imaging import noise as N
 from ..imaging.imagefiles import read_image
 from ..artefacts.transfer import load_T, load_view
 from ..inverse import backprojection, error_l1, reconstruct as solve, total_ratio
-from ..pipeline import check_folders, emccd_model, ensure_T, geometry_of, plan, provenance
+from ..pipeline import check_folders, check_memory, emccd_model, ensure_T, geometry_of, plan, provenance
 from ..workers import worker_pool
 from .context import RunContext
 
@@ -225,6 +225,26 @@ def _solve(T, a, valid, m, read_noise, adjacency):
         raise UserError(f"reconstruct.method {m.method}: {msg}") from None
 
 
+DENSE = ("paper", "tikhonov", "nnls", "weighted_lsq", "smooth")  # form T'WT (n x n) densely
+
+
+def _check_solver_size(cfg: C.LoadedConfig, ctx: RunContext, surface, n_poses: int) -> None:
+    """Dense normal matrices are n_unknowns^2: refuse before allocating, naming the keys."""
+    rc = cfg.model.reconstruct
+    methods = [rc.settings(), *(rc.sweep.methods if rc.sweep else ())]
+    n_sub = {"elements": surface.n_elements}
+    if any(s.unknowns == "sub_elements" for s in methods):
+        n_sub["sub_elements"] = surface.unknowns()[0].n_elements
+    nx, ny = cfg.model.system.camera.pixels
+    need = 8.0 * nx * ny * n_poses * 8  # images, masks, fits and residuals
+    for s in methods:
+        if s.method in DENSE:
+            need = max(need, 8.0 * n_sub[s.unknowns] ** 2 * 4 * (ctx.jobs if rc.sweep else 1))
+    check_memory(need, f"reconstructing {surface.n_elements} elements ({', '.join(sorted({s.method for s in methods}))})",
+                 "the elements of subject.surface, use reconstruct.unknowns: elements, or choose "
+                 "reconstruct.method: mlem or backprojection (no dense normal matrix)")
+
+
 def describe(m: C.MethodSettings) -> str:
     base = _describe(m)
     return base if m.unknowns == "elements" else f"{base} on sub-elements"
@@ -263,6 +283,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     P = len(todo)
     nx, ny = cfg.model.system.camera.pixels
     m = rc.settings()
+    _check_solver_size(cfg, ctx, surface, P)
     grids = {u: make_grid(cfg, ctx, surface, u)
              for u in {"elements", m.unknowns, *[s.unknowns for s in (rc.sweep.methods if rc.sweep else ())]}}
     Ts = grids["elements"].Ts
