@@ -483,9 +483,28 @@ def _apply_override(raw: dict[str, Any], item: str) -> None:
             raise UserError(f"--set {item!r}: {where} is a value, not a section, so it has no key {part!r}.")
 
 
-def _format_validation_error(err: ValidationError, path: Path) -> str:
+# union members of subject.surface, by the key that selects each
+_SURFACE_MEMBERS = {"phantom": ("MeshSurface", "ArtefactSurface"), "mesh": ("ArtefactSurface", "tagged-union"),
+                    "artefact": ("MeshSurface", "tagged-union")}
+
+
+def _relevant(errors: list, raw: Any) -> list:
+    """Drop errors from union members the user did not choose (a phantom with a bad radius
+    is not also 'missing its mesh key')."""
+    surf = raw.get("subject", {}).get("surface") if isinstance(raw, dict) and isinstance(raw.get("subject"), dict) else None
+    if not isinstance(surf, dict):
+        return errors
+    for key, others in _SURFACE_MEMBERS.items():
+        if key in surf:
+            kept = [e for e in errors if not any(isinstance(x, str) and x.startswith(others) for x in e["loc"])]
+            return kept or errors
+    return errors
+
+
+def _format_validation_error(err: ValidationError, path: Path, raw: Any = None) -> str:
     lines = []
-    for e in err.errors()[:6]:
+    errors = _relevant(err.errors(), raw)
+    for e in errors[:6]:
         loc = ".".join(str(x) for x in e["loc"] if not (isinstance(x, str) and x in _UNION_TAGS))
         if e["type"] == "extra_forbidden":
             msg = "unknown key (check its spelling against the README's config reference)"
@@ -494,7 +513,7 @@ def _format_validation_error(err: ValidationError, path: Path) -> str:
         else:
             msg = e["msg"].removeprefix("Value error, ")
         lines.append(f"'{loc}': {msg}" if loc else msg)
-    more = "" if len(err.errors()) <= 6 else f" (and {len(err.errors()) - 6} more)"
+    more = "" if len(errors) <= 6 else f" (and {len(errors) - 6} more)"
     return f"config {path}: " + "; ".join(lines) + more + "."
 
 
@@ -522,7 +541,7 @@ def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -
     try:
         model = Config.model_validate(raw)
     except ValidationError as e:
-        raise UserError(_format_validation_error(e, path)) from None
+        raise UserError(_format_validation_error(e, path, raw)) from None
     loaded = LoadedConfig(model, path.resolve(), raw)
     surf = model.subject.surface
     for attr in ("mesh", "artefact"):

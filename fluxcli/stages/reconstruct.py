@@ -279,6 +279,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     surface = placer.surface
     inp = load_inputs(cfg, len(todo), surface.n_elements, surface.digest(),  # checked before any T is built
                       [pt.pose for _, pt in todo])
+    if rc.sweep is not None:
+        _check_sweep(cfg, inp)
     views, placer, todo, _ = ensure_T(cfg, replace(ctx, force=False), label="building T")
     P = len(todo)
     nx, ny = cfg.model.system.camera.pixels
@@ -365,8 +367,6 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
                 row += [f"{error_l1(joint.power, inp.truth):.2%}", f"{total_ratio(joint.power, inp.truth):.3f}"]
             rows.append(row)
         if rc.sweep is not None:
-            if inp.truth is None:
-                raise UserError("reconstruct.sweep: a sweep needs a simulation (ground truth), not image files.")
             _sweep(cfg, ctx, f.create_group("sweep"), grids, todo)
     header = ["height_mm", "rotation_deg", "total photons", "observed", "lambda"]
     if inp.truth is not None:
@@ -418,6 +418,20 @@ def _sweep_cell(sim_path: str, grids_k: dict, pose: int, level: int, repeats: in
     return out
 
 
+def _check_sweep(cfg: C.LoadedConfig, inp: Inputs) -> None:
+    """Before any solving: a sweep needs the simulation's truth and levels that exist."""
+    sw = cfg.model.reconstruct.sweep
+    if inp.truth is None:
+        raise UserError("reconstruct.sweep: a sweep needs a simulation (ground truth), not image files "
+                        "(reconstruct.images).")
+    path = _simulation(cfg)
+    with A.open_artefact(path, "simulation") as f:
+        L = f["images/noisy"].shape[0]
+    bad = [li for li in (sw.levels or ()) if li >= L]
+    if bad:
+        raise UserError(f"reconstruct.sweep.levels: {path} holds {L} signal level(s) (0 to {L - 1}); asked for {bad}.")
+
+
 def _sweep(cfg: C.LoadedConfig, ctx: RunContext, g, grids: dict, todo) -> None:
     sw = cfg.model.reconstruct.sweep
     path = _simulation(cfg)
@@ -429,9 +443,6 @@ def _sweep(cfg: C.LoadedConfig, ctx: RunContext, g, grids: dict, todo) -> None:
         if "counts" in f["images"]:
             sensor = cfg.model.system.camera.sensor.model_dump() | {"exposure_s": float(f["images"].attrs["exposure_s"])}
     lv = list(sw.levels) if sw.levels is not None else list(range(L))
-    if any(li >= L for li in lv):
-        raise UserError(f"reconstruct.sweep.levels: {path} holds {L} signal level(s) (0 to {L - 1}); "
-                        f"asked for {[li for li in lv if li >= L]}.")
     reps = min(sw.repeats or R, R)
     methods = list(sw.methods)
     cells = [(li, k) for li in lv for k in range(P)]
