@@ -277,6 +277,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         return out
     _, placer, todo = plan(cfg)
     surface = placer.surface
+    _check_solver_size(cfg, ctx, surface, len(todo))
     inp = load_inputs(cfg, len(todo), surface.n_elements, surface.digest(),  # checked before any T is built
                       [pt.pose for _, pt in todo])
     if rc.sweep is not None:
@@ -285,7 +286,6 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     P = len(todo)
     nx, ny = cfg.model.system.camera.pixels
     m = rc.settings()
-    _check_solver_size(cfg, ctx, surface, P)
     grids = {u: make_grid(cfg, ctx, surface, u)
              for u in {"elements", m.unknowns, *[s.unknowns for s in (rc.sweep.methods if rc.sweep else ())]}}
     Ts = grids["elements"].Ts
