@@ -185,8 +185,8 @@ class RotationAxis(Model):
 
 
 class Poses(Model):
-    heights_mm: tuple[float, ...] = Field((0.0,), description="Stage heights h (mm).")
-    rotations_deg: tuple[float, ...] = Field((0.0,), description="Rotations about the subject axis (deg).")
+    heights_mm: tuple[float, ...] = Field((0.0,), min_length=1, description="Stage heights h (mm).")
+    rotations_deg: tuple[float, ...] = Field((0.0,), min_length=1, description="Rotations about the subject axis (deg).")
 
 
 class Subject(Model):
@@ -320,6 +320,17 @@ class MethodSettings(Model):
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
 
+    @field_validator("lam")
+    @classmethod
+    def _lam(cls, v):
+        return _check_lambda(v)
+
+
+def _check_lambda(v):
+    if v != "auto" and not (math.isfinite(v) and v >= 0):
+        raise ValueError("lambda must be 'auto' or a finite number >= 0")
+    return v
+
 
 class ImageFiles(Model):
     files: tuple[Path, ...] = Field(description="One image file per pose (TIFF/FITS/EXR), in subject.poses order.")
@@ -334,7 +345,7 @@ class CaptureSource(Model):
 
 
 class Sweep(Model):
-    methods: tuple[MethodSettings, ...] = Field(description="Methods compared in the study.")
+    methods: tuple[MethodSettings, ...] = Field(min_length=1, description="Methods compared in the study.")
     levels: tuple[int, ...] | None = Field(None, description="Signal-level indices (default all).")
     repeats: int | None = Field(None, ge=1, description="Repeats per cell (default all).")
 
@@ -357,6 +368,11 @@ class Reconstruct(Model):
     sweep: Sweep | None = Field(None, description="A study: every level x repeat x pose for each method.")
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+
+    @field_validator("lam")
+    @classmethod
+    def _lam(cls, v):
+        return _check_lambda(v)
 
     def settings(self) -> MethodSettings:
         return MethodSettings(method=self.method, lam=self.lam, lambda_rule=self.lambda_rule,
@@ -515,6 +531,41 @@ class LoadedConfig:
         return hashlib.sha256(yaml.safe_dump(self.raw, sort_keys=True).encode()).hexdigest()
 
 
+def _yaml_problem(e: yaml.YAMLError) -> str:
+    """One line: what is wrong and where (line, column), without YAML's source excerpt."""
+    problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+    mark = getattr(e, "problem_mark", None)
+    return f"{problem} at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else problem
+
+
+def _override_value(item: str, value: str) -> Any:
+    try:
+        return yaml.load(value, Loader=_UniqueKeyLoader)
+    except yaml.YAMLError as e:
+        why = _yaml_problem(e)
+        raise UserError(f"--set {item!r}: the value {value!r} is not valid YAML ({why}); quote lists and "
+                        "mappings for the shell, e.g. --set 'subject.poses.heights_mm=[0, 10]'.") from None
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """safe_load, but a key given twice in one mapping is an error (YAML keeps the last silently)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen: dict = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                hash(key)
+            except TypeError:
+                continue
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"key {key!r} is given twice (lines {seen[key] + 1} and {key_node.start_mark.line + 1})",
+                    key_node.start_mark)
+            seen[key] = key_node.start_mark.line
+        return super().construct_mapping(node, deep=deep)
+
+
 def _apply_override(raw: dict[str, Any], item: str) -> None:
     """Apply ``dotted.key=value`` (list items by index: ``system.mirrors.0.reflectance=0.9``)."""
     if "=" not in item:
@@ -529,12 +580,12 @@ def _apply_override(raw: dict[str, Any], item: str) -> None:
             if not part.isdigit() or int(part) >= len(node):
                 raise UserError(f"--set {item!r}: {where} is a list of {len(node)} item(s); {part!r} is not an index in it.")
             if last:
-                node[int(part)] = yaml.safe_load(value)
+                node[int(part)] = _override_value(item, value)
             else:
                 node = node[int(part)]
         elif isinstance(node, dict):
             if last:
-                node[part] = yaml.safe_load(value)
+                node[part] = _override_value(item, value)
             else:
                 if node.get(part) is None:
                     node[part] = {}
@@ -543,9 +594,28 @@ def _apply_override(raw: dict[str, Any], item: str) -> None:
             raise UserError(f"--set {item!r}: {where} is a value, not a section, so it has no key {part!r}.")
 
 
-def _format_validation_error(err: ValidationError, path: Path) -> str:
+# union members of subject.surface, by the key that selects each
+_SURFACE_MEMBERS = {"phantom": ("MeshSurface", "ArtefactSurface"), "mesh": ("ArtefactSurface", "tagged-union"),
+                    "artefact": ("MeshSurface", "tagged-union")}
+
+
+def _relevant(errors: list, raw: Any) -> list:
+    """Drop errors from union members the user did not choose (a phantom with a bad radius
+    is not also 'missing its mesh key')."""
+    surf = raw.get("subject", {}).get("surface") if isinstance(raw, dict) and isinstance(raw.get("subject"), dict) else None
+    if not isinstance(surf, dict):
+        return errors
+    for key, others in _SURFACE_MEMBERS.items():
+        if key in surf:
+            kept = [e for e in errors if not any(isinstance(x, str) and x.startswith(others) for x in e["loc"])]
+            return kept or errors
+    return errors
+
+
+def _format_validation_error(err: ValidationError, path: Path, raw: Any = None) -> str:
     lines = []
-    for e in err.errors()[:6]:
+    errors = _relevant(err.errors(), raw)
+    for e in errors[:6]:
         loc = ".".join(str(x) for x in e["loc"] if not (isinstance(x, str) and x in _UNION_TAGS))
         if e["type"] == "extra_forbidden":
             msg = "unknown key (check its spelling against the README's config reference)"
@@ -554,7 +624,7 @@ def _format_validation_error(err: ValidationError, path: Path) -> str:
         else:
             msg = e["msg"].removeprefix("Value error, ")
         lines.append(f"'{loc}': {msg}" if loc else msg)
-    more = "" if len(err.errors()) <= 6 else f" (and {len(err.errors()) - 6} more)"
+    more = "" if len(errors) <= 6 else f" (and {len(errors) - 6} more)"
     return f"config {path}: " + "; ".join(lines) + more + "."
 
 
@@ -637,8 +707,10 @@ def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -
         raise UserError(f"config file {path} does not exist.")
     try:
         raw = yaml.load(path.read_text(), Loader=_UniqueKeyLoader)
-    except (yaml.YAMLError, UnicodeDecodeError) as e:
-        raise UserError(f"config file {path} is not valid YAML: {e}".replace("\n", " ")) from None
+    except yaml.YAMLError as e:
+        raise UserError(f"config file {path} is not valid YAML: {_yaml_problem(e)}.") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise UserError(f"config file {path} cannot be read: {e}.") from None
     if not isinstance(raw, dict):
         raise UserError(f"config file {path} must hold a mapping of keys (workdir, system, subject, ...).")
     _camera_from_file(raw, path.resolve().parent, path)
@@ -647,7 +719,7 @@ def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -
     try:
         model = Config.model_validate(raw)
     except ValidationError as e:
-        raise UserError(_format_validation_error(e, path)) from None
+        raise UserError(_format_validation_error(e, path, raw)) from None
     loaded = LoadedConfig(model, path.resolve(), raw)
     surf = model.subject.surface if model.subject is not None else None
     for attr in ("mesh", "artefact"):

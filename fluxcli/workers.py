@@ -55,13 +55,18 @@ def kill_pool(ex: ProcessPoolExecutor) -> None:
 
 
 @contextlib.contextmanager
-def worker_pool(jobs: int) -> Iterator[ProcessPoolExecutor]:
+def worker_pool(jobs: int, temp_dirs: tuple = ()) -> Iterator[ProcessPoolExecutor]:
     """A process pool whose workers die with this process; on any exception (Ctrl-C,
-    SIGTERM, an error) queued work is cancelled and running workers are killed."""
+    SIGTERM, an error) queued work is cancelled, running workers are killed, and the
+    temporary files they were writing in ``temp_dirs`` are removed."""
     ex = ProcessPoolExecutor(max_workers=jobs, initializer=_init_worker, initargs=(os.getpid(),))
     try:
         yield ex
     except BaseException:
         kill_pool(ex)
+        from .artefacts.atomic import clean_stale_temps
+
+        for d in temp_dirs:
+            clean_stale_temps(d)
         raise
     ex.shutdown(wait=True)
