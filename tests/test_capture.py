@@ -318,3 +318,42 @@ def test_several_exposures_each_with_its_own_darks(reference, tmp_path):
             truth = f["truth/power"][()]
         assert totals[e] == pytest.approx(truth.sum(), rel=0.05)
     assert totals[2.0] / totals[0.5] == pytest.approx(4.0, rel=0.1)  # photons per exposure scale with it
+
+
+def test_a_wheel_that_never_answers_exits_2_naming_it(reference, tmp_path):
+    cfg, _ = reference
+    cfg = copy.deepcopy(cfg)
+    cfg["rig"]["filter_wheel"]["timeout_s"] = 0.3
+    cfg["rig"]["filter_wheel"]["faults"] = [{"kind": "no_reply", "on": "pos=", "count": 0}]
+    p = tmp_path / "cfg.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    r = run("capture-surface", p)
+    assert r.exit_code == 2 and "filter wheel" in r.output.lower() and "Traceback" not in r.output
+    counts, committed, *_ = frames(tmp_path / "run" / "capture.h5")
+    assert committed[:6].all() and not committed[6:].any()  # darks + 'open' (already in the beam) at 0 mm
+
+
+def test_devices_served_elsewhere_are_driven_through_their_ports(reference, tmp_path):
+    """Ports that are not simulator ports are opened as devices (here simulators started
+    outside the command, as 'fluxmap rig serve' would); the simulated camera then follows
+    the drivers' read-back."""
+    from fluxcli.config import load_config
+    from fluxcli.hardware.rig import start_simulators
+
+    cfg, ref_path = reference
+    sims = start_simulators(load_config(ref_path.parent.parent / "cfg.yaml").model.rig)
+    try:
+        cfg = copy.deepcopy(cfg)
+        cfg["rig"]["filter_wheel"]["port"] = sims["filter_wheel"].url
+        cfg["rig"]["stage"]["port"] = sims["stage"].url
+        p = tmp_path / "cfg.yaml"
+        p.write_text(yaml.safe_dump(cfg))
+        r = run("capture-surface", p)
+        assert r.exit_code == 0, r.output
+        assert sims["stage"].position_mm == pytest.approx(1.0)  # the served stage moved
+    finally:
+        for s in sims.values():
+            s.stop()
+    counts, committed, *_ = frames(tmp_path / "run" / "capture.h5")
+    # the same frames as with in-process simulators: the scene depends on physical state only
+    assert committed.all() and np.array_equal(counts, frames(ref_path)[0])
