@@ -29,7 +29,6 @@ import binascii
 import json
 import os
 import time
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -171,15 +170,12 @@ def write_image(
     if epoch.isdigit():  # reproducible files: the fixed time, not now (TIFF's DateTime)
         spec.attribute("DateTime", time.strftime("%Y:%m:%d %H:%M:%S", time.gmtime(int(epoch))))
 
-    # Same directory so that os.replace is an atomic rename; same suffix so OIIO
-    # picks the format.
-    tmp = path.with_name(f".{path.stem}.{uuid.uuid4().hex}.tmp{path.suffix}")
-    try:
+    # The one atomic writer: a temporary name in the same folder with the same suffix
+    # (so OIIO picks the format), fsync, rename.
+    from ..artefacts.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
         _write_pixels(tmp, np.ascontiguousarray(pixels[:, :, np.newaxis]), spec)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def _decode_record(text) -> dict | None:

@@ -35,8 +35,9 @@ def simulation_exposure_s(cfg: C.LoadedConfig) -> float | None:
 def reconstruction_exposure_s(cfg: C.LoadedConfig) -> float | None:
     """The exposure of the images reconstructed: the image files', else the simulation's."""
     rc = cfg.model.reconstruct
-    if rc.images is not None:
-        return float(rc.images.exposure_s) if _given(rc.images, "exposure_s") else None
+    if rc.images is not None:  # image files, or a capture (whose exposure_s picks one of its exposures)
+        t = getattr(rc.images, "exposure_s", None)
+        return float(t) if t is not None and _given(rc.images, "exposure_s") else None
     return simulation_exposure_s(cfg)
 
 
@@ -147,7 +148,9 @@ def record_of(cfg: C.LoadedConfig, digests: dict[str, str]) -> list[tuple[str, s
     t = reconstruction_exposure_s(cfg)
     rows.append(("exposure", f"{t:g} s" if t is not None else "not given (quantities per exposure; no rates)"))
     rc = m.reconstruct
-    if rc.images is not None:
+    if rc.images is not None and not hasattr(rc.images, "files"):  # a capture artefact
+        rows.append(("images", f"capture {rc.images.capture}, filter {rc.images.filter or '(its only one)'}"))
+    elif rc.images is not None:
         for k, p in enumerate(rc.images.files):
             path = cfg.resolve(p)
             rows.append((f"image, pose {k + 1}", f"{path} (sha256 {A.file_sha256(path)[:16]}…)" if path.is_file()
