@@ -66,10 +66,15 @@ def run_tasks(fn: Callable, arglists: Sequence[tuple], *, label: str, jobs: int 
                 out[i] = fn(*args, progress=partial(note, i))
                 note(i, 1.0)
             return out
-        import multiprocessing
+        import os
+        from multiprocessing.managers import SyncManager
+
+        from .workers import _init_worker
 
         make_pool = pool or (lambda k: ProcessPoolExecutor(max_workers=k))
-        with multiprocessing.Manager() as manager, make_pool(min(jobs, n)) as ex:
+        manager = SyncManager()
+        manager.start(_init_worker, (os.getpid(),))  # the queue's server dies with this process, like the workers
+        with manager, make_pool(min(jobs, n)) as ex:
             q = manager.Queue()
             futs = {ex.submit(fn, *args, progress=partial(_put, q, i)): i for i, args in enumerate(arglists)}
             pending = set(futs)
