@@ -1,0 +1,1 @@
+"""Camera calibration: grid detection, camera fit, radiometry."""
