@@ -325,6 +325,13 @@ class ImageFiles(Model):
     files: tuple[Path, ...] = Field(description="One image file per pose (TIFF/FITS/EXR), in subject.poses order.")
     units: Literal["photons", "counts"] = Field("photons", description="counts are converted with system.camera.sensor.")
     exposure_s: float = Field(1.0, gt=0)
+    calibration: Path | None = Field(None, description="calibration.h5 whose /radiometric bias, dark and flat maps are applied to counts (units: counts).")
+
+    @model_validator(mode="after")
+    def _check(self) -> "ImageFiles":
+        if self.calibration is not None and self.units != "counts":
+            raise ValueError("calibration (bias, dark and flat maps) applies to images in counts; set units: counts")
+        return self
 
 
 class Sweep(Model):
@@ -362,6 +369,38 @@ class ReportSettings(Model):
     title: str | None = Field(None, description="Page title (default: the config's name).")
     slice_axial_mm: float = Field(0.0, description="Where along the subject's axis (from its centre) to cut the circumference slice (mm).")
     surface_views: bool = Field(True, description="Render the flux on the 3-D surface (pyvista, off-screen).")
+
+
+# --------------------------------------------------------------------------- calibrate: radiometric
+class RadiometricPTCLevel(Model):
+    files: tuple[Path, ...] = Field(min_length=2, description="Two or more frames at one illumination and exposure (counts); consecutive frames are paired (1st-2nd, 3rd-4th, ...).")
+    exposure_s: float = Field(gt=0, description="Exposure of these frames (s).")
+    em_gain_on: bool = Field(False, description="Whether the EM gain was on (the camera's working gain) or off (conventional readout).")
+    illumination: str = Field("", description="Label of the light-source setting: gain-on and gain-off levels with the same label are compared per second of exposure to measure the EM gain.")
+
+
+class RadiometricDarks(Model):
+    files: tuple[Path, ...] = Field(min_length=1, description="Dark frames (no light) at one exposure (counts).")
+    exposure_s: float = Field(gt=0, description="Exposure of these frames (s).")
+    em_gain_on: bool = Field(True, description="Whether the EM gain was on (then converted with the measured gain).")
+
+
+class Radiometric(Model):
+    bias: tuple[Path, ...] = Field(min_length=2, description="Bias frames: no light, shortest exposure, EM gain off (counts); consecutive pairs give the read noise.")
+    ptc: tuple[RadiometricPTCLevel, ...] = Field(min_length=2, description="Photon-transfer series: at least two gain-off levels (electrons per count); gain-on levels give the EM gain.")
+    darks: tuple[RadiometricDarks, ...] = Field((), description="Dark frames per exposure; two or more exposures separate dark current from clock-induced charge.")
+    flats: tuple[Path, ...] = Field((), description="Flat frames of the evenly lit bare sensor, EM gain off (counts): the pixel-response map.")
+    saturation_counts: float = Field(65535.0, gt=0, description="Pixels at or above this (counts) are left out of the PTC.")
+    excess_noise_factor_squared: float = Field(2.0, ge=1, le=2, description="F^2 of the EM register assumed for the gain-on PTC slope (2 at high gain).")
+    gain_tolerance: float = Field(0.1, gt=0, description="Warn when the ratio and PTC EM gains differ by more than this fraction.")
+
+    @model_validator(mode="after")
+    def _check(self) -> "Radiometric":
+        if len([lv for lv in self.ptc if not lv.em_gain_on]) < 2:
+            raise ValueError("ptc needs at least two levels with em_gain_on: false (the gain-off curve gives electrons per count)")
+        if any(d.em_gain_on for d in self.darks) and not any(lv.em_gain_on for lv in self.ptc):
+            raise ValueError("darks taken with em_gain_on need ptc levels with em_gain_on: true to measure the EM gain")
+        return self
 
 
 # --------------------------------------------------------------------------- top level

@@ -31,6 +31,8 @@ from ..artefacts.transfer import load_T, load_view
 from ..inverse import backprojection, error_l1, reconstruct as solve, total_ratio
 from ..pipeline import emccd_model, ensure_T, geometry_of, plan, provenance
 from ..workers import worker_pool
+from ..imaging.sensor_maps import counts_to_photons_with_maps
+from ._radiometric import read_radiometric_maps
 from .context import RunContext
 
 
@@ -62,6 +64,8 @@ def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int, surface_sha2
         model = None
         if rc.images.units == "counts":
             model = emccd_model(cfg.model.system.camera.sensor, rc.images.exposure_s)
+        maps = {} if rc.images.calibration is None else read_radiometric_maps(  # per-pixel bias, dark, flat
+            cfg.resolve(rc.images.calibration), "reconstruct.images.calibration", (ny, nx))
         for p in rc.images.files:
             try:
                 img, _ = read_image(cfg.resolve(p))
@@ -73,7 +77,8 @@ def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int, surface_sha2
             ok = np.isfinite(img)
             if model is not None:
                 ok &= ~N.saturated(img, model)
-                img = N.counts_to_photons(np.where(ok, img, 0), model)
+                img = counts_to_photons_with_maps(np.where(ok, img, 0), model, **maps)
+                ok &= np.isfinite(img)  # dead pixels of the flat map
             imgs.append(img)
             valid.append(ok)
         files = {f"image pose {k}": cfg.resolve(p) for k, p in enumerate(rc.images.files)}
@@ -198,6 +203,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     sources = ([A.file_sha256(cfg.resolve(p)) for p in rc.images.files if cfg.resolve(p).is_file()]
                if rc.images is not None else
                [A.file_sha256(cfg.workdir / "simulation.h5")] if (cfg.workdir / "simulation.h5").is_file() else [])
+    if rc.images is not None and rc.images.calibration is not None and cfg.resolve(rc.images.calibration).is_file():
+        sources.append(A.file_sha256(cfg.resolve(rc.images.calibration)))
     digest = A.inputs_digest(system=m_.system.model_dump(mode="json"), subject=m_.subject.model_dump(mode="json"),
                              transfer=m_.transfer.model_dump(mode="json"),
                              reconstruct=rc.model_dump(mode="json", by_alias=True), images=sources)
