@@ -58,7 +58,7 @@ STAGE_REQUIRES: dict[str, tuple[str, ...]] = {
     "simulate": _GEOMETRY + ("simulate",),
     "reconstruct": _GEOMETRY,
     "report": _GEOMETRY,
-    "calibrate": ("system", "system.camera", "calibrate"),
+    "calibrate": ("calibrate",),  # a grid needs system.camera (checked by the stage); radiometric alone does not
     "capture-surface": ("rig", "capture"),
 }
 
@@ -184,7 +184,10 @@ _stage_command("report", "report", """Figures, summary.json and a self-contained
 
     $ fluxmap report configs/paper-3d.yaml
     """)
-_stage_command("calibrate", None, """(Not built yet.) Derive the camera model from grid images.""")
+_stage_command("calibrate", "calibrate", """Derive the camera model from grid images (and the sensor from radiometric frames).
+
+    $ fluxmap calibrate configs/calibrate.yaml
+    """)
 _stage_command("capture-surface", None, """(Not built yet.) Drive the rig (or its simulator) and capture the surface and images.""")
 
 

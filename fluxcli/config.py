@@ -403,6 +403,40 @@ class Radiometric(Model):
         return self
 
 
+# --------------------------------------------------------------------------- calibrate: geometric
+class CalibrationGrid(Model):
+    kind: Literal["dots", "checkerboard"] = Field("dots", description="dots (a regular dot grid) or checkerboard (its inner corners are the points).")
+    pitch_mm: float = Field(gt=0, description="Distance between neighbouring grid points (mm).")
+    shape: tuple[int, int] = Field(description="Points along x and along y [nx, ny] (checkerboard: inner corners).")
+
+    @field_validator("shape")
+    @classmethod
+    def _shape(cls, v: tuple[int, int]) -> tuple[int, int]:
+        if min(v) < 2:
+            raise ValueError("shape must be two integers [nx, ny], each 2 or more")
+        return v
+
+
+class CalibrationImage(Model):
+    file: Path = Field(description="Image of the grid lying flat (TIFF/FITS/EXR; counts or photons), relative to the config.")
+    plane_z_mm: float = Field(description="World z of the grid plane in this image (mm); the world frame is the grid's.")
+
+
+class Calibrate(Model):
+    grid: CalibrationGrid | None = Field(None, description="The target: world point (i, j) at ((i-(nx-1)/2) pitch, (j-(ny-1)/2) pitch, plane_z_mm).")
+    images: tuple[CalibrationImage, ...] = Field((), description="The grid at five or more known heights through and around focus.")
+    refine_mirrors: bool = Field(True, description="Refine the planes of system.mirrors from the grid seen in each mirror.")
+    radiometric: Radiometric | None = Field(None, description="Bias, dark, flat and photon-transfer frames: the sensor block.")
+
+    @model_validator(mode="after")
+    def _check(self) -> "Calibrate":
+        if (self.grid is None) != (len(self.images) == 0):
+            raise ValueError("give both grid and images (geometric calibration), or neither")
+        if self.grid is None and self.radiometric is None:
+            raise ValueError("give grid and images (geometric), radiometric, or both")
+        return self
+
+
 # --------------------------------------------------------------------------- top level
 class Config(Model):
     workdir: Path | None = Field(None, description="Output folder (default runs/<config name>), relative to the config file.")
@@ -415,7 +449,7 @@ class Config(Model):
     simulate: Simulate | None = None
     reconstruct: Reconstruct = Reconstruct()
     report: ReportSettings = ReportSettings()
-    calibrate: dict[str, Any] | None = None
+    calibrate: Calibrate | None = None
     capture: dict[str, Any] | None = None
     rig: dict[str, Any] | None = None
 
@@ -526,6 +560,24 @@ def _camera_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
     system["camera"] = _merge(loaded["camera"], overrides)
 
 
+def _mirrors_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
+    """``system.mirrors: calib/camera.yaml`` takes the file's top-level ``mirrors:`` list (refined by calibrate)."""
+    system = raw.get("system")
+    if not isinstance(system, dict) or not isinstance(system.get("mirrors"), str):
+        return
+    ref = system["mirrors"]
+    file = Path(ref) if Path(ref).is_absolute() else (base_dir / ref).resolve()
+    if not file.is_file():
+        raise UserError(f"config {path}: 'system.mirrors': file {file} does not exist.")
+    try:
+        loaded = yaml.load(file.read_text(), Loader=_UniqueKeyLoader)
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise UserError(f"config {path}: 'system.mirrors': file {file} is not valid YAML: {e}".replace("\n", " ")) from None
+    if not isinstance(loaded, dict) or not isinstance(loaded.get("mirrors"), list):
+        raise UserError(f"config {path}: 'system.mirrors': file {file} has no top-level 'mirrors:' list.")
+    system["mirrors"] = loaded["mirrors"]
+
+
 def _merge(base: dict, over: dict) -> dict:
     out = dict(base)
     for k, v in over.items():
@@ -573,6 +625,7 @@ def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -
     if not isinstance(raw, dict):
         raise UserError(f"config file {path} must hold a mapping of keys (workdir, system, subject, ...).")
     _camera_from_file(raw, path.resolve().parent, path)
+    _mirrors_from_file(raw, path.resolve().parent, path)
     for item in overrides:
         _apply_override(raw, item)
     try:
