@@ -111,7 +111,7 @@ def calibrate_geometry(images: list[np.ndarray], heights_mm: list[float], *, kin
     known = [k for k, d in enumerate(dets) if not d.ambiguous]
     if len({heights_mm[k] for k in known}) < 2:
         raise CalibrationError("fewer than two heights show the grid with a known offset (cut on one side at most, "
-                               "or whole): the camera cannot be started")
+                               "or whole): the camera cannot be started; check calibrate.grid.shape against the images")
     units = [G.to_unit(im) for im in images]
 
     def views(idx):
@@ -127,9 +127,11 @@ def calibrate_geometry(images: list[np.ndarray], heights_mm: list[float], *, kin
             try:
                 G.relabel_from_prediction(d, pred, allij)
             except G.GridNotFound as e:
-                raise CalibrationError(str(e), k) from None
+                raise CalibrationError(f"{e}; check that its plane_z_mm ({heights_mm[k]:g}) matches the image "
+                                       "(the heights may not match the images)", k) from None
     used = list(range(len(dets)))
     geo = _fit(dets, used, heights_mm, pitch_mm, shape, geo.camera)
+    _check_heights(dets, heights_mm, pitch_mm, shape, geo.camera)
     # per-dot model: sub-pixel centres and blur
     blur_px = [np.full(len(d.ij), np.nan) for d in dets]
     dot_diam = float("nan")
@@ -246,3 +248,27 @@ def _fit(dets, idx, heights_mm, pitch_mm, shape, init: CameraGeometry) -> Geomet
     P = np.concatenate([grid_points_mm(dets[k].ij, pitch_mm, shape, heights_mm[k]) for k in idx])
     q = np.concatenate([dets[k].xy_px for k in idx])
     return fit_geometry(P, q, init)
+
+
+def _check_heights(dets, heights_mm, pitch_mm, shape, cam: CameraGeometry) -> None:
+    """Refuse a stated height the image contradicts: the grid's scale there implies another plane.
+
+    With the camera fitted to all images, each image's plane height is re-fitted alone; a
+    difference above max(2 mm, 1 % of the distance) is a wrong ``plane_z_mm`` (or the
+    wrong file), not noise.
+    """
+    from scipy.optimize import minimize_scalar
+
+    for k, d in enumerate(dets):
+        z0 = float(heights_mm[k])
+
+        def cost(z):
+            P = grid_points_mm(d.ij, pitch_mm, shape, z)
+            return float(((cam.project(P) - d.xy_px) ** 2).sum())
+
+        dist = float(np.mean(cam.axial_mm(grid_points_mm(d.ij, pitch_mm, shape, z0))))
+        tol = max(2.0, 0.01 * dist)
+        sol = minimize_scalar(cost, bounds=(z0 - 0.5 * dist, z0 + 0.5 * dist), method="bounded")
+        if abs(sol.x - z0) > tol:
+            raise CalibrationError(f"the grid in this image lies at z = {sol.x:.1f} mm by its scale, but its "
+                                   f"plane_z_mm is {z0:g} mm (the heights do not match the images)", k)

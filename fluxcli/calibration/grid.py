@@ -248,23 +248,25 @@ def place_labels(new: np.ndarray, xy: np.ndarray, shape: tuple[int, int], image_
         if missing == 0:
             offset[ax] = -lo[ax]
             continue
-        cut = []
+        cut, maybe = [], []
         for side, val in (("low", lo[ax] - 1), ("high", hi[ax] + 1)):
             other = new[new[:, ax] == (lo[ax] if side == "low" else hi[ax])]
             probe = other.astype(float).copy()
             probe[:, ax] = val
             p = cv2.perspectiveTransform(probe[None], H)[0]
             step = np.linalg.norm(p - cv2.perspectiveTransform(other.astype(float)[None], H)[0], axis=1).mean()
-            margin = 0.6 * step
+            margin = 0.5 * step  # a dot centred nearer the border than this is not found whole
             outside = (p[:, 0] < margin - 0.5) | (p[:, 0] > w - 0.5 - margin) | (p[:, 1] < margin - 0.5) | (p[:, 1] > h - 0.5 - margin)
-            cut.append(bool(outside.any()))
+            cut.append(bool(outside.mean() >= 0.5))
+            maybe.append(bool(outside.any()))
         name = "x" if ax == 0 else "y"
-        if cut[0] and not cut[1]:
-            offset[ax] = -lo[ax] + missing
-        elif cut[1] and not cut[0]:
-            offset[ax] = -lo[ax]
-        elif cut[0] and cut[1]:
+        # a side whose next row of points would lie mostly inside the image cannot hide it
+        if cut[0] and cut[1]:
             amb = True
+        elif cut[0]:
+            offset[ax] = -lo[ax] + missing
+        elif cut[1]:
+            offset[ax] = -lo[ax]
         else:
             raise GridShapeMismatch(f"{hi[ax] - lo[ax] + 1} points are seen along {name} with room in the image "
                                     f"for more, but the stated shape has {n}")

@@ -1,0 +1,128 @@
+"""Geometric calibration against a camera the code did not see: images ray traced inside the test.
+
+The camera here differs from the sample data's in every parameter (focal length, focus
+distance, aperture, lens offset, tilt, in-plane rotation, sensor size, grid), so nothing is
+tuned to one camera.  The renderer (fluxcli.calibration.synthetic) traces rays through the
+thin lens to the grid plane; the fit models dots as defocused disks, so the two are
+independent implementations of the optics.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from fluxcli.calibration.fit import calibrate_geometry
+from fluxcli.calibration.synthetic import camera_looking_down, render_grid_set
+from fluxcli.cli import app
+from fluxcli.imaging.imagefiles import write_image
+from fluxcli.imaging.noise import EMCCDModel
+
+TRUE = dict(lens_center_mm=(-2.1, 1.4, 150.3), tilt_deg=0.8, tilt_azimuth_deg=120.0, roll_deg=-20.0,
+            focal_length_mm=16.0, focus_distance_mm=151.0, aperture_diameter_mm=8.0, nx=128, ny=128,
+            pixel_pitch_mm=0.052)
+GRID = dict(pitch_mm=3.5, shape=(13, 9), dot_radius_mm=0.8)
+HEIGHTS = (-26.0, -13.0, 0.0, 10.0, 20.0)
+
+
+def _angle_deg(a, b) -> float:
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return float(np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1))))
+
+
+@pytest.fixture(scope="module")
+def grid_set(tmp_path_factory):
+    cam = camera_looking_down(**TRUE)
+    sensor = EMCCDModel(em_gain=50.0, read_noise_e=30.0, bias_counts=300.0, electrons_per_count=5.0)
+    imgs = render_grid_set(cam, HEIGHTS, pitch_mm=GRID["pitch_mm"], shape=GRID["shape"], dot_radius_mm=GRID["dot_radius_mm"],
+                           peak_photons=600.0, background_fraction=0.08, sub=2, lens_samples=48, seed=7,
+                           noise_model=sensor)
+    folder = tmp_path_factory.mktemp("grid")
+    files = []
+    for z, im in zip(HEIGHTS, imgs):
+        p = folder / f"g{z:+.0f}.tif"
+        write_image(p, im)
+        files.append(p)
+    return cam, imgs, files, folder
+
+
+def test_second_camera_recovered(grid_set):
+    cam, imgs, _, _ = grid_set
+    res = calibrate_geometry(imgs, list(HEIGHTS), kind="dots", pitch_mm=GRID["pitch_mm"], shape=GRID["shape"],
+                             pixel_pitch_mm=TRUE["pixel_pitch_mm"])
+    c = res.camera
+    focal_plane_true = cam.center_mm[2] + cam.focus_distance_mm * cam.axis[2]
+    assert abs(res.focal_length_mm / TRUE["focal_length_mm"] - 1) < 0.005
+    assert abs(res.focal_plane_z_mm - focal_plane_true) < 2.0
+    assert np.linalg.norm(c.center_mm - np.array(TRUE["lens_center_mm"])) < 1.0
+    assert _angle_deg(c.look, cam.axis) < 0.5
+    assert _angle_deg(c.up, -cam.down) < 0.5
+    assert abs(res.aperture_diameter_mm / TRUE["aperture_diameter_mm"] - 1) < 0.10
+    assert res.rms_px < 0.2
+    # the uncertainties are honest: the errors are within a few sigma (or tiny)
+    assert abs(c.image_distance_mm - cam.image_distance_mm) < max(5 * res.sigma["image_distance_mm"], 0.02)
+
+
+def test_wrong_heights_rejected(grid_set):
+    _, imgs, _, _ = grid_set
+    swapped = [HEIGHTS[1], HEIGHTS[0], *HEIGHTS[2:]]
+    with pytest.raises(ValueError, match="heights do not match|plane_z_mm"):
+        calibrate_geometry(imgs, swapped, kind="dots", pitch_mm=GRID["pitch_mm"], shape=GRID["shape"],
+                           pixel_pitch_mm=TRUE["pixel_pitch_mm"])
+
+
+def _config(folder, files, heights=HEIGHTS, shape=GRID["shape"], pixels=(128, 128)):
+    cfg = {"workdir": str(folder / "out"),
+           "system": {"camera": {"pixels": list(pixels), "pixel_pitch_mm": TRUE["pixel_pitch_mm"]}},
+           "calibrate": {"grid": {"kind": "dots", "pitch_mm": GRID["pitch_mm"], "shape": list(shape)},
+                         "images": [{"file": str(f), "plane_z_mm": z} for f, z in zip(files, heights)]}}
+    p = folder / "cal.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    return p
+
+
+def _run(path):
+    return CliRunner().invoke(app, ["calibrate", str(path), "--force", "-q"])
+
+
+def test_cli_writes_a_camera_other_configs_can_use(grid_set, tmp_path):
+    cam, _, files, _ = grid_set
+    r = _run(_config(tmp_path, files))
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "out" / "calibration.h5").is_file()
+    use = tmp_path / "use.yaml"
+    use.write_text(yaml.safe_dump({"system": {"camera": str(tmp_path / "out" / "camera.yaml")},
+                                   "subject": {"surface": {"phantom": "sphere"}}}))
+    from fluxcli.config import load_config
+
+    loaded = load_config(use)
+    lens = loaded.model.system.camera.lens
+    assert abs(lens.focal_length_mm / TRUE["focal_length_mm"] - 1) < 0.005
+    assert _angle_deg(loaded.model.system.camera.pose.look, cam.axis) < 0.5
+
+
+@pytest.mark.parametrize("case", ["missing", "unreadable", "size", "no_grid", "shape", "heights"])
+def test_bad_input_exits_2(grid_set, tmp_path, case):
+    _, imgs, files, _ = grid_set
+    files = list(files)
+    kw = {}
+    if case == "missing":
+        files[1] = tmp_path / "nope.tif"
+    elif case == "unreadable":
+        files[1] = tmp_path / "junk.tif"
+        files[1].write_bytes(b"not an image at all")
+    elif case == "size":
+        kw["pixels"] = (100, 128)
+    elif case == "no_grid":
+        files[2] = tmp_path / "noise.tif"
+        write_image(files[2], np.random.default_rng(0).integers(300, 400, (128, 128)).astype(np.uint16))
+    elif case == "shape":
+        kw["shape"] = (13, 7)
+    elif case == "heights":
+        kw["heights"] = [HEIGHTS[1], HEIGHTS[0], *HEIGHTS[2:]]
+    r = _run(_config(tmp_path, files, **kw))
+    assert r.exit_code == 2, r.output
+    assert "Traceback" not in r.output
+    assert "calibrate" in r.output
