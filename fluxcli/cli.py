@@ -57,7 +57,7 @@ STAGE_REQUIRES: dict[str, tuple[str, ...]] = {
     "build-T": _GEOMETRY,
     "simulate": _GEOMETRY + ("simulate",),
     "reconstruct": _GEOMETRY,
-    "report": _GEOMETRY,
+    "report": (),  # the stage checks: geometry for a reconstruction, nothing for a calibrate-only workdir
     "calibrate": ("calibrate",),  # a grid needs system.camera (checked by the stage); radiometric alone does not
     "capture-surface": ("rig", "capture"),
 }

@@ -21,7 +21,6 @@ import yaml
 
 from .. import artefacts as A
 from .. import config as C
-from ..artefacts import Dataset, Kind
 from ..calibration.fit import CalibrationError, GeometricCalibration, calibrate_geometry
 from ..calibration.mirrors import MirrorFit, refine_mirrors
 from ..errors import UserError
@@ -30,14 +29,6 @@ from ..pipeline import provenance
 from ._radiometric import run_radiometric, section_files, write_radiometric
 from .context import RunContext
 
-KIND = A.register(Kind("calibration", 1, "fluxmap calibrate", "camera model from grid images, sensor from frames", (
-    Dataset("camera_yaml", "", "the camera.yaml written beside this file (text)"),
-    Dataset("geometric/lens_center_mm", "mm", "lens centre C in the grid's frame", required=False),
-    Dataset("geometric/rotation", "", "rows: camera right, down, look (world directions)", required=False),
-    Dataset("geometric/images", "", "per image k: plane_z_mm, ij, xy_px, residual_px, residual_mm, "
-            "blur_diameter_px, axial_mm (pixel centres at integer (col, row))", required=False),
-    Dataset("radiometric", "", "bias/dark/flat maps, PTC, sensor scalars", required=False),
-)))
 
 
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
@@ -65,7 +56,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         ctx.say(f"calibrate: {out} is up to date (use --force to redo)")
         return out
 
-    geo = None
+    geo, images = None, []
     mirrors: list[MirrorFit] = []
     if sec.grid is not None:
         if cam is None:
@@ -84,7 +75,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         f.attrs["inputs_digest"] = digest
         f.create_dataset("camera_yaml", data=text)
         if geo is not None:
-            _write_geometric(f.create_group("geometric"), geo, sec, image_paths, cfg)
+            _write_geometric(f.create_group("geometric"), geo, sec, image_paths, cfg, images)
         if mirrors:
             _write_mirrors(f.create_group("mirrors"), mirrors)
         if rad is not None:
@@ -157,7 +148,7 @@ def _summary(geo: GeometricCalibration, ctx: RunContext) -> None:
         ctx.say(f"calibrate: warning: {w}")
 
 
-def _write_geometric(g, geo: GeometricCalibration, sec: C.Calibrate, paths, cfg) -> None:
+def _write_geometric(g, geo: GeometricCalibration, sec: C.Calibrate, paths, cfg, images) -> None:
     c = geo.camera
     g.create_dataset("lens_center_mm", data=c.center_mm).attrs["unit"] = "mm"
     g.create_dataset("rotation", data=c.rotation)
@@ -195,6 +186,7 @@ def _write_geometric(g, geo: GeometricCalibration, sec: C.Calibrate, paths, cfg)
         h.attrs["file"] = str(paths[k])
         h.attrs["focus_measure"] = im.focus_measure
         h.attrs["notes"] = json.dumps(im.notes)
+        h.create_dataset("image", data=np.asarray(images[k], np.float32), compression="gzip", shuffle=True)
         for name, arr, unit in (("ij", im.ij, ""), ("xy_px", im.xy_px, "px (col, row), pixel centres at integers"),
                                 ("residual_px", im.residual_px, "px, measured - model"),
                                 ("residual_mm", im.residual_mm, "mm on the grid plane"),
