@@ -126,3 +126,28 @@ def test_bad_input_exits_2(grid_set, tmp_path, case):
     assert r.exit_code == 2, r.output
     assert "Traceback" not in r.output
     assert "calibrate" in r.output
+
+
+def test_renderer_matches_the_transfer_matrix():
+    """The ray tracer that makes the calibration images against fluxmap's own T (lens estimator).
+
+    A uniform square patch, defocused, seen by the thin lens: same total photons and the same
+    image, by two independent integrations of the same radiometry.
+    """
+    from fluxcli.calibration.synthetic import render_plane
+    from fluxcli.optics.camera import ThinLensCamera
+    from fluxcli.optics.transfer import LensSampling, View, build_transfer
+    from fluxcli.surface.phantoms import patch
+
+    cam = ThinLensCamera.from_pose(lens_center_mm=(1.0, -0.5, 150.0), look=(0, 0, -1), up=(0, 1, 0),
+                                   focal_length_mm=16.0, aperture_radius_mm=4.0, focus_distance_mm=150.0,
+                                   nx=48, ny=48, pixel_pitch_mm=0.052)
+    z, half, J = -12.0, 4.0, 1000.0  # plane height (mm), patch half-size (mm), exitance (photons/mm^2)
+    surf = patch(size_mm=(2 * half, 2 * half), n=(1, 1), center_mm=(0.0, 0.0, z), normal=(0, 0, 1))[0]
+    res = build_transfer(surf, [View("direct", cam)], estimator="lens",
+                         lens_sampling=LensSampling(surface_samples_per_pixel=4.0, lens_samples_min=256))
+    a_T = np.asarray(res.T[:, 0].todense()).reshape(48, 48) * J * (2 * half) ** 2
+    a_R = render_plane(cam, z, lambda x, y: ((np.abs(x) <= half) & (np.abs(y) <= half)).astype(float),
+                       exitance_photons_per_mm2=J, sub=4, lens_samples=128)
+    assert abs(a_R.sum() / a_T.sum() - 1) < 0.01
+    assert np.abs(a_R - a_T).sum() / a_T.sum() < 0.05
