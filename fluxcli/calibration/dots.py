@@ -54,20 +54,27 @@ class DotFits:
 _MIN_R = 0.15  # px: keeps the model smooth in its parameters near focus
 
 
-def _model(p: np.ndarray, X: np.ndarray, Y: np.ndarray, sub: int) -> np.ndarray:
-    """p (n, 6): x0, y0, A, bg, a, b.  X, Y (m*sub*sub,) sub-sample offsets.  Returns (n, m)."""
-    dx = X[None, :] - p[:, 0:1]
-    dy = Y[None, :] - p[:, 1:2]
-    d = np.hypot(dx, dy)
-    a = np.maximum(np.abs(p[:, 4:5]), _MIN_R)
-    b = np.maximum(np.abs(p[:, 5:6]), _MIN_R)
-    k = disk_overlap(a, b, d) / (np.pi * np.minimum(a, b) ** 2)
+def _shape(a, b, d):
+    a = np.maximum(np.abs(a), _MIN_R)
+    b = np.maximum(np.abs(b), _MIN_R)
+    return disk_overlap(a, b, d) / (np.pi * np.minimum(a, b) ** 2)
+
+
+def _model(p: np.ndarray, X: np.ndarray, Y: np.ndarray, sub: int, fixed: np.ndarray | None = None) -> np.ndarray:
+    """p (n, 6): x0, y0, A, bg, a, b.  X, Y (m*sub*sub,) sub-sample offsets.  Returns (n, m).
+
+    ``fixed`` (n, m*sub*sub): light of the neighbouring dots inside each window (kept fixed).
+    """
+    d = np.hypot(X[None, :] - p[:, 0:1], Y[None, :] - p[:, 1:2])
+    k = p[:, 2:3] * _shape(p[:, 4:5], p[:, 5:6], d)
+    if fixed is not None:
+        k = k + fixed
     k = k.reshape(len(p), -1, sub * sub).mean(axis=2)
-    return p[:, 3:4] + p[:, 2:3] * k
+    return p[:, 3:4] + k
 
 
 def fit_dots(unit: np.ndarray, xy_px: np.ndarray, spacing_px: float, *, radius_a_px: np.ndarray | None = None,
-             sub: int = 3, iterations: int = 30) -> DotFits:
+             neighbours: "DotFits | None" = None, sub: int = 3, iterations: int = 30) -> DotFits:
     """Fit the defocused-disk model to every dot.
 
     Parameters
@@ -80,13 +87,18 @@ def fit_dots(unit: np.ndarray, xy_px: np.ndarray, spacing_px: float, *, radius_a
         Distance between neighbouring dots (px): the fit window is a disk of half of it.
     radius_a_px : ndarray (n,), optional
         Fix the dot radius (px) and fit only the blur radius.
+    neighbours : DotFits, optional
+        A previous fit of the same dots: each dot's neighbours (within 1.6 spacings) are
+        drawn from it into the window, which then grows to 0.75 spacing (their blurred
+        edges are modelled instead of biasing this dot's blur).
     """
     ny, nx = unit.shape
     n = len(xy_px)
-    w = int(np.clip(np.ceil(0.5 * spacing_px), 2, 30))
+    win = 0.75 if neighbours is not None else 0.5
+    w = int(np.clip(np.ceil(win * spacing_px), 2, 40))
     off = np.arange(-w, w + 1)
     oy, ox = np.meshgrid(off, off, indexing="ij")
-    inside = (ox**2 + oy**2) <= (0.5 * spacing_px + 0.5) ** 2
+    inside = (ox**2 + oy**2) <= (win * spacing_px + 0.5) ** 2
     ox, oy = ox[inside], oy[inside]
     s = (np.arange(sub) + 0.5) / sub - 0.5
     sy, sx = np.meshgrid(s, s, indexing="ij")
@@ -113,11 +125,28 @@ def fit_dots(unit: np.ndarray, xy_px: np.ndarray, spacing_px: float, *, radius_a
         free = np.array([0, 1, 2, 3, 5])
     lam = np.full(n, 1e-2)
 
+    fixed = None
+    if neighbours is not None:
+        from scipy.spatial import cKDTree
+
+        nbx = neighbours.xy_px
+        dd, ii = cKDTree(nbx).query(xy_px, k=min(9, len(nbx)), distance_upper_bound=1.6 * spacing_px)
+        fixed = np.zeros((n, X.size))
+        for j in range(dd.shape[1]):
+            have = np.isfinite(dd[:, j]) & (dd[:, j] > 0.3 * spacing_px)
+            if not have.any():
+                continue
+            m = ii[have, j]
+            rel = nbx[m] - cc[have]
+            d = np.hypot(X[None, :] - rel[:, 0:1], Y[None, :] - rel[:, 1:2])
+            fixed[have] += neighbours.amplitude[m, None] * _shape(neighbours.radius_a_px[m, None],
+                                                                   neighbours.radius_b_px[m, None], d)
+
     def residual(q):
-        return _model(q, X, Y, sub) - data
+        return _model(q, X, Y, sub, fixed) - data
 
     def residual_of(q, rows):
-        return _model(q, X, Y, sub) - data[rows]
+        return _model(q, X, Y, sub, None if fixed is None else fixed[rows]) - data[rows]
 
     r = residual(p)
     cost = (r**2).sum(axis=1)

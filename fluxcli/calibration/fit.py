@@ -162,7 +162,11 @@ def calibrate_geometry(images: list[np.ndarray], heights_mm: list[float], *, kin
         for k in used:
             P = grid_points_mm(dets[k].ij, pitch_mm, shape, heights_mm[k])
             a = rho / geo.camera.mm_per_px(P)
-            second = D.fit_dots(units[k], dets[k].xy_px, dets[k].spacing_px, radius_a_px=a)
+            prev = first[used.index(k)]
+            nb = prev if len(prev.xy_px) == len(dets[k].xy_px) else None
+            for _ in range(2):  # neighbours drawn from the latest fit
+                second = D.fit_dots(units[k], dets[k].xy_px, dets[k].spacing_px, radius_a_px=a, neighbours=nb)
+                nb = second
             blur_px[k] = np.where(second.ok, 2 * second.radius_b_px, np.nan)
         _ = keep
     # focus measure per image, over the grid's bounding region

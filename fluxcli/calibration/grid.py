@@ -82,7 +82,7 @@ def to_uint8(unit: np.ndarray) -> np.ndarray:
     return (np.clip(unit, 0, 1) * 255).round().astype(np.uint8)
 
 
-def blob_points(unit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def blob_points(unit: np.ndarray, *, max_area_px: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Centres (n, 2) and diameters (n,) of bright blobs (tuned SimpleBlobDetector)."""
     ny, nx = unit.shape
     img8 = to_uint8(cv2.GaussianBlur(unit, (0, 0), 0.7))
@@ -91,7 +91,8 @@ def blob_points(unit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     p.minRepeatability = 2
     p.minDistBetweenBlobs = 2.0
     p.filterByColor, p.blobColor = True, 255
-    p.filterByArea, p.minArea, p.maxArea = True, 3.0, float(nx * ny) / 8
+    p.filterByArea, p.minArea = True, 3.0
+    p.maxArea = float(nx * ny) / 8 if max_area_px is None else float(max_area_px)
     p.filterByCircularity, p.minCircularity = True, 0.5
     p.filterByConvexity, p.minConvexity = True, 0.7
     p.filterByInertia, p.minInertiaRatio = True, 0.25
@@ -99,6 +100,30 @@ def blob_points(unit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if not kps:
         return np.zeros((0, 2)), np.zeros(0)
     return np.array([k.pt for k in kps], float), np.array([k.size for k in kps], float)
+
+
+def peak_points(unit: np.ndarray, *, sigma_px: float = 1.0) -> np.ndarray:
+    """Local maxima of the smoothed image well above the background noise (n, 2): dots too blurred
+    or too close for thresholding to separate still have one maximum each."""
+    from scipy.ndimage import gaussian_filter, maximum_filter
+
+    sm = gaussian_filter(unit, sigma_px)
+    bg = sm[sm < np.percentile(sm, 50)]
+    noise = 1.4826 * np.median(np.abs(bg - np.median(bg))) if bg.size else 0.0
+    thr = max(0.2 * np.percentile(sm, 99.5), 6 * noise)
+    peaks = (sm == maximum_filter(sm, size=3)) & (sm > thr)
+    r, c = np.nonzero(peaks)
+    return np.column_stack([c, r]).astype(float)
+
+
+def candidate_points(unit: np.ndarray) -> list[np.ndarray]:
+    """Candidate dot centres by several detectors (blobs at decreasing size limits, local maxima)."""
+    n = unit.size
+    out = [blob_points(unit)[0]]
+    for frac in (64, 512):
+        out.append(blob_points(unit, max_area_px=n / frac)[0])
+    out.append(peak_points(unit))
+    return out
 
 
 # ----------------------------------------------------------------------------- lattice
@@ -279,12 +304,19 @@ def place_labels(new: np.ndarray, xy: np.ndarray, shape: tuple[int, int], image_
 def detect_dots(image: np.ndarray, shape: tuple[int, int], *, mirrored: bool = False) -> Detection:
     """Find and label a dot grid of ``shape`` = [nx, ny] points in one image."""
     unit = to_unit(image)
-    pts, _ = blob_points(unit)
-    if len(pts) < 6:
-        raise GridNotFound(f"only {len(pts)} dot-like blobs were found")
-    idx, lab, d0 = grow_lattice(pts)
-    if len(idx) < 6:
-        raise GridNotFound("the blobs found do not form a regular grid")
+    best = None
+    for pts in candidate_points(unit):
+        if len(pts) < 6:
+            continue
+        try:
+            idx, lab, d0 = grow_lattice(pts)
+        except GridNotFound:
+            continue
+        if best is None or len(idx) > len(best[1]):
+            best = (pts, idx, lab, d0)
+    if best is None or len(best[1]) < 6:
+        raise GridNotFound("no regular grid of dots was found among the bright blobs")
+    pts, idx, lab, d0 = best
     xy = pts[idx]
     new, _ = orient_labels(lab, xy, shape, mirrored=mirrored)
     ij, notes = place_labels(new, xy, shape, unit.shape)
