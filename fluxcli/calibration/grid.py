@@ -158,6 +158,8 @@ def grow_lattice(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     if len(pts) < 6:
         raise GridNotFound(f"only {len(pts)} dot-like blobs found")
     a, b, d0 = _dominant_steps(pts)
+    if d0 < 3.0:  # dots closer than 3 px cannot be told apart (and noise maxima sit ~2 px apart)
+        raise GridNotFound(f"the candidate dots lie {d0:.1f} px apart, too close to be a grid")
     tree = cKDTree(pts)
     centre = np.median(pts, axis=0)
     seed = int(tree.query(centre)[1])
@@ -181,6 +183,8 @@ def grow_lattice(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
             where[lab] = m
             real = pts[m] - pts[k]
             na = real * (1 if di + dj > 0 else -1)
+            if np.linalg.norm(na - (sa if di else sb)) > 0.15 * np.linalg.norm(sa if di else sb):
+                na = sa if di else sb  # a step unlike its neighbours' is not followed further
             steps[m] = (na, sb) if di else (sa, na)
             queue.append(m)
     idx = np.array(list(labels.keys()))
@@ -189,13 +193,17 @@ def grow_lattice(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     for _ in range(2):
         if len(idx) < 6:
             break
-        H, _ = cv2.findHomography(lab.astype(np.float64), pts[idx], 0)
+        # RANSAC: points of another lattice (a mirror's view) that the growth stepped into are outliers
+        H, inl = cv2.findHomography(lab.astype(np.float64), pts[idx], cv2.RANSAC, 0.2 * d0)
         if H is None:
             break
         Hi = np.linalg.inv(H)
         q = cv2.perspectiveTransform(pts[None].astype(np.float64), Hi)[0]
         r = np.rint(q)
-        good = np.linalg.norm(q - r, axis=1) < 0.25
+        core = lab[inl.ravel().astype(bool)] if inl is not None and inl.any() else lab
+        lo_l, hi_l = core.min(axis=0), core.max(axis=0)
+        # relabel within the block the growth found (points beyond it may be another lattice's)
+        good = (np.linalg.norm(q - r, axis=1) < 0.25) & np.all((r >= lo_l) & (r <= hi_l), axis=1)
         # keep one point per label (the closest)
         order = np.argsort(np.linalg.norm(q - r, axis=1))
         seen, keep = set(), []

@@ -48,7 +48,8 @@ def checker_pattern(x_mm: np.ndarray, y_mm: np.ndarray, *, pitch_mm: float, shap
 
 def render_plane(camera: ThinLensCamera, plane_z_mm: float, pattern, *, exitance_photons_per_mm2: float = 1.0,
                  background_fraction: float = 0.0, sub: int = 3, lens_samples: int = 64,
-                 mirror: PlaneMirror | None = None, rng: np.random.Generator | None = None) -> np.ndarray:
+                 mirror: PlaneMirror | None = None, occluders: tuple[PlaneMirror, ...] = (),
+                 rng: np.random.Generator | None = None) -> np.ndarray:
     """Photons per pixel of a flat Lambertian target at ``z = plane_z_mm`` (image [ny, nx]).
 
     Parameters
@@ -67,6 +68,8 @@ def render_plane(camera: ThinLensCamera, plane_z_mm: float, pattern, *, exitance
     mirror : PlaneMirror, optional
         Render the view in this mirror instead of the direct view (only rays crossing
         the mirror plane inside its rectangle, between the plane and the lens, count).
+    occluders : tuple of PlaneMirror
+        Rectangles that block the direct view (the mirrors' backs and fronts).
     rng : numpy.random.Generator, optional
         Rotates the lens pattern per sub-pixel (default seed 0).
     """
@@ -107,6 +110,11 @@ def render_plane(camera: ThinLensCamera, plane_z_mm: float, pattern, *, exitance
             t_p = (plane_z_mm - L[..., 2]) / d[..., 2]
             P = L + t_p[..., None] * d
             ok = t_p > 0
+            for m in occluders:
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    t_o = ((m.center_mm - L) @ m.normal) / (d @ m.normal)
+                hit = L + t_o[..., None] * d
+                ok &= ~((t_o > 0) & (t_o < t_p) & m.contains(hit))
         val = background_fraction + (1 - background_fraction) * pattern(P[..., 0], P[..., 1])
         out[r0:r0 + rows_per_chunk] = (np.where(ok, val, 0) * w).sum(axis=1).reshape(-1, nx * sub)
     img = out.reshape(ny, sub, nx, sub).sum(axis=(1, 3))
