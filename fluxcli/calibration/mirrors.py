@@ -95,7 +95,36 @@ def refine_mirrors(images: list[np.ndarray], heights_mm: list[float], camera: Ca
         au /= np.linalg.norm(au)
         return n, c, au, np.cross(n, au)
 
-    x = np.zeros(3)
+    def score(x, frac):
+        """(matched points, median distance) of the plane x: a coarse search needs no derivatives."""
+        n, c, au, av = frame(x)
+        cam_v = camera.reflected(c, n)
+        hits, dists = 0, []
+        for k, z in enumerate(heights_mm):
+            if trees[k] is None:
+                continue
+            P = grid_points_mm(allij, pitch_mm, shape, z)
+            vis = _visible(cam_v, P, c, n, au, av, half)
+            if vis.sum() < 2:
+                continue
+            q = cam_v.project(P[vis])
+            sp = np.median(cKDTree(q).query(q, k=2)[0][:, 1])
+            dist, _ = trees[k].query(q)
+            ok = dist < frac * sp
+            hits += int(ok.sum())
+            dists.extend((dist[ok] / sp).tolist())
+        return hits, (np.median(dists) if dists else 1.0)
+
+    # coarse search around the configured plane (+-3 deg, +-2 mm): the start must match the right dots
+    best_x, best = np.zeros(3), score(np.zeros(3), 0.3)
+    for a1 in np.radians(np.arange(-3, 3.01, 0.75)):
+        for a2 in np.radians(np.arange(-3, 3.01, 0.75)):
+            for dz in np.arange(-2, 2.01, 0.5):
+                xx = np.array([a1, a2, dz])
+                sc = score(xx, 0.3)
+                if sc[0] > best[0] or (sc[0] == best[0] and sc[1] < best[1]):
+                    best_x, best = xx, sc
+    x = best_x
     matches = None
     for radius_frac in (0.45, 0.3, 0.2, 0.2):
         W, Q = [], []
