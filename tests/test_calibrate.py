@@ -188,3 +188,48 @@ def test_mirror_plane_refined_from_its_view():
     assert _angle_deg(fit.normal, n) < 0.3
     assert abs((fit.center_mm - mir.center_mm) @ n) < 0.2
     assert fit.rms_px < 0.3
+
+
+def _radiometric_frames(folder, shape=(64, 64)):
+    """Bias, gain-off and gain-on photon-transfer frames from fluxmap's EMCCD model (glue test only;
+    the radiometry library is tested against an independent simulator in its own tests)."""
+    from fluxcli.imaging.noise import conventional_counts, emccd_counts
+
+    rng = np.random.default_rng(5)
+    m = EMCCDModel(em_gain=80.0, read_noise_e=30.0, bias_counts=400.0, electrons_per_count=6.0, exposure_s=0.1)
+    sec = {"bias": [], "ptc": []}
+    for i in range(4):
+        p = folder / f"bias{i}.tif"
+        write_image(p, conventional_counts(np.zeros(shape), m, rng).astype(np.uint16))
+        sec["bias"].append(str(p))
+    for lvl, photons in enumerate((2000.0, 8000.0, 20000.0)):
+        files = []
+        for i in range(2):
+            p = folder / f"off{lvl}_{i}.tif"
+            write_image(p, conventional_counts(np.full(shape, photons), m, rng).astype(np.uint16))
+            files.append(str(p))
+        sec["ptc"].append({"files": files, "exposure_s": 0.1, "em_gain_on": False, "illumination": f"L{lvl}"})
+    for lvl, photons in enumerate((2000.0, 8000.0)):  # same lamp settings, 50x shorter, EM gain on
+        files = []
+        for i in range(2):
+            p = folder / f"on{lvl}_{i}.tif"
+            write_image(p, emccd_counts(np.full(shape, photons / 50), m, rng).astype(np.uint16))
+            files.append(str(p))
+        sec["ptc"].append({"files": files, "exposure_s": 0.002, "em_gain_on": True, "illumination": f"L{lvl}"})
+    return sec
+
+
+def test_radiometric_only_config_writes_the_sensor_block(tmp_path):
+    sec = _radiometric_frames(tmp_path)
+    cfg = {"workdir": str(tmp_path / "out"), "system": {"camera": {"pixels": [64, 64], "pixel_pitch_mm": 0.05}},
+           "calibrate": {"radiometric": sec}}
+    p = tmp_path / "rad.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    r = _run(p)
+    assert r.exit_code == 0, r.output
+    doc = yaml.safe_load((tmp_path / "out" / "camera.yaml").read_text())
+    assert abs(doc["camera"]["sensor"]["electrons_per_count"] / 6.0 - 1) < 0.1
+    import h5py
+
+    with h5py.File(tmp_path / "out" / "calibration.h5", "r") as f:
+        assert "radiometric" in f and "geometric" not in f
