@@ -337,21 +337,35 @@ def detect_dots(image: np.ndarray, shape: tuple[int, int], *, mirrored: bool = F
 
 
 def detect_checkerboard(image: np.ndarray, shape: tuple[int, int]) -> Detection:
-    """Inner corners of a checkerboard (``shape`` = inner corners [nx, ny]) by ``findChessboardCornersSB``."""
-    unit = to_unit(image)
-    img8 = to_uint8(0.5 * (unit - unit.min()) / max(unit.max() - unit.min(), 1e-12) * 2)
-    flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
-    for size in (tuple(shape), tuple(shape[::-1])):
-        ok, corners = cv2.findChessboardCornersSB(img8, size, flags=flags)
-        if ok:
-            xy = corners.reshape(-1, 2).astype(float)
-            n0, n1 = size
-            lab = np.stack(np.meshgrid(np.arange(n0), np.arange(n1)), -1).reshape(-1, 2)
-            new, _ = orient_labels(lab, xy, shape)
-            ij, notes = place_labels(new, xy, shape, unit.shape)
-            d0 = float(np.median(np.linalg.norm(np.diff(xy.reshape(n1, n0, 2), axis=1), axis=-1)))
-            return Detection(ij.astype(int), xy, False, d0, notes, new)
-    raise GridNotFound("no checkerboard with the stated inner-corner shape was found")
+    """Inner corners of a checkerboard (``shape`` = inner corners [nx, ny]) by ``findChessboardCornersSB``.
+
+    Tried on the image scaled to 8 bit, then (small or blurred boards) upsampled 2x.
+    """
+    img = np.asarray(image, float)
+    if not np.all(np.isfinite(img)):
+        raise ValueError("the image holds NaN or infinite values")
+    lo, hi = np.percentile(img, [0.5, 99.5])
+    if hi <= lo:
+        raise GridNotFound("the image is uniform (no grid visible)")
+    img8 = to_uint8((img - lo) / (hi - lo))
+    flag_sets = (cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY, cv2.CALIB_CB_NORMALIZE_IMAGE, 0)
+    for up in (1, 2):
+        src = img8 if up == 1 else cv2.resize(img8, None, fx=up, fy=up, interpolation=cv2.INTER_CUBIC)
+        for size in (tuple(shape), tuple(shape[::-1])):
+            for flags in flag_sets:
+                ok, corners = cv2.findChessboardCornersSB(src, size, flags=flags)
+                if not ok:
+                    continue
+                xy = (corners.reshape(-1, 2).astype(float) + 0.5) / up - 0.5
+                n0, n1 = size
+                lab = np.stack(np.meshgrid(np.arange(n0), np.arange(n1)), -1).reshape(-1, 2)
+                new, _ = orient_labels(lab, xy, shape)
+                ij, notes = place_labels(new, xy, shape, img.shape)
+                if ij is None:
+                    continue
+                d0 = float(np.median(np.linalg.norm(np.diff(xy.reshape(n1, n0, 2), axis=1), axis=-1)))
+                return Detection(ij.astype(int), xy, False, d0, notes, new)
+    raise GridNotFound("no checkerboard with the stated inner-corner shape was found (the whole board must be in view)")
 
 
 def relabel_from_prediction(det: Detection, predicted_xy: np.ndarray, predicted_ij: np.ndarray) -> Detection:

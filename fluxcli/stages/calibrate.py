@@ -71,6 +71,10 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         rad = run_radiometric(sec.radiometric, cfg.resolve, ctx, expected_shape=shape)
 
     text = camera_yaml(cam, geo, rad.sensor_block() if rad is not None else None, mirrors, system)
+    if geo is not None and not (np.isfinite(geo.aperture_diameter_mm) and geo.aperture_diameter_mm > 0) and (
+            cam.lens is None):
+        ctx.say("calibrate: warning: the aperture was not measured (a checkerboard gives no per-dot blur); "
+                "camera.yaml's lens has no aperture: add f_number or aperture_diameter_mm to it before use")
     with A.write_artefact(out, "calibration", config_sha256=cfg.sha256, provenance=prov) as f:
         f.attrs["inputs_digest"] = digest
         f.create_dataset("camera_yaml", data=text)
