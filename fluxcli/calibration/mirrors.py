@@ -95,11 +95,12 @@ def refine_mirrors(images: list[np.ndarray], heights_mm: list[float], camera: Ca
         au /= np.linalg.norm(au)
         return n, c, au, np.cross(n, au)
 
-    def score(x, frac):
-        """(matched points, median distance) of the plane x: a coarse search needs no derivatives."""
+    def match(x, frac):
+        """Grid points (world) paired with dots (image) within ``frac`` of the predicted spacing, and the
+        distances in spacings, for the plane x (one dot per point)."""
         n, c, au, av = frame(x)
         cam_v = camera.reflected(c, n)
-        hits, dists = 0, []
+        W, Q, dists = [], [], []
         for k, z in enumerate(heights_mm):
             if trees[k] is None:
                 continue
@@ -108,12 +109,20 @@ def refine_mirrors(images: list[np.ndarray], heights_mm: list[float], camera: Ca
             if vis.sum() < 2:
                 continue
             q = cam_v.project(P[vis])
-            sp = np.median(cKDTree(q).query(q, k=2)[0][:, 1])
-            dist, _ = trees[k].query(q)
+            sp = float(np.median(cKDTree(q).query(q, k=2)[0][:, 1]))  # the predicted local spacing
+            dist, idx = trees[k].query(q)
             ok = dist < frac * sp
-            hits += int(ok.sum())
-            dists.extend((dist[ok] / sp).tolist())
-        return hits, (np.median(dists) if dists else 1.0)
+            _, first = np.unique(idx[ok], return_index=True)
+            sel = np.flatnonzero(ok)[first]
+            W.append(P[vis][sel])
+            Q.append(blobs[k][idx[sel]])
+            dists.extend((dist[sel] / sp).tolist())
+        return W, Q, dists
+
+    def score(x, frac):
+        """(matched points, median distance) of the plane x: a coarse search needs no derivatives."""
+        _, _, dists = match(x, frac)
+        return len(dists), (np.median(dists) if dists else 1.0)
 
     # coarse search around the configured plane (+-3 deg, +-2 mm): the start must match the right dots
     best_x, best = np.zeros(3), score(np.zeros(3), 0.3)
@@ -127,26 +136,7 @@ def refine_mirrors(images: list[np.ndarray], heights_mm: list[float], camera: Ca
     x = best_x
     matches = None
     for radius_frac in (0.45, 0.3, 0.2, 0.2):
-        W, Q = [], []
-        n, c, au, av = frame(x)
-        cam_v = camera.reflected(c, n)
-        for k, z in enumerate(heights_mm):
-            if trees[k] is None:
-                continue
-            P = grid_points_mm(allij, pitch_mm, shape, z)
-            vis = _visible(cam_v, P, c, n, au, av, half)
-            if vis.sum() < 2:
-                continue
-            q = cam_v.project(P[vis])
-            # local spacing from the predicted neighbours
-            sp = cKDTree(q).query(q, k=2)[0][:, 1] if len(q) > 1 else np.array([10.0])
-            dist, idx = trees[k].query(q)
-            ok = dist < radius_frac * np.median(sp)
-            # one blob per point
-            _, first = np.unique(idx[ok], return_index=True)
-            sel = np.flatnonzero(ok)[first]
-            W.append(P[vis][sel])
-            Q.append(blobs[k][idx[sel]])
+        W, Q, _ = match(x, radius_frac)
         if not W or sum(len(w) for w in W) < min_points:
             raise ValueError(f"only {sum(len(w) for w in W) if W else 0} grid points were matched in the mirror's "
                              "view (the approximate mirror in system.mirrors may be too far off, or the grid is not "
