@@ -108,6 +108,8 @@ def calibrate_geometry(images: list[np.ndarray], heights_mm: list[float], *, kin
             raise CalibrationError(f"the grid seen does not match shape {list(shape)}: {e}", k) from None
         except G.GridNotFound as e:
             raise CalibrationError(f"no {kind} grid of shape {list(shape)} found: {e}", k) from None
+        except ValueError as e:
+            raise CalibrationError(f"the image cannot be used: {e}", k) from None
     known = [k for k, d in enumerate(dets) if not d.ambiguous]
     if len({heights_mm[k] for k in known}) < 2:
         raise CalibrationError("fewer than two heights show the grid with a known offset (cut on one side at most, "
