@@ -92,6 +92,10 @@ def test_cli_writes_a_camera_other_configs_can_use(grid_set, tmp_path):
     r = _run(_config(tmp_path, files))
     assert r.exit_code == 0, r.output
     assert (tmp_path / "out" / "calibration.h5").is_file()
+    rep = CliRunner().invoke(app, ["report", str(tmp_path / "cal.yaml"), "-q"])  # a calibrate-only workdir
+    assert rep.exit_code == 0, rep.output
+    for name in ("calibration_detections.png", "calibration_residuals.png", "calibration_focus.png", "index.html"):
+        assert (tmp_path / "out" / "report" / name).is_file()
     use = tmp_path / "use.yaml"
     use.write_text(yaml.safe_dump({"system": {"camera": str(tmp_path / "out" / "camera.yaml")},
                                    "subject": {"surface": {"phantom": "sphere"}}}))
