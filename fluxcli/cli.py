@@ -188,7 +188,22 @@ _stage_command("calibrate", "calibrate", """Derive the camera model from grid im
 
     $ fluxmap calibrate configs/calibrate.yaml
     """)
-_stage_command("capture-surface", None, """(Not built yet.) Drive the rig (or its simulator) and capture the surface and images.""")
+
+
+@app.command("capture-surface")
+def capture_surface(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt,
+                    force: bool = typer.Option(False, "--force", help="Start the capture over (replaces capture.h5)."),
+                    resume: bool = typer.Option(False, "--resume", help="Continue capture.h5: take only the frames it lacks."),
+                    jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
+    """Drive the rig (or its simulators) and acquire the emission images of the plan in 'capture:'.
+
+    $ fluxmap capture-surface configs/demo-rig.yaml --resume
+    """
+    from functools import partial
+
+    from .stages import capture as stage
+
+    _run("capture-surface", partial(stage.run, resume=resume), config, set_, force, jobs, quiet)
 
 
 @app.command("info")

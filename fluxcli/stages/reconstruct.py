@@ -15,6 +15,7 @@ are masked.  Elements no camera sees are reported as unobserved (NaN), never as 
 from __future__ import annotations
 
 import json
+import re
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -29,7 +30,7 @@ from ..imaging import noise as N
 from ..imaging.imagefiles import read_image
 from ..artefacts.transfer import load_T, load_view
 from ..inverse import backprojection, error_l1, reconstruct as solve, total_ratio
-from ..pipeline import emccd_model, ensure_T, geometry_of, plan, provenance
+from ..pipeline import check_folders, check_memory, emccd_model, ensure_T, geometry_of, plan, provenance
 from ..workers import worker_pool
 from ..imaging.sensor_maps import counts_to_photons_with_maps
 from ._radiometric import read_radiometric_maps
@@ -54,35 +55,55 @@ def _simulation(cfg: C.LoadedConfig) -> Path:
     return path
 
 
-def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int, surface_sha256: str | None = None) -> Inputs:
+def _capture_path(cfg: C.LoadedConfig) -> Path:
+    p = cfg.model.reconstruct.images.capture
+    first = cfg.resolve(p)
+    return first if first.is_file() or p.is_absolute() else cfg.workdir / p
+
+
+def _from_capture(cfg: C.LoadedConfig, n_elements: int) -> Inputs:
+    """One image per pose (= stage height) from a capture: darks subtracted, counts -> photons."""
+    from ..acquisition import read_capture
+    from ..scene import poses_from_config
+
+    path = _capture_path(cfg)
+    src = cfg.model.reconstruct.images
+    cap = read_capture(path, src.filter, src.exposure_s)
+    order = cap.pose_order([p.height_mm for p in poses_from_config(cfg.model.subject)])
+    photons, valid = cap.photons(emccd_model(cfg.model.system.camera.sensor, cap.exposure_s))
+    nx, ny = cfg.model.system.camera.pixels
+    if photons.shape[1:] != (ny, nx):
+        raise UserError(f"reconstruct.images.capture: {path} holds {photons.shape[2]} x {photons.shape[1]} pixel "
+                        f"frames; system.camera.pixels is {nx} x {ny}.")
+    truth = cap.truth_power if cap.truth_power is not None and len(cap.truth_power) == n_elements else None
+    return Inputs(photons[order], valid[order] & np.isfinite(photons[order]), truth,
+                  f"{path} filter {cap.filter}, {cap.repeats} repeat(s) averaged, {cap.n_darks} dark(s) subtracted",
+                  files={"capture.h5": path})
+
+
+def _image_sources(cfg: C.LoadedConfig) -> list[str]:
+    """sha256 of the image files reconstruct reads (what makes its output stale)."""
+    rc = cfg.model.reconstruct
+    if isinstance(rc.images, C.CaptureSource):
+        p = _capture_path(cfg)
+        return [A.file_sha256(p)] if p.is_file() else []
+    if rc.images is not None:
+        out = [A.file_sha256(cfg.resolve(p)) for p in rc.images.files if cfg.resolve(p).is_file()]
+        if rc.images.calibration is not None and cfg.resolve(rc.images.calibration).is_file():
+            out.append(A.file_sha256(cfg.resolve(rc.images.calibration)))
+        return out
+    sim = cfg.workdir / "simulation.h5"
+    return [A.file_sha256(sim)] if sim.is_file() else []
+
+
+def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int, surface_sha256: str | None = None,
+                poses: list | None = None) -> Inputs:
     rc = cfg.model.reconstruct
     nx, ny = cfg.model.system.camera.pixels
+    if isinstance(rc.images, C.CaptureSource):
+        return _from_capture(cfg, n_elements)
     if rc.images is not None:
-        if len(rc.images.files) != n_poses:
-            raise UserError(f"reconstruct.images.files: {len(rc.images.files)} file(s) for {n_poses} pose(s).")
-        imgs, valid = [], []
-        model = None
-        if rc.images.units == "counts":
-            model = emccd_model(cfg.model.system.camera.sensor, rc.images.exposure_s)
-        maps = {} if rc.images.calibration is None else read_radiometric_maps(  # per-pixel bias, dark, flat
-            cfg.resolve(rc.images.calibration), "reconstruct.images.calibration", (ny, nx))
-        for p in rc.images.files:
-            try:
-                img, _ = read_image(cfg.resolve(p))
-            except ValueError as e:
-                raise UserError(f"reconstruct.images.files: {e}") from None
-            if img.shape != (ny, nx):
-                raise UserError(f"reconstruct.images.files: {p} is {img.shape[1]} x {img.shape[0]} pixels; the "
-                                f"camera has {nx} x {ny}.")
-            ok = np.isfinite(img)
-            if model is not None:
-                ok &= ~N.saturated(img, model)
-                img = counts_to_photons_with_maps(np.where(ok, img, 0), model, **maps)
-                ok &= np.isfinite(img)  # dead pixels of the flat map
-            imgs.append(img)
-            valid.append(ok)
-        files = {f"image pose {k}": cfg.resolve(p) for k, p in enumerate(rc.images.files)}
-        return Inputs(np.array(imgs), np.array(valid), None, "files", files=files)
+        return _image_files(cfg, n_poses, poses)
     path = _simulation(cfg)
     with A.open_artefact(path, "simulation") as f:
         A.check_geometry(path, A.read_provenance(f), geometry_of(cfg, surface_sha256),
@@ -107,6 +128,71 @@ def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int, surface_sha2
         snr = f["images/max_snr"][rc.level]
     return Inputs(imgs, valid, truth, f"{path} level {rc.level} " + ("noiseless" if rc.noiseless else f"repeat {rc.repeat}"),
                   snr, files={"simulation.h5": path})
+
+
+MOSTLY_SATURATED = 0.5  # refuse an image with more than this fraction of its pixels at full scale
+
+
+def _image_files(cfg: C.LoadedConfig, n_poses: int, poses: list | None) -> Inputs:
+    """Images from files named per pose, each checked against what it claims to be."""
+    rc = cfg.model.reconstruct
+    im = rc.images
+    nx, ny = cfg.model.system.camera.pixels
+    if len(im.files) != n_poses:
+        raise UserError(f"reconstruct.images.files: {len(im.files)} file(s) for {n_poses} pose(s) "
+                        "(one file per pose, in subject.poses order: heights x rotations).")
+    model = None
+    if im.units == "counts":
+        if "sensor" not in cfg.model.system.camera.model_fields_set:
+            raise UserError("reconstruct.images.units is counts, but system.camera.sensor is not given: converting "
+                            "counts to photons needs the camera's bias, gain and quantum efficiency (give "
+                            "system.camera.sensor, or images in photons).")
+        model = emccd_model(cfg.model.system.camera.sensor, im.exposure_s)
+    maps = {} if im.calibration is None else read_radiometric_maps(  # per-pixel bias, dark, flat (radiometry)
+        cfg.resolve(im.calibration), "reconstruct.images.calibration", (ny, nx))
+    imgs, valid = [], []
+    for k, p in enumerate(im.files):
+        where = f"reconstruct.images.files[{k}] ({cfg.resolve(p)})"
+        try:
+            img, meta = read_image(cfg.resolve(p))
+        except ValueError as e:
+            raise UserError(f"reconstruct.images.files[{k}]: {e}") from None
+        if img.shape != (ny, nx):
+            raise UserError(f"{where} is {img.shape[1]} x {img.shape[0]} pixels; the camera has {nx} x {ny} "
+                            "(system.camera.pixels).")
+        said = meta.get("fluxmap:units")
+        if isinstance(said, str) and said != im.units:
+            raise UserError(f"{where} holds {said} (its metadata says fluxmap:units = {said}), but "
+                            f"reconstruct.images.units is {im.units}.")
+        if poses is not None:
+            pose = poses[k]
+            for key, want in (("fluxmap:height_mm", pose.height_mm), ("fluxmap:rotation_deg", pose.rotation_deg)):
+                got = meta.get(key)
+                if isinstance(got, (int, float)) and abs(float(got) - want) > 1e-6:
+                    raise UserError(f"{where} was taken at {key.split(':')[1]} = {got:g} (its metadata), but it is "
+                                    f"listed for pose {pose.label}: reconstruct.images.files must follow "
+                                    "subject.poses (heights x rotations).")
+        finite = np.isfinite(img)
+        if not finite.any():
+            raise UserError(f"{where}: every pixel is NaN or infinite.")
+        ok = finite
+        if model is not None:
+            sat = N.saturated(np.where(finite, img, 0), model) & finite
+            if sat.sum() > MOSTLY_SATURATED * finite.sum():
+                raise UserError(f"{where}: {sat.sum() / finite.sum():.0%} of the pixels are saturated (at "
+                                f"{2 ** model.bit_depth - 1} counts); shorten the exposure or lower the EM gain.")
+            ok = finite & ~sat
+            img = counts_to_photons_with_maps(np.where(finite, img, 0), model, **maps)
+            ok &= np.isfinite(img)  # dead pixels of the flat map
+            img = np.where(finite, img, np.nan)
+        if not np.any(img[ok] > 0):
+            raise UserError(f"{where}: no pixel holds a positive signal (all are zero or negative"
+                            + (" after the bias is subtracted" if model is not None else "") + "); a reconstruction "
+                            "from it would be zero everywhere.")
+        imgs.append(img)
+        valid.append(ok)
+    files = {f"image pose {k}": cfg.resolve(p) for k, p in enumerate(im.files)}
+    return Inputs(np.array(imgs), np.array(valid), None, "files", files=files)
 
 
 def direct_roi(T_path: Path, image: np.ndarray) -> float:
@@ -177,7 +263,34 @@ def _solve(T, a, valid, m, read_noise, adjacency):
         if m.lam != "auto":
             kw["lam"] = float(m.lam)
         kw.update(adjacency=adjacency, n_iter=m.max_iter)
-    return solve(Tm, am, method=m.method, sigma2=variance(am, read_noise), **kw), keep
+    try:
+        return solve(Tm, am, method=m.method, sigma2=variance(am, read_noise), **kw), keep
+    except ValueError as e:  # say it in config keys, not the solver's parameter names
+        msg = str(e)
+        for internal, key in (("lam_rule", "reconstruct.lambda_rule"), ("lam", "reconstruct.lambda"),
+                              ("n_iter", "reconstruct.n_iter"), ("transfer matrix T", "T")):
+            msg = re.sub(rf"\b{internal}\b", key, msg)
+        raise UserError(f"reconstruct.method {m.method}: {msg}") from None
+
+
+DENSE = ("paper", "tikhonov", "nnls", "weighted_lsq", "smooth")  # form T'WT (n x n) densely
+
+
+def _check_solver_size(cfg: C.LoadedConfig, ctx: RunContext, surface, n_poses: int) -> None:
+    """Dense normal matrices are n_unknowns^2: refuse before allocating, naming the keys."""
+    rc = cfg.model.reconstruct
+    methods = [rc.settings(), *(rc.sweep.methods if rc.sweep else ())]
+    n_sub = {"elements": surface.n_elements}
+    if any(s.unknowns == "sub_elements" for s in methods):
+        n_sub["sub_elements"] = surface.unknowns()[0].n_elements
+    nx, ny = cfg.model.system.camera.pixels
+    need = 8.0 * nx * ny * n_poses * 8  # images, masks, fits and residuals
+    for s in methods:
+        if s.method in DENSE:
+            need = max(need, 8.0 * n_sub[s.unknowns] ** 2 * 4 * (ctx.jobs if rc.sweep else 1))
+    check_memory(need, f"reconstructing {surface.n_elements} elements ({', '.join(sorted({s.method for s in methods}))})",
+                 "the elements of subject.surface, use reconstruct.unknowns: elements, or choose "
+                 "reconstruct.method: mlem or backprojection (no dense normal matrix)")
 
 
 def describe(m: C.MethodSettings) -> str:
@@ -198,13 +311,10 @@ def _describe(m: C.MethodSettings) -> str:
 
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     rc = cfg.model.reconstruct
+    check_folders(cfg)
     out = cfg.workdir / "reconstruction.h5"
     m_ = cfg.model
-    sources = ([A.file_sha256(cfg.resolve(p)) for p in rc.images.files if cfg.resolve(p).is_file()]
-               if rc.images is not None else
-               [A.file_sha256(cfg.workdir / "simulation.h5")] if (cfg.workdir / "simulation.h5").is_file() else [])
-    if rc.images is not None and rc.images.calibration is not None and cfg.resolve(rc.images.calibration).is_file():
-        sources.append(A.file_sha256(cfg.resolve(rc.images.calibration)))
+    sources = _image_sources(cfg)
     digest = A.inputs_digest(system=m_.system.model_dump(mode="json"), subject=m_.subject.model_dump(mode="json"),
                              transfer=m_.transfer.model_dump(mode="json"),
                              reconstruct=rc.model_dump(mode="json", by_alias=True), images=sources)
@@ -213,7 +323,11 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         return out
     _, placer, todo = plan(cfg)
     surface = placer.surface
-    inp = load_inputs(cfg, len(todo), surface.n_elements, surface.digest())  # checked before any T is built
+    _check_solver_size(cfg, ctx, surface, len(todo))
+    inp = load_inputs(cfg, len(todo), surface.n_elements, surface.digest(),  # checked before any T is built
+                      [pt.pose for _, pt in todo])
+    if rc.sweep is not None:
+        _check_sweep(cfg, inp)
     views, placer, todo, _ = ensure_T(cfg, replace(ctx, force=False), label="building T")
     P = len(todo)
     nx, ny = cfg.model.system.camera.pixels
@@ -299,8 +413,6 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
                 row += [f"{error_l1(joint.power, inp.truth):.2%}", f"{total_ratio(joint.power, inp.truth):.3f}"]
             rows.append(row)
         if rc.sweep is not None:
-            if inp.truth is None:
-                raise UserError("reconstruct.sweep: a sweep needs a simulation (ground truth), not image files.")
             _sweep(cfg, ctx, f.create_group("sweep"), grids, todo)
     header = ["height_mm", "rotation_deg", "total photons", "observed", "lambda"]
     if inp.truth is not None:
@@ -319,7 +431,7 @@ def _write_geometry(g, cfg: C.LoadedConfig, placer, views, todo) -> None:
     g.attrs["camera_up"] = np.asarray(cam.pose.up, float)
     g.attrs["view_names"] = json.dumps([v.name for v in views])
     g.attrs["T_files"] = json.dumps([str(pt.path) for _, pt in todo])
-    files = cfg.model.reconstruct.images.files if cfg.model.reconstruct.images is not None else None
+    files = getattr(cfg.model.reconstruct.images, "files", None)  # image files (not a capture)
     g.attrs["image_files"] = json.dumps([str(cfg.resolve(p)) for p in files] if files else [])
 
 
@@ -350,6 +462,20 @@ def _sweep_cell(sim_path: str, grids_k: dict, pose: int, level: int, repeats: in
             res, _ = run_method(T, imgs[r], valid, m, read_noise, adjacency, parent, n_el)
             out[i, r] = error_l1(res.power, truth)
     return out
+
+
+def _check_sweep(cfg: C.LoadedConfig, inp: Inputs) -> None:
+    """Before any solving: a sweep needs the simulation's truth and levels that exist."""
+    sw = cfg.model.reconstruct.sweep
+    if inp.truth is None:
+        raise UserError("reconstruct.sweep: a sweep needs a simulation (ground truth), not image files "
+                        "(reconstruct.images).")
+    path = _simulation(cfg)
+    with A.open_artefact(path, "simulation") as f:
+        L = f["images/noisy"].shape[0]
+    bad = [li for li in (sw.levels or ()) if li >= L]
+    if bad:
+        raise UserError(f"reconstruct.sweep.levels: {path} holds {L} signal level(s) (0 to {L - 1}); asked for {bad}.")
 
 
 def _sweep(cfg: C.LoadedConfig, ctx: RunContext, g, grids: dict, todo) -> None:
