@@ -258,7 +258,7 @@ MISTAKES = [
     ("config-missing", "build-T", lambda c, d, b: ["--set", "x=1"] and None, ["does not exist"]),
     ("yaml-invalid", "build-T", None, ["not valid YAML"]),
     ("yaml-not-mapping", "build-T", None, ["mapping"]),
-    ("yaml-duplicate-key", "build-T", None, ["'workdir' is given twice"]),
+    ("yaml-duplicate-key", "build-T", None, ["duplicate key 'workdir'"]),
     ("unknown-top-key", "build-T", _cfg("sytem", {}), ["'sytem'", "unknown key"]),
     ("unknown-nested-key", "build-T", _cfg("system.camera.pixel_pitch", 0.1), ["system.camera.pixel_pitch"]),
     ("missing-lens", "build-T", _del("system.camera.lens"), ["system.camera.lens"]),
