@@ -31,32 +31,9 @@ def invoke(*args):
     return r, " ".join(r.output.split())  # messages are wrapped at 100 columns
 
 
-def base_config(base: Path) -> dict:
-    cfg = yaml.safe_load((ROOT / "configs" / "minimal.yaml").read_text())
-    cfg["workdir"] = str(base / "run")
-    cam = cfg["system"]["camera"]
-    cam["pixels"] = [24, 24]
-    cam["pixel_pitch_mm"] = 0.1
-    cfg["subject"] = {"surface": {"phantom": "cylinder", "radius_mm": 8, "length_mm": 24, "n_angular": 8, "n_axial": 3},
-                      "poses": {"heights_mm": [0, 5]}}
-    cfg["transfer"] = {"cache_dir": str(base / "cache"), "lens": {"lens_samples_min": 16}}
-    cfg["simulate"] = {"flux": {"kind": "gaussian", "width_mm": 4.0, "peak_photons": 1e6},
-                       "noise": {"model": "poisson", "peaks_photons": [1e6], "repeats": 1, "seed": 1}}
-    cfg["reconstruct"] = {"method": "nnls", "lambda": 0.0}
-    return cfg
-
-
 @pytest.fixture(scope="module")
-def base(tmp_path_factory):
-    """The artefacts of one good run: build-T, simulate, reconstruct."""
-    d = tmp_path_factory.mktemp("base")
-    cfg = base_config(d)
-    p = d / "cfg.yaml"
-    p.write_text(yaml.safe_dump(cfg))
-    for stage in ("build-T", "simulate", "reconstruct"):
-        r, out = invoke(stage, p, "-q")
-        assert r.exit_code == 0, out
-    return d, cfg
+def base(tiny_run):
+    return tiny_run[0], tiny_run[1]
 
 
 # ------------------------------------------------------------------ helpers making bad inputs
