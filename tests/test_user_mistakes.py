@@ -324,6 +324,21 @@ MISTAKES = [
     ("sweep-level-out-of-range", "reconstruct",
      lambda c, d, b: (put(c, "reconstruct.sweep", {"methods": [{"method": "nnls"}], "levels": [4]}), _own_run()(c, d, b)) and None,
      ["reconstruct.sweep.levels"]),
+    ("sweep-repeats-out-of-range", "reconstruct",
+     lambda c, d, b: (put(c, "reconstruct.sweep", {"methods": [{"method": "nnls"}], "repeats": 100}), _own_run()(c, d, b)) and None,
+     ["reconstruct.sweep.repeats"]),
+    ("sim-saturated-level", "reconstruct",
+     lambda c, d, b: (put(c, "simulate.noise", {"model": "emccd", "peaks_photons": [1e12]}),
+                      put(c, "system.camera.sensor", {"em_gain": 300}), put(c, "workdir", str(d / "run"))) and None,
+     ["reconstruct.level", "saturated"]),
+    ("poisson-level-too-high", "simulate", _cfg("simulate.noise.peaks_photons", [1e30]), ["simulate.noise.peaks_photons"]),
+    ("rotation-axis-zero", "build-T", _cfg("subject.rotation_axis", {"direction": [0, 0, 0]}),
+     ["subject.rotation_axis.direction"]),
+    ("rotation-nan", "build-T", _set("subject.poses.rotations_deg=[.nan]"), ["subject.poses.rotations_deg"]),
+    ("lens-samples-max-below-min", "build-T", _cfg("transfer.lens.lens_samples_max", 2), ["lens_samples_max"]),
+    ("too-many-surface-samples", "build-T",
+     _set("transfer.lens.surface_samples_per_pixel=1e5", "transfer.lens.max_surface_subdivisions=1000000"),
+     ["transfer.lens.surface_samples_per_pixel", "GB"]),
     ("sweep-without-truth", "reconstruct", _with_images_and_sweep, ["reconstruct.sweep"]),
     ("sim-corrupt-file", "reconstruct", _own_run(_garbage("simulation.h5")), ["simulation.h5", "not a readable HDF5"]),
     ("sim-missing-dataset", "reconstruct", _own_run(_drop_dataset("truth/power")), ["simulation.h5", "truth/power"]),
@@ -370,6 +385,9 @@ def test_user_mistake_exits_2_naming_the_key_or_file(case, base, tmp_path):
         p.write_text(yaml.safe_dump(cfg) + f"workdir: {tmp_path}\n")
     else:
         p.write_text(yaml.safe_dump(cfg))
+    if name == "sim-saturated-level":  # a saturated simulation, then its reconstruction
+        r, out = invoke("simulate", p, "-q")
+        assert r.exit_code == 0, out
     r, out = invoke(stage, p, *extra)
     assert r.exit_code == 2, out
     assert "Traceback" not in out, out
