@@ -592,6 +592,8 @@ def require(cfg: "LoadedConfig", stage: str, keys: tuple[str, ...] | list[str]) 
 def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -> LoadedConfig:
     """Read, override and validate a config; raise UserError with one clear paragraph."""
     path = Path(path)
+    if path.is_dir():
+        raise UserError(f"config file {path} is a folder; give the YAML file itself.")
     if not path.is_file():
         raise UserError(f"config file {path} does not exist.")
     try:

@@ -63,6 +63,7 @@ def check_writable(folder: Path, key: str) -> None:
 def check_folders(cfg: LoadedConfig, *, cache: bool = True) -> None:
     """The workdir (and the T cache) must be writable before a stage computes anything."""
     check_writable(cfg.workdir, "workdir")
+    A.clean_stale_temps(cfg.workdir)
     if cache:
         check_writable(cache_dir(cfg), "transfer.cache_dir" if cfg.model.transfer.cache_dir else "workdir")
 
@@ -224,6 +225,7 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
     tr = transfer or cfg.model.transfer
     views, placer, todo = plan(cfg, tr, unknowns)
     announce(ctx, placer)
+    A.clean_stale_temps(cache_dir(cfg))  # what killed runs left, even when nothing is rebuilt
     nx, ny = cfg.model.system.camera.pixels
     n_el = todo[0][0].surface.n_elements if todo else 0
     jobs = max(1, min(ctx.jobs, len(todo)))

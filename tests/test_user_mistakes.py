@@ -234,6 +234,7 @@ MISTAKES = [
     # --- the config file
     ("config-missing", "build-T", lambda c, d, b: ["--set", "x=1"] and None, ["does not exist"]),
     ("yaml-invalid", "build-T", None, ["not valid YAML"]),
+    ("config-is-a-folder", "build-T", None, ["is a folder"]),
     ("yaml-not-mapping", "build-T", None, ["mapping"]),
     ("yaml-duplicate-key", "build-T", None, ["duplicate key 'workdir'"]),
     ("unknown-top-key", "build-T", _cfg("sytem", {}), ["'sytem'", "unknown key"]),
@@ -353,6 +354,12 @@ MISTAKES = [
      ["img0.tif", "fluxmap:units = counts", "reconstruct.images.units"]),
     ("counts-without-sensor", "reconstruct", _images(dtype=np.uint16, units="counts", cfg_units="counts"),
      ["reconstruct.images.units", "system.camera.sensor"]),
+    ("image-integers-as-photons", "reconstruct",
+     lambda c, d, b: (write_image(d / "u0.tif", np.full((24, 24), 700, np.uint16)),
+                      write_image(d / "u1.tif", np.full((24, 24), 700, np.uint16)),
+                      put(c, "reconstruct.images", {"files": [str(d / "u0.tif"), str(d / "u1.tif")]}),
+                      put(c, "workdir", str(d / "run"))) and None,
+     ["u0.tif", "uint16", "reconstruct.images.units"]),
     ("image-all-nan", "reconstruct", _images(nan=True), ["img0.tif", "NaN"]),
     ("image-all-negative", "reconstruct", _images(value=-5.0), ["img0.tif", "positive"]),
     ("image-saturated", "reconstruct", _saturated, ["img0.tif", "saturated"]),
@@ -377,6 +384,8 @@ def test_user_mistake_exits_2_naming_the_key_or_file(case, base, tmp_path):
     p = tmp_path / "cfg.yaml"
     if name == "config-missing":
         p = tmp_path / "missing.yaml"
+    elif name == "config-is-a-folder":
+        p = tmp_path
     elif name == "yaml-invalid":
         p.write_text("system: [1,\n")
     elif name == "yaml-not-mapping":

@@ -27,7 +27,7 @@ from .. import artefacts as A
 from .. import config as C
 from ..errors import UserError
 from ..imaging import noise as N
-from ..imaging.imagefiles import read_image
+from ..imaging.imagefiles import read_image, sample_type
 from ..artefacts.transfer import load_T, load_view
 from ..inverse import backprojection, error_l1, reconstruct as solve, total_ratio
 from ..pipeline import check_folders, check_memory, emccd_model, ensure_T, geometry_of, plan, provenance
@@ -121,6 +121,11 @@ def _image_files(cfg: C.LoadedConfig, n_poses: int, poses: list | None) -> Input
             raise UserError(f"{where} is {img.shape[1]} x {img.shape[0]} pixels; the camera has {nx} x {ny} "
                             "(system.camera.pixels).")
         said = meta.get("fluxmap:units")
+        stored = sample_type(cfg.resolve(p))
+        if im.units == "photons" and stored.startswith(("uint", "int")) and not isinstance(said, str):
+            raise UserError(f"{where} stores {stored} integers, which are camera counts, but reconstruct.images.units "
+                            "is photons; set reconstruct.images.units: counts (with system.camera.sensor), or give "
+                            "photons as floating-point images.")
         if isinstance(said, str) and said != im.units:
             raise UserError(f"{where} holds {said} (its metadata says fluxmap:units = {said}), but "
                             f"reconstruct.images.units is {im.units}.")
