@@ -22,6 +22,8 @@ from typer.testing import CliRunner
 from fluxcli.cli import app
 from fluxcli.imaging.imagefiles import write_image
 
+from tiny_pipeline import tiny_run  # noqa: F401  (the session fixture)
+
 ROOT = Path(__file__).resolve().parents[1]
 runner = CliRunner()
 
