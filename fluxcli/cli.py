@@ -190,8 +190,43 @@ _stage_command("report", "report", """Figures, summary.json and a self-contained
     $ fluxmap report configs/paper-3d.yaml
     """)
 _stage_command("calibrate", None, """(Not built yet.) Derive the camera model from grid images.""")
-_stage_command("capture-surface", None, """(Not built yet.) Drive the rig (or its simulator) and capture the surface and images.""")
 
+
+@app.command("capture-surface")
+def capture_surface(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt,
+                    force: bool = typer.Option(False, "--force", help="Start the capture over (replaces capture.h5)."),
+                    resume: bool = typer.Option(False, "--resume", help="Continue capture.h5: take only the frames it lacks."),
+                    jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
+    """Drive the rig (or its simulators) and acquire the emission images of the plan in 'capture:'.
+
+    $ fluxmap capture-surface configs/demo-rig.yaml --resume
+    """
+    from functools import partial
+
+    from .stages import capture as stage
+
+    _run("capture-surface", partial(stage.run, resume=resume), config, set_, force, jobs, quiet)
+
+
+
+# --------------------------------------------------------------------------- fluxmap rig ... (issue 11)
+rig_app = typer.Typer(no_args_is_help=True, help="The rig's devices: simulators on the real wire protocols.")
+app.add_typer(rig_app, name="rig")
+STAGE_REQUIRES["rig serve"] = ("rig",)
+
+
+@rig_app.command("serve")
+def rig_serve(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt) -> None:
+    """Serve simulators of the devices in `rig` until SIGINT/SIGTERM.
+
+    Prints one line per device, `<device> <url-or-pty-path>`, then `ready`.  A port `pty`
+    makes a new pseudo terminal, `socket://HOST:PORT` listens there (PORT 0: any free port).
+
+    $ fluxmap rig serve configs/rig-sim.yaml
+    """
+    from .stages import rig_serve as stage
+
+    _run("rig serve", stage.run, config, set_, False, 1, False)
 
 @app.command("info")
 def info(artefact: Path = typer.Argument(..., help="An HDF5 artefact (transfer.h5, simulation.h5, a T-cache file, ...).",

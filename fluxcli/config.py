@@ -354,6 +354,12 @@ class ImageFiles(Model):
     exposure_s: float = Field(1.0, gt=0)
 
 
+class CaptureSource(Model):
+    capture: Path = Field(description="A capture artefact (capture.h5 of capture-surface): relative to the config file, else to the workdir.")
+    filter: str | None = Field(None, description="Whose frames to use, by filter name (default: the capture's only filter).")
+    exposure_s: float | None = Field(None, gt=0, description="Which exposure time's frames (s) (default: the capture's only one).")
+
+
 class Sweep(Model):
     methods: tuple[MethodSettings, ...] = Field(min_length=1, description="Methods compared in the study.")
     levels: tuple[int, ...] | None = Field(None, description="Signal-level indices (default all).")
@@ -369,7 +375,7 @@ class Reconstruct(Model):
     tol: float = Field(0.01, gt=0)
     n_iter: int = Field(500, ge=1)
     unknowns: Literal["elements", "sub_elements"] = "elements"
-    images: ImageFiles | None = Field(None, description="Images from files instead of simulation.h5.")
+    images: ImageFiles | CaptureSource | None = Field(None, description="Images from files, or from a capture, instead of simulation.h5.")
     level: int = Field(0, ge=0, description="Which signal level of the simulation to reconstruct.")
     repeat: int = Field(0, ge=0, description="Which noise repeat of the simulation to reconstruct.")
     noiseless: bool = Field(False, description="Reconstruct the simulation's noiseless images.")
@@ -396,6 +402,108 @@ class ReportSettings(Model):
     surface_views: bool = Field(True, description="Render the flux on the 3-D surface (pyvista, off-screen).")
 
 
+# --------------------------------------------------------------------------- rig (issue 11)
+class RigFault(Model):
+    kind: Literal["no_reply", "late_reply", "garbage", "drop", "error_reply", "stall", "wrong_position"] = Field(
+        description="What the simulated device does wrong.")
+    on: str = Field("*", description="Which command: '*', an FW102C command prefix ('pos=') or an APT message ('MOT_MOVE_ABSOLUTE', '0x0453').")
+    count: int = Field(1, ge=0, description="How many times it happens (0: every time).")
+    after: int = Field(0, ge=0, description="Let this many matching commands through first.")
+    delay_s: float = Field(0.0, ge=0, description="late_reply: how late (s); stall: how long it hangs (0: for ever).")
+    offset: float = Field(1.0, description="wrong_position: how far off (wheel positions, or mm for the stage).")
+
+
+class RigFilterWheel(Model):
+    port: str = Field(description="Serial port or pyserial URL (/dev/ttyUSB0, socket://HOST:PORT); 'pty' or 'socket://127.0.0.1:0' for a simulator.")
+    positions: Literal[6, 12] = Field(6, description="Number of wheel positions (the wheel's pcount).")
+    filters: dict[str, int] = Field(default_factory=dict, description="Filter name -> wheel position (1..positions).")
+    timeout_s: float = Field(2.0, gt=0, description="Bound on a reply that is not a move (s).")
+    faults: tuple[RigFault, ...] = Field((), description="Faults the simulator injects (tests, rehearsals).")
+
+    @model_validator(mode="after")
+    def _check(self) -> "RigFilterWheel":
+        for name, pos in self.filters.items():
+            if not 1 <= pos <= self.positions:
+                raise ValueError(f"filter {name!r} is at position {pos}, outside 1..{self.positions}")
+        return self
+
+
+class RigStage(Model):
+    port: str = Field(description="Serial port or pyserial URL; 'pty' or 'socket://127.0.0.1:0' for a simulator.")
+    counts_per_mm: float = Field(gt=0, description="Controller microsteps per mm (unverified for the L490MZ: 134737 or 2155789).")
+    travel_mm: tuple[float, float] = Field((0.0, 50.0), description="Allowed heights [low, high] (mm); moves outside are refused.")
+    velocity_mm_s: float = Field(0.5, gt=0, le=1.1, description="Move velocity set at connect (mm/s).")
+    acceleration_mm_s2: float = Field(0.5, gt=0, description="Move acceleration set at connect (mm/s^2).")
+    velocity_scale: float = Field(53.68, gt=0, description="Device velocity units per microstep/s (unverified; Trinamic 53.68).")
+    acceleration_scale: float = Field(1 / 90.9, gt=0, description="Device acceleration units per microstep/s^2 (unverified; Trinamic 1/90.9).")
+    channel: int = Field(1, ge=1, description="Motor channel.")
+    timeout_s: float = Field(2.0, gt=0, description="Bound on a reply that is not a move (s).")
+    faults: tuple[RigFault, ...] = Field((), description="Faults the simulator injects (tests, rehearsals).")
+
+    @field_validator("travel_mm")
+    @classmethod
+    def _travel(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if v[0] >= v[1]:
+            raise ValueError("travel_mm must be [low, high] with low < high")
+        return v
+
+
+class FilterLight(Model):
+    wavelength_nm: int | None = Field(None, description="Simulated camera: the wavelength whose simulate.flux.optical properties apply behind this filter (diffusion truths; default simulate's own).")
+    transmission: float = Field(1.0, ge=0, le=1, description="Simulated camera: fraction of the emission the filter passes.")
+
+
+class RigCamera(Model):
+    backend: Literal["simulated", "dcam"] = Field("simulated", description="simulated (default) or dcam (optional extra, the real camera).")
+    binning: int = Field(1, ge=1, description="Binning set on the camera; system.camera.pixels/pixel_pitch_mm describe the binned image (the ImagEM: 4).")
+    filters: dict[str, FilterLight] = Field(default_factory=dict, description="Simulated camera: what reaches the sensor behind each filter (by name); unlisted filters pass simulate's truth unchanged.")
+    setpoint_c: float = Field(-65.0, description="Sensor temperature with the cooler on (deg C); dark_current_e_per_s holds there.")
+    ambient_c: float = Field(20.0, description="Simulated camera: sensor temperature with the cooler off (deg C).")
+    dark_doubling_c: float = Field(6.3, gt=0, description="Simulated camera: dark current doubles per this many deg C.")
+    em_gain_range: tuple[float, float] = Field((1.0, 1200.0), description="EM gains the camera accepts [low, high] (unverified: x4-x1200 for the ImagEM).")
+    device_index: int = Field(0, ge=0, description="dcam: which DCAM camera (0 = first).")
+    shutter_property: str | None = Field(None, description="dcam: name of the DCAM property that closes a shutter for dark frames (unverified; none: darks refused).")
+
+
+class Rig(Model):
+    time_scale: float = Field(1.0, gt=0, description="Simulated device timing x this (tests use less); drivers scale their move timeouts by it.")
+    filter_wheel: RigFilterWheel | None = Field(None, description="The FW102C filter wheel.")
+    stage: RigStage | None = Field(None, description="The L490MZ lab jack (APT).")
+    camera: RigCamera | None = Field(None, description="The EMCCD.")
+
+
+# --------------------------------------------------------------------------- capture (acquisition)
+class Capture(Model):
+    """The acquisition plan of ``fluxmap capture-surface``: darks first, then per height, per filter, repeats."""
+
+    heights_mm: tuple[float, ...] = Field(min_length=1, description="Stage heights to image at (mm), in this order.")
+    filters: tuple[str, ...] = Field(("open",), min_length=1, description="Filter names (keys of rig.filter_wheel.filters), in this order.")
+    exposure_s: float | tuple[float, ...] = Field(1.0, description="Exposure time (s), or several: each height and filter is taken at each.")
+    em_gain: float = Field(300.0, ge=1, description="EM gain of every frame.")
+    repeats: int = Field(1, ge=1, description="Frames per height and filter.")
+    darks: int = Field(4, ge=0, description="Dark frames (shutter closed, same exposure and gain), taken first.")
+    seed: int = Field(0, ge=0, description="Simulated camera: frame k's noise comes from the seed (seed, k).")
+
+    @field_validator("heights_mm", "filters")
+    @classmethod
+    def _distinct(cls, v):
+        if len(set(v)) != len(v):
+            raise ValueError("list the same value only once (use repeats for more frames)")
+        return v
+
+    @field_validator("exposure_s")
+    @classmethod
+    def _exposures(cls, v):
+        many = v if isinstance(v, tuple) else (v,)
+        if not many or min(many) <= 0 or len(set(many)) != len(many):
+            raise ValueError("give one or more distinct positive exposure times (s)")
+        return v
+
+    @property
+    def exposures_s(self) -> tuple[float, ...]:
+        return tuple(self.exposure_s) if isinstance(self.exposure_s, tuple) else (float(self.exposure_s),)
+
+
 # --------------------------------------------------------------------------- top level
 class Config(Model):
     workdir: Path | None = Field(None, description="Output folder (default runs/<config name>), relative to the config file.")
@@ -409,8 +517,8 @@ class Config(Model):
     reconstruct: Reconstruct = Reconstruct()
     report: ReportSettings = ReportSettings()
     calibrate: dict[str, Any] | None = None
-    capture: dict[str, Any] | None = None
-    rig: dict[str, Any] | None = None
+    capture: Capture | None = Field(None, description="The acquisition plan of capture-surface.")
+    rig: Rig | None = Field(None, description="The devices of the rig (issue 11).")
 
 
 class LoadedConfig:
@@ -453,6 +561,25 @@ def _override_value(item: str, value: str) -> Any:
         why = _yaml_problem(e)
         raise UserError(f"--set {item!r}: the value {value!r} is not valid YAML ({why}); quote lists and "
                         "mappings for the shell, e.g. --set 'subject.poses.heights_mm=[0, 10]'.") from None
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """safe_load, but a key given twice in one mapping is an error (YAML keeps the last silently)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen: dict = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                hash(key)
+            except TypeError:
+                continue
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"duplicate key: {key!r} is given twice (lines {seen[key] + 1} and {key_node.start_mark.line + 1})",
+                    key_node.start_mark)
+            seen[key] = key_node.start_mark.line
+        return super().construct_mapping(node, deep=deep)
 
 
 def _apply_override(raw: dict[str, Any], item: str) -> None:
@@ -520,7 +647,7 @@ def _format_validation_error(err: ValidationError, path: Path, raw: Any = None) 
 # pydantic puts union member names into error locations; they are not keys the user wrote.
 _UNION_TAGS = {"cylinder", "ring", "sphere", "patch", "MeshSurface", "ArtefactSurface",
                "gaussian", "uniform", "file", "diffusion", "float", "literal['auto']",
-               "function-after[_check(), Lens]", "tagged-union[CylinderPhantom,RingPhantom,SpherePhantom,PatchPhantom]"}
+               "function-after[_check(), Lens]", "ImageFiles", "CaptureSource", "tagged-union[CylinderPhantom,RingPhantom,SpherePhantom,PatchPhantom]"}
 
 
 def _camera_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
@@ -561,22 +688,6 @@ def _merge(base: dict, over: dict) -> dict:
     return out
 
 
-class _UniqueKeyLoader(yaml.SafeLoader):
-    """safe_load that refuses a key given twice in one mapping (YAML keeps the last silently)."""
-
-    def construct_mapping(self, node, deep=False):
-        seen = set()
-        for key_node, _ in node.value:
-            key = self.construct_object(key_node, deep=deep)
-            try:
-                hashable = key in seen
-            except TypeError:
-                continue
-            if hashable:
-                raise yaml.constructor.ConstructorError(
-                    None, None, f"duplicate key {key!r} (given twice in one section)", key_node.start_mark)
-            seen.add(key)
-        return super().construct_mapping(node, deep=deep)
 
 
 def require(cfg: "LoadedConfig", stage: str, keys: tuple[str, ...] | list[str]) -> None:

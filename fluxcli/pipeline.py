@@ -271,6 +271,19 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
     return views, placer, todo, results
 
 
+def ensure_pose_T(cfg: LoadedConfig, pose: Pose, transfer: Transfer | None = None,
+                  placer: SubjectPlacer | None = None):
+    """T (CSR) of one pose that need not be in ``subject.poses`` (the simulated rig renders
+    at the stage's physical height), from the T cache or built and cached."""
+    tr = transfer or cfg.model.transfer
+    views = views_from_config(cfg.model.system)
+    scene = (placer or SubjectPlacer(cfg)).scene(pose, cfg.model.system)
+    path = AT.entry_path(cache_dir(cfg), A.cache_key(key_parts(scene, views, tr)))
+    if not path.is_file():
+        _build_and_store(scene, views, tr, path, cfg.sha256, provenance(cfg))
+    return AT.load_T(path)
+
+
 def check_collection(todo, results: dict, view_names: list[str], ctx) -> None:
     """Refuse a pose no view collects light from; warn about views that barely see the subject."""
     def finite(x):

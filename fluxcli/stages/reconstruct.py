@@ -53,10 +53,50 @@ def _simulation(cfg: C.LoadedConfig) -> Path:
     return path
 
 
+def _capture_path(cfg: C.LoadedConfig) -> Path:
+    p = cfg.model.reconstruct.images.capture
+    first = cfg.resolve(p)
+    return first if first.is_file() or p.is_absolute() else cfg.workdir / p
+
+
+def _from_capture(cfg: C.LoadedConfig, n_elements: int) -> Inputs:
+    """One image per pose (= stage height) from a capture: darks subtracted, counts -> photons."""
+    from ..acquisition import read_capture
+    from ..scene import poses_from_config
+
+    path = _capture_path(cfg)
+    src = cfg.model.reconstruct.images
+    cap = read_capture(path, src.filter, src.exposure_s)
+    order = cap.pose_order([p.height_mm for p in poses_from_config(cfg.model.subject)])
+    photons, valid = cap.photons(emccd_model(cfg.model.system.camera.sensor, cap.exposure_s))
+    nx, ny = cfg.model.system.camera.pixels
+    if photons.shape[1:] != (ny, nx):
+        raise UserError(f"reconstruct.images.capture: {path} holds {photons.shape[2]} x {photons.shape[1]} pixel "
+                        f"frames; system.camera.pixels is {nx} x {ny}.")
+    truth = cap.truth_power if cap.truth_power is not None and len(cap.truth_power) == n_elements else None
+    return Inputs(photons[order], valid[order] & np.isfinite(photons[order]), truth,
+                  f"{path} filter {cap.filter}, {cap.repeats} repeat(s) averaged, {cap.n_darks} dark(s) subtracted",
+                  files={"capture.h5": path})
+
+
+def _image_sources(cfg: C.LoadedConfig) -> list[str]:
+    """sha256 of the image files reconstruct reads (what makes its output stale)."""
+    rc = cfg.model.reconstruct
+    if isinstance(rc.images, C.CaptureSource):
+        p = _capture_path(cfg)
+        return [A.file_sha256(p)] if p.is_file() else []
+    if rc.images is not None:
+        return [A.file_sha256(cfg.resolve(p)) for p in rc.images.files if cfg.resolve(p).is_file()]
+    sim = cfg.workdir / "simulation.h5"
+    return [A.file_sha256(sim)] if sim.is_file() else []
+
+
 def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int, surface_sha256: str | None = None,
                 poses: list | None = None) -> Inputs:
     rc = cfg.model.reconstruct
     nx, ny = cfg.model.system.camera.pixels
+    if isinstance(rc.images, C.CaptureSource):
+        return _from_capture(cfg, n_elements)
     if rc.images is not None:
         return _image_files(cfg, n_poses, poses)
     path = _simulation(cfg)
@@ -278,9 +318,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     check_folders(cfg)
     out = cfg.workdir / "reconstruction.h5"
     m_ = cfg.model
-    sources = ([A.file_sha256(cfg.resolve(p)) for p in rc.images.files if cfg.resolve(p).is_file()]
-               if rc.images is not None else
-               [A.file_sha256(cfg.workdir / "simulation.h5")] if (cfg.workdir / "simulation.h5").is_file() else [])
+    sources = _image_sources(cfg)
     digest = A.inputs_digest(system=m_.system.model_dump(mode="json"), subject=m_.subject.model_dump(mode="json"),
                              transfer=m_.transfer.model_dump(mode="json"),
                              reconstruct=rc.model_dump(mode="json", by_alias=True), images=sources)
@@ -397,7 +435,7 @@ def _write_geometry(g, cfg: C.LoadedConfig, placer, views, todo) -> None:
     g.attrs["camera_up"] = np.asarray(cam.pose.up, float)
     g.attrs["view_names"] = json.dumps([v.name for v in views])
     g.attrs["T_files"] = json.dumps([str(pt.path) for _, pt in todo])
-    files = cfg.model.reconstruct.images.files if cfg.model.reconstruct.images is not None else None
+    files = getattr(cfg.model.reconstruct.images, "files", None)  # image files (not a capture)
     g.attrs["image_files"] = json.dumps([str(cfg.resolve(p)) for p in files] if files else [])
 
 
