@@ -238,7 +238,7 @@ MISTAKES = [
     ("yaml-invalid", "build-T", None, ["not valid YAML"]),
     ("config-is-a-folder", "build-T", None, ["is a folder"]),
     ("yaml-not-mapping", "build-T", None, ["mapping"]),
-    ("yaml-duplicate-key", "build-T", None, ["duplicate key 'workdir'"]),
+    ("yaml-duplicate-key", "build-T", None, ["duplicate key", "'workdir'"]),
     ("unknown-top-key", "build-T", _cfg("sytem", {}), ["'sytem'", "unknown key"]),
     ("unknown-nested-key", "build-T", _cfg("system.camera.pixel_pitch", 0.1), ["system.camera.pixel_pitch"]),
     ("missing-lens", "build-T", _del("system.camera.lens"), ["system.camera.lens"]),
