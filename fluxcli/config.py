@@ -617,7 +617,9 @@ _SURFACE_MEMBERS = {"phantom": ("MeshSurface", "ArtefactSurface"), "mesh": ("Art
 
 def _relevant(errors: list, raw: Any) -> list:
     """Drop errors from union members the user did not choose (a phantom with a bad radius
-    is not also 'missing its mesh key')."""
+    is not also 'missing its mesh key'), and a list's 'too short' when one of its items failed."""
+    items = {tuple(e["loc"][:-1]) for e in errors if e["loc"] and isinstance(e["loc"][-1], int)}
+    errors = [e for e in errors if not (e["type"] == "too_short" and tuple(e["loc"]) in items)]
     surf = raw.get("subject", {}).get("surface") if isinstance(raw, dict) and isinstance(raw.get("subject"), dict) else None
     if not isinstance(surf, dict):
         return errors
