@@ -237,3 +237,20 @@ def test_radiometric_only_config_writes_the_sensor_block(tmp_path):
 
     with h5py.File(tmp_path / "out" / "calibration.h5", "r") as f:
         assert "radiometric" in f and "geometric" not in f
+
+
+def test_grid_and_radiometric_together_give_one_camera_block(grid_set, tmp_path):
+    _, _, files, _ = grid_set
+    sec = _radiometric_frames(tmp_path, shape=(128, 128))
+    p = _config(tmp_path, files)
+    cfg = yaml.safe_load(p.read_text())
+    cfg["calibrate"]["radiometric"] = sec
+    cfg["system"]["camera"]["apertures"] = [{"distance_mm": 30.0, "diameter_mm": 25.0}]
+    p.write_text(yaml.safe_dump(cfg))
+    r = _run(p)
+    assert r.exit_code == 0, r.output
+    from fluxcli.config import Camera
+
+    cam = Camera.model_validate(yaml.safe_load((tmp_path / "out" / "camera.yaml").read_text())["camera"])
+    assert cam.lens is not None and cam.pose is not None and cam.apertures
+    assert abs(cam.sensor.electrons_per_count / 6.0 - 1) < 0.1
