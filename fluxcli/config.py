@@ -20,7 +20,7 @@ Vec3 = tuple[float, float, float]
 
 
 class Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # NaN/inf: never a length
 
 
 def _unit(v: Vec3, what: str) -> Vec3:
@@ -195,6 +195,12 @@ class RotationAxis(Model):
     point_mm: Vec3 | None = Field(None, description="A point on the axis (default: the subject's centre).")
     direction: Vec3 = Field((1.0, 0.0, 0.0), description="Axis direction.")
 
+    @field_validator("direction")
+    @classmethod
+    def _direction(cls, v: Vec3) -> Vec3:
+        _unit(v, "direction")
+        return v
+
 
 class Poses(Model):
     heights_mm: tuple[float, ...] = Field((0.0,), min_length=1, description="Stage heights h (mm).")
@@ -216,6 +222,16 @@ class LensSampling(Model):
     lens_samples_min: int = Field(32, ge=1, description="Lens samples per surface point, at least.")
     lens_samples_max: int = Field(2048, ge=1, description="Lens samples per surface point, at most.")
     lens_samples_per_blur_pixel: float = Field(4.0, gt=0, description="Lens samples per pixel of blur-disk area.")
+
+    @model_validator(mode="after")
+    def _ranges(self) -> "LensSampling":
+        if self.lens_samples_max < self.lens_samples_min:
+            raise ValueError(f"lens_samples_max ({self.lens_samples_max}) must be at least lens_samples_min "
+                             f"({self.lens_samples_min})")
+        if self.max_surface_subdivisions < self.min_surface_subdivisions:
+            raise ValueError(f"max_surface_subdivisions ({self.max_surface_subdivisions}) must be at least "
+                             f"min_surface_subdivisions ({self.min_surface_subdivisions})")
+        return self
 
 
 class PairwiseSampling(Model):
@@ -341,7 +357,7 @@ class MethodSettings(Model):
     unknowns: Literal["elements", "sub_elements"] = Field(
         "elements", description="Solve per element, or per sub-element (phantom strips, else faces) summed per element.")
 
-    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True, allow_inf_nan=False)
 
     @field_validator("lam")
     @classmethod
@@ -362,6 +378,13 @@ class ImageFiles(Model):
     units: Literal["photons", "counts"] = Field("photons", description="counts are converted with system.camera.sensor.")
     exposure_s: float = Field(1.0, gt=0, description="Exposure of the images (s); when given, results are also reported as rates "
                               "(photons/s) and radiance (photons/s/cm^2/sr).")
+    calibration: Path | None = Field(None, description="calibration.h5 whose /radiometric bias, dark and flat maps are applied to counts (units: counts).")
+
+    @model_validator(mode="after")
+    def _check(self) -> "ImageFiles":
+        if self.calibration is not None and self.units != "counts":
+            raise ValueError("calibration (bias, dark and flat maps) applies to images in counts; set units: counts")
+        return self
 
 
 class CaptureSource(Model):
@@ -395,7 +418,7 @@ class Reconstruct(Model):
     read_noise_photons: float = Field(0.0, ge=0, description="Added to the shot-noise variance in weights (photons rms).")
     sweep: Sweep | None = Field(None, description="A study: every level x repeat x pose for each method.")
 
-    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True, allow_inf_nan=False)
 
     @field_validator("lam")
     @classmethod
@@ -412,6 +435,72 @@ class ReportSettings(Model):
     title: str | None = Field(None, description="Page title (default: the config's name).")
     slice_axial_mm: float = Field(0.0, description="Where along the subject's axis (from its centre) to cut the circumference slice (mm).")
     surface_views: bool = Field(True, description="Render the flux on the 3-D surface (pyvista, off-screen).")
+
+
+# --------------------------------------------------------------------------- calibrate: radiometric
+class RadiometricPTCLevel(Model):
+    files: tuple[Path, ...] = Field(min_length=2, description="Two or more frames at one illumination and exposure (counts); consecutive frames are paired (1st-2nd, 3rd-4th, ...).")
+    exposure_s: float = Field(gt=0, description="Exposure of these frames (s).")
+    em_gain_on: bool = Field(False, description="Whether the EM gain was on (the camera's working gain) or off (conventional readout).")
+    illumination: str = Field("", description="Label of the light-source setting: gain-on and gain-off levels with the same label are compared per second of exposure to measure the EM gain.")
+
+
+class RadiometricDarks(Model):
+    files: tuple[Path, ...] = Field(min_length=1, description="Dark frames (no light) at one exposure (counts).")
+    exposure_s: float = Field(gt=0, description="Exposure of these frames (s).")
+    em_gain_on: bool = Field(True, description="Whether the EM gain was on (then converted with the measured gain).")
+
+
+class Radiometric(Model):
+    bias: tuple[Path, ...] = Field(min_length=2, description="Bias frames: no light, shortest exposure, EM gain off (counts); consecutive pairs give the read noise.")
+    ptc: tuple[RadiometricPTCLevel, ...] = Field(min_length=2, description="Photon-transfer series: at least two gain-off levels (electrons per count); gain-on levels give the EM gain.")
+    darks: tuple[RadiometricDarks, ...] = Field((), description="Dark frames per exposure; two or more exposures separate dark current from clock-induced charge.")
+    flats: tuple[Path, ...] = Field((), description="Flat frames of the evenly lit bare sensor, EM gain off (counts): the pixel-response map.")
+    saturation_counts: float = Field(65535.0, gt=0, description="Pixels at or above this (counts) are left out of the PTC.")
+    excess_noise_factor_squared: float = Field(2.0, ge=1, le=2, description="F^2 of the EM register assumed for the gain-on PTC slope (2 at high gain).")
+    gain_tolerance: float = Field(0.1, gt=0, description="Warn when the ratio and PTC EM gains differ by more than this fraction.")
+
+    @model_validator(mode="after")
+    def _check(self) -> "Radiometric":
+        if len([lv for lv in self.ptc if not lv.em_gain_on]) < 2:
+            raise ValueError("ptc needs at least two levels with em_gain_on: false (the gain-off curve gives electrons per count)")
+        if any(d.em_gain_on for d in self.darks) and not any(lv.em_gain_on for lv in self.ptc):
+            raise ValueError("darks taken with em_gain_on need ptc levels with em_gain_on: true to measure the EM gain")
+        return self
+
+
+# --------------------------------------------------------------------------- calibrate: geometric
+class CalibrationGrid(Model):
+    kind: Literal["dots", "checkerboard"] = Field("dots", description="dots (a regular dot grid) or checkerboard (its inner corners are the points).")
+    pitch_mm: float = Field(gt=0, description="Distance between neighbouring grid points (mm).")
+    shape: tuple[int, int] = Field(description="Points along x and along y [nx, ny] (checkerboard: inner corners).")
+
+    @field_validator("shape")
+    @classmethod
+    def _shape(cls, v: tuple[int, int]) -> tuple[int, int]:
+        if min(v) < 2:
+            raise ValueError("shape must be two integers [nx, ny], each 2 or more")
+        return v
+
+
+class CalibrationImage(Model):
+    file: Path = Field(description="Image of the grid lying flat (TIFF/FITS/EXR; counts or photons), relative to the config.")
+    plane_z_mm: float = Field(description="World z of the grid plane in this image (mm); the world frame is the grid's.")
+
+
+class Calibrate(Model):
+    grid: CalibrationGrid | None = Field(None, description="The target: world point (i, j) at ((i-(nx-1)/2) pitch, (j-(ny-1)/2) pitch, plane_z_mm).")
+    images: tuple[CalibrationImage, ...] = Field((), description="The grid at five or more known heights through and around focus.")
+    refine_mirrors: bool = Field(True, description="Refine the planes of system.mirrors from the grid seen in each mirror.")
+    radiometric: Radiometric | None = Field(None, description="Bias, dark, flat and photon-transfer frames: the sensor block.")
+
+    @model_validator(mode="after")
+    def _check(self) -> "Calibrate":
+        if (self.grid is None) != (len(self.images) == 0):
+            raise ValueError("give both grid and images (geometric calibration), or neither")
+        if self.grid is None and self.radiometric is None:
+            raise ValueError("give grid and images (geometric), radiometric, or both")
+        return self
 
 
 # --------------------------------------------------------------------------- rig (issue 11)
@@ -528,7 +617,7 @@ class Config(Model):
     simulate: Simulate | None = Field(None, description="Ground truth and images for 'fluxmap simulate'.")
     reconstruct: Reconstruct = Field(Reconstruct(), description="Settings of 'fluxmap reconstruct'.")
     report: ReportSettings = Field(ReportSettings(), description="Settings of 'fluxmap report'.")
-    calibrate: dict[str, Any] | None = Field(None, description="Settings of 'fluxmap calibrate' (placeholder until it is built).")
+    calibrate: Calibrate | None = Field(None, description="Settings of 'fluxmap calibrate': grid images, radiometric frames.")
     capture: Capture | None = Field(None, description="The acquisition plan of capture-surface.")
     rig: Rig | None = Field(None, description="The devices of the rig (issue 11).")
 
@@ -629,7 +718,9 @@ _SURFACE_MEMBERS = {"phantom": ("MeshSurface", "ArtefactSurface"), "mesh": ("Art
 
 def _relevant(errors: list, raw: Any) -> list:
     """Drop errors from union members the user did not choose (a phantom with a bad radius
-    is not also 'missing its mesh key')."""
+    is not also 'missing its mesh key'), and a list's 'too short' when one of its items failed."""
+    items = {tuple(e["loc"][:-1]) for e in errors if e["loc"] and isinstance(e["loc"][-1], int)}
+    errors = [e for e in errors if not (e["type"] == "too_short" and tuple(e["loc"]) in items)]
     surf = raw.get("subject", {}).get("surface") if isinstance(raw, dict) and isinstance(raw.get("subject"), dict) else None
     if not isinstance(surf, dict):
         return errors
@@ -693,6 +784,24 @@ def _camera_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
     system["camera"] = _merge(loaded["camera"], overrides)
 
 
+def _mirrors_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
+    """``system.mirrors: calib/camera.yaml`` takes the file's top-level ``mirrors:`` list (refined by calibrate)."""
+    system = raw.get("system")
+    if not isinstance(system, dict) or not isinstance(system.get("mirrors"), str):
+        return
+    ref = system["mirrors"]
+    file = Path(ref) if Path(ref).is_absolute() else (base_dir / ref).resolve()
+    if not file.is_file():
+        raise UserError(f"config {path}: 'system.mirrors': file {file} does not exist.")
+    try:
+        loaded = yaml.load(file.read_text(), Loader=_UniqueKeyLoader)
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise UserError(f"config {path}: 'system.mirrors': file {file} is not valid YAML: {e}".replace("\n", " ")) from None
+    if not isinstance(loaded, dict) or not isinstance(loaded.get("mirrors"), list):
+        raise UserError(f"config {path}: 'system.mirrors': file {file} has no top-level 'mirrors:' list.")
+    system["mirrors"] = loaded["mirrors"]
+
+
 def _merge(base: dict, over: dict) -> dict:
     out = dict(base)
     for k, v in over.items():
@@ -715,6 +824,8 @@ def require(cfg: "LoadedConfig", stage: str, keys: tuple[str, ...] | list[str]) 
 def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -> LoadedConfig:
     """Read, override and validate a config; raise UserError with one clear paragraph."""
     path = Path(path)
+    if path.is_dir():
+        raise UserError(f"config file {path} is a folder; give the YAML file itself.")
     if not path.is_file():
         raise UserError(f"config file {path} does not exist.")
     try:
@@ -726,6 +837,7 @@ def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -
     if not isinstance(raw, dict):
         raise UserError(f"config file {path} must hold a mapping of keys (workdir, system, subject, ...).")
     _camera_from_file(raw, path.resolve().parent, path)
+    _mirrors_from_file(raw, path.resolve().parent, path)
     for item in overrides:
         _apply_override(raw, item)
     try:
