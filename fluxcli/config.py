@@ -386,6 +386,7 @@ class RadiometricDarks(Model):
 
 
 class Radiometric(Model):
+    directory: Path | None = Field(None, description="Folder the frame file names below are relative to (itself relative to the config file); default the config's folder.")
     bias: tuple[Path, ...] = Field(min_length=2, description="Bias frames: no light, shortest exposure, EM gain off (counts); consecutive pairs give the read noise.")
     ptc: tuple[RadiometricPTCLevel, ...] = Field(min_length=2, description="Photon-transfer series: at least two gain-off levels (electrons per count); gain-on levels give the EM gain.")
     darks: tuple[RadiometricDarks, ...] = Field((), description="Dark frames per exposure; two or more exposures separate dark current from clock-induced charge.")

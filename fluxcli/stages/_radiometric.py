@@ -45,13 +45,15 @@ SCALARS = {  # attribute of /radiometric -> unit
 
 
 def section_files(section: C.Radiometric) -> list[Path]:
-    """Every file the section names (as written in the config), for input digests."""
+    """Every file the section names, relative to the config file (as ``resolve`` takes
+    them), for input digests."""
     files = [*section.bias, *section.flats]
     for level in section.ptc:
         files += level.files
     for dark in section.darks:
         files += dark.files
-    return list(files)
+    folder = Path(section.directory) if section.directory is not None else Path()
+    return [folder / f for f in files]
 
 
 def _read_frames(files, key: str, resolve: Callable[[Path], Path], shape: list) -> np.ndarray:
@@ -92,6 +94,9 @@ def run_radiometric(section: C.Radiometric, resolve: Callable[[Path], Path], ctx
     -------
     fluxcli.calibration.radiometry.RadiometricResult
     """
+    if section.directory is not None:
+        folder, outer = Path(section.directory), resolve
+        resolve = lambda name: outer(folder / name)  # noqa: E731
     shape: list = [tuple(expected_shape) if expected_shape is not None else None,
                    "system.camera.pixels" if expected_shape is not None else f"{KEY}.bias[0]"]
     bias = _read_frames(section.bias, "bias", resolve, shape)
