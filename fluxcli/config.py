@@ -88,8 +88,8 @@ class Sensor(Model):
 class Camera(Model):
     pixels: tuple[int, int] = Field(description="Sensor size [nx, ny] in (binned) pixels: columns, rows.")
     pixel_pitch_mm: float = Field(gt=0, description="(Binned) pixel pitch on the detector (mm).")
-    lens: Lens
-    pose: CameraPose
+    lens: Lens | None = Field(None, description="The thin lens (required by every stage but calibrate, which derives it).")
+    pose: CameraPose | None = Field(None, description="Where the camera is and where it looks (required by every stage but calibrate).")
     apertures: tuple[Aperture, ...] = Field((), description="Extra circular apertures in front of the lens (the beta term).")
     sensor: Sensor = Field(Sensor(), description="Detector model used to turn photons into counts.")
 
@@ -407,8 +407,10 @@ class Radiometric(Model):
 # --------------------------------------------------------------------------- top level
 class Config(Model):
     workdir: Path | None = Field(None, description="Output folder (default runs/<config name>), relative to the config file.")
-    system: System
-    subject: Subject
+    # Optional at schema level: each stage states what it needs (fluxcli.cli.STAGE_REQUIRES), so
+    # `calibrate` runs without a lens or subject and `rig serve` with only `rig`.
+    system: System | None = None
+    subject: Subject | None = None
     transfer: Transfer = Transfer()
     # Sections of stages that validate their own keys when they are built.
     simulate: Simulate | None = None
@@ -416,6 +418,7 @@ class Config(Model):
     report: ReportSettings = ReportSettings()
     calibrate: dict[str, Any] | None = None
     capture: dict[str, Any] | None = None
+    rig: dict[str, Any] | None = None
 
 
 class LoadedConfig:
@@ -493,17 +496,84 @@ _UNION_TAGS = {"cylinder", "ring", "sphere", "patch", "MeshSurface", "ArtefactSu
                "function-after[_check(), Lens]", "tagged-union[CylinderPhantom,RingPhantom,SpherePhantom,PatchPhantom]"}
 
 
+def _camera_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
+    """Resolve ``system.camera`` given as a file (what ``calibrate`` writes as camera.yaml).
+
+    ``system.camera: calib/camera.yaml`` takes the file's top-level ``camera:`` block;
+    ``system.camera: {file: calib/camera.yaml, <key>: ...}`` does too, and the keys given beside
+    ``file`` replace the file's (sections are merged key by key)."""
+    system = raw.get("system")
+    if not isinstance(system, dict):
+        return
+    cam = system.get("camera")
+    if isinstance(cam, str):
+        ref, overrides = cam, {}
+    elif isinstance(cam, dict) and "file" in cam:
+        ref, overrides = cam["file"], {k: v for k, v in cam.items() if k != "file"}
+    else:
+        return
+    if not isinstance(ref, str) or not ref:
+        raise UserError(f"config {path}: 'system.camera.file' must be the path of a camera YAML file.")
+    file = Path(ref) if Path(ref).is_absolute() else (base_dir / ref).resolve()
+    if not file.is_file():
+        raise UserError(f"config {path}: 'system.camera': camera file {file} does not exist "
+                        f"(run `fluxmap calibrate` to make one, or give the camera block inline).")
+    try:
+        loaded = yaml.load(file.read_text(), Loader=_UniqueKeyLoader)
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise UserError(f"config {path}: 'system.camera': camera file {file} is not valid YAML: {e}".replace("\n", " ")) from None
+    if not isinstance(loaded, dict) or not isinstance(loaded.get("camera"), dict):
+        raise UserError(f"config {path}: 'system.camera': camera file {file} has no top-level 'camera:' block.")
+    system["camera"] = _merge(loaded["camera"], overrides)
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """safe_load that refuses a key given twice in one mapping (YAML keeps the last silently)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                hashable = key in seen
+            except TypeError:
+                continue
+            if hashable:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"duplicate key {key!r} (given twice in one section)", key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+def require(cfg: "LoadedConfig", stage: str, keys: tuple[str, ...] | list[str]) -> None:
+    """Refuse (exit 2) when a section the stage needs is absent, naming the first such key."""
+    for key in keys:
+        node: Any = cfg.model
+        for part in key.split("."):
+            node = getattr(node, part, None)
+            if node is None:
+                raise UserError(f"config {cfg.path}: '{stage}' needs '{key}', which the config does not give.")
+
+
 def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -> LoadedConfig:
     """Read, override and validate a config; raise UserError with one clear paragraph."""
     path = Path(path)
     if not path.is_file():
         raise UserError(f"config file {path} does not exist.")
     try:
-        raw = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
+        raw = yaml.load(path.read_text(), Loader=_UniqueKeyLoader)
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
         raise UserError(f"config file {path} is not valid YAML: {e}".replace("\n", " ")) from None
     if not isinstance(raw, dict):
         raise UserError(f"config file {path} must hold a mapping of keys (workdir, system, subject, ...).")
+    _camera_from_file(raw, path.resolve().parent, path)
     for item in overrides:
         _apply_override(raw, item)
     try:
@@ -511,7 +581,7 @@ def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -
     except ValidationError as e:
         raise UserError(_format_validation_error(e, path)) from None
     loaded = LoadedConfig(model, path.resolve(), raw)
-    surf = model.subject.surface
+    surf = model.subject.surface if model.subject is not None else None
     for attr in ("mesh", "artefact"):
         p = getattr(surf, attr, None)
         if p is not None and not loaded.resolve(p).is_file():
