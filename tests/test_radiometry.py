@@ -97,17 +97,21 @@ def _emccd_detect_frames(seed: int):
                            eperdn=truth["electrons_per_count"], nbits=16, row_read_time=0.0,
                            upstream_spill_prob=None, fast_gain_mode=False, gain_CIC_Q=0.0, fpn_path="roman")
 
-    np.random.seed(seed)  # emccd-detect draws from numpy's global generator
     off, on = camera(1.0), camera(truth["em_gain"])
 
     def frames(cam, flux, exposure_s, n):
         return np.array([cam.sim_sub_frame(np.full(shape, flux), exposure_s).astype(float) for _ in range(n)])
 
     rate = truth["photons_per_s"]
-    bias = frames(off, 0.0, 0.0, 4)
-    ptc = [R.PTCLevel(frames(off, rate, t, 2), t, False) for t in (1e-3, 3e-3, 0.01, 0.03, 0.1, 0.3)]
-    ptc += [R.PTCLevel(frames(on, rate, t, 2), t, True) for t in (3e-5, 1e-4, 3e-4)]
-    darks = [(frames(on, 0.0, t, 1), t, True) for t in (20.0, 80.0)]
+    state = np.random.get_state()
+    np.random.seed(seed)  # emccd-detect draws from numpy's global generator
+    try:
+        bias = frames(off, 0.0, 0.0, 4)
+        ptc = [R.PTCLevel(frames(off, rate, t, 2), t, False) for t in (1e-3, 3e-3, 0.01, 0.03, 0.1, 0.3)]
+        ptc += [R.PTCLevel(frames(on, rate, t, 2), t, True) for t in (3e-5, 1e-4, 3e-4)]
+        darks = [(frames(on, 0.0, t, 2), t, True) for t in (20.0, 80.0)]
+    finally:
+        np.random.set_state(state)
     return truth, bias, ptc, darks, off
 
 

@@ -394,9 +394,10 @@ def dark_current(frame_sets, exposures_s, bias_counts, electrons_per_count: floa
         raise ValueError("dark_current: exposures must be positive.")
     e_maps = np.array([(s.mean(axis=0) - bias) * electrons_per_count / g for s, g in zip(stacks, em_gains)])
     e_means = e_maps.mean(axis=(1, 2))
-    # sigma of each mean: temporal scatter of per-frame means (or pixel scatter for one frame)
+    # sigma of each mean: the temporal noise per pixel over all pixels and frames (with one
+    # frame, the pixel-to-pixel scatter, which also holds the fixed pattern: conservative)
     e_sig = np.array([
-        (np.std(s.mean(axis=(1, 2)), ddof=1) / math.sqrt(len(s)) if len(s) > 1 else s[0].std(ddof=1) / math.sqrt(s[0].size))
+        (math.sqrt(s.var(axis=0, ddof=1).mean() / s.size) if len(s) > 1 else s[0].std(ddof=1) / math.sqrt(s[0].size))
         * electrons_per_count / g for s, g in zip(stacks, em_gains)])
     e_sig = np.maximum(e_sig, 1e-12)
     if len(np.unique(t)) >= 2:
@@ -688,6 +689,13 @@ def calibrate_radiometric(
         (result.dark_current_e_per_s, result.dark_current_e_per_s_sigma, result.cic_e_per_pixel,
          result.cic_e_per_pixel_sigma, result.dark_e_per_s_map) = dark_current(
             [d[0] for d in darks], [d[1] for d in darks], bias_map, K, gains)
+        # the conversion to electrons scales with K / G: their uncertainties carry over
+        rel = math.hypot(K_sigma / K, (result.em_gain_sigma / result.em_gain)
+                         if any(d[2] for d in darks) and result.em_gain_sigma is not None else 0.0)
+        result.dark_current_e_per_s_sigma = math.hypot(result.dark_current_e_per_s_sigma,
+                                                       rel * abs(result.dark_current_e_per_s))
+        if result.cic_e_per_pixel is not None:
+            result.cic_e_per_pixel_sigma = math.hypot(result.cic_e_per_pixel_sigma, rel * abs(result.cic_e_per_pixel))
         if result.cic_e_per_pixel is None:
             warnings.append("dark frames at a single exposure: clock-induced charge is counted as dark current.")
     if flats is not None:
