@@ -25,7 +25,6 @@ import numpy as np
 
 __all__ = [
     "EMCCDModel",
-    "conventional_counts",
     "counts_to_photons",
     "emccd_counts",
     "expected_counts",
@@ -34,6 +33,7 @@ __all__ = [
     "max_snr",
     "poisson_shot",
     "saturated",
+    "conventional_counts",
 ]
 
 
