@@ -309,3 +309,29 @@ def test_reconstruct_applies_bias_and_flat_maps(write_config, minimal_config, tm
     cfg["reconstruct"] = {"images": {"files": ["seen.tif"], "calibration": "calibration.h5"}}
     r = _run("reconstruct", str(write_config(cfg)))
     assert r.exit_code == 2 and "units: counts" in " ".join(r.output.split())
+
+
+def test_saturated_levels_are_left_out_and_one_gain_on_level_still_gives_the_ratio():
+    model, bias, ptc, rng, shape = _small_fluxmap_series(seed=4)
+    # a gain-off level near full scale: about half its pixels saturate (16-bit ADC)
+    bright = np.array([N.conventional_counts(np.full(shape, 362_400.0), model, rng) for _ in range(2)])
+    assert 0.2 < (bright >= 65535).mean() < 0.8
+    r = R.calibrate_radiometric(bias=bias, ptc=ptc[:3] + [R.PTCLevel(bright, 3.624, False)] + ptc[3:4])
+    assert any("left out of the fit" in w for w in r.warnings)
+    assert len(r.ptc["em_gain_off"].mean_counts) == 3
+    assert r.electrons_per_count == pytest.approx(model.electrons_per_count, rel=0.05)
+    assert r.em_gain == pytest.approx(model.em_gain, rel=0.05) and r.em_gain_from_ptc is None
+    assert any("one gain-on PTC level" in w for w in r.warnings)
+
+
+def test_the_sample_frames_are_what_the_script_makes(tmp_path):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("make_radiometric", SAMPLE_DIR.parent / "make_radiometric.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    section = module.make_set(tmp_path, module.TRUTH)
+    assert C.Radiometric.model_validate(section) == _sample_section().model_copy(update={"directory": None})
+    for name in ("bias_0.tif", "ptc_on_2_1.tif", "dark_120s_1.tif", "truth_flat_map.tif"):
+        assert np.array_equal(read_image(tmp_path / name)[0], read_image(SAMPLE_DIR / name)[0]), name
+    assert yaml.safe_load((tmp_path / "truth.yaml").read_text()) == yaml.safe_load((SAMPLE_DIR / "truth.yaml").read_text())

@@ -272,16 +272,44 @@ def fit_ptc(mean_counts, variance_counts2, variance_sigma_counts2
             float(math.sqrt(cov[0, 0]) * scale), chi2)
 
 
+MAX_SATURATED_FRACTION = 0.01
+"""A PTC pair with more of its pixels saturated (or clipped at 0) is left out of the fit:
+dropping only the saturated pixels would keep their neighbours in value that noise
+happened to push down, and bias the variance low."""
+
+
 def _ptc_series(pairs: list, exposures_s: list[float], labels: list[str], bias_counts, em_gain_on: bool,
-                max_counts: float | None) -> PTCSeries:
-    stats = [pair_statistics(a, b, bias_counts, max_counts=max_counts) for a, b in pairs]
-    mean = np.array([s[0] for s in stats])
-    var = np.array([s[1] for s in stats])
-    var_sigma = np.array([s[2] for s in stats])
-    n_pixels = np.array([s[3] for s in stats])
-    slope, slope_sigma, icpt, icpt_sigma, chi2 = fit_ptc(mean, var, var_sigma)
-    return PTCSeries(em_gain_on, np.asarray(exposures_s, dtype=np.float64), mean, var, var_sigma, n_pixels,
-                     tuple(labels), slope, slope_sigma, icpt, icpt_sigma, chi2)
+                max_counts: float | None, warnings: list[str]) -> PTCSeries:
+    name = "gain-on" if em_gain_on else "gain-off"
+    stats, keep = [], []
+    for k, (a, b) in enumerate(pairs):
+        try:
+            st = pair_statistics(a, b, bias_counts, max_counts=max_counts)
+        except ValueError:
+            st = None
+        lost = 1.0 if st is None else 1.0 - st[3] / a.size
+        if lost > MAX_SATURATED_FRACTION:
+            warnings.append(f"the {name} PTC level at {exposures_s[k]:g} s has {lost:.0%} of its pixels saturated "
+                            "or clipped at 0: it is left out of the fit.")
+            continue
+        if lost > 0:
+            warnings.append(f"the {name} PTC level at {exposures_s[k]:g} s: {lost:.2%} of its pixels saturated or "
+                            "clipped at 0 were left out.")
+        stats.append(st)
+        keep.append(k)
+    if len(stats) < (1 if em_gain_on else 2):
+        raise ValueError(f"too few {name} photon-transfer levels are free of saturation (the gain-off curve needs "
+                         "two, the gain-on one); lower the illumination or the exposure.")
+    mean = np.array([st[0] for st in stats])
+    var = np.array([st[1] for st in stats])
+    var_sigma = np.array([st[2] for st in stats])
+    n_pixels = np.array([st[3] for st in stats])
+    if len(np.unique(mean)) >= 2 or not em_gain_on:
+        slope, slope_sigma, icpt, icpt_sigma, chi2 = fit_ptc(mean, var, var_sigma)
+    else:  # one gain-on level: its signal still gives the gain ratio, but no slope
+        slope = slope_sigma = icpt = icpt_sigma = chi2 = math.nan
+    return PTCSeries(em_gain_on, np.asarray(exposures_s, dtype=np.float64)[keep], mean, var, var_sigma, n_pixels,
+                     tuple(labels[k] for k in keep), slope, slope_sigma, icpt, icpt_sigma, chi2)
 
 
 def em_gain_from_ptc(slope_on_counts: float, slope_on_sigma_counts: float, electrons_per_count: float,
@@ -623,12 +651,8 @@ def calibrate_radiometric(
                 exposures.append(level.exposure_s)
                 labels.append(level.illumination)
         name = "em_gain_on" if on else "em_gain_off"
-        s = _ptc_series(pairs, exposures, labels, bias_map, on, max_counts)
+        s = _ptc_series(pairs, exposures, labels, bias_map, on, max_counts, warnings)
         series[name] = s
-        clipped = 1.0 - s.n_pixels.min() / (shape[0] * shape[1])
-        if clipped > 0.001:
-            warnings.append(f"{clipped:.1%} of the pixels of a {name.replace('_', ' ')} PTC level are saturated or "
-                            "clipped at 0 and were left out.")
         if s.reduced_chi2 > 4.0:
             warnings.append(f"the {name.replace('_', ' ')} photon-transfer curve is not a straight line "
                             f"(reduced chi² {s.reduced_chi2:.1f}): saturation, non-linearity or unstable light?")
@@ -655,8 +679,12 @@ def calibrate_radiometric(
 
     on = series.get("em_gain_on")
     if on is not None:
-        result.em_gain_from_ptc, result.em_gain_from_ptc_sigma = em_gain_from_ptc(
-            on.slope_counts, on.slope_sigma_counts, K, K_sigma, excess_noise_factor_squared=excess_noise_factor_squared)
+        if math.isfinite(on.slope_counts):
+            result.em_gain_from_ptc, result.em_gain_from_ptc_sigma = em_gain_from_ptc(
+                on.slope_counts, on.slope_sigma_counts, K, K_sigma,
+                excess_noise_factor_squared=excess_noise_factor_squared)
+        else:
+            warnings.append("one gain-on PTC level: the EM gain has no PTC-slope cross-check (take two or more).")
         ratios = []
         labels_off = np.array(off.illumination)
         labels_on = np.array(on.illumination)
@@ -669,12 +697,16 @@ def calibrate_radiometric(
             result.em_gain_from_ratio = float((w * g).sum() / w.sum())
             result.em_gain_from_ratio_sigma = float(1.0 / math.sqrt(w.sum()))
             result.em_gain, result.em_gain_sigma = result.em_gain_from_ratio, result.em_gain_from_ratio_sigma
-            diff = abs(result.em_gain_from_ptc - result.em_gain_from_ratio) / result.em_gain_from_ratio
+            diff = (abs(result.em_gain_from_ptc - result.em_gain_from_ratio) / result.em_gain_from_ratio
+                    if result.em_gain_from_ptc is not None else 0.0)
             if diff > gain_tolerance:
                 warnings.append(
                     f"EM gain from the signal ratio ({result.em_gain_from_ratio:.4g}) and from the gain-on PTC slope "
                     f"with F² = {excess_noise_factor_squared:g} ({result.em_gain_from_ptc:.4g}) differ by {diff:.0%}: "
                     "check the illumination was the same, saturation, and F².")
+        elif result.em_gain_from_ptc is None:
+            raise ValueError("the EM gain cannot be measured: the gain-on levels share no illumination label with "
+                             "gain-off levels (for the signal ratio) and are too few for a PTC slope.")
         else:
             result.em_gain, result.em_gain_sigma = result.em_gain_from_ptc, result.em_gain_from_ptc_sigma
             warnings.append("no gain-on and gain-off PTC levels share an illumination: the EM gain comes from the "
