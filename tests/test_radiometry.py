@@ -225,7 +225,7 @@ def test_bad_radiometric_inputs_name_the_key_and_file(tmp_path):
     with pytest.raises(UserError, match="system.camera.pixels"):
         run_radiometric(C.Radiometric.model_validate({"bias": ["f0.tif", "f1.tif"], "ptc": ptc}),
                         lambda p: tmp_path / p, RunContext(quiet=True), expected_shape=(32, 32))
-    with pytest.raises(UserError, match="photon-transfer curve needs at least two different"):
+    with pytest.raises(UserError, match="gain-off curve needs two different exposures"):
         run({"bias": ["f0.tif", "f1.tif"], "ptc": [ptc[0], ptc[0]]})
     with pytest.raises(Exception, match="two levels with em_gain_on: false"):
         C.Radiometric.model_validate({"bias": ["f0.tif", "f1.tif"], "ptc": [ptc[0], {**ptc[1], "em_gain_on": True}]})

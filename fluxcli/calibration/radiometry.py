@@ -297,14 +297,15 @@ def _ptc_series(pairs: list, exposures_s: list[float], labels: list[str], bias_c
                             "clipped at 0 were left out.")
         stats.append(st)
         keep.append(k)
-    if len(stats) < (1 if em_gain_on else 2):
-        raise ValueError(f"too few {name} photon-transfer levels are free of saturation (the gain-off curve needs "
-                         "two, the gain-on one); lower the illumination or the exposure.")
+    settings = {(exposures_s[k], labels[k]) for k in keep}  # distinct illumination x exposure
+    if len(settings) < (1 if em_gain_on else 2):
+        raise ValueError(f"too few {name} photon-transfer levels: the gain-off curve needs two different exposures "
+                         "or illuminations free of saturation, the gain-on one at least one.")
     mean = np.array([st[0] for st in stats])
     var = np.array([st[1] for st in stats])
     var_sigma = np.array([st[2] for st in stats])
     n_pixels = np.array([st[3] for st in stats])
-    if len(np.unique(mean)) >= 2 or not em_gain_on:
+    if len(settings) >= 2:
         slope, slope_sigma, icpt, icpt_sigma, chi2 = fit_ptc(mean, var, var_sigma)
     else:  # one gain-on level: its signal still gives the gain ratio, but no slope
         slope = slope_sigma = icpt = icpt_sigma = chi2 = math.nan
