@@ -82,19 +82,27 @@ def test_sample_maps_recover_the_true_maps(sample_result):
     assert r.dark_e_per_s_map[hot].min() > np.percentile(r.dark_e_per_s_map[~hot], 99)
 
 
-def _emccd_detect_frames(seed: int):
+def _emccd_detect_frames(seed: int, tmp_path: Path):
     """A radiometric series from emccd-detect (not fluxmap's simulator), and its truth."""
+    from astropy.io import fits  # an emccd-detect dependency; its master flat is a FITS extension
+
     truth = {"electrons_per_count": 12.0, "em_gain": 400.0, "read_noise_e": 60.0, "qe": 0.85,
              "dark_current_e_per_s": 0.05, "cic": 0.01, "bias_e": 3000.0, "photons_per_s": 5e5}
     shape = (64, 64)
+    rng = np.random.default_rng(seed)
+    rows, cols = np.mgrid[0:shape[0], 0:shape[1]]
+    flat = (1.0 + 0.04 * np.cos(rows / 9.0) * np.sin(cols / 13.0)) * (1.0 + 0.015 * rng.standard_normal(shape))
+    truth["flat"] = flat / flat.mean()
+    flat_path = tmp_path / "emccd_detect_flat.fits"
+    fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(truth["flat"])]).writeto(flat_path, overwrite=True)
 
     def camera(gain):
         # exact branching register (fast_gain_mode False) without partial CIC in the register;
-        # the Roman EXCAM fixed-pattern bias, floor-rounding ADC, no smear, no cosmics
+        # the Roman EXCAM fixed-pattern bias, floor-rounding ADC, its master flat; no smear, no cosmics
         return EMCCDDetect(em_gain=gain, full_well_image=1e9, full_well_serial=1e9,
                            dark_current=truth["dark_current_e_per_s"], cic=truth["cic"],
                            read_noise=truth["read_noise_e"], bias=truth["bias_e"], qe=truth["qe"], cr_rate=0.0,
-                           eperdn=truth["electrons_per_count"], nbits=16, row_read_time=0.0,
+                           eperdn=truth["electrons_per_count"], nbits=16, row_read_time=0.0, flat_path=str(flat_path),
                            upstream_spill_prob=None, fast_gain_mode=False, gain_CIC_Q=0.0, fpn_path="roman")
 
     off, on = camera(1.0), camera(truth["em_gain"])
@@ -106,18 +114,25 @@ def _emccd_detect_frames(seed: int):
     state = np.random.get_state()
     np.random.seed(seed)  # emccd-detect draws from numpy's global generator
     try:
-        bias = frames(off, 0.0, 0.0, 4)
-        ptc = [R.PTCLevel(frames(off, rate, t, 2), t, False) for t in (1e-3, 3e-3, 0.01, 0.03, 0.1, 0.3)]
-        ptc += [R.PTCLevel(frames(on, rate, t, 2), t, True) for t in (3e-5, 1e-4, 3e-4)]
-        darks = [(frames(on, 0.0, t, 2), t, True) for t in (20.0, 80.0)]
+        series = {
+            "bias": frames(off, 0.0, 0.0, 4),
+            "ptc": [R.PTCLevel(frames(off, rate, t, 2), t, False) for t in (1e-3, 3e-3, 0.01, 0.03, 0.1, 0.3)]
+            + [R.PTCLevel(frames(on, rate, t, 2), t, True) for t in (3e-5, 1e-4, 3e-4)],
+            "darks": [(frames(on, 0.0, t, 2), t, True) for t in (20.0, 80.0)],
+            "flats": frames(off, rate, 0.2, 4),
+        }
+        # a scene to convert: a gradient of light, gain on, 2 s at a 50 % lower rate than the PTC
+        scene = np.linspace(0.2, 1.0, shape[1])[None, :] * np.ones(shape) * 50.0
+        exposures = {"scene_counts": frames(on, scene, 2.0, 4), "scene_photons": scene * 2.0}
     finally:
         np.random.set_state(state)
-    return truth, bias, ptc, darks, off
+    truth["bias_counts_map"] = (truth["bias_e"] + off.fpn) / truth["electrons_per_count"] - 0.5  # ADC floors
+    return truth, series, exposures
 
 
-def test_independent_emccd_simulator_emccd_detect():
-    truth, bias, ptc, darks, camera_off = _emccd_detect_frames(seed=11)
-    r = R.calibrate_radiometric(bias=bias, ptc=ptc, darks=darks)
+def test_independent_emccd_simulator_emccd_detect(tmp_path):
+    truth, series, scene = _emccd_detect_frames(seed=11, tmp_path=tmp_path)
+    r = R.calibrate_radiometric(**series)
     assert r.electrons_per_count == pytest.approx(truth["electrons_per_count"], rel=0.05)
     assert r.em_gain == pytest.approx(truth["em_gain"], rel=0.05)
     assert r.read_noise_e == pytest.approx(truth["read_noise_e"], rel=0.10)
@@ -127,10 +142,19 @@ def test_independent_emccd_simulator_emccd_detect():
     assert r.dark_current_e_per_s == pytest.approx(truth["dark_current_e_per_s"], rel=0.15)
     # emccd-detect's bias (electrons, plus the EXCAM fixed pattern, floored by its ADC: -0.5 count
     # on average) is found pixel by pixel: 4 frames of 5 counts rms noise -> 2.5 counts per pixel
-    true_map = (truth["bias_e"] + camera_off.fpn) / truth["electrons_per_count"] - 0.5
-    assert np.std(true_map) > 5.0  # a real pattern to find
-    assert abs(np.mean(r.bias_counts_map - true_map)) < 0.2
-    assert np.std(r.bias_counts_map - true_map) < 3.0
+    assert np.std(truth["bias_counts_map"]) > 5.0  # a real pattern to find
+    assert abs(np.mean(r.bias_counts_map - truth["bias_counts_map"])) < 0.2
+    assert np.std(r.bias_counts_map - truth["bias_counts_map"]) < 3.0
+    # its master flat: 4 flats of ~7000 counts at 12 e-/count -> 0.2 % noise per pixel
+    assert np.std(r.flat_map - truth["flat"]) < 0.004 < 0.01 < np.std(truth["flat"])
+    # end to end: emccd-detect counts of a scene -> photons with the measured sensor and maps
+    model = N.EMCCDModel(quantum_efficiency=truth["qe"], **{k: v for k, v in r.sensor_block().items()},
+                         exposure_s=2.0)
+    maps = {"bias_counts_map": r.bias_counts_map, "dark_e_per_s_map": r.dark_e_per_s_map, "flat_map": r.flat_map}
+    photons = counts_to_photons_with_maps(scene["scene_counts"].mean(axis=0), model, **maps)
+    assert photons.sum() == pytest.approx(scene["scene_photons"].sum(), rel=0.05)
+    columns = photons.mean(axis=0) / scene["scene_photons"].mean(axis=0)  # the gradient is recovered
+    assert np.all(np.abs(columns - 1) < 0.1)
 
 
 def test_disagreeing_gains_are_reported():
