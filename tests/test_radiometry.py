@@ -266,6 +266,18 @@ def test_calibration_h5_layout_round_trip_and_figures(sample_result, tmp_path):
     assert np.array_equal(maps["flat_map"], sample_result.flat_map)
     with pytest.raises(UserError, match=r"reconstruct\.images\.calibration.*64 x 64.*32 x 48"):
         read_radiometric_maps(path, "reconstruct.images.calibration", (48, 32))
+    with pytest.raises(UserError, match=r"cannot read .*nowhere\.h5"):
+        read_radiometric_maps(tmp_path / "nowhere.h5", "reconstruct.images.calibration", (64, 64))
+    broken = tmp_path / "broken.h5"
+    with h5py.File(broken, "w") as f:
+        f.create_group("radiometric").create_dataset("dark_e_per_s_map", data=np.full((64, 64), np.nan))
+        f.create_group("other")
+    with pytest.raises(UserError, match="dark_e_per_s_map.*finite"):
+        read_radiometric_maps(broken, "reconstruct.images.calibration", (64, 64))
+    with h5py.File(tmp_path / "geometric_only.h5", "w") as f:
+        f.create_group("geometric")
+    with pytest.raises(UserError, match="no /radiometric group"):
+        read_radiometric_maps(tmp_path / "geometric_only.h5", "reconstruct.images.calibration", (64, 64))
     with h5py.File(path) as f:
         g = f["radiometric"]
         assert g.attrs["electrons_per_count"] == pytest.approx(sample_result.electrons_per_count)

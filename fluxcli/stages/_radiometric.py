@@ -197,6 +197,8 @@ def read_radiometric_maps(path: Path, key: str, shape: tuple[int, int]) -> dict[
         g = f[GROUP]
         maps = {name: (g[name][()] if name in g else None) for name in MAPS}
     for name, arr in maps.items():
+        if arr is not None and (arr.ndim != 2 or not np.all(np.isfinite(arr))):
+            raise UserError(f"{key}: the {name} in {path} is not a 2-D map of finite numbers; calibrate again.")
         if arr is not None and arr.shape != tuple(shape):
             raise UserError(f"{key}: the {name} in {path} is {arr.shape[1]} x {arr.shape[0]} pixels; the images "
                             f"are {shape[1]} x {shape[0]}. Calibrate with frames of the same size and binning.")
