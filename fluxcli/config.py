@@ -375,7 +375,7 @@ class ReportSettings(Model):
 class RadiometricPTCLevel(Model):
     files: tuple[Path, ...] = Field(min_length=2, description="Two or more frames at one illumination and exposure (counts); consecutive frames are paired (1st-2nd, 3rd-4th, ...).")
     exposure_s: float = Field(gt=0, description="Exposure of these frames (s).")
-    em_gain_on: bool = Field(False, description="Whether the EM gain was on (the camera's working gain) or off (conventional readout).")
+    em_gain_on: bool = Field(False, description="EM gain on (the working gain) or off (gain set to 1 in EM mode: same output amplifier, no multiplication).")
     illumination: str = Field("", description="Label of the light-source setting: gain-on and gain-off levels with the same label are compared per second of exposure to measure the EM gain.")
 
 
