@@ -10,8 +10,8 @@ The camera model is the one of :mod:`fluxcli.imaging.noise` (Hirsch et al. 2013)
 ``counts = bias + x / K`` with ``x`` the electrons at the output node, ``K`` electrons
 per count, ``x = Σ`` over ``n ~ Poisson(λ)`` input electrons multiplied by the EM
 register (mean gain ``G``, excess noise factor ``F² → 2`` at high gain) or not multiplied
-(EM gain off, conventional readout: ``x = n``), plus Gaussian read noise ``σ_r``
-electrons. So for a pixel with mean signal ``S = E[counts] − bias`` (counts):
+(EM gain off: ``x = n``; the gain set to 1 in EM mode, read through the same amplifier,
+so ``K`` is the same in both), plus Gaussian read noise ``σ_r`` electrons. So for a pixel with mean signal ``S = E[counts] − bias`` (counts):
 
 - EM gain off: ``Var = S / K + (σ_r / K)²`` — the photon-transfer curve (Janesick,
   *Photon Transfer*, SPIE 2007): its slope is ``1 / K``;
