@@ -371,3 +371,15 @@ def test_the_sample_frames_are_what_the_script_makes(tmp_path):
     for name in ("bias_0.tif", "ptc_on_2_1.tif", "dark_120s_1.tif", "truth_flat_map.tif"):
         assert np.array_equal(read_image(tmp_path / name)[0], read_image(SAMPLE_DIR / name)[0]), name
     assert yaml.safe_load((tmp_path / "truth.yaml").read_text()) == yaml.safe_load((SAMPLE_DIR / "truth.yaml").read_text())
+
+
+def test_cosmic_ray_hits_do_not_bias_the_ptc():
+    model, bias, ptc, rng, shape = _small_fluxmap_series(seed=6)
+    hit = ptc[1].frames.copy()
+    hit[0].ravel()[rng.choice(hit[0].size, 12, replace=False)] += 20_000  # one frame of a pair, 0.5 % of pixels
+    r = R.calibrate_radiometric(bias=bias, ptc=[ptc[0], R.PTCLevel(hit, ptc[1].exposure_s, False), *ptc[2:]])
+    assert r.electrons_per_count == pytest.approx(model.electrons_per_count, rel=0.05)
+    mean, var, _, n = R.pair_statistics(*hit, bias_counts=300.0)
+    assert n == hit[0].size - 12
+    mean0, var0, _, _ = R.pair_statistics(*hit, bias_counts=300.0, outlier_sigma=None)
+    assert var0 > 5 * var  # without the clip the hits dominate the variance
