@@ -251,6 +251,12 @@ def test_bad_radiometric_inputs_name_the_key_and_file(tmp_path):
                         lambda p: tmp_path / p, RunContext(quiet=True), expected_shape=(32, 32))
     with pytest.raises(UserError, match="gain-off curve needs two different exposures"):
         run({"bias": ["f0.tif", "f1.tif"], "ptc": [ptc[0], ptc[0]]})
+    with pytest.raises(Exception, match="listed twice"):
+        C.Radiometric.model_validate({"bias": ["f0.tif", "f0.tif"], "ptc": ptc})
+    with pytest.raises(Exception, match="listed twice"):
+        C.Radiometric.model_validate({"bias": ["f0.tif", "f1.tif"], "ptc": [ptc[0], {**ptc[1], "files": ["f2.tif", "f2.tif"]}]})
+    with pytest.raises(ValueError, match="identical"):
+        R.pair_statistics(np.full((8, 8), 500.0), np.full((8, 8), 500.0))
     with pytest.raises(Exception, match="two levels with em_gain_on: false"):
         C.Radiometric.model_validate({"bias": ["f0.tif", "f1.tif"], "ptc": [ptc[0], {**ptc[1], "em_gain_on": True}]})
     with pytest.raises(Exception, match="em_gain_on"):

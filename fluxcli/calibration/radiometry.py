@@ -161,6 +161,9 @@ def pair_statistics(frame_a, frame_b, bias_counts=0.0, *, max_counts: float | No
         raise ValueError(f"a frame pair has only {n} usable pixels (the rest saturated or clipped at 0).")
     signal = (0.5 * (a + b) - bias)[ok]
     diff = (a - b)[ok]
+    if not np.any(diff):
+        raise ValueError("the two frames of a pair are identical (the same file twice?): a pair must be two "
+                         "exposures.")
     centred = diff - diff.mean()
     half_sq = 0.5 * centred**2
     variance = float(half_sq.sum() / (n - 1))
