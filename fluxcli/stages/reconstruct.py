@@ -202,8 +202,9 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     sources = ([A.file_sha256(cfg.resolve(p)) for p in rc.images.files if cfg.resolve(p).is_file()]
                if rc.images is not None else
                [A.file_sha256(cfg.workdir / "simulation.h5")] if (cfg.workdir / "simulation.h5").is_file() else [])
-    if rc.images is not None and rc.images.calibration is not None and cfg.resolve(rc.images.calibration).is_file():
-        sources.append(A.file_sha256(cfg.resolve(rc.images.calibration)))
+    calibration = getattr(rc.images, "calibration", None)  # radiometric maps applied to counts
+    if calibration is not None and cfg.resolve(calibration).is_file():
+        sources.append(A.file_sha256(cfg.resolve(calibration)))
     digest = A.inputs_digest(system=m_.system.model_dump(mode="json"), subject=m_.subject.model_dump(mode="json"),
                              transfer=m_.transfer.model_dump(mode="json"),
                              reconstruct=rc.model_dump(mode="json", by_alias=True), images=sources)
