@@ -389,3 +389,15 @@ def test_cosmic_ray_hits_do_not_bias_the_ptc():
     assert n == hit[0].size - 12
     mean0, var0, _, _ = R.pair_statistics(*hit, bias_counts=300.0, outlier_sigma=None)
     assert var0 > 5 * var  # without the clip the hits dominate the variance
+
+
+def test_read_noise_below_a_few_counts_is_not_inflated_by_rounding():
+    # 1.5 counts rms before the ADC: rounding adds 1/12 count^2 (+1.8 % in sigma), taken off
+    model = N.EMCCDModel(read_noise_e=6.0, bias_counts=100.0, electrons_per_count=4.0, dark_current_e_per_s=0.0,
+                         cic_e_per_pixel=0.0)
+    rng = np.random.default_rng(9)
+    bias = np.array([N.conventional_counts(np.zeros((200, 200)), model, rng) for _ in range(4)])
+    sigma, sigma_sd = R.read_noise_counts(bias)
+    assert sigma == pytest.approx(1.5, abs=3 * sigma_sd) and sigma_sd < 0.005
+    raw, _ = R.read_noise_counts(bias, quantization_counts=0.0)
+    assert raw == pytest.approx(np.sqrt(1.5**2 + 1 / 12), abs=3 * sigma_sd)

@@ -171,7 +171,7 @@ def pair_statistics(frame_a, frame_b, bias_counts=0.0, *, max_counts: float | No
     return float(signal.mean()), variance, variance_sigma, n
 
 
-def read_noise_counts(frames) -> tuple[float, float]:
+def read_noise_counts(frames, *, quantization_counts: float = 1.0) -> tuple[float, float]:
     """Read noise from pairs of bias frames: ``σ² = var(a − b) / 2``, pooled over pairs.
 
     Parameters
@@ -179,25 +179,32 @@ def read_noise_counts(frames) -> tuple[float, float]:
     frames : array_like, shape (n_frames, ny, nx), n_frames ≥ 2
         Bias frames (counts), EM gain off; consecutive frames (0, 1), (2, 3), ... are
         paired.
+    quantization_counts : float, optional
+        ADC step (counts, 1 for integer frames; 0 for frames that are not quantised).
 
     Returns
     -------
     read_noise_counts : float
-        RMS read noise (counts); multiply by electrons per count for electrons.
+        RMS read noise at the output node expressed in counts (multiply by electrons
+        per count for electrons).
     read_noise_counts_sigma : float
         Its 1-sigma uncertainty (counts).
 
     Notes
     -----
-    The ADC's quantisation adds ``1/12`` count² and is included, as it is in any frame.
+    Rounding to whole counts adds ``q²/12`` to the variance of every frame; it is taken
+    off (Sheppard's correction) so that the result is the Gaussian read noise of the
+    camera model, which fluxmap's noise model adds before the ADC. The correction holds
+    once the noise spans a count or more; below ``q/2`` rms nothing is taken off.
     """
     stack = _stack(frames, "bias frames for the read noise", min_frames=2)
     stats = [pair_statistics(a, b) for a, b in _pairs(stack)]
-    var = np.array([s[1] for s in stats])
-    var_sigma = np.array([s[2] for s in stats])
-    w = 1.0 / var_sigma**2
-    variance = float((w * var).sum() / w.sum())
-    variance_sigma = float(1.0 / math.sqrt(w.sum()))
+    n = np.array([s[3] for s in stats], dtype=np.float64)
+    variance = float((n * np.array([s[1] for s in stats])).sum() / n.sum())
+    variance_sigma = float(np.sqrt((n**2 * np.array([s[2] for s in stats]) ** 2).sum()) / n.sum())
+    step2 = quantization_counts**2 / 12.0
+    if variance > 3.0 * step2:  # noise of half a step rms or more
+        variance -= step2
     sigma = math.sqrt(max(variance, 0.0))
     return sigma, (variance_sigma / (2.0 * sigma) if sigma > 0 else math.inf)
 
