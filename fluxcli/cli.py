@@ -128,6 +128,26 @@ _stage_command("calibrate", None, """(Not built yet.) Derive the camera model fr
 _stage_command("capture-surface", None, """(Not built yet.) Drive the rig (or its simulator) and capture the surface and images.""")
 
 
+
+# --------------------------------------------------------------------------- fluxmap rig ... (issue 11)
+rig_app = typer.Typer(no_args_is_help=True, help="The rig's devices: simulators on the real wire protocols.")
+app.add_typer(rig_app, name="rig")
+STAGE_REQUIRES["rig serve"] = ("rig",)
+
+
+@rig_app.command("serve")
+def rig_serve(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt) -> None:
+    """Serve simulators of the devices in `rig` until SIGINT/SIGTERM.
+
+    Prints one line per device, `<device> <url-or-pty-path>`, then `ready`.  A port `pty`
+    makes a new pseudo terminal, `socket://HOST:PORT` listens there (PORT 0: any free port).
+
+    $ fluxmap rig serve configs/rig-sim.yaml
+    """
+    from .stages import rig_serve as stage
+
+    _run("rig serve", stage.run, config, set_, False, 1, False)
+
 def main() -> None:
     app()
 
