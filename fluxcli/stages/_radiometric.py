@@ -63,8 +63,10 @@ def _read_frames(files, key: str, resolve: Callable[[Path], Path], shape: list) 
         path = resolve(name)
         try:
             image, _ = read_image(path)
-        except ValueError as e:
+        except (ValueError, OSError) as e:
             raise UserError(f"{KEY}.{key}[{i}]: {e}") from None
+        if not np.all(np.isfinite(image)):
+            raise UserError(f"{KEY}.{key}[{i}]: {path} holds non-finite values (NaN or inf); frames must be counts.")
         if shape[0] is None:
             shape[0] = image.shape
         elif image.shape != shape[0]:
