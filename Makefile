@@ -1,5 +1,6 @@
 # fluxmap: reproducible set-up, tests, benchmarks and experiments.
 #   make demo   create .venv, install, run the demo pipeline, print where its output is
+#   make demo-rig   the simulated rig: capture-surface -> build-T -> reconstruct -> report
 #   make test   create .venv if needed, install with test extras, run the test suite
 #   make bench  speed ratios measured in one run (slow checks included)
 #   make paper-2d | paper-3d | heights   the paper's experiments (pipelines/experiments.mk)
@@ -10,7 +11,7 @@ PY      = $(VENV)/bin/python
 FLUXMAP = $(VENV)/bin/fluxmap
 JOBS   ?= 2
 
-.PHONY: all demo test bench samples figures clean help
+.PHONY: all demo demo-rig test bench samples figures clean help
 all: test
 
 $(VENV)/.installed: pyproject.toml
@@ -27,6 +28,14 @@ demo: $(VENV)/.installed
 	$(FLUXMAP) reconstruct configs/demo.yaml --jobs $(JOBS)
 	$(FLUXMAP) report configs/demo.yaml
 	@echo "demo report: $(CURDIR)/runs/demo/report/index.html"
+
+demo-rig: $(VENV)/.installed
+	$(FLUXMAP) capture-surface configs/demo-rig.yaml --resume
+	$(FLUXMAP) build-T configs/demo-rig.yaml --jobs $(JOBS)
+	$(FLUXMAP) reconstruct configs/demo-rig.yaml --jobs $(JOBS)
+	$(FLUXMAP) report configs/demo-rig.yaml
+	$(PY) pipelines/rig_totals.py runs/demo-rig/reconstruction.h5
+	@echo "demo-rig report: $(CURDIR)/runs/demo-rig/report/index.html"
 
 test: $(VENV)/.installed
 	$(PY) -m pytest -q
@@ -46,6 +55,6 @@ clean:
 	rm -rf runs .pytest_cache
 
 help:
-	@sed -n '2,5p' Makefile
+	@sed -n '2,6p' Makefile
 
 -include pipelines/*.mk

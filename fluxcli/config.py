@@ -185,8 +185,8 @@ class RotationAxis(Model):
 
 
 class Poses(Model):
-    heights_mm: tuple[float, ...] = Field((0.0,), description="Stage heights h (mm).")
-    rotations_deg: tuple[float, ...] = Field((0.0,), description="Rotations about the subject axis (deg).")
+    heights_mm: tuple[float, ...] = Field((0.0,), min_length=1, description="Stage heights h (mm).")
+    rotations_deg: tuple[float, ...] = Field((0.0,), min_length=1, description="Rotations about the subject axis (deg).")
 
 
 class Subject(Model):
@@ -320,6 +320,17 @@ class MethodSettings(Model):
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
 
+    @field_validator("lam")
+    @classmethod
+    def _lam(cls, v):
+        return _check_lambda(v)
+
+
+def _check_lambda(v):
+    if v != "auto" and not (math.isfinite(v) and v >= 0):
+        raise ValueError("lambda must be 'auto' or a finite number >= 0")
+    return v
+
 
 class ImageFiles(Model):
     files: tuple[Path, ...] = Field(description="One image file per pose (TIFF/FITS/EXR), in subject.poses order.")
@@ -334,8 +345,14 @@ class ImageFiles(Model):
         return self
 
 
+class CaptureSource(Model):
+    capture: Path = Field(description="A capture artefact (capture.h5 of capture-surface): relative to the config file, else to the workdir.")
+    filter: str | None = Field(None, description="Whose frames to use, by filter name (default: the capture's only filter).")
+    exposure_s: float | None = Field(None, gt=0, description="Which exposure time's frames (s) (default: the capture's only one).")
+
+
 class Sweep(Model):
-    methods: tuple[MethodSettings, ...] = Field(description="Methods compared in the study.")
+    methods: tuple[MethodSettings, ...] = Field(min_length=1, description="Methods compared in the study.")
     levels: tuple[int, ...] | None = Field(None, description="Signal-level indices (default all).")
     repeats: int | None = Field(None, ge=1, description="Repeats per cell (default all).")
 
@@ -349,7 +366,7 @@ class Reconstruct(Model):
     tol: float = Field(0.01, gt=0)
     n_iter: int = Field(500, ge=1)
     unknowns: Literal["elements", "sub_elements"] = "elements"
-    images: ImageFiles | None = Field(None, description="Images from files instead of simulation.h5.")
+    images: ImageFiles | CaptureSource | None = Field(None, description="Images from files, or from a capture, instead of simulation.h5.")
     level: int = Field(0, ge=0, description="Which signal level of the simulation to reconstruct.")
     repeat: int = Field(0, ge=0, description="Which noise repeat of the simulation to reconstruct.")
     noiseless: bool = Field(False, description="Reconstruct the simulation's noiseless images.")
@@ -358,6 +375,11 @@ class Reconstruct(Model):
     sweep: Sweep | None = Field(None, description="A study: every level x repeat x pose for each method.")
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+
+    @field_validator("lam")
+    @classmethod
+    def _lam(cls, v):
+        return _check_lambda(v)
 
     def settings(self) -> MethodSettings:
         return MethodSettings(method=self.method, lam=self.lam, lambda_rule=self.lambda_rule,
@@ -466,8 +488,21 @@ class RigStage(Model):
         return v
 
 
+class FilterLight(Model):
+    wavelength_nm: int | None = Field(None, description="Simulated camera: the wavelength whose simulate.flux.optical properties apply behind this filter (diffusion truths; default simulate's own).")
+    transmission: float = Field(1.0, ge=0, le=1, description="Simulated camera: fraction of the emission the filter passes.")
+
+
 class RigCamera(Model):
     backend: Literal["simulated", "dcam"] = Field("simulated", description="simulated (default) or dcam (optional extra, the real camera).")
+    binning: int = Field(1, ge=1, description="Binning set on the camera; system.camera.pixels/pixel_pitch_mm describe the binned image (the ImagEM: 4).")
+    filters: dict[str, FilterLight] = Field(default_factory=dict, description="Simulated camera: what reaches the sensor behind each filter (by name); unlisted filters pass simulate's truth unchanged.")
+    setpoint_c: float = Field(-65.0, description="Sensor temperature with the cooler on (deg C); dark_current_e_per_s holds there.")
+    ambient_c: float = Field(20.0, description="Simulated camera: sensor temperature with the cooler off (deg C).")
+    dark_doubling_c: float = Field(6.3, gt=0, description="Simulated camera: dark current doubles per this many deg C.")
+    em_gain_range: tuple[float, float] = Field((1.0, 1200.0), description="EM gains the camera accepts [low, high] (unverified: x4-x1200 for the ImagEM).")
+    device_index: int = Field(0, ge=0, description="dcam: which DCAM camera (0 = first).")
+    shutter_property: str | None = Field(None, description="dcam: name of the DCAM property that closes a shutter for dark frames (unverified; none: darks refused).")
 
 
 class Rig(Model):
@@ -475,6 +510,38 @@ class Rig(Model):
     filter_wheel: RigFilterWheel | None = Field(None, description="The FW102C filter wheel.")
     stage: RigStage | None = Field(None, description="The L490MZ lab jack (APT).")
     camera: RigCamera | None = Field(None, description="The EMCCD.")
+
+
+# --------------------------------------------------------------------------- capture (acquisition)
+class Capture(Model):
+    """The acquisition plan of ``fluxmap capture-surface``: darks first, then per height, per filter, repeats."""
+
+    heights_mm: tuple[float, ...] = Field(min_length=1, description="Stage heights to image at (mm), in this order.")
+    filters: tuple[str, ...] = Field(("open",), min_length=1, description="Filter names (keys of rig.filter_wheel.filters), in this order.")
+    exposure_s: float | tuple[float, ...] = Field(1.0, description="Exposure time (s), or several: each height and filter is taken at each.")
+    em_gain: float = Field(300.0, ge=1, description="EM gain of every frame.")
+    repeats: int = Field(1, ge=1, description="Frames per height and filter.")
+    darks: int = Field(4, ge=0, description="Dark frames (shutter closed, same exposure and gain), taken first.")
+    seed: int = Field(0, ge=0, description="Simulated camera: frame k's noise comes from the seed (seed, k).")
+
+    @field_validator("heights_mm", "filters")
+    @classmethod
+    def _distinct(cls, v):
+        if len(set(v)) != len(v):
+            raise ValueError("list the same value only once (use repeats for more frames)")
+        return v
+
+    @field_validator("exposure_s")
+    @classmethod
+    def _exposures(cls, v):
+        many = v if isinstance(v, tuple) else (v,)
+        if not many or min(many) <= 0 or len(set(many)) != len(many):
+            raise ValueError("give one or more distinct positive exposure times (s)")
+        return v
+
+    @property
+    def exposures_s(self) -> tuple[float, ...]:
+        return tuple(self.exposure_s) if isinstance(self.exposure_s, tuple) else (float(self.exposure_s),)
 
 
 # --------------------------------------------------------------------------- top level
@@ -490,7 +557,7 @@ class Config(Model):
     reconstruct: Reconstruct = Reconstruct()
     report: ReportSettings = ReportSettings()
     calibrate: dict[str, Any] | None = None
-    capture: dict[str, Any] | None = None
+    capture: Capture | None = Field(None, description="The acquisition plan of capture-surface.")
     rig: Rig | None = Field(None, description="The devices of the rig (issue 11).")
 
 
@@ -520,6 +587,41 @@ class LoadedConfig:
         return hashlib.sha256(yaml.safe_dump(self.raw, sort_keys=True).encode()).hexdigest()
 
 
+def _yaml_problem(e: yaml.YAMLError) -> str:
+    """One line: what is wrong and where (line, column), without YAML's source excerpt."""
+    problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+    mark = getattr(e, "problem_mark", None)
+    return f"{problem} at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else problem
+
+
+def _override_value(item: str, value: str) -> Any:
+    try:
+        return yaml.load(value, Loader=_UniqueKeyLoader)
+    except yaml.YAMLError as e:
+        why = _yaml_problem(e)
+        raise UserError(f"--set {item!r}: the value {value!r} is not valid YAML ({why}); quote lists and "
+                        "mappings for the shell, e.g. --set 'subject.poses.heights_mm=[0, 10]'.") from None
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """safe_load, but a key given twice in one mapping is an error (YAML keeps the last silently)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen: dict = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                hash(key)
+            except TypeError:
+                continue
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"duplicate key: {key!r} is given twice (lines {seen[key] + 1} and {key_node.start_mark.line + 1})",
+                    key_node.start_mark)
+            seen[key] = key_node.start_mark.line
+        return super().construct_mapping(node, deep=deep)
+
+
 def _apply_override(raw: dict[str, Any], item: str) -> None:
     """Apply ``dotted.key=value`` (list items by index: ``system.mirrors.0.reflectance=0.9``)."""
     if "=" not in item:
@@ -534,12 +636,12 @@ def _apply_override(raw: dict[str, Any], item: str) -> None:
             if not part.isdigit() or int(part) >= len(node):
                 raise UserError(f"--set {item!r}: {where} is a list of {len(node)} item(s); {part!r} is not an index in it.")
             if last:
-                node[int(part)] = yaml.safe_load(value)
+                node[int(part)] = _override_value(item, value)
             else:
                 node = node[int(part)]
         elif isinstance(node, dict):
             if last:
-                node[part] = yaml.safe_load(value)
+                node[part] = _override_value(item, value)
             else:
                 if node.get(part) is None:
                     node[part] = {}
@@ -548,9 +650,28 @@ def _apply_override(raw: dict[str, Any], item: str) -> None:
             raise UserError(f"--set {item!r}: {where} is a value, not a section, so it has no key {part!r}.")
 
 
-def _format_validation_error(err: ValidationError, path: Path) -> str:
+# union members of subject.surface, by the key that selects each
+_SURFACE_MEMBERS = {"phantom": ("MeshSurface", "ArtefactSurface"), "mesh": ("ArtefactSurface", "tagged-union"),
+                    "artefact": ("MeshSurface", "tagged-union")}
+
+
+def _relevant(errors: list, raw: Any) -> list:
+    """Drop errors from union members the user did not choose (a phantom with a bad radius
+    is not also 'missing its mesh key')."""
+    surf = raw.get("subject", {}).get("surface") if isinstance(raw, dict) and isinstance(raw.get("subject"), dict) else None
+    if not isinstance(surf, dict):
+        return errors
+    for key, others in _SURFACE_MEMBERS.items():
+        if key in surf:
+            kept = [e for e in errors if not any(isinstance(x, str) and x.startswith(others) for x in e["loc"])]
+            return kept or errors
+    return errors
+
+
+def _format_validation_error(err: ValidationError, path: Path, raw: Any = None) -> str:
     lines = []
-    for e in err.errors()[:6]:
+    errors = _relevant(err.errors(), raw)
+    for e in errors[:6]:
         loc = ".".join(str(x) for x in e["loc"] if not (isinstance(x, str) and x in _UNION_TAGS))
         if e["type"] == "extra_forbidden":
             msg = "unknown key (check its spelling against the README's config reference)"
@@ -559,14 +680,14 @@ def _format_validation_error(err: ValidationError, path: Path) -> str:
         else:
             msg = e["msg"].removeprefix("Value error, ")
         lines.append(f"'{loc}': {msg}" if loc else msg)
-    more = "" if len(err.errors()) <= 6 else f" (and {len(err.errors()) - 6} more)"
+    more = "" if len(errors) <= 6 else f" (and {len(errors) - 6} more)"
     return f"config {path}: " + "; ".join(lines) + more + "."
 
 
 # pydantic puts union member names into error locations; they are not keys the user wrote.
 _UNION_TAGS = {"cylinder", "ring", "sphere", "patch", "MeshSurface", "ArtefactSurface",
                "gaussian", "uniform", "file", "diffusion", "float", "literal['auto']",
-               "function-after[_check(), Lens]", "tagged-union[CylinderPhantom,RingPhantom,SpherePhantom,PatchPhantom]"}
+               "function-after[_check(), Lens]", "ImageFiles", "CaptureSource", "tagged-union[CylinderPhantom,RingPhantom,SpherePhantom,PatchPhantom]"}
 
 
 def _camera_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
@@ -607,22 +728,6 @@ def _merge(base: dict, over: dict) -> dict:
     return out
 
 
-class _UniqueKeyLoader(yaml.SafeLoader):
-    """safe_load that refuses a key given twice in one mapping (YAML keeps the last silently)."""
-
-    def construct_mapping(self, node, deep=False):
-        seen = set()
-        for key_node, _ in node.value:
-            key = self.construct_object(key_node, deep=deep)
-            try:
-                hashable = key in seen
-            except TypeError:
-                continue
-            if hashable:
-                raise yaml.constructor.ConstructorError(
-                    None, None, f"duplicate key {key!r} (given twice in one section)", key_node.start_mark)
-            seen.add(key)
-        return super().construct_mapping(node, deep=deep)
 
 
 def require(cfg: "LoadedConfig", stage: str, keys: tuple[str, ...] | list[str]) -> None:
@@ -642,8 +747,10 @@ def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -
         raise UserError(f"config file {path} does not exist.")
     try:
         raw = yaml.load(path.read_text(), Loader=_UniqueKeyLoader)
-    except (yaml.YAMLError, UnicodeDecodeError) as e:
-        raise UserError(f"config file {path} is not valid YAML: {e}".replace("\n", " ")) from None
+    except yaml.YAMLError as e:
+        raise UserError(f"config file {path} is not valid YAML: {_yaml_problem(e)}.") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise UserError(f"config file {path} cannot be read: {e}.") from None
     if not isinstance(raw, dict):
         raise UserError(f"config file {path} must hold a mapping of keys (workdir, system, subject, ...).")
     _camera_from_file(raw, path.resolve().parent, path)
@@ -652,7 +759,7 @@ def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -
     try:
         model = Config.model_validate(raw)
     except ValidationError as e:
-        raise UserError(_format_validation_error(e, path)) from None
+        raise UserError(_format_validation_error(e, path, raw)) from None
     loaded = LoadedConfig(model, path.resolve(), raw)
     surf = model.subject.surface if model.subject is not None else None
     for attr in ("mesh", "artefact"):

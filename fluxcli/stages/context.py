@@ -18,12 +18,20 @@ class RunContext:
     jobs: int = 1
     quiet: bool = False
     overrides: tuple[str, ...] = ()
+    warned: set = field(default_factory=set)  # shared by copies (dataclasses.replace), so a warning shows once
     console: Console = field(default_factory=lambda: Console(highlight=False, soft_wrap=True,
                                                               width=None if sys.stdout.isatty() else 160))
 
     def say(self, text: str) -> None:
         if not self.quiet:
             self.console.print(text, markup=False)
+
+    def warn(self, text: str) -> None:
+        """A warning: printed on stderr even with --quiet, once per run."""
+        if text in self.warned:
+            return
+        self.warned.add(text)
+        print(f"fluxmap: warning: {text}", file=sys.stderr, flush=True)
 
     @contextlib.contextmanager
     def progress(self, label: str, total: int) -> Iterator[Callable[[], None]]:
@@ -36,6 +44,18 @@ class RunContext:
         with bar:
             task = bar.add_task(label, total=total)
             yield lambda: bar.advance(task)
+
+    @contextlib.contextmanager
+    def progress_steps(self, label: str, total: int, completed: int = 0) -> Iterator[Callable[..., None]]:
+        """A progress bar that also shows the current step: ``update(step, advance=False)``."""
+        if self.quiet or total == 0:
+            yield lambda step, advance=False: None
+            return
+        bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                       TextColumn("{task.fields[step]}"), console=Console(file=sys.stderr), transient=False)
+        with bar:
+            task = bar.add_task(label, total=total, completed=completed, step="")
+            yield lambda step, advance=False: bar.update(task, step=step, advance=1 if advance else 0)
 
     def table(self, header: list[str], rows: list[list]) -> None:
         if self.quiet:

@@ -15,8 +15,8 @@ are masked.  Elements no camera sees are reported as unobserved (NaN), never as 
 from __future__ import annotations
 
 import json
+import re
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -29,9 +29,11 @@ from ..errors import UserError
 from ..imaging import noise as N
 from ..imaging.imagefiles import read_image
 from ..imaging.sensor_maps import counts_to_photons_with_maps
+from ..artefacts.transfer import load_T, load_view
 from ..inverse import backprojection, error_l1, reconstruct as solve, total_ratio
+from ..pipeline import check_folders, check_memory, emccd_model, ensure_T, geometry_of, plan, provenance
+from ..workers import worker_pool
 from ._radiometric import read_radiometric_maps
-from .build_t import ensure_T, load_T
 from .context import RunContext
 
 
@@ -42,6 +44,7 @@ class Inputs:
     truth: np.ndarray | None  # (n_elements,) photons, or None
     source: str
     snr: np.ndarray | None = None  # (P,)
+    files: dict[str, Path] | None = None  # name -> input file (image files or simulation.h5), for provenance
 
 
 def _simulation(cfg: C.LoadedConfig) -> Path:
@@ -52,38 +55,57 @@ def _simulation(cfg: C.LoadedConfig) -> Path:
     return path
 
 
-def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int) -> Inputs:
+def _capture_path(cfg: C.LoadedConfig) -> Path:
+    p = cfg.model.reconstruct.images.capture
+    first = cfg.resolve(p)
+    return first if first.is_file() or p.is_absolute() else cfg.workdir / p
+
+
+def _from_capture(cfg: C.LoadedConfig, n_elements: int) -> Inputs:
+    """One image per pose (= stage height) from a capture: darks subtracted, counts -> photons."""
+    from ..acquisition import read_capture
+    from ..scene import poses_from_config
+
+    path = _capture_path(cfg)
+    src = cfg.model.reconstruct.images
+    cap = read_capture(path, src.filter, src.exposure_s)
+    order = cap.pose_order([p.height_mm for p in poses_from_config(cfg.model.subject)])
+    photons, valid = cap.photons(emccd_model(cfg.model.system.camera.sensor, cap.exposure_s))
+    nx, ny = cfg.model.system.camera.pixels
+    if photons.shape[1:] != (ny, nx):
+        raise UserError(f"reconstruct.images.capture: {path} holds {photons.shape[2]} x {photons.shape[1]} pixel "
+                        f"frames; system.camera.pixels is {nx} x {ny}.")
+    truth = cap.truth_power if cap.truth_power is not None and len(cap.truth_power) == n_elements else None
+    return Inputs(photons[order], valid[order] & np.isfinite(photons[order]), truth,
+                  f"{path} filter {cap.filter}, {cap.repeats} repeat(s) averaged, {cap.n_darks} dark(s) subtracted",
+                  files={"capture.h5": path})
+
+
+def _image_sources(cfg: C.LoadedConfig) -> list[str]:
+    """sha256 of the image files reconstruct reads (what makes its output stale)."""
+    rc = cfg.model.reconstruct
+    if isinstance(rc.images, C.CaptureSource):
+        p = _capture_path(cfg)
+        return [A.file_sha256(p)] if p.is_file() else []
+    if rc.images is not None:  # the images, and the radiometric maps applied to them
+        files = [*rc.images.files, *([rc.images.calibration] if rc.images.calibration is not None else [])]
+        return [A.file_sha256(cfg.resolve(p)) for p in files if cfg.resolve(p).is_file()]
+    sim = cfg.workdir / "simulation.h5"
+    return [A.file_sha256(sim)] if sim.is_file() else []
+
+
+def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int, surface_sha256: str | None = None,
+                poses: list | None = None) -> Inputs:
     rc = cfg.model.reconstruct
     nx, ny = cfg.model.system.camera.pixels
+    if isinstance(rc.images, C.CaptureSource):
+        return _from_capture(cfg, n_elements)
     if rc.images is not None:
-        if len(rc.images.files) != n_poses:
-            raise UserError(f"reconstruct.images.files: {len(rc.images.files)} file(s) for {n_poses} pose(s).")
-        imgs, valid = [], []
-        model = None
-        if rc.images.units == "counts":
-            from .simulate import emccd_model
-
-            model = emccd_model(cfg.model.system.camera.sensor, rc.images.exposure_s)
-        maps = {} if rc.images.calibration is None else read_radiometric_maps(  # per-pixel bias, dark, flat
-            cfg.resolve(rc.images.calibration), "reconstruct.images.calibration", (ny, nx))
-        for p in rc.images.files:
-            try:
-                img, _ = read_image(cfg.resolve(p))
-            except ValueError as e:
-                raise UserError(f"reconstruct.images.files: {e}") from None
-            if img.shape != (ny, nx):
-                raise UserError(f"reconstruct.images.files: {p} is {img.shape[1]} x {img.shape[0]} pixels; the "
-                                f"camera has {nx} x {ny}.")
-            ok = np.isfinite(img)
-            if model is not None:
-                ok &= ~N.saturated(img, model)
-                img = counts_to_photons_with_maps(np.where(ok, img, 0), model, **maps)
-                ok &= np.isfinite(img)  # dead pixels of the flat map
-            imgs.append(img)
-            valid.append(ok)
-        return Inputs(np.array(imgs), np.array(valid), None, "files")
+        return _image_files(cfg, n_poses, poses)
     path = _simulation(cfg)
     with A.open_artefact(path, "simulation") as f:
+        A.check_geometry(path, A.read_provenance(f), geometry_of(cfg, surface_sha256),
+                         remedy=f"Run 'fluxmap simulate {cfg.path}' again, or reconstruct with the config it was made with")
         power = f["truth/power"][()]
         if len(power) != n_elements:
             raise UserError(f"reconstruct: {path} was simulated on {len(power)} elements; the subject now has "
@@ -98,19 +120,83 @@ def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int) -> Inputs:
         imgs = (f["images/noiseless"][rc.level] if rc.noiseless else noisy[rc.level, rc.repeat]).astype(float)
         valid = np.isfinite(imgs)
         if "counts" in f["images"] and not rc.noiseless:
-            from .simulate import emccd_model
-
             model = emccd_model(cfg.model.system.camera.sensor, float(f["images"].attrs["exposure_s"]))
             valid &= ~N.saturated(f["images/counts"][rc.level, rc.repeat], model)
         truth = power * f["truth/level_scale"][rc.level]
         snr = f["images/max_snr"][rc.level]
-    return Inputs(imgs, valid, truth, f"{path} level {rc.level} " + ("noiseless" if rc.noiseless else f"repeat {rc.repeat}"), snr)
+    return Inputs(imgs, valid, truth, f"{path} level {rc.level} " + ("noiseless" if rc.noiseless else f"repeat {rc.repeat}"),
+                  snr, files={"simulation.h5": path})
+
+
+MOSTLY_SATURATED = 0.5  # refuse an image with more than this fraction of its pixels at full scale
+
+
+def _image_files(cfg: C.LoadedConfig, n_poses: int, poses: list | None) -> Inputs:
+    """Images from files named per pose, each checked against what it claims to be."""
+    rc = cfg.model.reconstruct
+    im = rc.images
+    nx, ny = cfg.model.system.camera.pixels
+    if len(im.files) != n_poses:
+        raise UserError(f"reconstruct.images.files: {len(im.files)} file(s) for {n_poses} pose(s) "
+                        "(one file per pose, in subject.poses order: heights x rotations).")
+    model = None
+    if im.units == "counts":
+        if "sensor" not in cfg.model.system.camera.model_fields_set:
+            raise UserError("reconstruct.images.units is counts, but system.camera.sensor is not given: converting "
+                            "counts to photons needs the camera's bias, gain and quantum efficiency (give "
+                            "system.camera.sensor, or images in photons).")
+        model = emccd_model(cfg.model.system.camera.sensor, im.exposure_s)
+    maps = {} if im.calibration is None else read_radiometric_maps(  # per-pixel bias, dark, flat
+        cfg.resolve(im.calibration), "reconstruct.images.calibration", (ny, nx))
+    imgs, valid = [], []
+    for k, p in enumerate(im.files):
+        where = f"reconstruct.images.files[{k}] ({cfg.resolve(p)})"
+        try:
+            img, meta = read_image(cfg.resolve(p))
+        except ValueError as e:
+            raise UserError(f"reconstruct.images.files[{k}]: {e}") from None
+        if img.shape != (ny, nx):
+            raise UserError(f"{where} is {img.shape[1]} x {img.shape[0]} pixels; the camera has {nx} x {ny} "
+                            "(system.camera.pixels).")
+        said = meta.get("fluxmap:units")
+        if isinstance(said, str) and said != im.units:
+            raise UserError(f"{where} holds {said} (its metadata says fluxmap:units = {said}), but "
+                            f"reconstruct.images.units is {im.units}.")
+        if poses is not None:
+            pose = poses[k]
+            for key, want in (("fluxmap:height_mm", pose.height_mm), ("fluxmap:rotation_deg", pose.rotation_deg)):
+                got = meta.get(key)
+                if isinstance(got, (int, float)) and abs(float(got) - want) > 1e-6:
+                    raise UserError(f"{where} was taken at {key.split(':')[1]} = {got:g} (its metadata), but it is "
+                                    f"listed for pose {pose.label}: reconstruct.images.files must follow "
+                                    "subject.poses (heights x rotations).")
+        finite = np.isfinite(img)
+        if not finite.any():
+            raise UserError(f"{where}: every pixel is NaN or infinite.")
+        ok = finite
+        if model is not None:
+            sat = N.saturated(np.where(finite, img, 0), model) & finite
+            if sat.sum() > MOSTLY_SATURATED * finite.sum():
+                raise UserError(f"{where}: {sat.sum() / finite.sum():.0%} of the pixels are saturated (at "
+                                f"{2 ** model.bit_depth - 1} counts); shorten the exposure or lower the EM gain.")
+            img = counts_to_photons_with_maps(np.where(finite, img, 0), model, **maps)
+            img = np.where(finite, img, np.nan)
+            ok = finite & ~sat & np.isfinite(img)  # NaN: dead pixels of the flat map
+        if not np.any(img[ok] > 0):
+            raise UserError(f"{where}: no pixel holds a positive signal (all are zero or negative"
+                            + (" after the bias is subtracted" if model is not None else "") + "); a reconstruction "
+                            "from it would be zero everywhere.")
+        imgs.append(img)
+        valid.append(ok)
+    files = {f"image pose {k}": cfg.resolve(p) for k, p in enumerate(im.files)}
+    if im.calibration is not None:
+        files["radiometric calibration"] = cfg.resolve(im.calibration)
+    return Inputs(np.array(imgs), np.array(valid), None, "files", files=files)
 
 
 def direct_roi(T_path: Path, image: np.ndarray) -> float:
     """The older quantification: photons summed over the region the direct view covers."""
-    with A.open_artefact(T_path, "transfer") as f:
-        direct = A.read_csr(f["views"]["0"])
+    direct = load_view(T_path, 0)
     rows = np.diff(direct.indptr) > 0
     return float(np.nansum(image.ravel()[rows]))
 
@@ -176,7 +262,34 @@ def _solve(T, a, valid, m, read_noise, adjacency):
         if m.lam != "auto":
             kw["lam"] = float(m.lam)
         kw.update(adjacency=adjacency, n_iter=m.max_iter)
-    return solve(Tm, am, method=m.method, sigma2=variance(am, read_noise), **kw), keep
+    try:
+        return solve(Tm, am, method=m.method, sigma2=variance(am, read_noise), **kw), keep
+    except ValueError as e:  # say it in config keys, not the solver's parameter names
+        msg = str(e)
+        for internal, key in (("lam_rule", "reconstruct.lambda_rule"), ("lam", "reconstruct.lambda"),
+                              ("n_iter", "reconstruct.n_iter"), ("transfer matrix T", "T")):
+            msg = re.sub(rf"\b{internal}\b", key, msg)
+        raise UserError(f"reconstruct.method {m.method}: {msg}") from None
+
+
+DENSE = ("paper", "tikhonov", "nnls", "weighted_lsq", "smooth")  # form T'WT (n x n) densely
+
+
+def _check_solver_size(cfg: C.LoadedConfig, ctx: RunContext, surface, n_poses: int) -> None:
+    """Dense normal matrices are n_unknowns^2: refuse before allocating, naming the keys."""
+    rc = cfg.model.reconstruct
+    methods = [rc.settings(), *(rc.sweep.methods if rc.sweep else ())]
+    n_sub = {"elements": surface.n_elements}
+    if any(s.unknowns == "sub_elements" for s in methods):
+        n_sub["sub_elements"] = surface.unknowns()[0].n_elements
+    nx, ny = cfg.model.system.camera.pixels
+    need = 8.0 * nx * ny * n_poses * 8  # images, masks, fits and residuals
+    for s in methods:
+        if s.method in DENSE:
+            need = max(need, 8.0 * n_sub[s.unknowns] ** 2 * 4 * (ctx.jobs if rc.sweep else 1))
+    check_memory(need, f"reconstructing {surface.n_elements} elements ({', '.join(sorted({s.method for s in methods}))})",
+                 "the elements of subject.surface, use reconstruct.unknowns: elements, or choose "
+                 "reconstruct.method: mlem or backprojection (no dense normal matrix)")
 
 
 def describe(m: C.MethodSettings) -> str:
@@ -197,24 +310,25 @@ def _describe(m: C.MethodSettings) -> str:
 
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     rc = cfg.model.reconstruct
+    check_folders(cfg)
     out = cfg.workdir / "reconstruction.h5"
     m_ = cfg.model
-    sources = ([A.file_sha256(cfg.resolve(p)) for p in rc.images.files if cfg.resolve(p).is_file()]
-               if rc.images is not None else
-               [A.file_sha256(cfg.workdir / "simulation.h5")] if (cfg.workdir / "simulation.h5").is_file() else [])
-    calibration = getattr(rc.images, "calibration", None)  # radiometric maps applied to counts
-    if calibration is not None and cfg.resolve(calibration).is_file():
-        sources.append(A.file_sha256(cfg.resolve(calibration)))
+    sources = _image_sources(cfg)
     digest = A.inputs_digest(system=m_.system.model_dump(mode="json"), subject=m_.subject.model_dump(mode="json"),
                              transfer=m_.transfer.model_dump(mode="json"),
                              reconstruct=rc.model_dump(mode="json", by_alias=True), images=sources)
     if not ctx.force and A.is_up_to_date(out, "reconstruction", digest):
         ctx.say(f"reconstruct: {out} is up to date (--force to redo)")
         return out
-    views, placer, todo, _ = ensure_T(cfg, replace(ctx, force=False), label="building T")
+    _, placer, todo = plan(cfg)
     surface = placer.surface
+    _check_solver_size(cfg, ctx, surface, len(todo))
+    inp = load_inputs(cfg, len(todo), surface.n_elements, surface.digest(),  # checked before any T is built
+                      [pt.pose for _, pt in todo])
+    if rc.sweep is not None:
+        _check_sweep(cfg, inp)
+    views, placer, todo, _ = ensure_T(cfg, replace(ctx, force=False), label="building T")
     P = len(todo)
-    inp = load_inputs(cfg, P, surface.n_elements)
     nx, ny = cfg.model.system.camera.pixels
     m = rc.settings()
     grids = {u: make_grid(cfg, ctx, surface, u)
@@ -239,10 +353,15 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     main = joint if joint is not None else per_pose[0][0]
     areas = surface.element_areas_mm2
     rows = []
+    prov = provenance(cfg, surface.digest())
+    for name, path in (inp.files or {}).items():
+        prov.add_file(name, path)
     with A.write_artefact(out, "reconstruction", config_sha256=cfg.sha256,
-                          inputs={"T": json.dumps([pt.key for _, pt in todo]), "images": inp.source}) as f:
+                          inputs={"T": json.dumps([pt.key for _, pt in todo]), "images": inp.source},
+                          provenance=prov) as f:
         f.attrs["inputs_digest"] = digest
         A.write_surface(f.create_group("surface"), surface)
+        _write_geometry(f.create_group("geometry"), cfg, placer, views, todo)
         g = f.create_group("flux")
         _write_flux(g, main, areas)
         g.attrs["joint_over_poses"] = joint is not None
@@ -254,8 +373,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         pp.create_dataset("lambda", data=[r.lam for r, _ in per_pose])
         pp.create_dataset("vertices_mm", data=np.array([sc.surface.vertices_mm for sc, _ in todo]),
                           compression="gzip").attrs["meaning"] = "the surface placed at each pose (faces as /surface/faces)"
-        pp.create_dataset("backprojection_total", data=[np.nansum(backprojection(Ts[k], inp.images[k].ravel()))
-                                                        for k in range(P)]).attrs["unit"] = "photons (T'a summed)"
+        pp.create_dataset("backprojection_total", data=[np.nansum(backprojection(Ts[k], np.where(
+            inp.valid[k], inp.images[k], 0.0).ravel())) for k in range(P)]).attrs["unit"] = "photons (T'a summed)"
         pp.create_dataset("direct_roi_photons", data=[direct_roi(todo[k][1].path, inp.images[k]) for k in range(P)]
                           ).attrs["meaning"] = "measured photons summed over the pixels the direct view reaches"
         pp.create_dataset("heights_mm", data=[pt.pose.height_mm for _, pt in todo])
@@ -293,8 +412,6 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
                 row += [f"{error_l1(joint.power, inp.truth):.2%}", f"{total_ratio(joint.power, inp.truth):.3f}"]
             rows.append(row)
         if rc.sweep is not None:
-            if inp.truth is None:
-                raise UserError("reconstruct.sweep: a sweep needs a simulation (ground truth), not image files.")
             _sweep(cfg, ctx, f.create_group("sweep"), grids, todo)
     header = ["height_mm", "rotation_deg", "total photons", "observed", "lambda"]
     if inp.truth is not None:
@@ -302,6 +419,19 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     ctx.table(header, rows)
     ctx.say(f"{seconds:.2f} s of solving")
     return out
+
+
+def _write_geometry(g, cfg: C.LoadedConfig, placer, views, todo) -> None:
+    """What the report draws besides the flux, so that it reads artefacts only."""
+    cam = cfg.model.system.camera
+    g.attrs["axis_point_mm"] = np.asarray(placer.axis_point, float)
+    g.attrs["axis_direction"] = np.asarray(placer.axis, float)
+    g.attrs["camera_look"] = np.asarray(cam.pose.look, float)
+    g.attrs["camera_up"] = np.asarray(cam.pose.up, float)
+    g.attrs["view_names"] = json.dumps([v.name for v in views])
+    g.attrs["T_files"] = json.dumps([str(pt.path) for _, pt in todo])
+    files = getattr(cfg.model.reconstruct.images, "files", None)  # image files (not a capture)
+    g.attrs["image_files"] = json.dumps([str(cfg.resolve(p)) for p in files] if files else [])
 
 
 def _write_flux(g, res, areas) -> None:
@@ -333,6 +463,20 @@ def _sweep_cell(sim_path: str, grids_k: dict, pose: int, level: int, repeats: in
     return out
 
 
+def _check_sweep(cfg: C.LoadedConfig, inp: Inputs) -> None:
+    """Before any solving: a sweep needs the simulation's truth and levels that exist."""
+    sw = cfg.model.reconstruct.sweep
+    if inp.truth is None:
+        raise UserError("reconstruct.sweep: a sweep needs a simulation (ground truth), not image files "
+                        "(reconstruct.images).")
+    path = _simulation(cfg)
+    with A.open_artefact(path, "simulation") as f:
+        L = f["images/noisy"].shape[0]
+    bad = [li for li in (sw.levels or ()) if li >= L]
+    if bad:
+        raise UserError(f"reconstruct.sweep.levels: {path} holds {L} signal level(s) (0 to {L - 1}); asked for {bad}.")
+
+
 def _sweep(cfg: C.LoadedConfig, ctx: RunContext, g, grids: dict, todo) -> None:
     sw = cfg.model.reconstruct.sweep
     path = _simulation(cfg)
@@ -356,7 +500,7 @@ def _sweep(cfg: C.LoadedConfig, ctx: RunContext, g, grids: dict, todo) -> None:
             for li, k in cells]
     with ctx.progress("sweep", total=len(cells)) as advance:
         if ctx.jobs > 1:
-            with ProcessPoolExecutor(max_workers=ctx.jobs) as ex:
+            with worker_pool(ctx.jobs) as ex:
                 for (li, k), e in zip(cells, ex.map(_sweep_cell, *zip(*args))):
                     err[:, li, k] = e
                     advance()

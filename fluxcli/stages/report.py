@@ -18,12 +18,14 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
+
 from .. import artefacts as A
 from .. import config as C
 from .. import report as R
 from ..errors import UserError
-from ..scene import SubjectPlacer, views_from_config
-from .build_t import cache_dir
+from ..pipeline import check_writable, geometry_of
+from ..scene import SubjectPlacer
 from .context import RunContext
 
 
@@ -34,6 +36,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         raise UserError(f"report: {rec} does not exist; run 'fluxmap reconstruct {cfg.path}' first "
                         f"(after 'fluxmap simulate' or with reconstruct.images naming image files).")
     out_dir = cfg.workdir / "report"
+    check_writable(out_dir, "workdir")
     sim = cfg.workdir / "simulation.h5"
     inputs = {"reconstruction.h5": A.file_sha256(rec)}
     if sim.is_file():
@@ -44,15 +47,15 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         ctx.say(f"report: up to date ({index}); --force redraws it")
         return index
 
-    placer = SubjectPlacer(cfg)
-    cam = cfg.model.system.camera
-    geometry = R.Geometry(axis_point_mm=tuple(placer.axis_point), axis_direction=tuple(placer.axis),
-                          look=tuple(cam.pose.look), up=tuple(cam.pose.up),
-                          view_names=tuple(v.name for v in views_from_config(cfg.model.system)))
-    study = R.load(rec, t_cache_dir=cache_dir(cfg), simulation=sim if sim.is_file() else None)
-    if study.surface.n_elements != placer.surface.n_elements:
-        raise UserError(f"report: {rec} has {study.surface.n_elements} elements; the config's subject has "
-                        f"{placer.surface.n_elements}. Run 'fluxmap reconstruct {cfg.path}' again.")
+    with A.open_artefact(rec, "reconstruction") as f:  # the result must be the one this config describes
+        A.check_geometry(rec, A.read_provenance(f), geometry_of(cfg, SubjectPlacer(cfg).surface.digest()),
+                         remedy=f"Run 'fluxmap reconstruct {cfg.path}' again")
+    study = R.load(rec, simulation=sim if sim.is_file() else None)
+    geometry = study.geometry
+    if geometry is None:
+        raise UserError(f"report: {rec} records no geometry (made by an older fluxmap); run "
+                        f"'fluxmap reconstruct {cfg.path} --force'.")
+    _check_slice(study, geometry, rs.slice_axial_mm)
     _remove_old_figures(out_dir)
     ctx.say(f"report: {study.n_poses} pose(s), {study.surface.n_elements} elements, method {study.method}")
     index, summary = R.make_report(study, out_dir, title=rs.title or cfg.path.stem, geometry=geometry,
@@ -66,6 +69,20 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         ctx.say(f"error {summary['error']:.2%}, total ratio {summary['total_ratio']:.3f}")
     ctx.say(f"{len(summary['figures'])} figure(s); open {index}")
     return index
+
+
+def _check_slice(study, geometry, at_mm: float) -> None:
+    """The slice must cut the subject: a plane beyond its ends would silently show the end ring."""
+    if study.is_line_detector:
+        return
+    surf = study.surface
+    axial = R.axial_positions_mm(surf.element_centroids_mm, surf.vertices_mm, np.asarray(geometry.axis_point_mm),
+                                 geometry.axis_direction)
+    lo, hi = float(axial.min()), float(axial.max())
+    size = float(np.sqrt(np.median(study.areas_mm2))) if len(study.areas_mm2) else 0.0
+    if not (lo - size <= at_mm <= hi + size):
+        raise UserError(f"report.slice_axial_mm: {at_mm:g} mm is outside the subject, whose elements lie between "
+                        f"{lo:.3g} and {hi:.3g} mm along its axis (from its centre).")
 
 
 def _previous(out_dir: Path) -> dict:

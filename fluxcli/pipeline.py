@@ -1,0 +1,285 @@
+"""What several stages build from a config: the T of each pose (through the T cache),
+the sensor model, and the provenance every artefact records.
+
+Stages import this module, never each other.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from concurrent.futures import as_completed
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import artefacts as A
+from .artefacts import transfer as AT
+from .config import LoadedConfig, Sensor, Transfer
+from .errors import UserError
+from .imaging import noise as N
+from .optics.transfer import ALGORITHM_VERSION, LensSampling, PairwiseSampling, View, build_transfer
+from .scene import PlacedScene, Pose, SubjectPlacer, poses_from_config, views_from_config
+from .workers import worker_pool
+
+# build-T refuses a pose whose views collect nothing, and warns below this fraction of the
+# collection efficiency the best pose reaches (a view that barely sees the subject)
+WEAK_VIEW_FRACTION = 0.02
+
+
+@dataclass(frozen=True)
+class PoseT:
+    pose: Pose
+    key: str
+    path: Path
+
+
+# ------------------------------------------------------------------ before any compute
+def check_writable(folder: Path, key: str) -> None:
+    """Make sure ``folder`` exists (creating it) and a file can be written in it; the
+    message names the config key that chose it."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise UserError(f"{key}: {folder} is a file, not a folder; choose another path.") from None
+    except OSError as e:
+        raise UserError(f"{key}: cannot create the folder {folder} ({e.strerror or e}); "
+                        "choose a path you can write to.") from None
+    if not folder.is_dir():
+        raise UserError(f"{key}: {folder} is not a folder; choose another path.")
+    probe = folder / f".fluxmap-write-test.{os.getpid()}"
+    try:
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise UserError(f"{key}: cannot write in {folder} ({e.strerror or e}); choose a folder you can "
+                        "write to, or fix its permissions.") from None
+
+
+def check_folders(cfg: LoadedConfig, *, cache: bool = True) -> None:
+    """The workdir (and the T cache) must be writable before a stage computes anything."""
+    check_writable(cfg.workdir, "workdir")
+    if cache:
+        check_writable(cache_dir(cfg), "transfer.cache_dir" if cfg.model.transfer.cache_dir else "workdir")
+
+
+# ------------------------------------------------------------------ sizes, before allocating
+def available_memory_bytes() -> int:
+    """Memory the OS says can be allocated now (MemAvailable), else the physical memory."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return 1 << 62
+
+
+def _gb(n: float) -> str:
+    return f"{n / 1e9:.3g} GB" if n >= 1e8 else f"{n / 1e6:.3g} MB"
+
+
+def check_memory(need_bytes: float, what: str, keys: str) -> None:
+    """Refuse work whose estimated memory exceeds what is available, naming the keys to change."""
+    avail = available_memory_bytes()
+    if need_bytes > 0.8 * avail:
+        raise UserError(f"{what} would need about {_gb(need_bytes)} of memory; {_gb(avail)} is available. "
+                        f"Reduce {keys}.")
+
+
+def transfer_bytes(n_pixels: int, n_views: int, n_elements: int) -> float:
+    """Rough peak memory of building one pose's T: CSR row pointers per view and combined,
+    the pending COO pieces, and per-element sampling arrays."""
+    return 8.0 * n_pixels * (2 * n_views + 4) + 2000.0 * n_elements
+
+
+# ------------------------------------------------------------------ provenance
+def geometry_of(cfg: LoadedConfig, surface_sha256: str | None = None) -> dict:
+    """The set-up an artefact is made for: system (camera, lens, sensor, apertures, mirrors,
+    stage), subject (surface, poses, rotation axis) and the digest of the built surface."""
+    m = cfg.model
+    g = {"system": m.system.model_dump(mode="json") if m.system is not None else None,
+         "subject": m.subject.model_dump(mode="json") if m.subject is not None else None}
+    if surface_sha256 is not None:
+        g["surface_sha256"] = surface_sha256
+    return g
+
+
+def provenance(cfg: LoadedConfig, surface_sha256: str | None = None) -> A.Provenance:
+    return A.Provenance(config=cfg.model.model_dump(mode="json", by_alias=True),
+                        geometry=geometry_of(cfg, surface_sha256))
+
+
+def announce(ctx, placer: SubjectPlacer) -> None:
+    """Say what a mesh file yielded, and warn about what was repaired in it (once per run)."""
+    for k, note in enumerate(placer.notes):
+        if k == 0:
+            if note not in ctx.warned:
+                ctx.warned.add(note)
+                ctx.say(note)
+        else:
+            ctx.warn(note)
+
+
+# ------------------------------------------------------------------ the sensor
+def emccd_model(sensor: Sensor, exposure_s: float) -> N.EMCCDModel:
+    return N.EMCCDModel(**sensor.model_dump(), exposure_s=exposure_s)
+
+
+# ------------------------------------------------------------------ T per pose
+def cache_dir(cfg: LoadedConfig) -> Path:
+    return cfg.resolve(cfg.model.transfer.cache_dir) if cfg.model.transfer.cache_dir else cfg.workdir / "cache" / "T"
+
+
+def key_parts(scene: PlacedScene, views: list[View], tr: Transfer) -> dict:
+    """Everything T depends on, and nothing else (no names, paths or later-stage settings)."""
+    cam = views[0].camera
+    sampling = tr.lens.model_dump() if tr.estimator == "lens" else tr.pairwise.model_dump()
+    return A.canonical({
+        "algorithm": ALGORITHM_VERSION,
+        "surface": scene.surface.digest(),
+        "occluders": [o.digest() for o in scene.occluders],
+        "camera": {
+            "center_mm": cam.center_mm, "axis": cam.axis, "right": cam.right, "down": cam.down,
+            "focal_length_mm": cam.focal_length_mm, "aperture_radius_mm": cam.aperture_radius_mm,
+            "focus_distance_mm": cam.focus_distance_mm, "pixels": [cam.nx, cam.ny],
+            "pixel_pitch_mm": cam.pixel_pitch_mm,
+            "apertures": [[a.distance_mm, a.radius_mm] for a in cam.apertures],
+        },
+        "mirrors": [{"center_mm": v.mirror.center_mm, "normal": v.mirror.normal, "axis_u": v.mirror.axis_u,
+                     "half_size_mm": v.mirror.half_size_mm, "weight": v.weight} for v in views[1:]],
+        "estimator": tr.estimator,
+        "sampling": sampling,
+        "ray_offset_mm": tr.ray_offset_mm,
+    })
+
+
+def plan(cfg: LoadedConfig, transfer: Transfer | None = None, unknowns: str = "elements"
+         ) -> tuple[list[View], SubjectPlacer, list[tuple[PlacedScene, PoseT]]]:
+    """The views, the subject placer, and per pose its placed scene and cache entry.
+
+    ``transfer`` overrides ``cfg.model.transfer`` (simulate builds a finer T this way);
+    ``unknowns="sub_elements"`` gives T's columns per sub-element (Surface.unknowns)."""
+    tr = transfer or cfg.model.transfer
+    views = views_from_config(cfg.model.system)
+    placer = SubjectPlacer(cfg)
+    out = []
+    cdir = cache_dir(cfg)
+    for pose in poses_from_config(cfg.model.subject):
+        scene = placer.scene(pose, cfg.model.system)
+        if unknowns == "sub_elements":
+            scene = PlacedScene(scene.pose, scene.surface.unknowns()[0], scene.occluders)
+        key = A.cache_key(key_parts(scene, views, tr))
+        out.append((scene, PoseT(pose, key, AT.entry_path(cdir, key))))
+    return views, placer, out
+
+
+def _build_and_store(scene: PlacedScene, views: list[View], tr: Transfer, target: Path, config_sha: str,
+                     prov: A.Provenance | None = None) -> dict:
+    """Worker: compute T for one pose and write it atomically; returns a summary."""
+    t0 = time.perf_counter()
+    res = build_transfer(
+        scene.surface, views, scene.occluders, estimator=tr.estimator,
+        lens_sampling=LensSampling(**tr.lens.model_dump()),
+        pairwise_sampling=PairwiseSampling(**tr.pairwise.model_dump()),
+        ray_offset_mm=tr.ray_offset_mm, rays_per_batch=tr.rays_per_batch,
+    )
+    seconds = time.perf_counter() - t0
+    cam = res.views[0].camera
+    AT.write_T(target, T=res.T, T_per_view=res.T_per_view,
+               view_kinds=["direct" if v.mirror is None else "mirror" for v in res.views],
+               weights=[v.weight for v in res.views], stats=[res.stats[v.name] for v in res.views],
+               pixels=(cam.nx, cam.ny), surface=scene.surface, occluders=scene.occluders,
+               height_mm=scene.pose.height_mm, rotation_deg=scene.pose.rotation_deg, estimator=tr.estimator,
+               seconds=seconds, config_sha256=config_sha, provenance=prov)
+    return summarise(res, scene) | {"seconds": seconds}
+
+
+def summarise(res, scene: PlacedScene) -> dict:
+    """Collection efficiency per view: the fraction of the power of a uniformly glowing
+    surface that the view delivers to the sensor (area-weighted mean column sum)."""
+    areas = scene.surface.element_areas_mm2
+    eff = {view.name: AT.efficiency(Tv, view.weight, areas) for view, Tv in zip(res.views, res.T_per_view)}
+    return {"nnz": int(res.T.nnz), "efficiency": eff}
+
+
+def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: str = "building T",
+             unknowns: str = "elements"):
+    """Build every pose's T that the cache lacks (all with ``ctx.force``); a cache entry
+    that cannot be read is rebuilt with a warning.
+
+    Returns views, placer, [(scene, PoseT)], and per key a summary dict (cached, seconds,
+    nnz, efficiency per view)."""
+    tr = transfer or cfg.model.transfer
+    views, placer, todo = plan(cfg, tr, unknowns)
+    announce(ctx, placer)
+    nx, ny = cfg.model.system.camera.pixels
+    n_el = todo[0][0].surface.n_elements if todo else 0
+    check_memory(transfer_bytes(nx * ny, len(views), n_el) * max(1, min(ctx.jobs, len(todo))),
+                 f"building T ({nx} x {ny} pixels, {len(views)} view(s), {n_el} elements"
+                 + (f", {ctx.jobs} jobs)" if ctx.jobs > 1 else ")"),
+                 "system.camera.pixels (bin the sensor), the elements of subject.surface, or --jobs")
+    names = [v.name for v in views]
+    results: dict[str, dict] = {}
+    need, seen = [], set()
+    for s, p in todo:
+        if p.key in seen:
+            continue
+        seen.add(p.key)
+        if not ctx.force:
+            summary, why = AT.check_entry(p.path, names, s.surface.element_areas_mm2)
+            if summary is not None:
+                results[p.key] = summary | {"cached": True}
+                continue
+            if why != "missing":
+                ctx.warn(f"the cached T of pose {p.pose.label} is unreadable and is rebuilt: {why}")
+        need.append((s, p))
+    prov = provenance(cfg, placer.surface.digest())
+    with ctx.progress(label, total=len(need)) as advance:
+        if ctx.jobs > 1 and len(need) > 1:
+            with worker_pool(min(ctx.jobs, len(need)), temp_dirs=(cache_dir(cfg),)) as ex:
+                futs = {ex.submit(_build_and_store, s, views, tr, p.path, cfg.sha256, prov): p for s, p in need}
+                for fut in as_completed(futs):
+                    results[futs[fut].key] = fut.result() | {"cached": False}
+                    advance()
+        else:
+            for s, p in need:
+                results[p.key] = _build_and_store(s, views, tr, p.path, cfg.sha256, prov) | {"cached": False}
+                advance()
+    check_collection(todo, results, names, ctx)
+    return views, placer, todo, results
+
+
+def ensure_pose_T(cfg: LoadedConfig, pose: Pose, transfer: Transfer | None = None,
+                  placer: SubjectPlacer | None = None):
+    """T (CSR) of one pose that need not be in ``subject.poses`` (the simulated rig renders
+    at the stage's physical height), from the T cache or built and cached."""
+    tr = transfer or cfg.model.transfer
+    views = views_from_config(cfg.model.system)
+    scene = (placer or SubjectPlacer(cfg)).scene(pose, cfg.model.system)
+    path = AT.entry_path(cache_dir(cfg), A.cache_key(key_parts(scene, views, tr)))
+    if not path.is_file():
+        _build_and_store(scene, views, tr, path, cfg.sha256, provenance(cfg))
+    return AT.load_T(path)
+
+
+def check_collection(todo, results: dict, view_names: list[str], ctx) -> None:
+    """Refuse a pose no view collects light from; warn about views that barely see the subject."""
+    best = max((max(results[p.key]["efficiency"].values()) for _, p in todo), default=0.0)
+    for _, p in todo:
+        eff = results[p.key]["efficiency"]
+        if sum(eff.values()) <= 0:
+            raise UserError(
+                f"at pose {p.pose.label} no camera view collects any light from the subject (T is all zero): "
+                "check system.camera.pose.lens_center_mm and system.camera.pose.look (does the camera look at "
+                "the subject?), system.camera.lens.focus_distance_mm, system.mirrors, and subject.poses.heights_mm "
+                "(is the subject between the stage and the lens?).")
+        for name in view_names:
+            if best > 0 and eff[name] < WEAK_VIEW_FRACTION * best:
+                ctx.warn(f"view {name} at pose {p.pose.label} collects {eff[name] / best:.1%} of the light the best "
+                         f"view collects (below {WEAK_VIEW_FRACTION:.0%}): it barely sees the subject.")
