@@ -20,7 +20,7 @@ Vec3 = tuple[float, float, float]
 
 
 class Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # NaN/inf: never a length
 
 
 def _unit(v: Vec3, what: str) -> Vec3:
@@ -183,6 +183,12 @@ class RotationAxis(Model):
     point_mm: Vec3 | None = Field(None, description="A point on the axis (default: the subject's centre).")
     direction: Vec3 = Field((1.0, 0.0, 0.0), description="Axis direction.")
 
+    @field_validator("direction")
+    @classmethod
+    def _direction(cls, v: Vec3) -> Vec3:
+        _unit(v, "direction")
+        return v
+
 
 class Poses(Model):
     heights_mm: tuple[float, ...] = Field((0.0,), min_length=1, description="Stage heights h (mm).")
@@ -203,6 +209,16 @@ class LensSampling(Model):
     lens_samples_min: int = Field(32, ge=1, description="Lens samples per surface point, at least.")
     lens_samples_max: int = Field(2048, ge=1, description="Lens samples per surface point, at most.")
     lens_samples_per_blur_pixel: float = Field(4.0, gt=0, description="Lens samples per pixel of blur-disk area.")
+
+    @model_validator(mode="after")
+    def _ranges(self) -> "LensSampling":
+        if self.lens_samples_max < self.lens_samples_min:
+            raise ValueError(f"lens_samples_max ({self.lens_samples_max}) must be at least lens_samples_min "
+                             f"({self.lens_samples_min})")
+        if self.max_surface_subdivisions < self.min_surface_subdivisions:
+            raise ValueError(f"max_surface_subdivisions ({self.max_surface_subdivisions}) must be at least "
+                             f"min_surface_subdivisions ({self.min_surface_subdivisions})")
+        return self
 
 
 class PairwiseSampling(Model):
@@ -318,7 +334,7 @@ class MethodSettings(Model):
     unknowns: Literal["elements", "sub_elements"] = Field(
         "elements", description="Solve per element, or per sub-element (phantom strips, else faces) summed per element.")
 
-    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True, allow_inf_nan=False)
 
     @field_validator("lam")
     @classmethod
@@ -374,7 +390,7 @@ class Reconstruct(Model):
     read_noise_photons: float = Field(0.0, ge=0, description="Added to the shot-noise variance in weights (photons rms).")
     sweep: Sweep | None = Field(None, description="A study: every level x repeat x pose for each method.")
 
-    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True, allow_inf_nan=False)
 
     @field_validator("lam")
     @classmethod
@@ -439,6 +455,40 @@ class Radiometric(Model):
             raise ValueError("ptc needs at least two levels with em_gain_on: false (the gain-off curve gives electrons per count)")
         if any(d.em_gain_on for d in self.darks) and not any(lv.em_gain_on for lv in self.ptc):
             raise ValueError("darks taken with em_gain_on need ptc levels with em_gain_on: true to measure the EM gain")
+        return self
+
+
+# --------------------------------------------------------------------------- calibrate: geometric
+class CalibrationGrid(Model):
+    kind: Literal["dots", "checkerboard"] = Field("dots", description="dots (a regular dot grid) or checkerboard (its inner corners are the points).")
+    pitch_mm: float = Field(gt=0, description="Distance between neighbouring grid points (mm).")
+    shape: tuple[int, int] = Field(description="Points along x and along y [nx, ny] (checkerboard: inner corners).")
+
+    @field_validator("shape")
+    @classmethod
+    def _shape(cls, v: tuple[int, int]) -> tuple[int, int]:
+        if min(v) < 2:
+            raise ValueError("shape must be two integers [nx, ny], each 2 or more")
+        return v
+
+
+class CalibrationImage(Model):
+    file: Path = Field(description="Image of the grid lying flat (TIFF/FITS/EXR; counts or photons), relative to the config.")
+    plane_z_mm: float = Field(description="World z of the grid plane in this image (mm); the world frame is the grid's.")
+
+
+class Calibrate(Model):
+    grid: CalibrationGrid | None = Field(None, description="The target: world point (i, j) at ((i-(nx-1)/2) pitch, (j-(ny-1)/2) pitch, plane_z_mm).")
+    images: tuple[CalibrationImage, ...] = Field((), description="The grid at five or more known heights through and around focus.")
+    refine_mirrors: bool = Field(True, description="Refine the planes of system.mirrors from the grid seen in each mirror.")
+    radiometric: Radiometric | None = Field(None, description="Bias, dark, flat and photon-transfer frames: the sensor block.")
+
+    @model_validator(mode="after")
+    def _check(self) -> "Calibrate":
+        if (self.grid is None) != (len(self.images) == 0):
+            raise ValueError("give both grid and images (geometric calibration), or neither")
+        if self.grid is None and self.radiometric is None:
+            raise ValueError("give grid and images (geometric), radiometric, or both")
         return self
 
 
@@ -556,7 +606,7 @@ class Config(Model):
     simulate: Simulate | None = None
     reconstruct: Reconstruct = Reconstruct()
     report: ReportSettings = ReportSettings()
-    calibrate: dict[str, Any] | None = None
+    calibrate: Calibrate | None = None
     capture: Capture | None = Field(None, description="The acquisition plan of capture-surface.")
     rig: Rig | None = Field(None, description="The devices of the rig (issue 11).")
 
@@ -657,7 +707,9 @@ _SURFACE_MEMBERS = {"phantom": ("MeshSurface", "ArtefactSurface"), "mesh": ("Art
 
 def _relevant(errors: list, raw: Any) -> list:
     """Drop errors from union members the user did not choose (a phantom with a bad radius
-    is not also 'missing its mesh key')."""
+    is not also 'missing its mesh key'), and a list's 'too short' when one of its items failed."""
+    items = {tuple(e["loc"][:-1]) for e in errors if e["loc"] and isinstance(e["loc"][-1], int)}
+    errors = [e for e in errors if not (e["type"] == "too_short" and tuple(e["loc"]) in items)]
     surf = raw.get("subject", {}).get("surface") if isinstance(raw, dict) and isinstance(raw.get("subject"), dict) else None
     if not isinstance(surf, dict):
         return errors
@@ -721,6 +773,24 @@ def _camera_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
     system["camera"] = _merge(loaded["camera"], overrides)
 
 
+def _mirrors_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
+    """``system.mirrors: calib/camera.yaml`` takes the file's top-level ``mirrors:`` list (refined by calibrate)."""
+    system = raw.get("system")
+    if not isinstance(system, dict) or not isinstance(system.get("mirrors"), str):
+        return
+    ref = system["mirrors"]
+    file = Path(ref) if Path(ref).is_absolute() else (base_dir / ref).resolve()
+    if not file.is_file():
+        raise UserError(f"config {path}: 'system.mirrors': file {file} does not exist.")
+    try:
+        loaded = yaml.load(file.read_text(), Loader=_UniqueKeyLoader)
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise UserError(f"config {path}: 'system.mirrors': file {file} is not valid YAML: {e}".replace("\n", " ")) from None
+    if not isinstance(loaded, dict) or not isinstance(loaded.get("mirrors"), list):
+        raise UserError(f"config {path}: 'system.mirrors': file {file} has no top-level 'mirrors:' list.")
+    system["mirrors"] = loaded["mirrors"]
+
+
 def _merge(base: dict, over: dict) -> dict:
     out = dict(base)
     for k, v in over.items():
@@ -743,6 +813,8 @@ def require(cfg: "LoadedConfig", stage: str, keys: tuple[str, ...] | list[str]) 
 def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -> LoadedConfig:
     """Read, override and validate a config; raise UserError with one clear paragraph."""
     path = Path(path)
+    if path.is_dir():
+        raise UserError(f"config file {path} is a folder; give the YAML file itself.")
     if not path.is_file():
         raise UserError(f"config file {path} does not exist.")
     try:
@@ -754,6 +826,7 @@ def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -
     if not isinstance(raw, dict):
         raise UserError(f"config file {path} must hold a mapping of keys (workdir, system, subject, ...).")
     _camera_from_file(raw, path.resolve().parent, path)
+    _mirrors_from_file(raw, path.resolve().parent, path)
     for item in overrides:
         _apply_override(raw, item)
     try:

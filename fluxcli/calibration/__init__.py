@@ -1,1 +1,1 @@
-"""Camera calibration: grid detection, camera fit, radiometry."""
+"""Calibration science: grid detection, the thin-lens camera fit, mirrors, radiometry (arrays in, numbers out)."""

@@ -27,12 +27,12 @@ from .. import artefacts as A
 from .. import config as C
 from ..errors import UserError
 from ..imaging import noise as N
-from ..imaging.imagefiles import read_image
-from ..imaging.sensor_maps import counts_to_photons_with_maps
+from ..imaging.imagefiles import read_image, sample_type
 from ..artefacts.transfer import load_T, load_view
 from ..inverse import backprojection, error_l1, reconstruct as solve, total_ratio
 from ..pipeline import check_folders, check_memory, emccd_model, ensure_T, geometry_of, plan, provenance
 from ..workers import worker_pool
+from ..imaging.sensor_maps import counts_to_photons_with_maps
 from ._radiometric import read_radiometric_maps
 from .context import RunContext
 
@@ -87,9 +87,11 @@ def _image_sources(cfg: C.LoadedConfig) -> list[str]:
     if isinstance(rc.images, C.CaptureSource):
         p = _capture_path(cfg)
         return [A.file_sha256(p)] if p.is_file() else []
-    if rc.images is not None:  # the images, and the radiometric maps applied to them
-        files = [*rc.images.files, *([rc.images.calibration] if rc.images.calibration is not None else [])]
-        return [A.file_sha256(cfg.resolve(p)) for p in files if cfg.resolve(p).is_file()]
+    if rc.images is not None:
+        out = [A.file_sha256(cfg.resolve(p)) for p in rc.images.files if cfg.resolve(p).is_file()]
+        if rc.images.calibration is not None and cfg.resolve(rc.images.calibration).is_file():
+            out.append(A.file_sha256(cfg.resolve(rc.images.calibration)))
+        return out
     sim = cfg.workdir / "simulation.h5"
     return [A.file_sha256(sim)] if sim.is_file() else []
 
@@ -121,7 +123,14 @@ def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int, surface_sha2
         valid = np.isfinite(imgs)
         if "counts" in f["images"] and not rc.noiseless:
             model = emccd_model(cfg.model.system.camera.sensor, float(f["images"].attrs["exposure_s"]))
-            valid &= ~N.saturated(f["images/counts"][rc.level, rc.repeat], model)
+            sat = N.saturated(f["images/counts"][rc.level, rc.repeat], model)
+            lit = f["images/noiseless"][rc.level] > 0
+            for k in range(sat.shape[0]):
+                if lit[k].any() and sat[k][lit[k]].mean() > MOSTLY_SATURATED:
+                    raise UserError(f"reconstruct.level: at level {rc.level} ({path}) {sat[k][lit[k]].mean():.0%} of "
+                                    f"the lit pixels of pose {k} are saturated; reconstruct a lower level or "
+                                    "simulate with a lower simulate.noise.peaks_photons or system.camera.sensor.em_gain.")
+            valid &= ~sat
         truth = power * f["truth/level_scale"][rc.level]
         snr = f["images/max_snr"][rc.level]
     return Inputs(imgs, valid, truth, f"{path} level {rc.level} " + ("noiseless" if rc.noiseless else f"repeat {rc.repeat}"),
@@ -146,7 +155,7 @@ def _image_files(cfg: C.LoadedConfig, n_poses: int, poses: list | None) -> Input
                             "counts to photons needs the camera's bias, gain and quantum efficiency (give "
                             "system.camera.sensor, or images in photons).")
         model = emccd_model(cfg.model.system.camera.sensor, im.exposure_s)
-    maps = {} if im.calibration is None else read_radiometric_maps(  # per-pixel bias, dark, flat
+    maps = {} if im.calibration is None else read_radiometric_maps(  # per-pixel bias, dark, flat (radiometry)
         cfg.resolve(im.calibration), "reconstruct.images.calibration", (ny, nx))
     imgs, valid = [], []
     for k, p in enumerate(im.files):
@@ -159,6 +168,11 @@ def _image_files(cfg: C.LoadedConfig, n_poses: int, poses: list | None) -> Input
             raise UserError(f"{where} is {img.shape[1]} x {img.shape[0]} pixels; the camera has {nx} x {ny} "
                             "(system.camera.pixels).")
         said = meta.get("fluxmap:units")
+        stored = sample_type(cfg.resolve(p))
+        if im.units == "photons" and stored.startswith(("uint", "int")) and not isinstance(said, str):
+            raise UserError(f"{where} stores {stored} integers, which are camera counts, but reconstruct.images.units "
+                            "is photons; set reconstruct.images.units: counts (with system.camera.sensor), or give "
+                            "photons as floating-point images.")
         if isinstance(said, str) and said != im.units:
             raise UserError(f"{where} holds {said} (its metadata says fluxmap:units = {said}), but "
                             f"reconstruct.images.units is {im.units}.")
@@ -179,9 +193,10 @@ def _image_files(cfg: C.LoadedConfig, n_poses: int, poses: list | None) -> Input
             if sat.sum() > MOSTLY_SATURATED * finite.sum():
                 raise UserError(f"{where}: {sat.sum() / finite.sum():.0%} of the pixels are saturated (at "
                                 f"{2 ** model.bit_depth - 1} counts); shorten the exposure or lower the EM gain.")
+            ok = finite & ~sat
             img = counts_to_photons_with_maps(np.where(finite, img, 0), model, **maps)
+            ok &= np.isfinite(img)  # dead pixels of the flat map
             img = np.where(finite, img, np.nan)
-            ok = finite & ~sat & np.isfinite(img)  # NaN: dead pixels of the flat map
         if not np.any(img[ok] > 0):
             raise UserError(f"{where}: no pixel holds a positive signal (all are zero or negative"
                             + (" after the bias is subtracted" if model is not None else "") + "); a reconstruction "
@@ -189,8 +204,6 @@ def _image_files(cfg: C.LoadedConfig, n_poses: int, poses: list | None) -> Input
         imgs.append(img)
         valid.append(ok)
     files = {f"image pose {k}": cfg.resolve(p) for k, p in enumerate(im.files)}
-    if im.calibration is not None:
-        files["radiometric calibration"] = cfg.resolve(im.calibration)
     return Inputs(np.array(imgs), np.array(valid), None, "files", files=files)
 
 
@@ -471,7 +484,10 @@ def _check_sweep(cfg: C.LoadedConfig, inp: Inputs) -> None:
                         "(reconstruct.images).")
     path = _simulation(cfg)
     with A.open_artefact(path, "simulation") as f:
-        L = f["images/noisy"].shape[0]
+        L, R = f["images/noisy"].shape[:2]
+    if sw.repeats is not None and sw.repeats > R:
+        raise UserError(f"reconstruct.sweep.repeats: {path} holds {R} noise repeat(s); asked for {sw.repeats} "
+                        "(simulate more with simulate.noise.repeats).")
     bad = [li for li in (sw.levels or ()) if li >= L]
     if bad:
         raise UserError(f"reconstruct.sweep.levels: {path} holds {L} signal level(s) (0 to {L - 1}); asked for {bad}.")
