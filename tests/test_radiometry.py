@@ -401,3 +401,22 @@ def test_read_noise_below_a_few_counts_is_not_inflated_by_rounding():
     assert sigma == pytest.approx(1.5, abs=3 * sigma_sd) and sigma_sd < 0.005
     raw, _ = R.read_noise_counts(bias, quantization_counts=0.0)
     assert raw == pytest.approx(np.sqrt(1.5**2 + 1 / 12), abs=3 * sigma_sd)
+
+
+def test_fluxmap_calibrate_radiometric_cli(tmp_path):
+    """The sample through the stage: camera.yaml's sensor block; bad frames exit 2 naming key and file."""
+    work = ["--set", f"workdir={tmp_path / 'calib'}"]
+    r = _run("calibrate", str(SAMPLE_CONFIG), "--quiet", *work)
+    assert r.exit_code == 0, r.output
+    sensor = yaml.safe_load((tmp_path / "calib" / "camera.yaml").read_text())["camera"]["sensor"]
+    truth = yaml.safe_load((SAMPLE_DIR / "truth.yaml").read_text())
+    assert sensor["electrons_per_count"] == pytest.approx(truth["electrons_per_count"], rel=0.05)
+    assert sensor["em_gain"] == pytest.approx(truth["em_gain"], rel=0.05)
+    with h5py.File(tmp_path / "calib" / "calibration.h5") as f:
+        assert f["radiometric/flat_map"].shape == (64, 64)
+    r = _run("calibrate", str(SAMPLE_CONFIG), "--force", *work, "--set", "calibrate.radiometric.bias.1=gone.tif")
+    out = " ".join(r.output.split())
+    assert r.exit_code == 2 and "calibrate.radiometric.bias[1]" in out and "gone.tif" in out and "Traceback" not in out
+    r = _run("calibrate", str(SAMPLE_CONFIG), "--force", *work, "--set", "system.camera.pixels=[32,32]")
+    out = " ".join(r.output.split())
+    assert r.exit_code == 2 and "system.camera.pixels" in out and "bias_0.tif" in out
