@@ -25,6 +25,7 @@ import numpy as np
 
 __all__ = [
     "EMCCDModel",
+    "conventional_counts",
     "counts_to_photons",
     "emccd_counts",
     "expected_counts",
@@ -33,7 +34,6 @@ __all__ = [
     "max_snr",
     "poisson_shot",
     "saturated",
-    "conventional_counts",
 ]
 
 
