@@ -46,6 +46,7 @@ bench: $(VENV)/.installed
 
 samples: $(VENV)/.installed
 	$(PY) data-samples/make_samples.py
+	$(PY) data-samples/calibration/make_radiometric.py
 
 figures: $(VENV)/.installed
 	$(PY) docs/make_figures.py
