@@ -102,11 +102,12 @@ class Decoded:
     black: np.ndarray
     lit: np.ndarray
     modulated: np.ndarray
+    smooth: np.ndarray
     valid: np.ndarray
 
 
 def decode(frames: np.ndarray, patterns: PatternSet, *, min_contrast: float, min_modulation_fraction: float = 0.25,
-           width_px: int | None = None) -> Decoded:
+           width_px: int | None = None, max_column_jump_px: float | None = None) -> Decoded:
     """Decode camera frames ``[n, ny, nx]`` (in the order of ``patterns.frames``) to projector columns.
 
     Parameters
@@ -117,6 +118,8 @@ def decode(frames: np.ndarray, patterns: PatternSet, *, min_contrast: float, min
     min_modulation_fraction : the sinusoid's amplitude must be at least this fraction of
         (white - black) / 2 (low modulation: blur across fringes, interreflections, noise).
     width_px : the panel width; columns outside ``[0, width_px)`` are masked.
+    max_column_jump_px : largest second difference of the column between 4-neighbours
+        (projector pixels); default a quarter period; ``inf`` turns the edge mask off.
     """
     f = np.asarray(frames, float)
     n_expected = 2 + 2 * patterns.n_gray + patterns.n_steps
@@ -144,4 +147,13 @@ def decode(frames: np.ndarray, patterns: PatternSet, *, min_contrast: float, min
     valid = lit & modulated & np.isfinite(column)
     if width_px is not None:
         valid &= (column >= 0) & (column < width_px)
-    return Decoded(np.where(valid, column, np.nan), wrapped, modulation, white, black, lit, modulated, valid)
+    jump = P / 4 if max_column_jump_px is None else max_column_jump_px
+    col = np.where(valid, column, np.nan)
+    pad = np.pad(col, 1, constant_values=np.nan)
+    smooth = np.ones(col.shape, bool)
+    if np.isfinite(jump):
+        with np.errstate(invalid="ignore"):  # second differences: a slope is smooth, a step is not
+            smooth = ((np.abs(pad[:-2, 1:-1] - 2 * col + pad[2:, 1:-1]) <= jump)
+                      & (np.abs(pad[1:-1, :-2] - 2 * col + pad[1:-1, 2:]) <= jump))
+    valid &= smooth
+    return Decoded(np.where(valid, column, np.nan), wrapped, modulation, white, black, lit, modulated, smooth, valid)
