@@ -245,3 +245,24 @@ def test_closed_surface_volume_and_area_from_exact_points_on_a_sphere():
     vol = np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6
     assert vol == pytest.approx(vol_true, rel=0.02)
     assert m.face_areas_mm2.sum() == pytest.approx(area_true, rel=0.02)
+
+
+def test_surface_artefact_is_what_subject_surface_artefact_reads(sphere_scan, tmp_path, write_config, minimal_config):
+    """The captured mesh, written as surface.h5, is accepted by `subject.surface: {artefact: ...}`
+    and placed where it was measured (a mesh stays where its file puts it)."""
+    from fluxcli.config import load_config
+    from fluxcli.scene import SubjectPlacer
+    from fluxcli.stages.structured_light import merge_points, surface_from_points, write_surface_artefact
+
+    R, centre, surf, scans = sphere_scan
+    merged = merge_points(scans, floor_z_mm=0.0)
+    mesh = surface_from_points(merged, floor_z_mm=0.0, element_size_mm=5.0, face_size_mm=1.5)
+    write_surface_artefact(tmp_path / "surface.h5", mesh, points=merged)
+    cfg = dict(minimal_config)
+    cfg["subject"] = {"surface": {"artefact": "surface.h5"}}
+    placer = SubjectPlacer(load_config(write_config(cfg)))
+    s = placer.surface
+    assert s.is_closed and s.n_elements == mesh.n_elements
+    assert np.allclose(np.sort(s.vertices_mm, axis=0), np.sort(mesh.vertices_mm, axis=0))
+    top = s.vertices_mm[np.argmax(s.vertices_mm[:, 2])]
+    assert np.linalg.norm(top - (centre + [0, 0, R])) < 1.0
