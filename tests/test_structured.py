@@ -266,3 +266,15 @@ def test_surface_artefact_is_what_subject_surface_artefact_reads(sphere_scan, tm
     assert np.allclose(np.sort(s.vertices_mm, axis=0), np.sort(mesh.vertices_mm, axis=0))
     top = s.vertices_mm[np.argmax(s.vertices_mm[:, 2])]
     assert np.linalg.norm(top - (centre + [0, 0, R])) < 1.0
+
+
+@pytest.mark.slow
+def test_paper_like_rig_meets_issue_12_targets(tmp_path):
+    """The full check (make structured-light does the same and writes figures): cylinder and mouse."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("sl", Path(__file__).parents[1] / "pipelines" / "structured_light.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.main(str(tmp_path)) == 0
