@@ -78,6 +78,7 @@ class Plan:
     darks: int
     seed: int
     shape: tuple[int, int]  # (ny, nx) of a frame
+    filter_positions: tuple[tuple[str, int], ...] = ()  # (name, wheel position) of each planned filter
     camera: str = "simulated"  # backend
     scene: str = ""  # digest of what a simulated camera renders ("" for a real camera)
 
@@ -100,7 +101,8 @@ class Plan:
         """What differs between this plan and ``other`` (a stored plan), in words."""
         mine = self.as_dict()
         names = {"scene": "the simulated scene (system, subject, simulate, rig.camera)", "shape": "frame shape",
-                 "exposures_s": "capture.exposure_s"}
+                 "exposures_s": "capture.exposure_s", "filter_positions": "rig.filter_wheel.filters",
+                 "camera": "rig.camera.backend"}
         return [f"{names.get(k, 'capture.' + k)}: file has {other.get(k)!r}, config has {mine[k]!r}"
                 for k in mine if other.get(k) != mine[k]]
 
@@ -215,10 +217,10 @@ def acquire(plan: Plan, out: CaptureFile, rig: RigDevices, *, stop_requested: Ca
     is told to stop before returning (devices left safe)."""
     cam = rig.camera
     taken = 0
+    todo = [fr for fr in plan.frames() if not out.committed[fr.index]]
+    if not todo:
+        return 0
     try:
-        todo = [fr for fr in plan.frames() if not out.committed[fr.index]]
-        if not todo:
-            return 0
         on_step("camera settings")
         cam.cooler_on = True
         cam.em_gain = plan.em_gain
@@ -250,12 +252,14 @@ def acquire(plan: Plan, out: CaptureFile, rig: RigDevices, *, stop_requested: Ca
             out.write_frame(fr.index, np.asarray(counts), meta)
             taken += 1
             on_frame(fr)
-        return taken
-    finally:
-        _make_safe(rig)
+    except BaseException:
+        _make_safe(rig, report=False)  # what went wrong first is what the user must read
+        raise
+    _make_safe(rig)
+    return taken
 
 
-def _make_safe(rig: RigDevices) -> None:
+def _make_safe(rig: RigDevices, report: bool = True) -> None:
     """Shutter closed and stage stopped, each tried even when the other fails."""
     errors = []
     for action in (rig.camera.make_safe, rig.stage.stop):
@@ -263,7 +267,7 @@ def _make_safe(rig: RigDevices) -> None:
             action()
         except Exception as e:  # keep going: the other device must still be made safe
             errors.append(e)
-    if errors:
+    if errors and report:
         raise errors[0]
 
 

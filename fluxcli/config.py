@@ -560,7 +560,7 @@ class _UniqueKeyLoader(yaml.SafeLoader):
                 continue
             if key in seen:
                 raise yaml.constructor.ConstructorError(
-                    None, None, f"key {key!r} is given twice (lines {seen[key] + 1} and {key_node.start_mark.line + 1})",
+                    None, None, f"duplicate key: {key!r} is given twice (lines {seen[key] + 1} and {key_node.start_mark.line + 1})",
                     key_node.start_mark)
             seen[key] = key_node.start_mark.line
         return super().construct_mapping(node, deep=deep)
@@ -672,22 +672,6 @@ def _merge(base: dict, over: dict) -> dict:
     return out
 
 
-class _UniqueKeyLoader(yaml.SafeLoader):
-    """safe_load that refuses a key given twice in one mapping (YAML keeps the last silently)."""
-
-    def construct_mapping(self, node, deep=False):
-        seen = set()
-        for key_node, _ in node.value:
-            key = self.construct_object(key_node, deep=deep)
-            try:
-                hashable = key in seen
-            except TypeError:
-                continue
-            if hashable:
-                raise yaml.constructor.ConstructorError(
-                    None, None, f"duplicate key {key!r} (given twice in one section)", key_node.start_mark)
-            seen.add(key)
-        return super().construct_mapping(node, deep=deep)
 
 
 def require(cfg: "LoadedConfig", stage: str, keys: tuple[str, ...] | list[str]) -> None:

@@ -198,7 +198,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext, resume: bool = False) -> Path:
         if not ctx.force:
             raise UserError(f"capture-surface: {out} exists; continue it with --resume, or start over with --force.")
         out.unlink()
-    with _stop_on_signals(ctx) as stop_requested, contextlib.ExitStack() as stack:
+    with contextlib.ExitStack() as stack:
         sims = start_simulators(rig)
         stack.callback(lambda: [s.stop() for s in sims.values()])
         wheel, stage = open_devices(rig, {n: s.url for n, s in sims.items()})
@@ -208,7 +208,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext, resume: bool = False) -> Path:
         stack.callback(camera.close)
         plan = Plan(heights_mm=tuple(cap.heights_mm), filters=tuple(cap.filters), exposures_s=cap.exposures_s,
                     em_gain=cap.em_gain, repeats=cap.repeats, darks=cap.darks, seed=cap.seed,
-                    shape=tuple(camera.shape), camera=cc.backend, scene=scene.digest if scene else "")
+                    shape=tuple(camera.shape), camera=cc.backend, scene=scene.digest if scene else "",
+                    filter_positions=tuple((f, rig.filter_wheel.filters[f]) for f in cap.filters))
         if out.exists():
             capfile = CaptureFile.resume(out, plan)
         else:
@@ -228,13 +229,14 @@ def run(cfg: C.LoadedConfig, ctx: RunContext, resume: bool = False) -> Path:
             for h, name in dict.fromkeys((fr.height_mm, fr.filter) for fr in plan.frames()
                                          if not fr.dark and not capfile.committed[fr.index]):
                 scene.render(h, name)
-        ctx.say(f"capture-surface: {total - done} of {total} frames to take"
-                + (f" ({done} already in {out.name})" if done else ""))
-        try:
-            with ctx.progress_steps("capture", total, done) as update:
-                acquire(plan, capfile, RigDevices(stage, wheel, camera, dict(rig.filter_wheel.filters)),
-                        stop_requested=stop_requested, on_step=update,
-                        on_frame=lambda fr: update(fr.label, advance=True))
+        try:  # from here Ctrl-C waits for the frame under way (before, it stops at once)
+            with _stop_on_signals(ctx) as stop_requested:
+                ctx.say(f"capture-surface: {total - done} of {total} frames to take"
+                        + (f" ({done} already in {out.name})" if done else ""))
+                with ctx.progress_steps("capture", total, done) as update:
+                    acquire(plan, capfile, RigDevices(stage, wheel, camera, dict(rig.filter_wheel.filters)),
+                            stop_requested=stop_requested, on_step=update,
+                            on_frame=lambda fr: update(fr.label, advance=True))
         except Interrupted as e:
             ctx.say(f"capture-surface: stopped before frame '{e}'; shutter closed, stage stopped; "
                     f"{int(capfile.committed.sum())} of {total} frames are in {out} (--resume continues).")
