@@ -66,13 +66,27 @@ def figures(out: Path, rig, scan, merged, truth, mesh, d_points):
     plt.close(fig)
 
 
-def main(outdir: str = "runs/structured-light") -> int:
+def misses(r: dict) -> list[str]:
+    """The targets of issue 12 a subject's results miss."""
+    out = []
+    for key, need in (("within_0.1mm", 0.5), ("within_0.2mm", 0.82), ("within_0.4mm", 0.96)):
+        if r[key] < need:
+            out.append(f"{key} {r[key]:.3f} < {need}")
+    for key in ("volume_error", "area_error"):
+        if abs(r[key]) > 0.02:
+            out.append(f"{key} {r[key]:+.3f} beyond 2 %")
+    if not r["mesh_closed"]:
+        out.append("mesh not closed")
+    return out
+
+
+def run(outdir: str = "runs/structured-light") -> dict:
     from fluxcli.stages.structured_light import (merge_points, paper_like_rig, simulate_scan, surface_from_points,
                                                   write_surface_artefact)
     from fluxcli.structured.mesh import coverage, distances_to_surface
 
     rig = paper_like_rig()
-    results, ok = {}, True
+    results = {}
     for name, truth in subjects():
         out = Path(outdir) / name
         out.mkdir(parents=True, exist_ok=True)
@@ -102,12 +116,16 @@ def main(outdir: str = "runs/structured-light") -> int:
         figures(out, rig, scan, merged, truth, mesh, d)
         results[name] = r
         print(name, json.dumps(r, indent=1))
-        ok &= (r["within_0.1mm"] >= 0.5 and r["within_0.2mm"] >= 0.82 and r["within_0.4mm"] >= 0.96
-               and abs(r["volume_error"]) <= 0.02 and abs(r["area_error"]) <= 0.02 and r["mesh_closed"])
     (Path(outdir) / "results.json").write_text(json.dumps(results, indent=1))
-    if not ok:
-        print("a target of issue 12 is missed (see above)")
-    return 0 if ok else 1
+    return results
+
+
+def main(outdir: str = "runs/structured-light") -> int:
+    results = run(outdir)
+    missed = {name: misses(r) for name, r in results.items() if misses(r)}
+    for name, m in missed.items():
+        print(f"{name}: issue 12 target missed: {'; '.join(m)}")
+    return 1 if missed else 0
 
 
 if __name__ == "__main__":

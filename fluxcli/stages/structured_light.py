@@ -92,6 +92,7 @@ class MergedPoints:
     projector: np.ndarray
     n_removed_stage: int
     n_removed_outliers: int
+    free_rays: tuple[np.ndarray, np.ndarray] | None = None  # every kept or stage point, and its view direction
 
 
 def merge_points(scans: list[ScanPoints], *, floor_z_mm: float, stage_margin_mm: float = 1.0) -> MergedPoints:
@@ -104,14 +105,17 @@ def merge_points(scans: list[ScanPoints], *, floor_z_mm: float, stage_margin_mm:
     on = P[:, 2] > floor_z_mm + stage_margin_mm
     keep = remove_outliers(P[on], max_plane_distance_mm=0.5)
     idx = np.flatnonzero(on)[keep]
-    return MergedPoints(P[idx], V[idx], view[idx], proj[idx], int((~on).sum()), int((~keep).sum()))
+    seen = np.ones(len(P), bool)
+    seen[np.flatnonzero(on)[~keep]] = False  # an outlier must not carve
+    return MergedPoints(P[idx], V[idx], view[idx], proj[idx], int((~on).sum()), int((~keep).sum()),
+                        (P[seen], V[seen]))
 
 
 def surface_from_points(pts: MergedPoints, *, floor_z_mm: float, element_size_mm: float = 4.0,
                         face_size_mm: float = 1.0) -> Surface:
     n = estimate_normals(pts.points_mm, pts.view_dirs)
     return closed_surface(pts.points_mm, n, floor_z_mm=floor_z_mm, voxel_mm=1.0, centre_spacing_mm=2.5,
-                          face_size_mm=face_size_mm, element_size_mm=element_size_mm)
+                          face_size_mm=face_size_mm, element_size_mm=element_size_mm, free_rays=pts.free_rays)
 
 
 def write_surface_artefact(path: Path, surface: Surface, *, points: MergedPoints | None = None,

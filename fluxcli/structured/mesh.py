@@ -58,7 +58,8 @@ def remove_outliers(points_mm: np.ndarray, *, k: int = 8, n_sigma: float = 3.0,
 
 def closed_surface(points_mm: np.ndarray, normals: np.ndarray, *, floor_z_mm: float | None, voxel_mm: float = 0.6,
                    centre_spacing_mm: float = 1.5, offset_mm: float = 1.0, smoothing: float = 0.0, face_size_mm: float = 1.0, element_size_mm: float | None = None,
-                   seed: int = 0) -> Surface:
+                   seed: int = 0, free_rays: tuple[np.ndarray, np.ndarray] | None = None,
+                   free_margin_mm: float = 1.0) -> Surface:
     """A closed, outward-wound triangle surface through oriented points.
 
     Parameters
@@ -70,6 +71,9 @@ def closed_surface(points_mm: np.ndarray, normals: np.ndarray, *, floor_z_mm: fl
     offset_mm : off-surface constraints at +-this along the normals (mm).
     smoothing : RBF smoothing (0 interpolates).
     face_size_mm : target edge length of the output triangles (mm).
+    free_rays : ``(points_mm, directions)`` of every decoded pixel (stage points included):
+        the ray before the point it saw is empty space (space carving), up to
+        ``free_margin_mm`` before the point; voxels so crossed are set outside.
     element_size_mm : target size of an element (faces are grouped by k-means on their
         centroids into ``area / element_size_mm**2`` elements); None: one element per face.
     """
@@ -97,6 +101,9 @@ def closed_surface(points_mm: np.ndarray, normals: np.ndarray, *, floor_z_mm: fl
     sdf = np.maximum(sdf, box)
     if floor_z_mm is not None:
         sdf = np.maximum(sdf, floor_z_mm - g[:, 2])
+    if free_rays is not None:
+        sdf = np.where(_free_voxels(free_rays, lo - pad, dims, voxel_mm, free_margin_mm).ravel(order="F"),
+                       np.maximum(sdf, 0.5 * voxel_mm), sdf)
     grid["sdf"] = sdf
     m = grid.contour([0.0], scalars="sdf", method="marching_cubes").triangulate().clean()
     m = m.connectivity("largest").extract_surface(algorithm="dataset_surface").triangulate().clean()
@@ -122,6 +129,20 @@ def closed_surface(points_mm: np.ndarray, normals: np.ndarray, *, floor_z_mm: fl
         _, elem = kmeans2(cent, n_el, minit="++", seed=seed)
         _, elem = np.unique(elem, return_inverse=True)
     return Surface(verts, faces, elem.astype(np.int64), int(elem.max()) + 1)
+
+
+def _free_voxels(free_rays, origin_mm, dims, voxel_mm, margin_mm) -> np.ndarray:
+    """Boolean grid ``dims`` (x fastest, as VTK's image data) of voxels a ray crossed before its point."""
+    P, D = (np.asarray(a, float) for a in free_rays)
+    free = np.zeros(tuple(dims), bool)
+    extent = np.linalg.norm(dims * voxel_mm)
+    for t in np.arange(margin_mm, margin_mm + extent, 0.5 * voxel_mm):
+        q = np.round((P - t * D - origin_mm) / voxel_mm).astype(np.int64)
+        ok = np.all((q >= 0) & (q < dims), axis=1)
+        if not ok.any() and t > margin_mm + 2 * voxel_mm:
+            break
+        free[q[ok, 0], q[ok, 1], q[ok, 2]] = True
+    return free
 
 
 def distances_to_surface(points_mm: np.ndarray, surface: Surface) -> np.ndarray:
