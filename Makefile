@@ -12,7 +12,7 @@ PY      = $(VENV)/bin/python
 FLUXMAP = $(VENV)/bin/fluxmap
 JOBS   ?= 2
 
-.PHONY: all demo demo-rig structured-light test bench samples figures clean help
+.PHONY: all demo demo-rig structured-light demo-rig-captured test bench samples figures clean help
 all: test
 
 $(VENV)/.installed: pyproject.toml
@@ -43,6 +43,11 @@ test: $(VENV)/.installed
 
 structured-light: $(VENV)/.installed  # issue 12: simulated structured-light capture measured against the truth
 	$(PY) pipelines/structured_light.py runs/structured-light
+
+demo-rig-captured: $(VENV)/.installed  # demo-rig's frames reconstructed on the captured mesh (after demo-rig, structured-light)
+	$(FLUXMAP) build-T configs/demo-rig-captured.yaml --jobs $(JOBS)
+	$(FLUXMAP) reconstruct configs/demo-rig-captured.yaml --jobs $(JOBS)
+	$(PY) pipelines/rig_totals.py runs/demo-rig-captured/reconstruction.h5 runs/demo-rig/reconstruction.h5
 
 bench: $(VENV)/.installed
 	$(PY) -m pytest -q -m slow --benchmark-disable || test $$? -eq 5  # 5: no slow checks collected
