@@ -34,8 +34,14 @@ def against(path: str, reference: str, tolerance: float = 0.02) -> int:
     """The same frames reconstructed on another surface (e.g. the captured mesh): totals within 2 %."""
     with h5py.File(path, "r") as f, h5py.File(reference, "r") as g:
         a, b = float(f["flux/total"][()]), float(g["flux/total"][()])
+        truth = float(g["truth/power"][()].sum()) if "truth" in g else None
     ok = abs(a / b - 1) <= tolerance
     print(f"against {reference}: total {b:.4g}, ratio {a / b:.4f}  ({'within' if ok else 'NOT within'} {tolerance:.0%})")
+    if truth is not None:  # the same frames: the reference's truth is this run's truth
+        ok_t = abs(a / truth - 1) <= TOLERANCE
+        print(f"against the simulated truth {truth:.4g} recorded there: ratio {a / truth:.4f}  "
+              f"({'within' if ok_t else 'NOT within'} {TOLERANCE:.0%})")
+        ok &= ok_t
     return 0 if ok else 1
 
 

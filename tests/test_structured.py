@@ -285,3 +285,42 @@ def test_paper_like_rig_meets_issue_12_targets(tmp_path):
     assert mod.misses(results["cylinder"]) == []
     assert [m for m in mod.misses(results["mouse"]) if not m.startswith(("volume", "area"))] == []
     assert 0 < results["mouse"]["volume_error"] < 0.06  # a closure that only ever adds what nothing saw
+
+
+def test_projector_calibration_recovers_pose_from_grid_at_heights():
+    """A flat board at three heights, lit by column and row codes (EMCCD noise): local
+    homographies give each grid point's projector coordinates, resection gives the projector.
+    The simulated projector's pose must come back within 1 mm and 0.2 deg (issue 12)."""
+    from scipy.spatial.transform import Rotation
+
+    from fluxcli.structured.calibrate import fit_projector, projector_coordinates_at, row_patterns
+
+    true = Projector.from_pose(center_mm=[10, -140, 170], look=[-10, 140, -165], up=[-1, 0.1, 0], width_px=400,
+                               height_px=300, fx_px=1000, fy_px=1005, cx_px=205, cy_px=148, k1=0.06, k2=-0.02)
+    cam = ThinLensCamera.from_pose(lens_center_mm=[0, 0, 300], look=[0, 0, -1], up=[0, 1, 0], focal_length_mm=25,
+                                   aperture_radius_mm=2, focus_distance_mm=290, nx=128, ny=128, pixel_pitch_mm=0.056)
+    cols = column_patterns(400, 300, period_px=16, n_steps=8)
+    rows = row_patterns(400, 300, period_px=16, n_steps=8)
+    sensor = N.EMCCDModel(em_gain=10, exposure_s=0.1)
+    gi, gj = np.meshgrid(np.arange(11) - 5, np.arange(9) - 4, indexing="ij")
+    X_all, uv_all = [], []
+    for k, z in enumerate([-12.0, 0.0, 12.0]):
+        board = box([-60, -60, z - 3], [60, 60, z])
+        r = PatternRenderer(cam, [], [(board, 0.8)], [], true, lens_samples=2, sub=1)
+        dec = []
+        for j, pats in enumerate((cols, rows)):
+            counts, _ = simulate_frames(r, pats, photons_white=3000, ambient_photons=20, sensor=sensor,
+                                        rng=np.random.default_rng([k, j]))
+            dec.append(decode(N.counts_to_photons(counts, sensor), pats, min_contrast=300).column_px)
+        X = np.c_[4.0 * gi.ravel(), 4.0 * gj.ravel(), np.full(gi.size, z)]
+        col, row = cam.pixel_coords(cam.focal_plane_hit(X, np.broadcast_to(cam.center_mm, X.shape)))
+        uv, ok = projector_coordinates_at(np.c_[col, row], dec[0], dec[1])
+        X_all.append(X[ok]); uv_all.append(uv[ok])
+    X, uv = np.concatenate(X_all), np.concatenate(uv_all)
+    assert len(X) > 200
+    fit, res = fit_projector(X, uv, width_px=400, height_px=300)
+    assert np.sqrt(np.mean(res**2)) < 0.1  # projector pixels
+    assert np.linalg.norm(fit.center_mm - true.center_mm) < 1.0
+    angle = np.degrees(Rotation.from_matrix(fit.rotation @ true.rotation.T).magnitude())
+    assert angle < 0.2
+    assert fit.fx_px == pytest.approx(1000, rel=0.01) and fit.k1 == pytest.approx(0.06, abs=0.02)
