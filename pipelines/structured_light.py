@@ -99,7 +99,10 @@ def run(outdir: str = "runs/structured-light") -> dict:
         scan = simulate_scan(rig, truth, seed=1)
         merged = merge_points(scan.scans, floor_z_mm=rig.floor_z_mm)
         mesh = surface_from_points(merged, floor_z_mm=rig.floor_z_mm)
-        write_surface_artefact(out / "surface.h5", mesh, points=merged)
+        from fluxcli.artefacts import Provenance
+
+        write_surface_artefact(out / "surface.h5", mesh, points=merged,
+                               provenance=Provenance(geometry={"rig": rig.describe(), "subject": name}))
         d = distances_to_surface(merged.points_mm, truth)
         t = mesh.vertices_mm[mesh.faces]
         vol = np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6

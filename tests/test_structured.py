@@ -324,3 +324,13 @@ def test_projector_calibration_recovers_pose_from_grid_at_heights():
     angle = np.degrees(Rotation.from_matrix(fit.rotation @ true.rotation.T).magnitude())
     assert angle < 0.2
     assert fit.fx_px == pytest.approx(1000, rel=0.01) and fit.k1 == pytest.approx(0.06, abs=0.02)
+
+
+def test_distance_and_coverage_measures_on_a_box():
+    """Closed forms: a point above a cube face is at its height above it; points covering the
+    top face (1 of 6 equal faces) cover 1/6 of the area."""
+    cube = box([0, 0, 0], [10, 10, 10])
+    pts = np.array([[5.0, 5.0, 10.3], [5.0, 5.0, 9.0], [12.0, 5.0, 5.0], [13.0, 14.0, 5.0]])
+    assert np.allclose(distances_to_surface(pts, cube), [0.3, 1.0, 2.0, 5.0])
+    g = np.stack(np.meshgrid(np.linspace(0, 10, 41), np.linspace(0, 10, 41), [10.0], indexing="ij"), -1).reshape(-1, 3)
+    assert coverage(g, cube, radius_mm=0.5, samples_per_mm2=20) == pytest.approx(1 / 6 + 4 * 10 * 0.5 / 600, abs=0.01)

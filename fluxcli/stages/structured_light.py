@@ -48,6 +48,25 @@ class ScanRig:
     def floor_z_mm(self) -> float:
         return float(self.stage_hi_mm[2])
 
+    def describe(self) -> dict:
+        """The rig as plain numbers (an artefact's provenance geometry)."""
+        c = self.camera
+        return {
+            "camera": {"center_mm": c.center_mm.tolist(), "axis": c.axis.tolist(), "down": c.down.tolist(),
+                       "focal_length_mm": c.focal_length_mm, "focus_distance_mm": c.focus_distance_mm,
+                       "aperture_radius_mm": c.aperture_radius_mm, "pixels": [c.nx, c.ny],
+                       "pixel_pitch_mm": c.pixel_pitch_mm},
+            "mirrors": [{"center_mm": m.center_mm.tolist(), "normal": m.normal.tolist(),
+                         "half_size_mm": list(m.half_size_mm), "reflectance": r} for m, r in self.mirrors],
+            "projectors": [{"center_mm": p.center_mm.tolist(), "axis": p.axis.tolist(), "right": p.right.tolist(),
+                            "pixels": [p.width_px, p.height_px], "f_px": [p.fx_px, p.fy_px],
+                            "c_px": [p.cx_px, p.cy_px], "k": [p.k1, p.k2], "gamma": p.gamma}
+                           for p in self.projectors],
+            "patterns": {"period_px": self.patterns.period_px, "n_steps": self.patterns.n_steps,
+                         "n_gray": self.patterns.n_gray},
+            "stage_top_z_mm": self.floor_z_mm,
+        }
+
 
 def paper_like_rig(nx: int = 384) -> ScanRig:
     cam = ThinLensCamera.from_pose(lens_center_mm=[0, 0, 338], look=[0, 0, -1], up=[0, 1, 0], focal_length_mm=23.9,
