@@ -41,7 +41,7 @@ def _homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     for (x, y, _), (u, v, _) in zip(a, b):
         rows.append([-x, -y, -1, 0, 0, 0, u * x, u * y, u])
         rows.append([0, 0, 0, -x, -y, -1, v * x, v * y, v])
-    H = np.linalg.svd(np.asarray(rows))[2][-1].reshape(3, 3)
+    H = np.linalg.svd(np.asarray(rows), full_matrices=False)[2][-1].reshape(3, 3)
     return np.linalg.inv(Td) @ H @ Ts
 
 
@@ -80,7 +80,7 @@ def _dlt(X: np.ndarray, uv: np.ndarray) -> np.ndarray:
     for (x, y, z), (u, v) in zip(X, uv):
         rows.append([x, y, z, 1, 0, 0, 0, 0, -u * x, -u * y, -u * z, -u])
         rows.append([0, 0, 0, 0, x, y, z, 1, -v * x, -v * y, -v * z, -v])
-    return np.linalg.svd(np.asarray(rows))[2][-1].reshape(3, 4)
+    return np.linalg.svd(np.asarray(rows), full_matrices=False)[2][-1].reshape(3, 4)
 
 
 def fit_projector(points_mm: np.ndarray, uv_px: np.ndarray, *, width_px: int, height_px: int,
