@@ -100,9 +100,14 @@ def _guard(body: Callable[[], None]) -> None:
         _fail("out of memory: the problem is larger than this machine can hold; use fewer pixels "
               "(system.camera.pixels), fewer elements (subject.surface) or fewer poses (subject.poses).")
     except OSError as e:
-        if getattr(e, "filename", None) is None:
-            _bug()
-        _fail(f"cannot use {e.filename}: {e.strerror or e} (check the path, its permissions and the free space).")
+        import errno
+
+        if getattr(e, "filename", None) is not None:
+            _fail(f"cannot use {e.filename}: {e.strerror or e} (check the path, its permissions and the free space).")
+        if e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS):
+            _fail(f"{e.strerror or e}: the workdir or the T cache (transfer.cache_dir) cannot take the file being "
+                  "written; free some space or choose another folder.")
+        _bug()
     except KeyboardInterrupt:
         typer.echo("fluxmap: interrupted; artefacts already written are complete, partial ones were discarded.", err=True)
         raise typer.Exit(130)

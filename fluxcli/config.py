@@ -20,7 +20,7 @@ Vec3 = tuple[float, float, float]
 
 
 class Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # NaN/inf: never a length
 
 
 def _unit(v: Vec3, what: str) -> Vec3:
@@ -183,6 +183,12 @@ class RotationAxis(Model):
     point_mm: Vec3 | None = Field(None, description="A point on the axis (default: the subject's centre).")
     direction: Vec3 = Field((1.0, 0.0, 0.0), description="Axis direction.")
 
+    @field_validator("direction")
+    @classmethod
+    def _direction(cls, v: Vec3) -> Vec3:
+        _unit(v, "direction")
+        return v
+
 
 class Poses(Model):
     heights_mm: tuple[float, ...] = Field((0.0,), min_length=1, description="Stage heights h (mm).")
@@ -203,6 +209,16 @@ class LensSampling(Model):
     lens_samples_min: int = Field(32, ge=1, description="Lens samples per surface point, at least.")
     lens_samples_max: int = Field(2048, ge=1, description="Lens samples per surface point, at most.")
     lens_samples_per_blur_pixel: float = Field(4.0, gt=0, description="Lens samples per pixel of blur-disk area.")
+
+    @model_validator(mode="after")
+    def _ranges(self) -> "LensSampling":
+        if self.lens_samples_max < self.lens_samples_min:
+            raise ValueError(f"lens_samples_max ({self.lens_samples_max}) must be at least lens_samples_min "
+                             f"({self.lens_samples_min})")
+        if self.max_surface_subdivisions < self.min_surface_subdivisions:
+            raise ValueError(f"max_surface_subdivisions ({self.max_surface_subdivisions}) must be at least "
+                             f"min_surface_subdivisions ({self.min_surface_subdivisions})")
+        return self
 
 
 class PairwiseSampling(Model):
@@ -318,7 +334,7 @@ class MethodSettings(Model):
     unknowns: Literal["elements", "sub_elements"] = Field(
         "elements", description="Solve per element, or per sub-element (phantom strips, else faces) summed per element.")
 
-    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True, allow_inf_nan=False)
 
     @field_validator("lam")
     @classmethod
@@ -367,7 +383,7 @@ class Reconstruct(Model):
     read_noise_photons: float = Field(0.0, ge=0, description="Added to the shot-noise variance in weights (photons rms).")
     sweep: Sweep | None = Field(None, description="A study: every level x repeat x pose for each method.")
 
-    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True, allow_inf_nan=False)
 
     @field_validator("lam")
     @classmethod
@@ -601,7 +617,9 @@ _SURFACE_MEMBERS = {"phantom": ("MeshSurface", "ArtefactSurface"), "mesh": ("Art
 
 def _relevant(errors: list, raw: Any) -> list:
     """Drop errors from union members the user did not choose (a phantom with a bad radius
-    is not also 'missing its mesh key')."""
+    is not also 'missing its mesh key'), and a list's 'too short' when one of its items failed."""
+    items = {tuple(e["loc"][:-1]) for e in errors if e["loc"] and isinstance(e["loc"][-1], int)}
+    errors = [e for e in errors if not (e["type"] == "too_short" and tuple(e["loc"]) in items)]
     surf = raw.get("subject", {}).get("surface") if isinstance(raw, dict) and isinstance(raw.get("subject"), dict) else None
     if not isinstance(surf, dict):
         return errors
@@ -687,6 +705,8 @@ def require(cfg: "LoadedConfig", stage: str, keys: tuple[str, ...] | list[str]) 
 def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -> LoadedConfig:
     """Read, override and validate a config; raise UserError with one clear paragraph."""
     path = Path(path)
+    if path.is_dir():
+        raise UserError(f"config file {path} is a folder; give the YAML file itself.")
     if not path.is_file():
         raise UserError(f"config file {path} does not exist.")
     try:

@@ -14,6 +14,7 @@ import pytest
 import yaml
 
 from fluxcli.artefacts import atomic_path, clean_stale_temps
+from fluxcli.artefacts.atomic import host_tag
 from fluxcli.artefacts.transfer import load_T
 
 from conftest import cylinder_sim_config
@@ -52,7 +53,7 @@ def _config(tmp_path: Path, minimal_config: dict, workdir: str) -> Path:
     cfg = cylinder_sim_config(minimal_config)
     cfg["workdir"] = workdir
     cfg["system"]["camera"]["pixels"] = [64, 64]
-    cfg["subject"]["poses"] = {"heights_mm": [0, 2, 4]}
+    cfg["subject"]["poses"] = {"heights_mm": [0, 2, 4, 6]}
     cfg["transfer"] = {"lens": {"surface_samples_per_pixel": 4, "lens_samples_min": 96}}
     p = tmp_path / f"{workdir}.yaml"
     p.write_text(yaml.safe_dump(cfg))
@@ -98,13 +99,13 @@ def test_SIGKILLed_build_T_leaves_no_workers_no_temp_files_and_a_rerun_gives_the
     assert not _wait_gone(workers), "workers outlived their SIGKILLed parent by 5 s"
     # besides whatever the kill left, the exact file a writer killed mid-write leaves (its pid is dead)
     cache.mkdir(parents=True, exist_ok=True)
-    (cache / f".{'0' * 64}.h5.{max(workers)}.0123abcd.tmp.h5").write_bytes(b"\0" * 4096)
+    (cache / f".{'0' * 64}.h5.{host_tag()}.{max(workers)}.0123abcd.tmp.h5").write_bytes(b"\0" * 4096)
     r = subprocess.run([*FLUXMAP, "build-T", str(cfg), "-q"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert not [p for p in cache.iterdir() if ".tmp" in p.name], list(cache.iterdir())
     ref = sorted((tmp_path / "clean" / "cache" / "T").glob("*.h5"))
     got = sorted(cache.glob("*.h5"))
-    assert [p.name for p in ref] == [p.name for p in got] and len(got) == 3
+    assert [p.name for p in ref] == [p.name for p in got] and len(got) == 4
     for a, b in zip(ref, got):
         Ta, Tb = load_T(a), load_T(b)
         assert Ta.shape == Tb.shape and (Ta != Tb).nnz == 0
@@ -116,7 +117,7 @@ def test_SIGTERM_and_ctrl_c_stop_build_T_within_2_s_and_kill_the_workers(tmp_pat
     cache = tmp_path / "run" / "cache" / "T"
     proc, workers, seconds = _start_and_signal(cfg, cache, sig, group=group)
     err = proc.stderr.read()
-    assert proc.returncode == code, err
+    assert proc.returncode == code, f"exit {proc.returncode} after {seconds:.2f} s: {err}"
     assert seconds < 2.0, f"took {seconds:.1f} s to stop"
     assert "Traceback" not in err and ("stopping" in err if sig == signal.SIGINT else "terminated" in err)
     assert not _wait_gone(workers, 3.0)
@@ -124,13 +125,14 @@ def test_SIGTERM_and_ctrl_c_stop_build_T_within_2_s_and_kill_the_workers(tmp_pat
 
 
 def test_temp_files_of_live_writers_are_kept_and_dead_ones_removed(tmp_path):
-    live = tmp_path / f".x.h5.{os.getpid()}.0123abcd.tmp.h5"
+    live = tmp_path / f".x.h5.{host_tag()}.{os.getpid()}.0123abcd.tmp.h5"
     dead_pid = 2 ** 22 + 12345  # above the default pid_max of most systems: no such process
-    dead = tmp_path / f".x.h5.{dead_pid}.0123abcd.tmp.h5"
-    live.write_bytes(b"x")
-    dead.write_bytes(b"x")
+    dead = tmp_path / f".x.h5.{host_tag()}.{dead_pid}.0123abcd.tmp.h5"
+    elsewhere = tmp_path / f".x.h5.another-machine.{dead_pid}.0123abcd.tmp.h5"  # its pids are not ours to judge
+    for p in (live, dead, elsewhere):
+        p.write_bytes(b"x")
     assert clean_stale_temps(tmp_path) == [dead]
-    assert live.exists() and not dead.exists()
+    assert live.exists() and not dead.exists() and elsewhere.exists()
 
 
 def test_atomic_writes_honour_the_umask_and_leave_nothing_on_failure(tmp_path):

@@ -21,7 +21,8 @@ from fluxcli.imaging.imagefiles import write_image
 from fluxcli.surface.mesh import read_mesh, read_mesh_checked, validated
 
 from conftest import ROOT
-from test_user_mistakes import base_config, ply
+from tiny_pipeline import tiny_run  # noqa: F401  (the session fixture)
+from test_user_mistakes import ply
 
 runner = CliRunner()
 
@@ -32,15 +33,8 @@ def invoke(*args):
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    d = tmp_path_factory.mktemp("pbw")
-    cfg = base_config(d)
-    p = d / "cfg.yaml"
-    p.write_text(yaml.safe_dump(cfg))
-    for stage in ("build-T", "simulate", "reconstruct"):
-        r, out = invoke(stage, p, "-q")
-        assert r.exit_code == 0, out
-    return d, cfg, p
+def run(tiny_run):
+    return tiny_run
 
 
 def write(d, cfg, name="c.yaml"):

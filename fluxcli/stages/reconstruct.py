@@ -27,7 +27,7 @@ from .. import artefacts as A
 from .. import config as C
 from ..errors import UserError
 from ..imaging import noise as N
-from ..imaging.imagefiles import read_image
+from ..imaging.imagefiles import read_image, sample_type
 from ..artefacts.transfer import load_T, load_view
 from ..inverse import backprojection, error_l1, reconstruct as solve, total_ratio
 from ..pipeline import check_folders, check_memory, emccd_model, ensure_T, geometry_of, plan, provenance
@@ -118,7 +118,14 @@ def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int, surface_sha2
         valid = np.isfinite(imgs)
         if "counts" in f["images"] and not rc.noiseless:
             model = emccd_model(cfg.model.system.camera.sensor, float(f["images"].attrs["exposure_s"]))
-            valid &= ~N.saturated(f["images/counts"][rc.level, rc.repeat], model)
+            sat = N.saturated(f["images/counts"][rc.level, rc.repeat], model)
+            lit = f["images/noiseless"][rc.level] > 0
+            for k in range(sat.shape[0]):
+                if lit[k].any() and sat[k][lit[k]].mean() > MOSTLY_SATURATED:
+                    raise UserError(f"reconstruct.level: at level {rc.level} ({path}) {sat[k][lit[k]].mean():.0%} of "
+                                    f"the lit pixels of pose {k} are saturated; reconstruct a lower level or "
+                                    "simulate with a lower simulate.noise.peaks_photons or system.camera.sensor.em_gain.")
+            valid &= ~sat
         truth = power * f["truth/level_scale"][rc.level]
         snr = f["images/max_snr"][rc.level]
     return Inputs(imgs, valid, truth, f"{path} level {rc.level} " + ("noiseless" if rc.noiseless else f"repeat {rc.repeat}"),
@@ -154,6 +161,11 @@ def _image_files(cfg: C.LoadedConfig, n_poses: int, poses: list | None) -> Input
             raise UserError(f"{where} is {img.shape[1]} x {img.shape[0]} pixels; the camera has {nx} x {ny} "
                             "(system.camera.pixels).")
         said = meta.get("fluxmap:units")
+        stored = sample_type(cfg.resolve(p))
+        if im.units == "photons" and stored.startswith(("uint", "int")) and not isinstance(said, str):
+            raise UserError(f"{where} stores {stored} integers, which are camera counts, but reconstruct.images.units "
+                            "is photons; set reconstruct.images.units: counts (with system.camera.sensor), or give "
+                            "photons as floating-point images.")
         if isinstance(said, str) and said != im.units:
             raise UserError(f"{where} holds {said} (its metadata says fluxmap:units = {said}), but "
                             f"reconstruct.images.units is {im.units}.")
@@ -464,7 +476,10 @@ def _check_sweep(cfg: C.LoadedConfig, inp: Inputs) -> None:
                         "(reconstruct.images).")
     path = _simulation(cfg)
     with A.open_artefact(path, "simulation") as f:
-        L = f["images/noisy"].shape[0]
+        L, R = f["images/noisy"].shape[:2]
+    if sw.repeats is not None and sw.repeats > R:
+        raise UserError(f"reconstruct.sweep.repeats: {path} holds {R} noise repeat(s); asked for {sw.repeats} "
+                        "(simulate more with simulate.noise.repeats).")
     bad = [li for li in (sw.levels or ()) if li >= L]
     if bad:
         raise UserError(f"reconstruct.sweep.levels: {path} holds {L} signal level(s) (0 to {L - 1}); asked for {bad}.")

@@ -48,9 +48,15 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         return index
 
     with A.open_artefact(rec, "reconstruction") as f:  # the result must be the one this config describes
-        A.check_geometry(rec, A.read_provenance(f), geometry_of(cfg, SubjectPlacer(cfg).surface.digest()),
+        prov = A.read_provenance(f)
+        A.check_geometry(rec, prov, geometry_of(cfg, SubjectPlacer(cfg).surface.digest()),
                          remedy=f"Run 'fluxmap reconstruct {cfg.path}' again")
-    study = R.load(rec, simulation=sim if sim.is_file() else None)
+    used = prov.input_files.get("simulation.h5", {}).get("sha256")
+    same_sim = sim.is_file() and used is not None and used == inputs.get("simulation.h5")
+    if sim.is_file() and used is not None and not same_sim:
+        ctx.warn(f"{sim} changed since {rec.name} was made from it; its SNR table is left out "
+                 f"(run 'fluxmap reconstruct {cfg.path}' again to use it).")
+    study = R.load(rec, simulation=sim if same_sim else None)
     geometry = study.geometry
     if geometry is None:
         raise UserError(f"report: {rec} records no geometry (made by an older fluxmap); run "
