@@ -66,3 +66,10 @@ help:
 	@sed -n '2,7p' Makefile
 
 -include pipelines/*.mk
+
+# Calibration sample: fit the camera, draw its report, then reconstruct with it vs the true camera (1 % check).
+.PHONY: calibrate-demo
+calibrate-demo: $(VENV)/.installed
+	$(FLUXMAP) calibrate configs/calibrate.yaml
+	$(FLUXMAP) report configs/calibrate.yaml
+	$(PY) data-samples/calibration/check_end_to_end.py

@@ -57,8 +57,8 @@ STAGE_REQUIRES: dict[str, tuple[str, ...]] = {
     "build-T": _GEOMETRY,
     "simulate": _GEOMETRY + ("simulate",),
     "reconstruct": _GEOMETRY,
-    "report": _GEOMETRY,
-    "calibrate": ("system", "system.camera", "calibrate"),
+    "report": (),  # the stage checks: geometry for a reconstruction, nothing for a calibrate-only workdir
+    "calibrate": ("calibrate",),  # a grid needs system.camera (checked by the stage); radiometric alone does not
     "capture-surface": ("rig", "capture"),
 }
 
@@ -189,7 +189,10 @@ _stage_command("report", "report", """Figures, summary.json and a self-contained
 
     $ fluxmap report configs/paper-3d.yaml
     """)
-_stage_command("calibrate", None, """(Not built yet.) Derive the camera model from grid images.""")
+_stage_command("calibrate", "calibrate", """Derive the camera model from grid images (and the sensor from radiometric frames).
+
+    $ fluxmap calibrate configs/calibrate.yaml
+    """)
 
 
 @app.command("capture-surface")
@@ -207,6 +210,17 @@ def capture_surface(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt
 
     _run("capture-surface", partial(stage.run, resume=resume), config, set_, force, jobs, quiet)
 
+
+@app.command("info")
+def info(artefact: Path = typer.Argument(..., help="An HDF5 artefact (transfer.h5, simulation.h5, a T-cache file, ...).",
+                                         show_default=False)) -> None:
+    """Print what an artefact holds and how it was made (config, geometry, input files).
+
+    $ fluxmap info runs/demo/simulation.h5
+    """
+    from .artefacts.info import describe
+
+    _guard(lambda: typer.echo(describe(artefact)))
 
 
 # --------------------------------------------------------------------------- fluxmap rig ... (issue 11)
@@ -227,18 +241,6 @@ def rig_serve(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt) -> N
     from .stages import rig_serve as stage
 
     _run("rig serve", stage.run, config, set_, False, 1, False)
-
-@app.command("info")
-def info(artefact: Path = typer.Argument(..., help="An HDF5 artefact (transfer.h5, simulation.h5, a T-cache file, ...).",
-                                         show_default=False)) -> None:
-    """Print what an artefact holds and how it was made (config, geometry, input files).
-
-    $ fluxmap info runs/demo/simulation.h5
-    """
-    from .artefacts.info import describe
-
-    _guard(lambda: typer.echo(describe(artefact)))
-
 
 def main() -> None:
     app()

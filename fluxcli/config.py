@@ -352,6 +352,13 @@ class ImageFiles(Model):
     files: tuple[Path, ...] = Field(description="One image file per pose (TIFF/FITS/EXR), in subject.poses order.")
     units: Literal["photons", "counts"] = Field("photons", description="counts are converted with system.camera.sensor.")
     exposure_s: float = Field(1.0, gt=0)
+    calibration: Path | None = Field(None, description="calibration.h5 whose /radiometric bias, dark and flat maps are applied to counts (units: counts).")
+
+    @model_validator(mode="after")
+    def _check(self) -> "ImageFiles":
+        if self.calibration is not None and self.units != "counts":
+            raise ValueError("calibration (bias, dark and flat maps) applies to images in counts; set units: counts")
+        return self
 
 
 class CaptureSource(Model):
@@ -400,6 +407,72 @@ class ReportSettings(Model):
     title: str | None = Field(None, description="Page title (default: the config's name).")
     slice_axial_mm: float = Field(0.0, description="Where along the subject's axis (from its centre) to cut the circumference slice (mm).")
     surface_views: bool = Field(True, description="Render the flux on the 3-D surface (pyvista, off-screen).")
+
+
+# --------------------------------------------------------------------------- calibrate: radiometric
+class RadiometricPTCLevel(Model):
+    files: tuple[Path, ...] = Field(min_length=2, description="Two or more frames at one illumination and exposure (counts); consecutive frames are paired (1st-2nd, 3rd-4th, ...).")
+    exposure_s: float = Field(gt=0, description="Exposure of these frames (s).")
+    em_gain_on: bool = Field(False, description="Whether the EM gain was on (the camera's working gain) or off (conventional readout).")
+    illumination: str = Field("", description="Label of the light-source setting: gain-on and gain-off levels with the same label are compared per second of exposure to measure the EM gain.")
+
+
+class RadiometricDarks(Model):
+    files: tuple[Path, ...] = Field(min_length=1, description="Dark frames (no light) at one exposure (counts).")
+    exposure_s: float = Field(gt=0, description="Exposure of these frames (s).")
+    em_gain_on: bool = Field(True, description="Whether the EM gain was on (then converted with the measured gain).")
+
+
+class Radiometric(Model):
+    bias: tuple[Path, ...] = Field(min_length=2, description="Bias frames: no light, shortest exposure, EM gain off (counts); consecutive pairs give the read noise.")
+    ptc: tuple[RadiometricPTCLevel, ...] = Field(min_length=2, description="Photon-transfer series: at least two gain-off levels (electrons per count); gain-on levels give the EM gain.")
+    darks: tuple[RadiometricDarks, ...] = Field((), description="Dark frames per exposure; two or more exposures separate dark current from clock-induced charge.")
+    flats: tuple[Path, ...] = Field((), description="Flat frames of the evenly lit bare sensor, EM gain off (counts): the pixel-response map.")
+    saturation_counts: float = Field(65535.0, gt=0, description="Pixels at or above this (counts) are left out of the PTC.")
+    excess_noise_factor_squared: float = Field(2.0, ge=1, le=2, description="F^2 of the EM register assumed for the gain-on PTC slope (2 at high gain).")
+    gain_tolerance: float = Field(0.1, gt=0, description="Warn when the ratio and PTC EM gains differ by more than this fraction.")
+
+    @model_validator(mode="after")
+    def _check(self) -> "Radiometric":
+        if len([lv for lv in self.ptc if not lv.em_gain_on]) < 2:
+            raise ValueError("ptc needs at least two levels with em_gain_on: false (the gain-off curve gives electrons per count)")
+        if any(d.em_gain_on for d in self.darks) and not any(lv.em_gain_on for lv in self.ptc):
+            raise ValueError("darks taken with em_gain_on need ptc levels with em_gain_on: true to measure the EM gain")
+        return self
+
+
+# --------------------------------------------------------------------------- calibrate: geometric
+class CalibrationGrid(Model):
+    kind: Literal["dots", "checkerboard"] = Field("dots", description="dots (a regular dot grid) or checkerboard (its inner corners are the points).")
+    pitch_mm: float = Field(gt=0, description="Distance between neighbouring grid points (mm).")
+    shape: tuple[int, int] = Field(description="Points along x and along y [nx, ny] (checkerboard: inner corners).")
+
+    @field_validator("shape")
+    @classmethod
+    def _shape(cls, v: tuple[int, int]) -> tuple[int, int]:
+        if min(v) < 2:
+            raise ValueError("shape must be two integers [nx, ny], each 2 or more")
+        return v
+
+
+class CalibrationImage(Model):
+    file: Path = Field(description="Image of the grid lying flat (TIFF/FITS/EXR; counts or photons), relative to the config.")
+    plane_z_mm: float = Field(description="World z of the grid plane in this image (mm); the world frame is the grid's.")
+
+
+class Calibrate(Model):
+    grid: CalibrationGrid | None = Field(None, description="The target: world point (i, j) at ((i-(nx-1)/2) pitch, (j-(ny-1)/2) pitch, plane_z_mm).")
+    images: tuple[CalibrationImage, ...] = Field((), description="The grid at five or more known heights through and around focus.")
+    refine_mirrors: bool = Field(True, description="Refine the planes of system.mirrors from the grid seen in each mirror.")
+    radiometric: Radiometric | None = Field(None, description="Bias, dark, flat and photon-transfer frames: the sensor block.")
+
+    @model_validator(mode="after")
+    def _check(self) -> "Calibrate":
+        if (self.grid is None) != (len(self.images) == 0):
+            raise ValueError("give both grid and images (geometric calibration), or neither")
+        if self.grid is None and self.radiometric is None:
+            raise ValueError("give grid and images (geometric), radiometric, or both")
+        return self
 
 
 # --------------------------------------------------------------------------- rig (issue 11)
@@ -516,7 +589,7 @@ class Config(Model):
     simulate: Simulate | None = None
     reconstruct: Reconstruct = Reconstruct()
     report: ReportSettings = ReportSettings()
-    calibrate: dict[str, Any] | None = None
+    calibrate: Calibrate | None = None
     capture: Capture | None = Field(None, description="The acquisition plan of capture-surface.")
     rig: Rig | None = Field(None, description="The devices of the rig (issue 11).")
 
@@ -683,6 +756,24 @@ def _camera_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
     system["camera"] = _merge(loaded["camera"], overrides)
 
 
+def _mirrors_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
+    """``system.mirrors: calib/camera.yaml`` takes the file's top-level ``mirrors:`` list (refined by calibrate)."""
+    system = raw.get("system")
+    if not isinstance(system, dict) or not isinstance(system.get("mirrors"), str):
+        return
+    ref = system["mirrors"]
+    file = Path(ref) if Path(ref).is_absolute() else (base_dir / ref).resolve()
+    if not file.is_file():
+        raise UserError(f"config {path}: 'system.mirrors': file {file} does not exist.")
+    try:
+        loaded = yaml.load(file.read_text(), Loader=_UniqueKeyLoader)
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise UserError(f"config {path}: 'system.mirrors': file {file} is not valid YAML: {e}".replace("\n", " ")) from None
+    if not isinstance(loaded, dict) or not isinstance(loaded.get("mirrors"), list):
+        raise UserError(f"config {path}: 'system.mirrors': file {file} has no top-level 'mirrors:' list.")
+    system["mirrors"] = loaded["mirrors"]
+
+
 def _merge(base: dict, over: dict) -> dict:
     out = dict(base)
     for k, v in over.items():
@@ -718,6 +809,7 @@ def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -
     if not isinstance(raw, dict):
         raise UserError(f"config file {path} must hold a mapping of keys (workdir, system, subject, ...).")
     _camera_from_file(raw, path.resolve().parent, path)
+    _mirrors_from_file(raw, path.resolve().parent, path)
     for item in overrides:
         _apply_override(raw, item)
     try:

@@ -123,6 +123,17 @@ register(Kind("tetmesh", 1, "fluxmap simulate", "tetrahedral mesh of the subject
     Dataset("tets", "", "tetrahedra (M, 4)"),
 )))
 
+
+register(Kind("calibration", 1, "fluxmap calibrate", "camera model from grid images, sensor from frames", (
+    Dataset("camera_yaml", "", "the camera.yaml written beside this file (text)"),
+    Dataset("geometric/lens_center_mm", "mm", "lens centre C in the grid's frame", required=False),
+    Dataset("geometric/rotation", "", "rows: camera right, down, look (world directions)", required=False),
+    Dataset("geometric/images", "", "per image k: plane_z_mm, ij, xy_px, residual_px, residual_mm, "
+            "blur_diameter_px, axial_mm (pixel centres at integer (col, row))", required=False),
+    Dataset("radiometric", "", "bias/dark/flat maps, PTC, sensor scalars", required=False),
+)))
+
+
 register(Kind("capture", 1, "fluxmap capture-surface", "emission images acquired on the rig, frame by frame", (
     Dataset("frames/counts", "ADC counts", "counts[frame, row, col]; frame k is plan slot k, row 0 first"),
     Dataset("frames/time_unix", "s", "when the frame was read out (s since 1970-01-01 UTC)"),

@@ -25,6 +25,7 @@ import numpy as np
 
 __all__ = [
     "EMCCDModel",
+    "conventional_counts",
     "counts_to_photons",
     "emccd_counts",
     "expected_counts",
@@ -269,6 +270,39 @@ def emccd_counts(photons_per_pixel, model: EMCCDModel, rng: np.random.Generator)
     )
     electrons_out = electrons_out + model.read_noise_e * rng.standard_normal(photons.shape)
     counts = model.bias_counts + electrons_out / model.electrons_per_count
+    return np.clip(np.rint(counts), 0, model.max_count).astype(np.uint16)
+
+
+def conventional_counts(photons_per_pixel, model: EMCCDModel, rng: np.random.Generator) -> np.ndarray:
+    """Simulate counts read out with the EM gain off (no multiplication).
+
+    As :func:`emccd_counts` without step 2: electrons ``n ~ Poisson(λ)`` read out
+    directly, ``bias_counts + (n + Normal(0, read_noise_e)) / electrons_per_count``,
+    rounded and clipped; ``model.em_gain`` is ignored. Mean ``bias + λ / g`` and variance
+    ``λ / g² + (σ_r / g)²`` counts²: the photon-transfer curve of a conventional CCD,
+    slope ``1 / g``. This is how a camera's "EM gain off" frames for calibration are made
+    (the gamma model of :func:`emccd_counts` keeps ``F² = 2`` even at ``em_gain = 1``).
+
+    Parameters
+    ----------
+    photons_per_pixel : array_like of float, any shape
+        Expected photons reaching each pixel during the exposure, ≥ 0.
+    model : EMCCDModel
+        Camera parameters (``em_gain`` unused).
+    rng : numpy.random.Generator
+        Source of randomness.
+
+    Returns
+    -------
+    numpy.ndarray of uint16, same shape
+        Counts per pixel.
+    """
+    photons = _check_photons(photons_per_pixel)
+    model = _check_model(model)
+    _check_rng(rng)
+    electrons = rng.poisson(_mean_input_electrons(photons, model)).astype(np.float64)
+    electrons = electrons + model.read_noise_e * rng.standard_normal(photons.shape)
+    counts = model.bias_counts + electrons / model.electrons_per_count
     return np.clip(np.rint(counts), 0, model.max_count).astype(np.uint16)
 
 

@@ -32,6 +32,8 @@ from ..artefacts.transfer import load_T, load_view
 from ..inverse import backprojection, error_l1, reconstruct as solve, total_ratio
 from ..pipeline import check_folders, check_memory, emccd_model, ensure_T, geometry_of, plan, provenance
 from ..workers import worker_pool
+from ..imaging.sensor_maps import counts_to_photons_with_maps
+from ._radiometric import read_radiometric_maps
 from .context import RunContext
 
 
@@ -86,7 +88,10 @@ def _image_sources(cfg: C.LoadedConfig) -> list[str]:
         p = _capture_path(cfg)
         return [A.file_sha256(p)] if p.is_file() else []
     if rc.images is not None:
-        return [A.file_sha256(cfg.resolve(p)) for p in rc.images.files if cfg.resolve(p).is_file()]
+        out = [A.file_sha256(cfg.resolve(p)) for p in rc.images.files if cfg.resolve(p).is_file()]
+        if rc.images.calibration is not None and cfg.resolve(rc.images.calibration).is_file():
+            out.append(A.file_sha256(cfg.resolve(rc.images.calibration)))
+        return out
     sim = cfg.workdir / "simulation.h5"
     return [A.file_sha256(sim)] if sim.is_file() else []
 
@@ -150,6 +155,8 @@ def _image_files(cfg: C.LoadedConfig, n_poses: int, poses: list | None) -> Input
                             "counts to photons needs the camera's bias, gain and quantum efficiency (give "
                             "system.camera.sensor, or images in photons).")
         model = emccd_model(cfg.model.system.camera.sensor, im.exposure_s)
+    maps = {} if im.calibration is None else read_radiometric_maps(  # per-pixel bias, dark, flat (radiometry)
+        cfg.resolve(im.calibration), "reconstruct.images.calibration", (ny, nx))
     imgs, valid = [], []
     for k, p in enumerate(im.files):
         where = f"reconstruct.images.files[{k}] ({cfg.resolve(p)})"
@@ -187,7 +194,8 @@ def _image_files(cfg: C.LoadedConfig, n_poses: int, poses: list | None) -> Input
                 raise UserError(f"{where}: {sat.sum() / finite.sum():.0%} of the pixels are saturated (at "
                                 f"{2 ** model.bit_depth - 1} counts); shorten the exposure or lower the EM gain.")
             ok = finite & ~sat
-            img = N.counts_to_photons(np.where(finite, img, 0), model)
+            img = counts_to_photons_with_maps(np.where(finite, img, 0), model, **maps)
+            ok &= np.isfinite(img)  # dead pixels of the flat map
             img = np.where(finite, img, np.nan)
         if not np.any(img[ok] > 0):
             raise UserError(f"{where}: no pixel holds a positive signal (all are zero or negative"
