@@ -2,6 +2,7 @@
 #   make demo   create .venv, install, run the demo pipeline, print where its output is
 #   make check-report   open the demo's report in headless Chromium: screenshot, console, 3-D view
 #   make demo-rig   the simulated rig: capture-surface -> build-T -> reconstruct -> report
+#   make structured-light   structured-light surface capture on the simulated rig, against the truth
 #   make test   create .venv if needed, install with test extras, run the test suite
 #   make bench  speed ratios measured in one run (slow checks included)
 #   make paper-2d | paper-3d | heights   the paper's experiments (pipelines/experiments.mk)
@@ -12,7 +13,7 @@ PY      = $(VENV)/bin/python
 FLUXMAP = $(VENV)/bin/fluxmap
 JOBS   ?= 2
 
-.PHONY: all demo demo-rig check-report config-reference test bench samples figures clean help
+.PHONY: all demo demo-rig structured-light demo-rig-captured check-report config-reference test bench samples figures clean help
 all: test
 
 $(VENV)/.installed: pyproject.toml
@@ -50,12 +51,21 @@ demo-rig: $(VENV)/.installed
 test: $(VENV)/.installed
 	$(PY) -m pytest -q
 
+structured-light: $(VENV)/.installed  # issue 12: simulated structured-light capture measured against the truth
+	$(PY) pipelines/structured_light.py runs/structured-light
+
+demo-rig-captured: $(VENV)/.installed  # demo-rig's frames reconstructed on the captured mesh (after demo-rig, structured-light)
+	$(FLUXMAP) build-T configs/demo-rig-captured.yaml --jobs $(JOBS)
+	$(FLUXMAP) reconstruct configs/demo-rig-captured.yaml --jobs $(JOBS)
+	$(PY) pipelines/rig_totals.py runs/demo-rig-captured/reconstruction.h5 runs/demo-rig/reconstruction.h5
+
 bench: $(VENV)/.installed
 	$(PY) -m pytest -q -m slow --benchmark-disable || test $$? -eq 5  # 5: no slow checks collected
 	$(PY) benchmarks/bench_transfer.py
 
 samples: $(VENV)/.installed
 	$(PY) data-samples/make_samples.py
+	$(PY) data-samples/calibration/make_radiometric.py
 
 # docs/config-reference.md from the schema (tests/test_docs.py fails when it is out of date)
 config-reference: $(VENV)/.installed

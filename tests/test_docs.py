@@ -8,7 +8,6 @@ from pathlib import Path
 
 import pytest
 
-from fluxcli.config import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -51,4 +50,13 @@ def test_relative_links_stay_inside_the_repository_and_exist(doc):
 
 @pytest.mark.parametrize("cfg", sorted(p.name for p in (ROOT / "configs").glob("*.yaml")))
 def test_every_shipped_config_is_valid(cfg):
-    load_config(ROOT / "configs" / cfg)
+    """Valid against the schema; files that an earlier make target produces (a captured
+    surface.h5) need not exist yet."""
+    import yaml
+
+    from fluxcli import config as C
+
+    path = ROOT / "configs" / cfg
+    raw = yaml.safe_load(path.read_text())
+    C._camera_from_file(raw, path.parent, path)
+    C.Config.model_validate(raw)
