@@ -1,5 +1,6 @@
 # fluxmap: reproducible set-up, tests, benchmarks and experiments.
 #   make demo   create .venv, install, run the demo pipeline, print where its output is
+#   make check-report   open the demo's report in headless Chromium: screenshot, console, 3-D view
 #   make demo-rig   the simulated rig: capture-surface -> build-T -> reconstruct -> report
 #   make structured-light   structured-light surface capture on the simulated rig, against the truth
 #   make test   create .venv if needed, install with test extras, run the test suite
@@ -12,7 +13,7 @@ PY      = $(VENV)/bin/python
 FLUXMAP = $(VENV)/bin/fluxmap
 JOBS   ?= 2
 
-.PHONY: all demo demo-rig structured-light demo-rig-captured test bench samples figures clean help
+.PHONY: all demo demo-rig structured-light demo-rig-captured check-report config-reference test bench samples figures clean help
 all: test
 
 $(VENV)/.installed: pyproject.toml
@@ -23,12 +24,21 @@ $(VENV)/.installed: pyproject.toml
 
 install: $(VENV)/.installed
 
+# The demo's artefacts carry a fixed creation time (SOURCE_DATE_EPOCH: the commit's), so that
+# every clone makes the same bytes.
+DEMO_EPOCH := $(shell git log -1 --format=%ct 2>/dev/null || echo 0)
 demo: $(VENV)/.installed
-	$(FLUXMAP) build-T configs/demo.yaml --jobs $(JOBS)
-	$(FLUXMAP) simulate configs/demo.yaml --jobs $(JOBS)
-	$(FLUXMAP) reconstruct configs/demo.yaml --jobs $(JOBS)
-	$(FLUXMAP) report configs/demo.yaml
-	@echo "demo report: $(CURDIR)/runs/demo/report/index.html"
+	SOURCE_DATE_EPOCH=$(DEMO_EPOCH) $(FLUXMAP) build-T configs/demo.yaml --jobs $(JOBS)
+	SOURCE_DATE_EPOCH=$(DEMO_EPOCH) $(FLUXMAP) simulate configs/demo.yaml --jobs $(JOBS)
+	SOURCE_DATE_EPOCH=$(DEMO_EPOCH) $(FLUXMAP) reconstruct configs/demo.yaml --jobs $(JOBS)
+	SOURCE_DATE_EPOCH=$(DEMO_EPOCH) $(FLUXMAP) report configs/demo.yaml
+	@$(FLUXMAP) summary configs/demo.yaml
+
+# The demo's report in headless Chromium (Debian: apt-get install chromium): a screenshot, no console
+# errors, the 3-D view not blank.  Not part of `make test` (CI has no browser).
+check-report: $(VENV)/.installed
+	@test -f runs/demo/report/index.html || $(MAKE) demo
+	$(PY) -m fluxcli.report.browser_check runs/demo/report/index.html runs/demo/report/screenshot.png
 
 demo-rig: $(VENV)/.installed
 	$(FLUXMAP) capture-surface configs/demo-rig.yaml --resume
@@ -56,6 +66,10 @@ bench: $(VENV)/.installed
 samples: $(VENV)/.installed
 	$(PY) data-samples/make_samples.py
 	$(PY) data-samples/calibration/make_radiometric.py
+
+# docs/config-reference.md from the schema (tests/test_docs.py fails when it is out of date)
+config-reference: $(VENV)/.installed
+	$(PY) docs/make_config_reference.py
 
 figures: $(VENV)/.installed
 	$(PY) docs/make_figures.py

@@ -24,10 +24,11 @@ app = typer.Typer(
     "Each stage reads a YAML config and the HDF5 artefacts of earlier stages, and writes its own.",
     context_settings={"help_option_names": ["-h", "--help"]},
     pretty_exceptions_enable=False,
+    rich_markup_mode=None,  # plain click help: flags show as '--force', not '--force <bool>'
 )
 
-ConfigArg = typer.Argument(..., help="The experiment's YAML config.", show_default=False)
-SetOpt = typer.Option(None, "--set", help="Override a config key: dotted.key=value (repeatable).")
+ConfigArg = typer.Argument(..., help="The experiment's YAML config.", show_default=False, metavar="CONFIG.yaml")
+SetOpt = typer.Option(None, "--set", metavar="KEY=VALUE", help="Override a config key: dotted.key=value (repeatable).")
 ForceOpt = typer.Option(False, "--force", help="Recompute even when an up-to-date artefact exists.")
 JobsOpt = typer.Option(1, "--jobs", "-j", min=1, help="Worker processes.")
 QuietOpt = typer.Option(False, "--quiet", "-q", help="Print nothing but errors.")
@@ -60,6 +61,7 @@ STAGE_REQUIRES: dict[str, tuple[str, ...]] = {
     "report": (),  # the stage checks: geometry for a reconstruction, nothing for a calibrate-only workdir
     "calibrate": ("calibrate",),  # a grid needs system.camera (checked by the stage); radiometric alone does not
     "capture-surface": ("rig", "capture"),
+    "summary": (),
 }
 
 
@@ -188,6 +190,10 @@ _stage_command("reconstruct", "reconstruct", """Invert images into surface flux 
 _stage_command("report", "report", """Figures, summary.json and a self-contained HTML page, from the artefacts.
 
     $ fluxmap report configs/paper-3d.yaml
+    """)
+_stage_command("summary", "summary", """Per-pose totals, their spread, the truth, and where the report is, from the artefacts.
+
+    $ fluxmap summary configs/demo.yaml
     """)
 _stage_command("calibrate", "calibrate", """Derive the camera model from grid images (and the sensor from radiometric frames).
 

@@ -129,50 +129,62 @@ class Stage(Model):
 
 
 class System(Model):
-    camera: Camera
+    camera: Camera = Field(description="The camera: sensor, lens, pose, apertures (or a camera.yaml path from calibrate).")
     mirrors: tuple[Mirror, ...] = Field((), description="Plane mirrors; each adds a view.")
     stage: Stage | None = Field(None, description="The stage plate (an occluder); phantoms rest on its top.")
 
 
 # --------------------------------------------------------------------------- subject
 class CylinderPhantom(Model):
+    """A closed cylinder along x resting on the stage; its side is split into elements."""
+
     phantom: Literal["cylinder"]
-    radius_mm: float = Field(12.5, gt=0)
-    length_mm: float = Field(50.0, gt=0)
+    radius_mm: float = Field(12.5, gt=0, description="Cylinder radius (mm).")
+    length_mm: float = Field(50.0, gt=0, description="Cylinder length along its axis (x) (mm).")
     n_angular: int = Field(50, ge=3, description="Elements around the circumference.")
     n_axial: int = Field(32, ge=1, description="Elements along the axis.")
     cap_elements: bool = Field(False, description="Make the end caps elements too (else they only occlude).")
 
 
 class RingPhantom(Model):
+    """A thin ring (the paper's 2-D study) seen by a line detector."""
+
     phantom: Literal["ring"]
-    radius_mm: float = Field(25.0, gt=0)
+    radius_mm: float = Field(25.0, gt=0, description="Ring radius (mm).")
     thickness_mm: float = Field(1.0, gt=0, description="Extent along the ring axis (mm).")
-    n_elements: int = Field(200, ge=3)
+    n_elements: int = Field(200, ge=3, description="Elements around the ring.")
     strips_per_element: int = Field(1, ge=1, description="Sub-elements along the arc (what reconstruct.unknowns: sub_elements solves for).")
 
 
 class SpherePhantom(Model):
+    """A sphere split into latitude x longitude elements."""
+
     phantom: Literal["sphere"]
-    radius_mm: float = Field(10.0, gt=0)
-    n_latitude: int = Field(16, ge=2)
-    n_longitude: int = Field(32, ge=3)
+    radius_mm: float = Field(10.0, gt=0, description="Sphere radius (mm).")
+    n_latitude: int = Field(16, ge=2, description="Element rows from pole to pole.")
+    n_longitude: int = Field(32, ge=3, description="Elements around each row.")
 
 
 class PatchPhantom(Model):
+    """A flat rectangle of elements (one emitting side)."""
+
     phantom: Literal["patch"]
-    size_mm: tuple[float, float] = Field((10.0, 10.0))
+    size_mm: tuple[float, float] = Field((10.0, 10.0), description="Side lengths of the flat patch (mm).")
     n: tuple[int, int] = Field((1, 1), description="Elements along each side.")
     center_mm: Vec3 = Field((0.0, 0.0, 0.0), description="Patch centre (before any pose).")
     normal: Vec3 = Field((0.0, 0.0, 1.0), description="Emitting side.")
 
 
 class MeshSurface(Model):
+    """A triangle mesh file; each triangle an element unless the file has an integer cell array 'element'."""
+
     mesh: Path = Field(description="Mesh file pyvista reads (PLY, STL, VTK, OBJ); relative to the config file.")
     scale_to_mm: float = Field(1.0, gt=0, description="Multiply file coordinates by this to get mm.")
 
 
 class ArtefactSurface(Model):
+    """A surface captured by capture-surface."""
+
     artefact: Path = Field(description="A surface artefact (HDF5 with /surface) from capture-surface.")
 
 
@@ -196,7 +208,8 @@ class Poses(Model):
 
 
 class Subject(Model):
-    surface: Union[Phantom, MeshSurface, ArtefactSurface]
+    surface: Union[Phantom, MeshSurface, ArtefactSurface] = Field(
+        description="The subject's surface: a phantom, a mesh file, or a surface artefact (one of the variants below).")
     poses: Poses | None = Field(None, description="Heights x rotations; without it the subject stays put (height 0).")
     rotation_axis: RotationAxis | None = Field(None, description="Axis for rotations (default: the phantom's own axis).")
 
@@ -205,7 +218,7 @@ class Subject(Model):
 class LensSampling(Model):
     surface_samples_per_pixel: float = Field(2.0, gt=0, description="Surface sub-samples per focal-plane pixel length.")
     max_surface_subdivisions: int = Field(48, ge=1, description="Cap on sub-triangles per face edge.")
-    min_surface_subdivisions: int = Field(1, ge=1)
+    min_surface_subdivisions: int = Field(1, ge=1, description="Floor on sub-triangles per face edge.")
     lens_samples_min: int = Field(32, ge=1, description="Lens samples per surface point, at least.")
     lens_samples_max: int = Field(2048, ge=1, description="Lens samples per surface point, at most.")
     lens_samples_per_blur_pixel: float = Field(4.0, gt=0, description="Lens samples per pixel of blur-disk area.")
@@ -228,8 +241,8 @@ class PairwiseSampling(Model):
 
 class Transfer(Model):
     estimator: Literal["lens", "pairwise"] = Field("lens", description="lens (default) or pairwise (the paper's).")
-    lens: LensSampling = LensSampling()
-    pairwise: PairwiseSampling = PairwiseSampling()
+    lens: LensSampling = Field(LensSampling(), description="Sampling of the lens estimator.")
+    pairwise: PairwiseSampling = Field(PairwiseSampling(), description="Sampling of the pairwise estimator.")
     ray_offset_mm: float = Field(1e-3, gt=0, description="Rays start this far along the normal (self-hit guard).")
     rays_per_batch: int = Field(100_000, ge=1000, description="Rays cast per Embree call (memory vs overhead).")
     cache_dir: Path | None = Field(None, description="Where cached T files live (default <workdir>/cache/T).")
@@ -237,6 +250,8 @@ class Transfer(Model):
 
 # --------------------------------------------------------------------------- simulate
 class GaussianFlux(Model):
+    """A Gaussian patch of power over the element centroids."""
+
     kind: Literal["gaussian"]
     center_mm: Vec3 | None = Field(None, description="Centre of the patch, subject at rest (height 0, no rotation); default the top element.")
     width_mm: float = Field(5.0, gt=0, description="Standard deviation of the Gaussian over element centroids (mm).")
@@ -244,11 +259,15 @@ class GaussianFlux(Model):
 
 
 class UniformFlux(Model):
+    """The same exitance on every element."""
+
     kind: Literal["uniform"]
     exitance_photons_per_mm2: float = Field(1e5, gt=0, description="Exitance of every element (photons mm^-2 per exposure).")
 
 
 class FileFlux(Model):
+    """Per-element values from a file."""
+
     kind: Literal["file"]
     path: Path = Field(description="Per-element values: .npy, or text with one value per line.")
     quantity: Literal["power", "exitance"] = Field("power", description="power (photons) or exitance (photons/mm^2).")
@@ -261,6 +280,8 @@ class Optical(Model):
 
 
 class Source(Model):
+    """A point or ball source of light."""
+
     power_photons: float = Field(gt=0, description="Source power (photons per exposure).")
     position_mm: Vec3 | None = Field(None, description="Position, subject at rest (height 0, no rotation).")
     depth_mm: float | None = Field(None, gt=0, description="Instead of position: this deep below the surface ...")
@@ -275,10 +296,12 @@ class Source(Model):
 
 
 class DiffusionFlux(Model):
+    """Sources inside the subject, light diffused to its surface (finite elements)."""
+
     kind: Literal["diffusion"]
     optical: dict[int, Optical] = Field(description="Optical properties per wavelength (nm).")
     wavelength_nm: int = Field(description="Which wavelength of 'optical' to simulate.")
-    sources: tuple[Source, ...] = Field(min_length=1)
+    sources: tuple[Source, ...] = Field(min_length=1, description="Light sources inside the subject.")
     mesh_edge_mm: float = Field(1.5, gt=0, description="Target tetrahedron edge length (mm).")
 
     @model_validator(mode="after")
@@ -312,11 +335,11 @@ class Export(Model):
 
 
 class Simulate(Model):
-    flux: Flux
+    flux: Flux = Field(description="The ground truth on the surface: kind gaussian, uniform, file or diffusion.")
     transfer: "Transfer | None" = Field(None, description="Sampling of the forward T (default: twice as fine as 'transfer').")
     allow_inverse_crime: bool = Field(False, description="Allow the forward T to equal reconstruction's T.")
-    noise: Noise = Noise()
-    export: Export = Export()
+    noise: Noise = Field(Noise(), description="Noise model, signal levels, repeats, seed and exposure of the images.")
+    export: Export = Field(Export(), description="Also write the images as files.")
 
 
 # --------------------------------------------------------------------------- reconstruct
@@ -349,9 +372,12 @@ def _check_lambda(v):
 
 
 class ImageFiles(Model):
+    """Image files, one per pose."""
+
     files: tuple[Path, ...] = Field(description="One image file per pose (TIFF/FITS/EXR), in subject.poses order.")
     units: Literal["photons", "counts"] = Field("photons", description="counts are converted with system.camera.sensor.")
-    exposure_s: float = Field(1.0, gt=0)
+    exposure_s: float = Field(1.0, gt=0, description="Exposure of the images (s); when given, results are also reported as rates "
+                              "(photons/s) and radiance (photons/s/cm^2/sr).")
     calibration: Path | None = Field(None, description="calibration.h5 whose /radiometric bias, dark and flat maps are applied to counts (units: counts).")
 
     @model_validator(mode="after")
@@ -362,6 +388,8 @@ class ImageFiles(Model):
 
 
 class CaptureSource(Model):
+    """The frames of a capture (capture.h5 of capture-surface)."""
+
     capture: Path = Field(description="A capture artefact (capture.h5 of capture-surface): relative to the config file, else to the workdir.")
     filter: str | None = Field(None, description="Whose frames to use, by filter name (default: the capture's only filter).")
     exposure_s: float | None = Field(None, gt=0, description="Which exposure time's frames (s) (default: the capture's only one).")
@@ -375,13 +403,13 @@ class Sweep(Model):
 
 class Reconstruct(Model):
     method: Method = Field("smooth", description="The method of /flux (see MethodSettings).")
-    lam: float | Literal["auto"] = Field("auto", alias="lambda")
+    lam: float | Literal["auto"] = Field("auto", alias="lambda", description="Regularisation (see MethodSettings), or auto.")
     lambda_rule: Literal["gcv", "lcurve", "discrepancy"] = Field(
         "gcv", description="gcv (default): robust to model error; discrepancy over-regularises when T_fwd != T.")
-    max_iter: int = Field(10, ge=1)
-    tol: float = Field(0.01, gt=0)
-    n_iter: int = Field(500, ge=1)
-    unknowns: Literal["elements", "sub_elements"] = "elements"
+    max_iter: int = Field(10, ge=1, description="paper: at most this many solves; smooth: this many.")
+    tol: float = Field(0.01, gt=0, description="paper: stop when the fit improves by less than this fraction.")
+    n_iter: int = Field(500, ge=1, description="mlem: EM iterations.")
+    unknowns: Literal["elements", "sub_elements"] = Field("elements", description="Solve per element, or per sub-element summed per element.")
     images: ImageFiles | CaptureSource | None = Field(None, description="Images from files, or from a capture, instead of simulation.h5.")
     level: int = Field(0, ge=0, description="Which signal level of the simulation to reconstruct.")
     repeat: int = Field(0, ge=0, description="Which noise repeat of the simulation to reconstruct.")
@@ -599,14 +627,14 @@ class Config(Model):
     workdir: Path | None = Field(None, description="Output folder (default runs/<config name>), relative to the config file.")
     # Optional at schema level: each stage states what it needs (fluxcli.cli.STAGE_REQUIRES), so
     # `calibrate` runs without a lens or subject and `rig serve` with only `rig`.
-    system: System | None = None
-    subject: Subject | None = None
-    transfer: Transfer = Transfer()
+    system: System | None = Field(None, description="The imaging system: camera, mirrors, stage.")
+    subject: Subject | None = Field(None, description="What is imaged: its surface, poses and rotation axis.")
+    transfer: Transfer = Field(Transfer(), description="How the transfer matrix T is estimated and where it is cached.")
     # Sections of stages that validate their own keys when they are built.
-    simulate: Simulate | None = None
-    reconstruct: Reconstruct = Reconstruct()
-    report: ReportSettings = ReportSettings()
-    calibrate: Calibrate | None = None
+    simulate: Simulate | None = Field(None, description="Ground truth and images for 'fluxmap simulate'.")
+    reconstruct: Reconstruct = Field(Reconstruct(), description="Settings of 'fluxmap reconstruct'.")
+    report: ReportSettings = Field(ReportSettings(), description="Settings of 'fluxmap report'.")
+    calibrate: Calibrate | None = Field(None, description="Settings of 'fluxmap calibrate': grid images, radiometric frames.")
     capture: Capture | None = Field(None, description="The acquisition plan of capture-surface.")
     rig: Rig | None = Field(None, description="The devices of the rig (issue 11).")
 

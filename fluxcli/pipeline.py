@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import os
 import time
-from concurrent.futures import as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +21,7 @@ from .imaging import noise as N
 from .optics.transfer import (ALGORITHM_VERSION, LensSampling, PairwiseSampling, View, build_transfer,
                              surface_sample_count)
 from .scene import PlacedScene, Pose, SubjectPlacer, poses_from_config, views_from_config
+from .progress import run_tasks
 from .workers import worker_pool
 
 # build-T refuses a pose whose views collect nothing, and warns when a view collects less than
@@ -186,14 +186,15 @@ def plan(cfg: LoadedConfig, transfer: Transfer | None = None, unknowns: str = "e
 
 
 def _build_and_store(scene: PlacedScene, views: list[View], tr: Transfer, target: Path, config_sha: str,
-                     prov: A.Provenance | None = None) -> dict:
-    """Worker: compute T for one pose and write it atomically; returns a summary."""
+                     prov: A.Provenance | None = None, progress=None) -> dict:
+    """Worker: compute T for one pose and write it atomically; returns a summary.
+    ``progress`` gets the fraction done after every batch of rays."""
     t0 = time.perf_counter()
     res = build_transfer(
         scene.surface, views, scene.occluders, estimator=tr.estimator,
         lens_sampling=LensSampling(**tr.lens.model_dump()),
         pairwise_sampling=PairwiseSampling(**tr.pairwise.model_dump()),
-        ray_offset_mm=tr.ray_offset_mm, rays_per_batch=tr.rays_per_batch,
+        ray_offset_mm=tr.ray_offset_mm, rays_per_batch=tr.rays_per_batch, progress=progress,
     )
     seconds = time.perf_counter() - t0
     cam = res.views[0].camera
@@ -256,17 +257,11 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
                 ctx.warn(f"the cached T of pose {p.pose.label} is unreadable and is rebuilt: {why}")
         need.append((s, p))
     prov = provenance(cfg, placer.surface.digest())
-    with ctx.progress(label, total=len(need)) as advance:
-        if ctx.jobs > 1 and len(need) > 1:
-            with worker_pool(min(ctx.jobs, len(need)), temp_dirs=(cache_dir(cfg),)) as ex:
-                futs = {ex.submit(_build_and_store, s, views, tr, p.path, cfg.sha256, prov): p for s, p in need}
-                for fut in as_completed(futs):
-                    results[futs[fut].key] = fut.result() | {"cached": False}
-                    advance()
-        else:
-            for s, p in need:
-                results[p.key] = _build_and_store(s, views, tr, p.path, cfg.sha256, prov) | {"cached": False}
-                advance()
+    # one bar over the poses, advanced after every batch of rays in every worker (with an ETA)
+    built = run_tasks(_build_and_store, [(s, views, tr, p.path, cfg.sha256, prov) for s, p in need], label=label,
+                      jobs=ctx.jobs, quiet=ctx.quiet,
+                      pool=lambda n: worker_pool(n, temp_dirs=(cache_dir(cfg),)))
+    results |= {p.key: r | {"cached": False} for (_, p), r in zip(need, built)}
     check_collection(todo, results, names, ctx)
     return views, placer, todo, results
 

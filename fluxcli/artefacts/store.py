@@ -22,6 +22,7 @@ import contextlib
 import datetime as _dt
 import hashlib
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
@@ -121,7 +122,7 @@ def write_artefact(path: Path, kind: str, *, config_sha256: str = "", inputs: di
             f.attrs["fluxmap_version"] = __version__
             f.attrs["kind"] = kind
             f.attrs["schema_version"] = SCHEMA_VERSIONS[kind]
-            f.attrs["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+            f.attrs["created"] = created_utc()
             f.attrs["config_sha256"] = config_sha256
             p = provenance or Provenance()
             # the names and hashes of input artefacts and image files, beside what the stage names
@@ -132,6 +133,31 @@ def write_artefact(path: Path, kind: str, *, config_sha256: str = "", inputs: di
             f.attrs["geometry_sha256"] = p.geometry_sha256
             f.attrs["input_files"] = json.dumps(p.input_files, sort_keys=True)
             yield f
+            if reproducible():
+                _forget_durations(f)
+
+
+def reproducible() -> _dt.datetime | None:
+    """The time of ``SOURCE_DATE_EPOCH`` when set (the reproducible-builds convention), else None.
+
+    Then every artefact records that time as ``created`` and no wall-clock durations
+    (attributes named ``*seconds`` become NaN): the same inputs give the same bytes."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH", "").strip()
+    return _dt.datetime.fromtimestamp(int(epoch), _dt.timezone.utc) if epoch.isdigit() else None
+
+
+def created_utc() -> str:
+    """Now, or the ``SOURCE_DATE_EPOCH`` time (see :func:`reproducible`)."""
+    return (reproducible() or _dt.datetime.now(_dt.timezone.utc)).isoformat(timespec="seconds")
+
+
+def _forget_durations(group: h5py.Group) -> None:
+    for name in list(group.attrs):
+        if name.endswith("seconds") and np.ndim(group.attrs[name]) == 0:
+            group.attrs[name] = np.nan
+    for item in group.values():
+        if isinstance(item, h5py.Group):
+            _forget_durations(item)
 
 
 def put(group: h5py.Group, name: str, data, **kwargs) -> h5py.Dataset:

@@ -27,6 +27,8 @@ from __future__ import annotations
 import base64
 import binascii
 import json
+import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -164,6 +166,9 @@ def write_image(
             spec.attribute(key, value)
     else:
         spec.attribute("ImageDescription", record)
+    epoch = os.environ.get("SOURCE_DATE_EPOCH", "").strip()
+    if epoch.isdigit():  # reproducible files: the fixed time, not now (TIFF's DateTime)
+        spec.attribute("DateTime", time.strftime("%Y:%m:%d %H:%M:%S", time.gmtime(int(epoch))))
 
     # The one atomic writer: a temporary name in the same folder with the same suffix
     # (so OIIO picks the format), fsync, rename.

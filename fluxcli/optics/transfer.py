@@ -286,6 +286,7 @@ def _lens_pairs(surface: Surface, view: View, s: LensSampling, rays_per_batch: i
     n_lens = np.minimum(s.lens_samples_min * 2**level, s.lens_samples_max)
     R2 = cam.aperture_radius_mm**2
     basis = np.stack([cam.right, cam.down])  # (2, 3): lens-plane coordinates to world
+    yield int(np.sum(n_lens))  # first: the rays to come (for progress), then the batches
     for n in np.unique(n_lens):
         disk_unit = sunflower_disk(int(n))
         square_unit = square_points(int(n))
@@ -316,7 +317,7 @@ def _lens_pairs(surface: Surface, view: View, s: LensSampling, rays_per_batch: i
             inside = (np.einsum("ij,ij->i", offs, offs) <= R2) & within.ravel()
             w = np.where((cos_s > 0) & inside, cos_s * cos_l / (np.pi * r2), 0.0) * dA
             pix = cam.pixel_index(cam.focal_plane_hit(p, L, zz))
-            yield p, nn, L, pix, w, np.repeat(E[i], n), zz, len(i)
+            yield p, nn, L, pix, w, np.repeat(E[i], n), zz, len(i), len(i) * int(n)
 
 
 def _pairwise_pairs(surface: Surface, view: View, s: PairwiseSampling, rays_per_batch: int) -> Iterator[tuple]:
@@ -348,6 +349,7 @@ def _pairwise_pairs(surface: Surface, view: View, s: PairwiseSampling, rays_per_
     order = np.argsort(box, kind="stable")
     order = order[box[order] > 0]
     o = cam.center_mm + u * cam.axis
+    yield int(np.sum(box[order]))  # first: the pairs to come (for progress), then the batches
     a = 0
     while a < len(order):
         # homogeneous chunk: samples with similar box sizes
@@ -380,7 +382,7 @@ def _pairwise_pairs(surface: Surface, view: View, s: PairwiseSampling, rays_per_
             w = np.where(in_lens & (cos_s > 0), cos_s * cos_d / (np.pi * r2), 0.0) * dA_vd * W[ii]
         pix = (rr // k) * cam.nx + (cc // k)
         pix = np.where(inbox, pix, -1)
-        yield p, nn, L, pix, w, E[ii], zz, len(i)
+        yield p, nn, L, pix, w, E[ii], zz, len(i), len(ii)
 
 
 def build_transfer(
@@ -402,7 +404,7 @@ def build_transfer(
     surface : the placed subject surface (its faces both emit and occlude).
     views : the direct view and one per mirror (see :func:`views_for`).
     occluders : other blocking geometry (stage plate, mirror plates).
-    progress : called with the fraction done (0..1), for a progress bar.
+    progress : called with the fraction done (0..1) after every batch of rays, for a progress bar.
 
     Returns
     -------
@@ -422,8 +424,13 @@ def build_transfer(
         gen = (_lens_pairs(surface, view, lens_sampling, rays_per_batch) if estimator == "lens"
                else _pairwise_pairs(surface, view, pairwise_sampling, rays_per_batch))
         pending = []
-        for P, N, L, pix, w, elem, zz, n_s in gen:
+        todo = next(gen, 0)  # the generators announce how many rays they will cast
+        done = 0
+        for P, N, L, pix, w, elem, zz, n_s, n_rays in gen:
             n_samples += n_s
+            done += n_rays
+            if progress and todo:
+                progress((k + min(done / todo, 1.0)) / len(views))
             pix, elem, w = filt(P, N, L, pix, w, elem, zz)
             pending.append(sp.csr_matrix((w, (pix, elem)), shape=shape))
             if len(pending) >= 8:

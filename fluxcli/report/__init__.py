@@ -391,11 +391,15 @@ class Geometry:
 
 def make_report(study: Study, out_dir: Path, *, title: str, geometry: Geometry, slice_axial_mm: float = 0.0,
                 surface_views: bool = True, renderer: str = "auto", extra: dict | None = None,
-                sections: list | None = None) -> tuple[Path, dict]:
+                sections: list | None = None, record: list | None = None, rig=None,
+                exposure_s: float | None = None) -> tuple[Path, dict]:
     """Draw every figure into ``out_dir``, write summary.json and index.html.
 
     ``renderer`` is ``auto`` (pyvista, else matplotlib), ``pyvista`` or ``matplotlib``
     for the 3-D views. ``extra`` is merged into summary.json (e.g. provenance).
+    ``record`` ((label, value) rows: camera, lens, files and digests), ``rig`` (a
+    :class:`fluxcli.report.view3d.Rig`) and ``exposure_s`` (rates and radiance when known)
+    feed the lab-notebook blocks of :mod:`fluxcli.report.notebook`.
     Returns the index.html path and the summary."""
     from . import figures as F
     from .page import Page
@@ -416,6 +420,9 @@ def make_report(study: Study, out_dir: Path, *, title: str, geometry: Geometry, 
 
     page = Page(title)
     page.header(summary)
+    from . import notebook  # warnings, what was measured with what, the share of light, the 3-D map
+    notebook.add_top(page, study, summary, record, exposure_s=exposure_s)
+    notebook.add_3d_view(page, study, rig=rig, exposure_s=exposure_s)
 
     # ---------------------------------------------------------------- angles and the slice
     surf = study.surface

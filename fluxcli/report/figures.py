@@ -337,7 +337,10 @@ def _render_matplotlib(panel: Panel, colours: np.ndarray, half_w: float, half_h:
 class _PyvistaRenderer:
     def __init__(self, size_px):
         import pyvista as pv
+        import vtk
 
+        # off-screen without an X server VTK logs "bad X server connection" on stderr, then renders fine
+        vtk.vtkLogger.SetStderrVerbosity(vtk.vtkLogger.VERBOSITY_OFF)
         pv.OFF_SCREEN = True
         self.pv = pv
         self.plotter = pv.Plotter(off_screen=True, window_size=list(size_px))

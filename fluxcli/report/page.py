@@ -1,5 +1,5 @@
 """The report page: one self-contained HTML file (PNGs embedded as data URIs, inline CSS,
-no scripts, no external links), built from the numbers in summary.json."""
+plotly.js inline for the 3-D view, no external links), built from the numbers in summary.json."""
 
 from __future__ import annotations
 
@@ -18,6 +18,9 @@ th, td { border: 1px solid #ccc; padding: 0.25em 0.6em; text-align: right; }
 th { background: #f3f3f3; } td.l, th.l { text-align: left; }
 .meta { color: #555; font-size: 0.9em; } .note { background: #fff8e1; padding: 0.5em 0.8em; border-left: 3px solid #f0b400; }
 nav a { margin-right: 1em; }
+.warnings { background: #fdecea; border-left: 4px solid #d93025; padding: 0.2em 1em; margin: 1em 0; }
+.warnings h2 { border: none; margin-top: 0.4em; } .warn { margin: 0.4em 0; } .ok { color: #1e7e34; }
+.plot3d { border: 1px solid #ddd; margin: 0.5em 0 1.5em 0; }
 """
 
 
@@ -108,7 +111,7 @@ class Page:
         if "direct_roi_photons" in poses[0]:
             cols.append(("direct ROI (photons)", lambda k, p: fmt(p["direct_roi_photons"])))
         if "backprojection_total" in poses[0]:
-            cols.append(("backprojection Σ Tᵀa (photons)", lambda k, p: fmt(p["backprojection_total"])))
+            cols.append(("backprojection Σ Tᵀa (a.u., not a flux)", lambda k, p: fmt(p["backprojection_total"])))
         cols.append(("reconstructed total (photons)", lambda k, p: fmt(p["total_photons"])))
         for key, name in (("direct_roi", "ROI / mean"), ("backprojection", "backproj. / mean"),
                           ("reconstruction", "recon. / mean")):
@@ -131,7 +134,7 @@ class Page:
         sp = s.get("spreads", {})
         spread_row = ["spread", "", ""] + [""] * (len(cols) - 2)
         names = [c for c, _ in cols]
-        for key, col in (("direct_roi", "direct ROI (photons)"), ("backprojection", "backprojection Σ Tᵀa (photons)"),
+        for key, col in (("direct_roi", "direct ROI (photons)"), ("backprojection", "backprojection Σ Tᵀa (a.u., not a flux)"),
                          ("reconstruction", "reconstructed total (photons)")):
             if col in names and sp.get(key) is not None:
                 spread_row[1 + names.index(col)] = fmt(sp[key], "%")

@@ -35,6 +35,7 @@ from ..workers import worker_pool
 from ..imaging.sensor_maps import counts_to_photons_with_maps
 from ._radiometric import read_radiometric_maps
 from .context import RunContext
+from .outputs import export_3d
 
 
 @dataclass
@@ -387,7 +388,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         pp.create_dataset("vertices_mm", data=np.array([sc.surface.vertices_mm for sc, _ in todo]),
                           compression="gzip").attrs["meaning"] = "the surface placed at each pose (faces as /surface/faces)"
         pp.create_dataset("backprojection_total", data=[np.nansum(backprojection(Ts[k], np.where(
-            inp.valid[k], inp.images[k], 0.0).ravel())) for k in range(P)]).attrs["unit"] = "photons (T'a summed)"
+            inp.valid[k], inp.images[k], 0.0).ravel())) for k in range(P)]).attrs["unit"] = \
+            "a.u.: sum of T'a (photons weighted by the dimensionless T; not a flux)"
         pp.create_dataset("direct_roi_photons", data=[direct_roi(todo[k][1].path, inp.images[k]) for k in range(P)]
                           ).attrs["meaning"] = "measured photons summed over the pixels the direct view reaches"
         pp.create_dataset("heights_mm", data=[pt.pose.height_mm for _, pt in todo])
@@ -431,6 +433,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         header += ["error", "total ratio"]
     ctx.table(header, rows)
     ctx.say(f"{seconds:.2f} s of solving")
+    export_3d(cfg, ctx, out)  # <workdir>/*.vtp for ParaView/pyvista, from the artefact
     return out
 
 

@@ -27,6 +27,7 @@ from ..errors import UserError
 from ..pipeline import check_writable, geometry_of
 from ..scene import SubjectPlacer
 from .context import RunContext
+from .outputs import reconstruction_exposure_s, record_of, rig_of
 
 
 _GEOMETRY = ("system", "system.camera.lens", "system.camera.pose", "subject")
@@ -76,7 +77,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     index, summary = R.make_report(study, out_dir, title=rs.title or cfg.path.stem, geometry=geometry,
                                    slice_axial_mm=rs.slice_axial_mm, surface_views=rs.surface_views,
                                    extra={"provenance": {"inputs": inputs, "settings": settings}},
-                                   sections=[_calibration_section(cal)] if cal.is_file() else None)
+                                   sections=[_calibration_section(cal)] if cal.is_file() else None,
+                                   record=record_of(cfg, inputs), rig=rig_of(cfg), exposure_s=reconstruction_exposure_s(cfg))
     for note in summary["notes"]:
         ctx.say(f"note: {note}")
     sp = summary["spreads"]

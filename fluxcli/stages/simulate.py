@@ -33,6 +33,7 @@ from ..optics.transfer import ALGORITHM_VERSION
 from ..artefacts.transfer import load_T
 from ..pipeline import cache_dir, check_folders, check_memory, emccd_model, ensure_T, plan, provenance
 from .context import RunContext
+from .outputs import export_3d
 
 
 def forward_transfer(cfg: C.LoadedConfig) -> C.Transfer:
@@ -256,6 +257,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     rows = [[pt.pose.height_mm, pt.pose.rotation_deg, *[f"{snr[li, k]:.1f}" for li in range(L)]]
             for k, (_, pt) in enumerate(todo)]
     ctx.table(["height_mm", "rotation_deg", *[f"SNR @ peak {x:.0e}" for x in lv]], rows)
+    export_3d(cfg, ctx, out)  # <workdir>/*.vtp for ParaView/pyvista, from the artefact
     return out
 
 

@@ -1,0 +1,89 @@
+"""Progress that moves: fractions reported from inside long tasks, in this process or in
+``--jobs`` worker processes, shown as one bar with an ETA.
+
+:func:`run_tasks` runs ``fn(*args, progress=callback)`` for each argument tuple, serially
+or in a process pool, and advances one bar by the fraction each task reports (e.g.
+:func:`fluxcli.optics.transfer.build_transfer` reports after every batch of rays).
+Workers send their fractions through a manager queue; the parent drains it a few times
+a second, so the bar and its ETA move smoothly however many workers run.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import queue as _queue
+import sys
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from functools import partial
+from typing import Callable, Iterator, Sequence
+
+SCALE = 1000  # bar units per task
+
+
+def _put(q, task: int, fraction: float) -> None:
+    q.put((task, float(fraction)))
+
+
+@contextlib.contextmanager
+def _bar(label: str, n_tasks: int, quiet: bool) -> Iterator[Callable[[float], None]]:
+    """Yields ``show(units, tasks_finished)``; nothing is drawn when quiet or when there is nothing to do."""
+    if quiet or n_tasks == 0:
+        yield lambda units, finished: None
+        return
+    from rich.console import Console
+    from rich.progress import (BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn,
+                               TimeRemainingColumn)
+
+    bar = Progress(TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
+                   TextColumn("{task.fields[tasks]}"), TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
+                   console=Console(file=sys.stderr), transient=False, refresh_per_second=8)
+    with bar:
+        t = bar.add_task(label, total=n_tasks * SCALE, tasks=f"0/{n_tasks}")
+        yield lambda units, finished: bar.update(t, completed=units, tasks=f"{finished}/{n_tasks}")
+
+
+def run_tasks(fn: Callable, arglists: Sequence[tuple], *, label: str, jobs: int = 1, quiet: bool = False,
+              pool: Callable[[int], contextlib.AbstractContextManager] | None = None, poll_s: float = 0.2) -> list:
+    """Run ``fn(*args, progress=cb)`` for every ``args``; results in the order given.
+
+    Parameters
+    ----------
+    fn : picklable callable taking ``progress`` (called with the fraction 0..1 done).
+    arglists : the positional arguments of each task.
+    jobs : worker processes (1: run here).
+    pool : ``pool(n_workers)`` -> context manager yielding an executor (default ProcessPoolExecutor).
+    """
+    n = len(arglists)
+    frac = [0.0] * n
+    out: list = [None] * n
+    with _bar(label, n, quiet) as show:
+        def note(task: int, f: float) -> None:
+            frac[task] = max(frac[task], min(max(f, 0.0), 1.0))
+            show(sum(frac) * SCALE, sum(x >= 1.0 for x in frac))
+
+        if jobs <= 1 or n <= 1:
+            for i, args in enumerate(arglists):
+                out[i] = fn(*args, progress=partial(note, i))
+                note(i, 1.0)
+            return out
+        import os
+        from multiprocessing.managers import SyncManager
+
+        from .workers import _init_worker
+
+        make_pool = pool or (lambda k: ProcessPoolExecutor(max_workers=k))
+        manager = SyncManager()
+        manager.start(_init_worker, (os.getpid(),))  # the queue's server dies with this process, like the workers
+        with manager, make_pool(min(jobs, n)) as ex:
+            q = manager.Queue()
+            futs = {ex.submit(fn, *args, progress=partial(_put, q, i)): i for i, args in enumerate(arglists)}
+            pending = set(futs)
+            while pending:
+                finished, pending = wait(pending, timeout=poll_s, return_when=FIRST_COMPLETED)
+                with contextlib.suppress(_queue.Empty):
+                    while True:
+                        note(*q.get_nowait())
+                for fut in finished:
+                    out[futs[fut]] = fut.result()
+                    note(futs[fut], 1.0)
+    return out

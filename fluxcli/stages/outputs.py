@@ -1,0 +1,164 @@
+"""Results people can open elsewhere: the flux on the 3-D surface as ``.vtp`` files.
+
+``<workdir>/reconstruction.vtp`` is made from ``reconstruction.h5`` and
+``<workdir>/simulation_truth.vtp`` from ``simulation.h5`` (the artefacts only, so that
+what ParaView shows is what the HDF5 file holds). The stages call :func:`export_3d` once,
+at their end.
+
+With an exposure time (``reconstruct.images.exposure_s`` or ``simulate.noise.exposure_s``
+given in the config) the files also hold rates and the Lambertian radiance in
+photons s⁻¹ cm⁻² sr⁻¹ (see :mod:`fluxcli.surface.units`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .. import artefacts as A
+from .. import config as C
+from ..surface import export as X
+from ..surface.units import UNITS, element_quantities
+
+
+def _given(model, key: str) -> bool:
+    return model is not None and key in model.model_fields_set
+
+
+def simulation_exposure_s(cfg: C.LoadedConfig) -> float | None:
+    """The simulated exposure when the config states it (the schema's default is not a measurement)."""
+    sim = cfg.model.simulate
+    return float(sim.noise.exposure_s) if sim is not None and _given(sim.noise, "exposure_s") else None
+
+
+def reconstruction_exposure_s(cfg: C.LoadedConfig) -> float | None:
+    """The exposure of the images reconstructed: the image files', else the simulation's."""
+    rc = cfg.model.reconstruct
+    if rc.images is not None:  # image files, or a capture (whose exposure_s picks one of its exposures)
+        t = getattr(rc.images, "exposure_s", None)
+        return float(t) if t is not None and _given(rc.images, "exposure_s") else None
+    return simulation_exposure_s(cfg)
+
+
+def _quantities(prefix: str, power, areas, exposure_s, sigma=None) -> tuple[dict, dict]:
+    q = element_quantities(power, areas, exposure_s=exposure_s, sigma_photons=sigma)
+    return {prefix + k: v for k, v in q.items()}, {prefix + k: UNITS[k] for k in q}
+
+
+def reconstruction_vtp(rec_path: Path, out_path: Path, *, exposure_s: float | None) -> Path:
+    """Write the reconstruction (joint over poses when there are several) and, where the
+    artefact holds them, the ground truth and each pose's own reconstruction."""
+    with A.open_artefact(rec_path, "reconstruction") as f:
+        surface = A.read_surface(f["surface"])
+        fl = f["flux"]
+        observed = fl["observed"][()].astype(bool)
+        power = np.where(observed, fl["power"][()], np.nan)
+        sigma = np.where(observed, fl["sigma"][()], np.nan) if "sigma" in fl else None
+        truth = f["truth/power"][()] if "truth" in f and "power" in f["truth"] else None
+        pp = f["per_pose"] if "per_pose" in f else None
+        pose_power = pp["power"][()] if pp is not None and "power" in pp else None
+        pose_obs = pp["observed"][()].astype(bool) if pp is not None and "observed" in pp else None
+        method = str(f.attrs.get("method", ""))
+        joint = bool(fl.attrs.get("joint_over_poses", False))
+    areas = surface.element_areas_mm2
+    arrays, units = _quantities("", power, areas, exposure_s, sigma)
+    if truth is not None:
+        a, u = _quantities("truth_", truth, areas, exposure_s)
+        arrays |= a
+        units |= u
+    if pose_power is not None and pose_obs is not None and len(pose_power) > 1:
+        for k, (pw, ob) in enumerate(zip(pose_power, pose_obs)):
+            arrays[f"pose{k + 1}_power_photons"] = np.where(ob, pw, np.nan)
+            units[f"pose{k + 1}_power_photons"] = f"photons per exposure, pose {k + 1} alone"
+            arrays[f"pose{k + 1}_observed_state"] = ob.astype(np.int8)
+            units[f"pose{k + 1}_observed_state"] = "1 observed, 0 unobserved in this pose, -1 not an element"
+    field = {"method": method, "joint_over_poses": int(joint), "source": rec_path.name,
+             "exposure_s": exposure_s if exposure_s is not None else np.nan}
+    mesh = X.polydata(surface.vertices_mm, surface.faces, surface.element_of_face, arrays, observed=observed,
+                      units=units, field=field)
+    return X.write_vtp(out_path, mesh)
+
+
+def simulation_vtp(sim_path: Path, out_path: Path, *, exposure_s: float | None) -> Path:
+    """Write the simulated ground truth (every element observed by construction), per level."""
+    with A.open_artefact(sim_path, "simulation") as f:
+        surface = A.read_surface(f["surface"])
+        power = f["truth/power"][()]
+        scale = f["truth/level_scale"][()] if "level_scale" in f["truth"] else np.ones(1)
+        kind = str(f["truth"].attrs.get("kind", ""))
+    areas = surface.element_areas_mm2
+    arrays, units = _quantities("", power * scale[0], areas, exposure_s)
+    for li in range(1, len(scale)):
+        arrays[f"level{li}_power_photons"] = power * scale[li]
+        units[f"level{li}_power_photons"] = f"photons per exposure, signal level {li}"
+    field = {"truth_kind": kind, "source": sim_path.name, "level": 0,
+             "exposure_s": exposure_s if exposure_s is not None else np.nan}
+    mesh = X.polydata(surface.vertices_mm, surface.faces, surface.element_of_face, arrays,
+                      observed=np.ones(surface.n_elements, bool), units=units, field=field)
+    return X.write_vtp(out_path, mesh)
+
+
+def export_3d(cfg: C.LoadedConfig, ctx, artefact: Path) -> Path:
+    """The ``.vtp`` beside a reconstruction or simulation artefact (the stages' one-line call)."""
+    artefact = Path(artefact)
+    if artefact.stem == "reconstruction":
+        out = reconstruction_vtp(artefact, artefact.with_suffix(".vtp"), exposure_s=reconstruction_exposure_s(cfg))
+    else:
+        out = simulation_vtp(artefact, artefact.parent / "simulation_truth.vtp", exposure_s=simulation_exposure_s(cfg))
+    ctx.say(f"3-D surface for ParaView/pyvista: {out}")
+    return out
+
+
+# ------------------------------------------------------------------ what the report records
+def rig_of(cfg: C.LoadedConfig):
+    """The camera and mirrors as the report's 3-D view draws them."""
+    from ..report.view3d import Rig
+    from ..scene import camera_from_config, mirror_names, plane_mirrors
+
+    cam = camera_from_config(cfg.model.system.camera)
+    mirrors = []
+    for name, m in zip(mirror_names(cfg.model.system), plane_mirrors(cfg.model.system)):
+        u, v = m.axis_u * m.half_size_mm[0], m.axis_v * m.half_size_mm[1]
+        mirrors.append((name, np.array([m.center_mm - u - v, m.center_mm + u - v, m.center_mm + u + v,
+                                        m.center_mm - u + v])))
+    return Rig(cam.center_mm, cam.axis, -cam.down, cam.aperture_radius_mm, cam.focus_distance_mm,
+               (cam.nx * cam.focal_pixel_mm, cam.ny * cam.focal_pixel_mm), mirrors)
+
+
+def record_of(cfg: C.LoadedConfig, digests: dict[str, str]) -> list[tuple[str, str]]:
+    """(label, value) rows: the settings and files a result was made with, for the report's record."""
+    m = cfg.model
+    cam = m.system.camera
+    lens = cam.lens
+    rows = [("config", f"{cfg.path} (sha256 {cfg.sha256[:16]}…)"),
+            ("camera", f"{cam.pixels[0]} × {cam.pixels[1]} pixels of {cam.pixel_pitch_mm:g} mm (binned); "
+                       f"lens centre {list(cam.pose.lens_center_mm)} mm looking {list(cam.pose.look)}, "
+                       f"up {list(cam.pose.up)}"),
+            ("lens", f"f = {lens.focal_length_mm:g} mm, aperture radius {lens.aperture_radius_mm:.3g} mm"
+                     + (f" (f/{lens.f_number:g})" if lens.f_number else "")
+                     + f", focused {lens.focus_distance_mm:g} mm in front"),
+            ("apertures", ", ".join(f"⌀{a.diameter_mm:g} mm at {a.distance_mm:g} mm" for a in cam.apertures) or "none"),
+            ("sensor", ", ".join(f"{k} {v:g}" for k, v in cam.sensor.model_dump().items())),
+            ("mirrors", "; ".join(f"{mm.name or f'mirror{k}'}: centre {list(mm.center_mm)} mm, normal "
+                                  f"{list(mm.normal)}, {mm.size_mm[0]:g} × {mm.size_mm[1]:g} mm, reflectance "
+                                  f"{mm.reflectance:g}" for k, mm in enumerate(m.system.mirrors)) or "none"),
+            ("poses", f"heights {list((m.subject.poses or C.Poses()).heights_mm)} mm × rotations "
+                      f"{list((m.subject.poses or C.Poses()).rotations_deg)}°")]
+    t = reconstruction_exposure_s(cfg)
+    rows.append(("exposure", f"{t:g} s" if t is not None else "not given (quantities per exposure; no rates)"))
+    rc = m.reconstruct
+    if rc.images is not None and not hasattr(rc.images, "files"):  # a capture artefact
+        rows.append(("images", f"capture {rc.images.capture}, filter {rc.images.filter or '(its only one)'}"))
+    elif rc.images is not None:
+        for k, p in enumerate(rc.images.files):
+            path = cfg.resolve(p)
+            rows.append((f"image, pose {k + 1}", f"{path} (sha256 {A.file_sha256(path)[:16]}…)" if path.is_file()
+                         else f"{path} (missing now)"))
+    elif m.simulate is not None:
+        rows.append(("images", f"simulated: truth '{m.simulate.flux.kind}', noise '{m.simulate.noise.model}' "
+                               f"(seed {m.simulate.noise.seed}); level {rc.level}, "
+                               + ("noiseless" if rc.noiseless else f"repeat {rc.repeat}")))
+    for name, digest in digests.items():
+        rows.append((f"artefact {name}", f"sha256 {digest}"))
+    return rows

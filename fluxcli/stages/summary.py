@@ -1,0 +1,72 @@
+"""``fluxmap summary CONFIG``: the run in a few console lines, from its artefacts.
+
+Examples
+--------
+$ fluxmap summary configs/demo.yaml
+
+Per pose: the photons summed over the direct view's region of the image (the usual ROI
+number), fluxmap's reconstructed total, and the share of the light that pose observes
+(the joint reconstruction's power on the elements the pose sees); then the joint total,
+the spread of each number over the poses, the truth when the images were simulated, and
+where the report and the 3-D files are.  Rates (photons/s) when the exposure is known.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import artefacts as A
+from .. import config as C
+from ..errors import UserError
+from .context import RunContext
+from ..report import spread
+from ..report.notebook import observed_share
+from .outputs import reconstruction_exposure_s
+
+
+def run(cfg: C.LoadedConfig, ctx: RunContext) -> None:
+    rec = cfg.workdir / "reconstruction.h5"
+    if not rec.is_file():
+        raise UserError(f"summary: {rec} does not exist; run 'fluxmap reconstruct {cfg.path}' first.")
+    with A.open_artefact(rec, "reconstruction") as f:
+        pp = f["per_pose"]
+        heights, rots = pp["heights_mm"][()], pp["rotations_deg"][()]
+        roi = pp["direct_roi_photons"][()] if "direct_roi_photons" in pp else None
+        totals = pp["total"][()]
+        pose_obs = pp["observed"][()].astype(bool)
+        power = np.where(f["flux/observed"][()].astype(bool), f["flux/power"][()], np.nan)
+        joint = bool(f["flux"].attrs.get("joint_over_poses", False))
+        truth = f["truth/power"][()] if "truth" in f else None
+        error = float(f["truth"].attrs["error"]) if truth is not None and "error" in f["truth"].attrs else None
+    t = reconstruction_exposure_s(cfg)
+    rate, unit = (1.0 / t, "photons/s") if t is not None else (1.0, "photons per exposure")
+    share = observed_share(pose_obs, truth if truth is not None else power)
+    share_name = "share of the true light observed" if truth is not None else "share of the light observed"
+    rows = []
+    for k in range(len(heights)):
+        rows.append([k + 1, f"{heights[k]:g}", f"{rots[k]:g}", f"{roi[k]:.4g}" if roi is not None else "-",
+                     f"{totals[k] * rate:.4g}", f"{share[k]:.0%}"])
+    joint_total = float(np.nansum(power))
+    if joint and len(heights) > 1:
+        rows.append(["joint", "", "", "", f"{joint_total * rate:.4g}", f"{np.isfinite(power).mean():.0%} of elements"])
+    when = f", exposure {t:g} s" if t is not None else " (no exposure time given: totals per exposure)"
+    ctx.say(f"summary of {rec}{when}")
+    ctx.table(["pose", "height_mm", "rotation_deg", "direct ROI sum (photons)", f"fluxmap total ({unit})", share_name],
+              rows)
+    if len(heights) > 1:
+        parts = [f"fluxmap total {spread(totals):.1%}"]
+        if roi is not None:
+            parts.insert(0, f"direct ROI sum {spread(roi):.0%} (from {roi.min():.3g} to {roi.max():.3g} photons)")
+        ctx.say("spread over the poses, (max - min) / mean: " + "; ".join(parts))
+        if roi is not None:
+            ctx.say(f"turning and raising the subject changed the direct ROI sum {roi.max() / roi.min():.1f}-fold; "
+                    f"fluxmap's total moved {spread(totals):.1%}.")
+    if truth is not None:
+        ctx.say(f"ground truth {truth.sum() * rate:.4g} {unit}: the joint reconstruction finds "
+                f"{joint_total / truth.sum():.3f} of it" + (f", error sum|b' - b| / sum b = {error:.1%}" if error is not None else ""))
+    report = cfg.workdir / "report" / "index.html"
+    vtp = cfg.workdir / "reconstruction.vtp"
+    if vtp.is_file():
+        ctx.say(f"3-D flux map for ParaView or pyvista: {vtp}")
+    ctx.say(f"report: {report}" if report.is_file() else f"report: run 'fluxmap report {cfg.path}'")
+    return None  # the lines above end with where to look
