@@ -19,6 +19,7 @@ import scipy.optimize as sopt
 import scipy.sparse as sp
 
 from fluxcli.inverse import _common as c
+from fluxcli.inverse.spectral import Spectrum
 
 __all__ = ["LAMBDA_RULES", "LambdaChoice", "choose_lambda", "uncertainty"]
 
@@ -68,35 +69,6 @@ class LambdaChoice:
     n_data: int
     weighted: bool
     at_edge: bool
-
-
-class _Spectrum:
-    """Tikhonov residual, solution norm and trace for any λ̃ from one eigendecomposition."""
-
-    def __init__(self, T_cov, a_cov, weights):
-        G, g = c.normal_equations(T_cov, a_cov, weights)
-        self.scale = c.lam_scale(G)
-        ev, V = sla.eigh(G, check_finite=False)
-        self.ev = np.clip(ev, 0.0, None)
-        beta = V.T @ g
-        self.beta2 = beta**2
-        self.pos = self.ev > self.ev.max() * G.shape[0] * np.finfo(float).eps
-        # The least-squares residual is computed explicitly, and each λ adds a positive
-        # term to it: ‖r_λ‖² = ‖r_LS‖² + Σ β²λ̃²/(w(w+λ̃)²). Subtracting from aᵀWa instead
-        # would cancel catastrophically when the fit is good.
-        b_ls = V[:, self.pos] @ (beta[self.pos] / self.ev[self.pos])
-        r_ls = a_cov - T_cov @ b_ls
-        self.rho_ls = float(np.sum(r_ls**2 if weights is None else weights * r_ls**2))
-
-    def curves(self, lam_abs):
-        L = np.atleast_1d(np.asarray(lam_abs, dtype=np.float64))[:, None]
-        ev, b2, pos = self.ev[None, :], self.beta2[None, :], self.pos
-        extra = np.sum((b2 * L**2 / (ev * (ev + L) ** 2))[:, pos], axis=1)
-        null = np.sum((b2 * (ev + 2 * L) / (ev + L) ** 2)[:, ~pos], axis=1)
-        rho = np.maximum(self.rho_ls + extra - null, 0.0)
-        eta = np.sum(b2 / (ev + L) ** 2, axis=1)
-        trace = np.sum(ev / (ev + L), axis=1)
-        return rho, eta, trace
 
 
 def choose_lambda(T, a, *, method: str = "gcv", sigma2=None, lambdas=None,
@@ -172,7 +144,7 @@ def choose_lambda(T, a, *, method: str = "gcv", sigma2=None, lambdas=None,
     T_cov, a_cov = sp.csr_array(T_obs[cov]), a[cov]
     weights = 1.0 / sigma2[cov] if weighted else None
     m = int(cov.sum())
-    spec = _Spectrum(T_cov, a_cov, weights)
+    spec = Spectrum(T_cov, a_cov, weights)  # the one spectral-filter engine (k = 1: Tikhonov)
     rho, eta, trace = spec.curves(lambdas * spec.scale)
     target = np.nan
 
