@@ -27,6 +27,16 @@ CHI2_RANGE = (0.5, 2.0)
 TOTAL_JUMP = 0.05
 
 
+def chi2_per_pixel(a, fitted, var) -> float:
+    """``Σ (a − T b̂)² / σ²(T b̂)`` per pixel, over pixels whose model holds ≥ 1 photon
+    (below that the noise is far from Gaussian and a variance floor makes χ² meaningless);
+    NaN when there are none."""
+    use = fitted >= 1.0
+    if not use.any():
+        return float("nan")
+    return float(np.mean((a[use] - fitted[use]) ** 2 / var[use]))
+
+
 @dataclass
 class Filtered:
     """Outcome of :func:`filtered_solve` on the observed elements (all arrays (n_obs,))."""
@@ -46,7 +56,7 @@ class Filtered:
 
 def filtered_solve(T_obs, a, *, prior=None, k: int = 10, tol: float | None = None, lam: float | None = None,
                    rule: str = "gcv", gamma: float = 1.0, tau: float = 1.0, lambdas=None, variance=None,
-                   sigma2=None, weighted: bool = True, passes: int = 3) -> Filtered:
+                   sigma2=None, weighted: bool = True, passes: int = 2, free_level: bool = False) -> Filtered:
     """Solve ``min ‖W^½(a − Tb)‖² + λ̃ bᵀRb, b ≥ 0`` by ``k`` iterated clipped solves.
 
     Parameters
@@ -63,6 +73,8 @@ def filtered_solve(T_obs, a, *, prior=None, k: int = 10, tol: float | None = Non
     sigma2 : (m,) photons², a fixed noise variance (when there is no ``variance``).
     weighted : bool, weight the fit by ``1/σ²`` (needs ``variance`` or ``sigma2``).
     passes : int, reweighting passes when ``variance`` is given (the first is unweighted).
+    free_level : bool, leave the overall level to the data (one unpenalised scale factor
+        fitted last), so the prior cannot shrink the total.
 
     Returns
     -------
@@ -108,11 +120,24 @@ def filtered_solve(T_obs, a, *, prior=None, k: int = 10, tol: float | None = Non
         warn += choice.warnings
     lam_abs = lam_p * spec.scale
     fitted = T_obs @ b
+    level = 1.0
+    if free_level and fitted.any():
+        # Any quadratic penalty shrinks the overall level (b → cb lowers bᵀRb by c²), so
+        # the level is left to the data: the c minimising ‖W^½(a − c T b)‖² (with Poisson
+        # model weights, Σa / ΣTb: MLEM's count conservation). The prior shapes; the data
+        # set the total.
+        w = np.ones(m) if (weights is None and var_model is None) else (
+            1.0 / var_model if var_model is not None else weights)
+        level = float((fitted * w) @ a / ((fitted * w) @ fitted))
+        if level > 0:
+            b, fitted = b * level, fitted * level
+            if var_model is not None and variance is not None:
+                var_model = variance(fitted)
     chi2 = np.nan
     if var_model is not None:
-        chi2 = float(np.sum((a - fitted) ** 2 / var_model) / max(m, 1))
+        chi2 = chi2_per_pixel(a, fitted, var_model)
         lo, hi = CHI2_RANGE
-        if not lo <= chi2 <= hi:
+        if np.isfinite(chi2) and not lo <= chi2 <= hi:
             warn.append(f"chi^2 per pixel is {chi2:.3g} (expected about 1 under the noise model): "
                         + ("the model does not explain the data to the noise (model error, a wrong noise model, "
                            "or too much regularisation)" if chi2 > hi else
@@ -124,7 +149,15 @@ def filtered_solve(T_obs, a, *, prior=None, k: int = 10, tol: float | None = Non
         sigma = spec.sigma(lam_abs, it, sigma2=var_model)
     totals = (np.nan, np.nan)
     if lam is None and b.sum() > 0:
-        totals = tuple(float(S.iterated_clipped(spec, f * lam_abs, k, tol=tol)[0].sum()) for f in (0.5, 2.0))
+        def total_at(lam_x):
+            bx = S.iterated_clipped(spec, lam_x, k, tol=tol)[0]
+            if not free_level:
+                return float(bx.sum())
+            fx = T_obs @ bx
+            w = 1.0 / var_model if var_model is not None else np.ones(m)
+            return float(bx.sum() * ((fx * w) @ a) / max((fx * w) @ fx, 1e-300))
+
+        totals = tuple(total_at(f * lam_abs) for f in (0.5, 2.0))
         jump = max(abs(t / b.sum() - 1) for t in totals)
         if jump > TOTAL_JUMP:
             warn.append(f"the total changes by {jump:.0%} when lambda is halved or doubled "

@@ -652,13 +652,13 @@ def _run_backprojection(P, lam, rule, opts):
     return {"power": _backprojection(P.T_obs, P.a)[0], "no_sigma": True}
 
 
-def _filtered(P, *, prior, k, tol, lam, rule, opts, weighted):
+def _filtered(P, *, prior, k, tol, lam, rule, opts, weighted, free_level=False):
     from fluxcli.inverse.filtered import filtered_solve
 
     s2 = None if P.sigma2 is None else P.sigma2[P.rows]
     out = filtered_solve(P.T_cov, P.a[P.rows], prior=prior, k=k, tol=tol, lam=lam, rule=rule or "gcv",
                          gamma=opts.get("gamma", 1.0), tau=opts.get("tau", 1.0), lambdas=opts.get("lambdas"),
-                         variance=P.variance, sigma2=s2, weighted=weighted)
+                         variance=P.variance, sigma2=s2, weighted=weighted, free_level=free_level)
     return {"power": out.power, "sigma": out.sigma, "lam": out.lam, "lam_absolute": out.lam_absolute,
             "iterations": out.iterations, "converged": out.converged, "choice": out.choice,
             "chi2": out.chi2_per_pixel, "warnings": out.warnings}
@@ -682,7 +682,7 @@ def _run_smooth(P, lam, rule, opts):
     opts = {"gamma": 1.4} | opts
     R = exitance_prior(P.adjacency, P.mask, P.areas)
     return _filtered(P, prior=R, k=c.check_positive_int(opts.get("n_iter", 10), "n_iter"), tol=None, lam=lam,
-                     rule=rule, opts=opts, weighted=True)
+                     rule=rule, opts=opts, weighted=True, free_level=True)
 
 
 def _lam_from_rule(P, lam, rule, opts, weighted):
@@ -852,7 +852,9 @@ def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | 
     warnings = list(out.get("warnings", []))
     rows = P.rows
     if var is not None and not np.isfinite(chi2):
-        chi2 = float(np.sum((a - fitted)[rows] ** 2 / var[rows]) / max(int(rows.sum()), 1))
+        from fluxcli.inverse.filtered import chi2_per_pixel
+
+        chi2 = chi2_per_pixel(a[rows], fitted[rows], var[rows])
     lam_used = out.get("lam", 0.0)
     if "sigma" in out:
         sigma = c.scatter(out["sigma"], mask)

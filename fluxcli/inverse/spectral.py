@@ -81,20 +81,18 @@ class Spectrum:
 
     def curves(self, lam_abs, k: int = 1):
         """Residual ‖W^½r‖², solution norm ‖b‖² and Σf for each λ̃ in ``lam_abs``."""
-        lam_abs = np.atleast_1d(np.asarray(lam_abs, dtype=np.float64))
-        rho, eta, dof = (np.empty(lam_abs.size) for _ in range(3))
-        c2 = self.coef**2
-        for i, lam in enumerate(lam_abs):
-            f, fos = self.factors(lam, k)
-            p = self.pos
+        lam = np.maximum(np.atleast_1d(np.asarray(lam_abs, dtype=np.float64)), 1e-300)[:, None]
+        s, p, c2 = self.s[None, :], self.pos[None, :], self.coef[None, :] ** 2
+        f = -np.expm1(k * np.log(lam / (s + lam)))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            fos = np.where(p, f / np.where(p, s, 1.0), k / lam)
             # filtered-out part of the LS fit comes back as residual; modes the LS
             # solution dropped (s ≈ 0) can only lower it, by the tiny (2 − f) f c²/s
-            rho[i] = (self.rho_ls + np.sum((1 - f[p]) ** 2 * c2[p] / self.s[p])
-                      - np.sum(((2 - f) * fos * c2)[~p]))
-            b = self.V @ (fos * self.coef)
-            eta[i] = float(b @ b)
-            dof[i] = float(f.sum())
-        return np.maximum(rho, 0.0), eta, dof
+            back = np.where(p, (1 - f) ** 2 * c2 / np.where(p, s, 1.0), -(2 - f) * fos * c2)
+        rho = self.rho_ls + back.sum(axis=1)
+        B = self.V @ (fos * self.coef[None, :]).T  # (n_obs, n_lambdas)
+        eta = np.sum(B * B, axis=0)
+        return np.maximum(rho, 0.0), eta, f.sum(axis=1)
 
     def solution(self, lam_abs: float, k: int = 1) -> np.ndarray:
         """The unclipped filtered estimate b_λ (n_obs,) in photons."""
@@ -157,7 +155,7 @@ def choose(spec: Spectrum, rule: str = "gcv", *, k: int = 1, lambdas=None, gamma
         ``E‖W^½ε‖²``: ``m`` when ``W = 1/σ²``, ``Σσ²`` when ``W = I``; required for
         the discrepancy rule.
     widen : int
-        How many times a pick on the edge of the grid widens it by 3 decades on that side.
+        How many times a pick on the edge of the grid widens it by 3 decades on each side.
 
     Returns
     -------
@@ -178,10 +176,10 @@ def choose(spec: Spectrum, rule: str = "gcv", *, k: int = 1, lambdas=None, gamma
             break
         lo, hi = np.log10(grid[0]), np.log10(grid[-1])
         n_extra = max(int(round(3 / step)), 3)
-        if out.lam <= grid[0]:
-            grid = np.concatenate([np.logspace(lo - 3, lo, n_extra + 1)[:-1], grid])
-        else:
-            grid = np.concatenate([grid, np.logspace(hi, hi + 3, n_extra + 1)[1:]])
+        # both sides: a criterion that is flat over a range far from the optimum picks
+        # an arbitrary end
+        grid = np.concatenate([np.logspace(lo - 3, lo, n_extra + 1)[:-1], grid,
+                               np.logspace(hi, hi + 3, n_extra + 1)[1:]])
         widened += 1
     out.widened = widened
     if out.at_edge:
