@@ -5,8 +5,10 @@ Exit codes: 0 success, 2 bad input (config, files, arguments), 130 interrupted.
 
 from __future__ import annotations
 
+import signal
 import sys
 import textwrap
+import traceback
 from pathlib import Path
 from typing import Callable, List, Optional
 
@@ -49,23 +51,81 @@ def _fail(message: str) -> None:
     raise typer.Exit(2)
 
 
-def _run(stage: Callable, config: Path, overrides: Optional[List[str]], force: bool, jobs: int, quiet: bool) -> None:
-    from .config import load_config
-    from .stages.context import RunContext
+class Terminated(BaseException):
+    """SIGTERM: unwind like Ctrl-C (temporary files removed, workers killed), exit 143."""
 
+
+def _on_sigint(signum, frame):
+    sys.stderr.write("\nfluxmap: Ctrl-C: stopping (partial files are discarded) ...\n")
+    sys.stderr.flush()
+    raise KeyboardInterrupt
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated
+
+
+def _signals():
+    """Install the Ctrl-C / SIGTERM handlers (main thread only); returns what to restore."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGINT, _on_sigint), signal.signal(signal.SIGTERM, _on_sigterm)
+
+
+def _guard(body: Callable[[], None]) -> None:
+    """Run a command body and map what it raises to exit codes: 2 bad input (one
+    paragraph, no traceback), 130 Ctrl-C, 143 SIGTERM, 1 a bug (traceback + a request to report it)."""
+    old = _signals()
     try:
+        body()
+    except UserError as e:
+        _fail(str(e))
+    except ValueError as e:  # the science packages' word for "these numbers cannot be used"
+        _fail(f"invalid input: {e}")
+    except MemoryError:
+        _fail("out of memory: the problem is larger than this machine can hold; use fewer pixels "
+              "(system.camera.pixels), fewer elements (subject.surface) or fewer poses (subject.poses).")
+    except OSError as e:
+        if getattr(e, "filename", None) is None:
+            _bug()
+        _fail(f"cannot use {e.filename}: {e.strerror or e} (check the path, its permissions and the free space).")
+    except KeyboardInterrupt:
+        typer.echo("fluxmap: interrupted; artefacts already written are complete, partial ones were discarded.", err=True)
+        raise typer.Exit(130)
+    except Terminated:
+        typer.echo("fluxmap: terminated; partial files were discarded.", err=True)
+        raise typer.Exit(143)
+    except (typer.Exit, SystemExit):
+        raise
+    except Exception:
+        _bug()
+    finally:
+        if old is not None:
+            signal.signal(signal.SIGINT, old[0])
+            signal.signal(signal.SIGTERM, old[1])
+
+
+def _bug() -> None:
+    traceback.print_exc()
+    typer.echo(f"fluxmap {__version__}: internal error (a bug, not your input). Please report it with the "
+               "command line, the config and the traceback above.", err=True)
+    raise typer.Exit(1)
+
+
+def _run(stage: Callable, config: Path, overrides: Optional[List[str]], force: bool, jobs: int, quiet: bool) -> None:
+    def body() -> None:
+        from .config import load_config
+        from .stages.context import RunContext
+
         cfg = load_config(config, overrides or [])
         ctx = RunContext(force=force, jobs=jobs, quiet=quiet, overrides=tuple(overrides or ()))
         out = stage(cfg, ctx)
         if not quiet and out is not None:
             typer.echo(f"output: {out}")
-    except UserError as e:
-        _fail(str(e))
-    except ValueError as e:  # the science packages' word for "these numbers cannot be used"
-        _fail(f"invalid input: {e}")
-    except KeyboardInterrupt:
-        typer.echo("fluxmap: interrupted; artefacts already written are complete, partial ones were discarded.", err=True)
-        raise typer.Exit(130)
+
+    _guard(body)
 
 
 def _not_built(name: str, issue: str) -> Callable:
@@ -135,6 +195,18 @@ def capture_surface(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt
                     jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
     """Drive the rig (or its simulator) and capture the surface and images."""
     _run(_not_built("capture-surface", "no issue yet"), config, set_, force, jobs, quiet)
+
+
+@app.command("info")
+def info(artefact: Path = typer.Argument(..., help="An HDF5 artefact (transfer.h5, simulation.h5, a T-cache file, ...).",
+                                         show_default=False)) -> None:
+    """Print what an artefact holds and how it was made (config, geometry, input files).
+
+    $ fluxmap info runs/demo/simulation.h5
+    """
+    from .artefacts.info import describe
+
+    _guard(lambda: typer.echo(describe(artefact)))
 
 
 def main() -> None:

@@ -27,8 +27,6 @@ from __future__ import annotations
 import base64
 import binascii
 import json
-import os
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -167,15 +165,12 @@ def write_image(
     else:
         spec.attribute("ImageDescription", record)
 
-    # Same directory so that os.replace is an atomic rename; same suffix so OIIO
-    # picks the format.
-    tmp = path.with_name(f".{path.stem}.{uuid.uuid4().hex}.tmp{path.suffix}")
-    try:
+    # The one atomic writer: a temporary name in the same folder with the same suffix
+    # (so OIIO picks the format), fsync, rename.
+    from ..artefacts.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
         _write_pixels(tmp, np.ascontiguousarray(pixels[:, :, np.newaxis]), spec)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def _decode_record(text) -> dict | None:

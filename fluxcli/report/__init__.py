@@ -12,8 +12,6 @@ values, and shows the notes that :func:`make_report` returns.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -82,6 +80,7 @@ class Study:
     snr: np.ndarray | None = None  # (L, P) max SNR per level and pose
     levels_peak_photons: np.ndarray | None = None  # (L,)
     transfer: list[PoseTransfer] | None = None
+    geometry: "Geometry | None" = None  # from /geometry of the reconstruction
     notes: list[str] = field(default_factory=list)
 
     @property
@@ -158,6 +157,15 @@ def load(reconstruction: Path, *, t_cache_dir: Path | None = None, simulation: P
                              s["max_snr"][()], s["levels_peak_photons"][()])
             st.snr, st.levels_peak_photons = st.sweep.max_snr, st.sweep.levels_peak_photons
         keys = json.loads(json.loads(f.attrs.get("inputs", "{}")).get("T", "[]"))
+        t_files = []
+        if "geometry" in f:
+            g = f["geometry"].attrs
+            st.geometry = Geometry(axis_point_mm=tuple(float(x) for x in g["axis_point_mm"]),
+                                   axis_direction=tuple(float(x) for x in g["axis_direction"]),
+                                   look=tuple(float(x) for x in g["camera_look"]),
+                                   up=tuple(float(x) for x in g["camera_up"]),
+                                   view_names=tuple(json.loads(g["view_names"])))
+            t_files = [Path(p) for p in json.loads(g.get("T_files", "[]"))]
     if st.snr is None and st.truth_power is not None and simulation is not None and Path(simulation).is_file():
         with A.open_artefact(simulation, "simulation") as f:
             snr = f["images/max_snr"][()]
@@ -165,6 +173,8 @@ def load(reconstruction: Path, *, t_cache_dir: Path | None = None, simulation: P
                 st.snr, st.levels_peak_photons = snr, f["truth/levels_peak_photons"][()]
     if t_cache_dir is not None:
         st.transfer = _load_transfer(st, [Path(t_cache_dir) / f"{k}.h5" for k in keys])
+    elif t_files:
+        st.transfer = _load_transfer(st, t_files)
     _fill_gaps(st)
     return st
 
@@ -561,13 +571,5 @@ def _totals(st: Study) -> dict[str, np.ndarray]:
 
 
 def _write_text(path: Path, text: str) -> None:
-    """Atomic: the file appears complete or not at all."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.chmod(tmp, 0o644)  # mkstemp makes it private; a report is for reading
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    """Atomic: the file appears complete or not at all (the one atomic writer)."""
+    A.write_text(path, text)

@@ -45,8 +45,12 @@ class RenderError(RuntimeError):
 
 
 def save(fig: Figure, path: Path, dpi: int = 100) -> None:
+    from ..artefacts.atomic import atomic_path
+
     FigureCanvasAgg(fig)
-    fig.savefig(path, dpi=dpi, facecolor="white", bbox_inches="tight", pad_inches=0.08)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format=Path(path).suffix.lstrip(".") or "png", dpi=dpi, facecolor="white",
+                    bbox_inches="tight", pad_inches=0.08)
 
 
 def scaled(axis, vmax: float, quantity: str, unit: str) -> str:

@@ -18,12 +18,20 @@ class RunContext:
     jobs: int = 1
     quiet: bool = False
     overrides: tuple[str, ...] = ()
+    warned: set = field(default_factory=set)  # shared by copies (dataclasses.replace), so a warning shows once
     console: Console = field(default_factory=lambda: Console(highlight=False, soft_wrap=True,
                                                               width=None if sys.stdout.isatty() else 160))
 
     def say(self, text: str) -> None:
         if not self.quiet:
             self.console.print(text, markup=False)
+
+    def warn(self, text: str) -> None:
+        """A warning: printed on stderr even with --quiet, once per run."""
+        if text in self.warned:
+            return
+        self.warned.add(text)
+        print(f"fluxmap: warning: {text}", file=sys.stderr, flush=True)
 
     @contextlib.contextmanager
     def progress(self, label: str, total: int) -> Iterator[Callable[[], None]]:

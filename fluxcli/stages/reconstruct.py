@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -28,8 +27,10 @@ from .. import config as C
 from ..errors import UserError
 from ..imaging import noise as N
 from ..imaging.imagefiles import read_image
+from ..artefacts.transfer import load_T, load_view
 from ..inverse import backprojection, error_l1, reconstruct as solve, total_ratio
-from .build_t import ensure_T, load_T
+from ..pipeline import emccd_model, ensure_T, geometry_of, plan, provenance
+from ..workers import worker_pool
 from .context import RunContext
 
 
@@ -40,6 +41,7 @@ class Inputs:
     truth: np.ndarray | None  # (n_elements,) photons, or None
     source: str
     snr: np.ndarray | None = None  # (P,)
+    files: dict[str, Path] | None = None  # name -> input file (image files or simulation.h5), for provenance
 
 
 def _simulation(cfg: C.LoadedConfig) -> Path:
@@ -50,7 +52,7 @@ def _simulation(cfg: C.LoadedConfig) -> Path:
     return path
 
 
-def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int) -> Inputs:
+def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int, surface_sha256: str | None = None) -> Inputs:
     rc = cfg.model.reconstruct
     nx, ny = cfg.model.system.camera.pixels
     if rc.images is not None:
@@ -59,8 +61,6 @@ def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int) -> Inputs:
         imgs, valid = [], []
         model = None
         if rc.images.units == "counts":
-            from .simulate import emccd_model
-
             model = emccd_model(cfg.model.system.camera.sensor, rc.images.exposure_s)
         for p in rc.images.files:
             try:
@@ -76,9 +76,12 @@ def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int) -> Inputs:
                 img = N.counts_to_photons(np.where(ok, img, 0), model)
             imgs.append(img)
             valid.append(ok)
-        return Inputs(np.array(imgs), np.array(valid), None, "files")
+        files = {f"image pose {k}": cfg.resolve(p) for k, p in enumerate(rc.images.files)}
+        return Inputs(np.array(imgs), np.array(valid), None, "files", files=files)
     path = _simulation(cfg)
     with A.open_artefact(path, "simulation") as f:
+        A.check_geometry(path, A.read_provenance(f), geometry_of(cfg, surface_sha256),
+                         remedy=f"Run 'fluxmap simulate {cfg.path}' again, or reconstruct with the config it was made with")
         power = f["truth/power"][()]
         if len(power) != n_elements:
             raise UserError(f"reconstruct: {path} was simulated on {len(power)} elements; the subject now has "
@@ -93,19 +96,17 @@ def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int) -> Inputs:
         imgs = (f["images/noiseless"][rc.level] if rc.noiseless else noisy[rc.level, rc.repeat]).astype(float)
         valid = np.isfinite(imgs)
         if "counts" in f["images"] and not rc.noiseless:
-            from .simulate import emccd_model
-
             model = emccd_model(cfg.model.system.camera.sensor, float(f["images"].attrs["exposure_s"]))
             valid &= ~N.saturated(f["images/counts"][rc.level, rc.repeat], model)
         truth = power * f["truth/level_scale"][rc.level]
         snr = f["images/max_snr"][rc.level]
-    return Inputs(imgs, valid, truth, f"{path} level {rc.level} " + ("noiseless" if rc.noiseless else f"repeat {rc.repeat}"), snr)
+    return Inputs(imgs, valid, truth, f"{path} level {rc.level} " + ("noiseless" if rc.noiseless else f"repeat {rc.repeat}"),
+                  snr, files={"simulation.h5": path})
 
 
 def direct_roi(T_path: Path, image: np.ndarray) -> float:
     """The older quantification: photons summed over the region the direct view covers."""
-    with A.open_artefact(T_path, "transfer") as f:
-        direct = A.read_csr(f["views"]["0"])
+    direct = load_view(T_path, 0)
     rows = np.diff(direct.indptr) > 0
     return float(np.nansum(image.ravel()[rows]))
 
@@ -203,10 +204,11 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     if not ctx.force and A.is_up_to_date(out, "reconstruction", digest):
         ctx.say(f"reconstruct: {out} is up to date (--force to redo)")
         return out
-    views, placer, todo, _ = ensure_T(cfg, replace(ctx, force=False), label="building T")
+    _, placer, todo = plan(cfg)
     surface = placer.surface
+    inp = load_inputs(cfg, len(todo), surface.n_elements, surface.digest())  # checked before any T is built
+    views, placer, todo, _ = ensure_T(cfg, replace(ctx, force=False), label="building T")
     P = len(todo)
-    inp = load_inputs(cfg, P, surface.n_elements)
     nx, ny = cfg.model.system.camera.pixels
     m = rc.settings()
     grids = {u: make_grid(cfg, ctx, surface, u)
@@ -231,10 +233,15 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     main = joint if joint is not None else per_pose[0][0]
     areas = surface.element_areas_mm2
     rows = []
+    prov = provenance(cfg, surface.digest())
+    for name, path in (inp.files or {}).items():
+        prov.add_file(name, path)
     with A.write_artefact(out, "reconstruction", config_sha256=cfg.sha256,
-                          inputs={"T": json.dumps([pt.key for _, pt in todo]), "images": inp.source}) as f:
+                          inputs={"T": json.dumps([pt.key for _, pt in todo]), "images": inp.source},
+                          provenance=prov) as f:
         f.attrs["inputs_digest"] = digest
         A.write_surface(f.create_group("surface"), surface)
+        _write_geometry(f.create_group("geometry"), cfg, placer, views, todo)
         g = f.create_group("flux")
         _write_flux(g, main, areas)
         g.attrs["joint_over_poses"] = joint is not None
@@ -246,8 +253,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         pp.create_dataset("lambda", data=[r.lam for r, _ in per_pose])
         pp.create_dataset("vertices_mm", data=np.array([sc.surface.vertices_mm for sc, _ in todo]),
                           compression="gzip").attrs["meaning"] = "the surface placed at each pose (faces as /surface/faces)"
-        pp.create_dataset("backprojection_total", data=[np.nansum(backprojection(Ts[k], inp.images[k].ravel()))
-                                                        for k in range(P)]).attrs["unit"] = "photons (T'a summed)"
+        pp.create_dataset("backprojection_total", data=[np.nansum(backprojection(Ts[k], np.where(
+            inp.valid[k], inp.images[k], 0.0).ravel())) for k in range(P)]).attrs["unit"] = "photons (T'a summed)"
         pp.create_dataset("direct_roi_photons", data=[direct_roi(todo[k][1].path, inp.images[k]) for k in range(P)]
                           ).attrs["meaning"] = "measured photons summed over the pixels the direct view reaches"
         pp.create_dataset("heights_mm", data=[pt.pose.height_mm for _, pt in todo])
@@ -294,6 +301,19 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     ctx.table(header, rows)
     ctx.say(f"{seconds:.2f} s of solving")
     return out
+
+
+def _write_geometry(g, cfg: C.LoadedConfig, placer, views, todo) -> None:
+    """What the report draws besides the flux, so that it reads artefacts only."""
+    cam = cfg.model.system.camera
+    g.attrs["axis_point_mm"] = np.asarray(placer.axis_point, float)
+    g.attrs["axis_direction"] = np.asarray(placer.axis, float)
+    g.attrs["camera_look"] = np.asarray(cam.pose.look, float)
+    g.attrs["camera_up"] = np.asarray(cam.pose.up, float)
+    g.attrs["view_names"] = json.dumps([v.name for v in views])
+    g.attrs["T_files"] = json.dumps([str(pt.path) for _, pt in todo])
+    files = cfg.model.reconstruct.images.files if cfg.model.reconstruct.images is not None else None
+    g.attrs["image_files"] = json.dumps([str(cfg.resolve(p)) for p in files] if files else [])
 
 
 def _write_flux(g, res, areas) -> None:
@@ -348,7 +368,7 @@ def _sweep(cfg: C.LoadedConfig, ctx: RunContext, g, grids: dict, todo) -> None:
             for li, k in cells]
     with ctx.progress("sweep", total=len(cells)) as advance:
         if ctx.jobs > 1:
-            with ProcessPoolExecutor(max_workers=ctx.jobs) as ex:
+            with worker_pool(ctx.jobs) as ex:
                 for (li, k), e in zip(cells, ex.map(_sweep_cell, *zip(*args))):
                     err[:, li, k] = e
                     advance()

@@ -22,8 +22,8 @@ from .. import artefacts as A
 from .. import config as C
 from .. import report as R
 from ..errors import UserError
-from ..scene import SubjectPlacer, views_from_config
-from .build_t import cache_dir
+from ..pipeline import geometry_of
+from ..scene import SubjectPlacer
 from .context import RunContext
 
 
@@ -44,15 +44,11 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         ctx.say(f"report: up to date ({index}); --force redraws it")
         return index
 
-    placer = SubjectPlacer(cfg)
-    cam = cfg.model.system.camera
-    geometry = R.Geometry(axis_point_mm=tuple(placer.axis_point), axis_direction=tuple(placer.axis),
-                          look=tuple(cam.pose.look), up=tuple(cam.pose.up),
-                          view_names=tuple(v.name for v in views_from_config(cfg.model.system)))
-    study = R.load(rec, t_cache_dir=cache_dir(cfg), simulation=sim if sim.is_file() else None)
-    if study.surface.n_elements != placer.surface.n_elements:
-        raise UserError(f"report: {rec} has {study.surface.n_elements} elements; the config's subject has "
-                        f"{placer.surface.n_elements}. Run 'fluxmap reconstruct {cfg.path}' again.")
+    with A.open_artefact(rec, "reconstruction") as f:  # the result must be the one this config describes
+        A.check_geometry(rec, A.read_provenance(f), geometry_of(cfg, SubjectPlacer(cfg).surface.digest()),
+                         remedy=f"Run 'fluxmap reconstruct {cfg.path}' again")
+    study = R.load(rec, simulation=sim if sim.is_file() else None)
+    geometry = study.geometry
     _remove_old_figures(out_dir)
     ctx.say(f"report: {study.n_poses} pose(s), {study.surface.n_elements} elements, method {study.method}")
     index, summary = R.make_report(study, out_dir, title=rs.title or cfg.path.stem, geometry=geometry,

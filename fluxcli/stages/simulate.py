@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import time
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -29,7 +30,8 @@ from ..optics.raycast import OcclusionScene
 from ..scene import SubjectPlacer
 from ..surface.mesh import Surface
 from ..optics.transfer import ALGORITHM_VERSION
-from .build_t import cache_dir, ensure_T, load_T, plan
+from ..artefacts.transfer import load_T
+from ..pipeline import cache_dir, emccd_model, ensure_T, plan, provenance
 from .context import RunContext
 
 
@@ -117,8 +119,12 @@ def _diffusion_truth(flux: C.DiffusionFlux, surface: Surface, mesh_cache: Path) 
     path = mesh_cache / f"{key}.h5"
     mesh = None
     if path.is_file():
-        with A.open_artefact(path, "tetmesh") as f:
-            mesh = (f["nodes"][()], f["tets"][()])
+        try:
+            with A.open_artefact(path, "tetmesh") as f:
+                mesh = (f["nodes"][()], f["tets"][()])
+        except UserError as e:
+            warnings.warn(f"the cached tetrahedral mesh is unreadable and is remade: {e}")
+            mesh = None
     try:
         power, info = element_power_from_sources(
             surface, mua_per_mm=opt.mua_per_mm, musp_per_mm=opt.musp_per_mm, refractive_index=opt.refractive_index,
@@ -130,8 +136,8 @@ def _diffusion_truth(flux: C.DiffusionFlux, surface: Surface, mesh_cache: Path) 
     nodes, tets = info.pop("nodes_mm"), info.pop("tets")
     if mesh is None:
         with A.write_artefact(path, "tetmesh") as f:
-            f.create_dataset("nodes", data=nodes).attrs["unit"] = "mm"
-            f.create_dataset("tets", data=tets)
+            A.put(f, "nodes", nodes)
+            A.put(f, "tets", tets)
     info["source_positions_mm"] = pos.tolist()
     info["mesh_cached"] = mesh is not None
     return power, info
@@ -154,10 +160,6 @@ def add_noise(a: np.ndarray, noise: C.Noise, sensor: C.Sensor, rng: np.random.Ge
     model = emccd_model(sensor, noise.exposure_s)
     counts = N.emccd_counts(a, model, rng)
     return N.counts_to_photons(counts, model), counts
-
-
-def emccd_model(sensor: C.Sensor, exposure_s: float) -> N.EMCCDModel:
-    return N.EMCCDModel(**sensor.model_dump(), exposure_s=exposure_s)
 
 
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
@@ -206,28 +208,29 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
                 if counts is not None:
                     counts[li, r, k] = c.reshape(ny, nx)
     snr = np.sqrt(clean.reshape(L, P, -1).max(axis=2))
+    prov = provenance(cfg, surface.digest())
     with A.write_artefact(out, "simulation", config_sha256=cfg.sha256,
-                          inputs={f"T_fwd_{k}": pt.key for k, (_, pt) in enumerate(todo)}) as f:
+                          inputs={f"T_fwd_{k}": pt.key for k, (_, pt) in enumerate(todo)}, provenance=prov) as f:
         f.attrs["inputs_digest"] = digest
         A.write_surface(f.create_group("surface"), surface)
-        g = f.create_group("truth")
-        g.create_dataset("power", data=power).attrs["unit"] = "photons per exposure, per element"
-        g.create_dataset("exitance", data=power / surface.element_areas_mm2).attrs["unit"] = "photons mm^-2 per exposure"
+        A.put(f, "truth/power", power)
+        A.put(f, "truth/exitance", power / surface.element_areas_mm2)
+        g = f["truth"]
         g.attrs["kind"] = sim.flux.kind
         g.attrs["notes"] = json.dumps(notes)
-        g.create_dataset("levels_peak_photons", data=lv)
-        g.create_dataset("level_scale", data=scale).attrs["meaning"] = "truth at level l = power * level_scale[l]"
-        pg = f.create_group("poses")
-        pg.create_dataset("heights_mm", data=[pt.pose.height_mm for _, pt in todo])
-        pg.create_dataset("rotations_deg", data=[pt.pose.rotation_deg for _, pt in todo])
-        pg.create_dataset("T_fwd_keys", data=np.array([pt.key for _, pt in todo], dtype="S64"))
-        ig = f.create_group("images")
+        A.put(f, "truth/levels_peak_photons", lv)
+        A.put(f, "truth/level_scale", scale)
+        A.put(f, "poses/heights_mm", [pt.pose.height_mm for _, pt in todo])
+        A.put(f, "poses/rotations_deg", [pt.pose.rotation_deg for _, pt in todo])
+        A.put(f, "poses/T_fwd_keys", np.array([pt.key for _, pt in todo], dtype="S64"))
         chunk = (1, 1, 1, ny, nx)
-        ig.create_dataset("noiseless", data=clean, compression="gzip", chunks=(1, 1, ny, nx)).attrs["unit"] = "photons"
-        ig.create_dataset("noisy", data=noisy, compression="gzip", chunks=chunk).attrs["unit"] = "photons"
+        packed = dict(compression="gzip", fletcher32=True)
+        A.put(f, "images/noiseless", clean, chunks=(1, 1, ny, nx), **packed)
+        A.put(f, "images/noisy", noisy, chunks=chunk, **packed)
         if counts is not None:
-            ig.create_dataset("counts", data=counts, compression="gzip", chunks=chunk).attrs["unit"] = "ADC counts"
-        ig.create_dataset("max_snr", data=snr).attrs["meaning"] = "sqrt(max a) per level and pose (the paper's Table 1)"
+            A.put(f, "images/counts", counts, chunks=chunk, **packed)
+        A.put(f, "images/max_snr", snr)
+        ig = f["images"]
         ig.attrs["layout"] = "noisy[level, repeat, pose, row, col]; noiseless[level, pose, row, col]"
         ig.attrs["noise_model"] = sim.noise.model
         ig.attrs["seed"] = sim.noise.seed

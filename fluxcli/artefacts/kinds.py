@@ -1,0 +1,124 @@
+"""What each artefact kind holds: its schema version, datasets, units and meaning, in one place.
+
+Writers take units from here (:func:`fluxcli.artefacts.put`), readers check that every
+required dataset is present when a file is opened (an incomplete file is named with the
+missing dataset and the stage that remakes it), and ``fluxmap info`` prints these
+descriptions next to what a file holds.  A new artefact kind is one more :class:`Kind`
+in :data:`KINDS` (calibration, capture and surface are added by their stages).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """One dataset (or group) of an artefact: its path in the file, unit and meaning."""
+
+    name: str
+    unit: str = ""
+    meaning: str = ""
+    required: bool = True
+
+
+@dataclass(frozen=True)
+class Kind:
+    """An artefact kind: name, schema version, the stage that makes it, and its datasets."""
+
+    name: str
+    schema_version: int
+    made_by: str  # the command that (re)makes it, for messages
+    description: str
+    datasets: tuple[Dataset, ...] = field(default=())
+
+    def dataset(self, name: str) -> Dataset | None:
+        for d in self.datasets:
+            if d.name == name:
+                return d
+        return None
+
+    @property
+    def required(self) -> list[str]:
+        return [d.name for d in self.datasets if d.required]
+
+
+_SURFACE = (
+    Dataset("surface/vertices", "mm", "vertex positions (V, 3)"),
+    Dataset("surface/faces", "", "triangles (F, 3), counter-clockwise seen from outside"),
+    Dataset("surface/element_of_face", "", "element of each face, -1 for occluder-only faces"),
+    Dataset("surface/areas", "mm^2", "area of each element"),
+)
+
+KINDS: dict[str, Kind] = {}
+SCHEMA_VERSIONS: dict[str, int] = {}  # kind -> schema version this fluxmap reads and writes
+
+
+def register(kind: Kind) -> Kind:
+    """Add an artefact kind (other packages add theirs at import time)."""
+    KINDS[kind.name] = kind
+    SCHEMA_VERSIONS[kind.name] = kind.schema_version
+    return kind
+
+
+register(Kind("transfer", 2, "fluxmap build-T", "transfer matrix T of one pose (a T-cache entry)", (
+    Dataset("T/data", "dimensionless", "fraction of an element's power reaching a pixel (CSR data)"),
+    Dataset("T/indices", "", "CSR column (element) indices"),
+    Dataset("T/indptr", "", "CSR row pointers; row = pixel, flat index row * nx + col"),
+    *_SURFACE,
+    Dataset("views", "", "per view k: its T (CSR), weight and sampling statistics"),
+)))
+
+register(Kind("transfer-index", 2, "fluxmap build-T", "which T-cache entry belongs to which pose", (
+    Dataset("heights_mm", "mm", "stage height of each pose"),
+    Dataset("rotations_deg", "deg", "rotation of each pose"),
+    Dataset("keys", "", "content address (sha256) of each pose's T"),
+    Dataset("paths", "", "T file of each pose"),
+    Dataset("efficiency", "dimensionless", "collection efficiency [pose, view]"),
+)))
+
+register(Kind("simulation", 2, "fluxmap simulate", "ground-truth surface flux and simulated images", (
+    *_SURFACE,
+    Dataset("truth/power", "photons per exposure, per element", "ground truth at rest"),
+    Dataset("truth/exitance", "photons mm^-2 per exposure", "power / element area"),
+    Dataset("truth/levels_peak_photons", "photons", "brightest element's power at each signal level"),
+    Dataset("truth/level_scale", "", "truth at level l = power * level_scale[l]"),
+    Dataset("poses/heights_mm", "mm", "stage height of each pose"),
+    Dataset("poses/rotations_deg", "deg", "rotation of each pose"),
+    Dataset("poses/T_fwd_keys", "", "forward T of each pose (T-cache key)"),
+    Dataset("images/noiseless", "photons", "noiseless[level, pose, row, col]"),
+    Dataset("images/noisy", "photons", "noisy[level, repeat, pose, row, col]"),
+    Dataset("images/counts", "ADC counts", "EMCCD counts[level, repeat, pose, row, col]", required=False),
+    Dataset("images/max_snr", "", "sqrt(max a) per level and pose (the paper's Table 1)"),
+)))
+
+register(Kind("reconstruction", 2, "fluxmap reconstruct", "surface flux reconstructed from images", (
+    *_SURFACE,
+    Dataset("flux/power", "photons per element (NaN: unobserved)", "the result (joint over poses when several)"),
+    Dataset("flux/exitance", "photons mm^-2", "power / element area"),
+    Dataset("flux/observed", "", "element seen by some camera view"),
+    Dataset("flux/sigma", "photons (1 sd)", "per-element uncertainty"),
+    Dataset("flux/total", "photons over observed elements", "sum of power"),
+    Dataset("per_pose/power", "photons", "each pose on its own [pose, element]"),
+    Dataset("per_pose/sigma", "photons", "[pose, element]"),
+    Dataset("per_pose/observed", "", "[pose, element]"),
+    Dataset("per_pose/total", "photons", "[pose]"),
+    Dataset("per_pose/lambda", "", "regularisation used per pose"),
+    Dataset("per_pose/heights_mm", "mm", "stage height of each pose"),
+    Dataset("per_pose/rotations_deg", "deg", "rotation of each pose"),
+    Dataset("per_pose/vertices_mm", "mm", "the surface placed at each pose", required=False),
+    Dataset("per_pose/backprojection_total", "photons (T'a summed)", "", required=False),
+    Dataset("per_pose/direct_roi_photons", "photons", "measured photons over the pixels the direct view reaches",
+            required=False),
+    Dataset("fit/measured", "photons", "images [pose, row, col]"),
+    Dataset("fit/fitted", "photons", "T b [pose, row, col], NaN where not fitted"),
+    Dataset("fit/residual", "photons", "measured - fitted"),
+    Dataset("fit/valid", "", "pixels used (finite, not saturated)"),
+    Dataset("geometry", "", "what the report draws: subject axis, camera look/up, view names, T files"),
+    Dataset("truth/power", "photons", "ground truth at the reconstructed level", required=False),
+)))
+
+register(Kind("tetmesh", 1, "fluxmap simulate", "tetrahedral mesh of the subject (cached by content)", (
+    Dataset("nodes", "mm", "node positions (N, 3)"),
+    Dataset("tets", "", "tetrahedra (M, 4)"),
+)))

@@ -1,0 +1,253 @@
+"""Versioned HDF5 artefacts: provenance, atomic writes, checked reads.
+
+Every artefact has root attributes ``fluxmap_version``, ``kind``, ``schema_version``,
+``created``, ``config_sha256``, ``inputs`` (JSON, what the stage names as its inputs),
+and the provenance that lets a later stage check it was made for the same set-up:
+
+- ``config_json``: the resolved config (every default filled in), JSON;
+- ``geometry_json`` / ``geometry_sha256``: the placed geometry it was made for (system:
+  camera, lens, sensor, mirrors, stage; subject: surface, poses; and the digest of the
+  surface as built);
+- ``input_files``: JSON ``{name: {"path": ..., "sha256": ...}}`` of the input artefacts
+  and image files it was made from.
+
+Files are written through :func:`fluxcli.artefacts.atomic.atomic_path`.  Reading goes
+through :func:`open_artefact`, which refuses another kind or schema and names a missing
+or corrupt dataset together with the command that remakes the file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+import h5py
+import numpy as np
+
+from .. import __version__
+from ..errors import UserError
+from .atomic import atomic_path
+from .kinds import KINDS, SCHEMA_VERSIONS
+
+
+# ------------------------------------------------------------------ provenance
+@dataclass
+class Provenance:
+    """How an artefact was made: resolved config, geometry and input files."""
+
+    config: dict[str, Any] = field(default_factory=dict)
+    geometry: dict[str, Any] = field(default_factory=dict)
+    input_files: dict[str, dict[str, str]] = field(default_factory=dict)
+
+    @property
+    def geometry_sha256(self) -> str:
+        return cache_key(canonical(self.geometry)) if self.geometry else ""
+
+    def add_file(self, name: str, path: Path) -> None:
+        """Record an input artefact or image file by name, path and content digest."""
+        self.input_files[name] = {"path": str(path), "sha256": file_sha256(path)}
+
+
+def read_provenance(f: h5py.File) -> Provenance:
+    def load(name):
+        try:
+            return json.loads(f.attrs.get(name, "{}") or "{}")
+        except (TypeError, ValueError):
+            return {}
+
+    return Provenance(load("config_json"), load("geometry_json"), load("input_files"))
+
+
+def _flatten(x: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(x, dict):
+        out: dict[str, Any] = {}
+        for k, v in x.items():
+            out.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+        return out or {prefix: {}}
+    return {prefix: x}
+
+
+def _show(v: Any) -> str:
+    if isinstance(v, str) and len(v) == 64 and all(c in "0123456789abcdef" for c in v):
+        return f"sha256 {v[:12]}..."  # a digest: its start says enough
+    if v is None:
+        return "not set"
+    if isinstance(v, float) and v == int(v) and abs(v) < 1e15:
+        return f"{v:g}"
+    if isinstance(v, list):
+        return "[" + ", ".join(_show(x) for x in v) + "]"
+    return str(v)
+
+
+def geometry_differences(stored: dict, now: dict) -> list[str]:
+    """Dotted keys whose values differ: ``"key: OLD in the artefact, NEW now"`` pieces."""
+    a, b = _flatten(canonical(stored)), _flatten(canonical(now))
+    out = []
+    for k in sorted(set(a) | set(b)):
+        if a.get(k) != b.get(k):
+            out.append((k, a.get(k), b.get(k)))
+    return [f"{k}: {_show(x)} in {{name}}, {_show(y)} now" for k, x, y in out]
+
+
+def check_geometry(path: Path, stored: Provenance, now_geometry: dict, *, remedy: str) -> None:
+    """Refuse an artefact made for another geometry, naming each key that differs."""
+    if not stored.geometry:
+        raise UserError(f"{path} records no geometry (made by an older fluxmap), so it cannot be checked "
+                        f"against this config; {remedy}.")
+    if canonical(stored.geometry) == canonical(now_geometry):
+        return
+    diffs = [d.format(name=Path(path).name) for d in geometry_differences(stored.geometry, now_geometry)]
+    shown = "; ".join(diffs[:6]) + (f" (and {len(diffs) - 6} more)" if len(diffs) > 6 else "")
+    raise UserError(f"{path} was made for another set-up than this config describes: {shown}. {remedy}.")
+
+
+# ------------------------------------------------------------------ writing
+@contextlib.contextmanager
+def write_artefact(path: Path, kind: str, *, config_sha256: str = "", inputs: dict[str, str] | None = None,
+                   provenance: Provenance | None = None) -> Iterator[h5py.File]:
+    """Open a new HDF5 artefact for writing; it appears at ``path`` only when complete."""
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["fluxmap_version"] = __version__
+            f.attrs["kind"] = kind
+            f.attrs["schema_version"] = SCHEMA_VERSIONS[kind]
+            f.attrs["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+            f.attrs["config_sha256"] = config_sha256
+            p = provenance or Provenance()
+            # the names and hashes of input artefacts and image files, beside what the stage names
+            f.attrs["inputs"] = json.dumps(dict(inputs or {}) | {n: d["sha256"] for n, d in p.input_files.items()},
+                                           sort_keys=True)
+            f.attrs["config_json"] = json.dumps(p.config, sort_keys=True)
+            f.attrs["geometry_json"] = json.dumps(canonical(p.geometry), sort_keys=True)
+            f.attrs["geometry_sha256"] = p.geometry_sha256
+            f.attrs["input_files"] = json.dumps(p.input_files, sort_keys=True)
+            yield f
+
+
+def put(group: h5py.Group, name: str, data, **kwargs) -> h5py.Dataset:
+    """Create dataset ``name`` (relative to ``group``) with the unit its kind declares."""
+    ds = group.create_dataset(name, data=data, **kwargs)
+    kind = KINDS.get(str(group.file.attrs.get("kind", "")))
+    spec = kind.dataset(ds.name.lstrip("/")) if kind is not None else None
+    if spec is not None:
+        if spec.unit:
+            ds.attrs["unit"] = spec.unit
+        if spec.meaning:
+            ds.attrs["meaning"] = spec.meaning
+    return ds
+
+
+# ------------------------------------------------------------------ reading
+class ArtefactFile(h5py.File):
+    """An artefact open for reading: a missing or unreadable dataset becomes a UserError
+    naming the file, the dataset and the command that remakes it."""
+
+    def _setup(self, path: Path, kind: str) -> "ArtefactFile":
+        self._fx_path, self._fx_kind, self._fx_last = Path(path), kind, None
+        return self
+
+    def _remedy(self) -> str:
+        k = KINDS.get(self._fx_kind)
+        return (f"delete it and run '{k.made_by}' again (or use --force)" if k is not None
+                else "delete it and make it again")
+
+    def __getitem__(self, name):
+        self._fx_last = name if isinstance(name, str) else self._fx_last
+        try:
+            return super().__getitem__(name)
+        except KeyError:
+            if isinstance(name, str):
+                raise UserError(f"artefact {self._fx_path} is incomplete: it has no dataset '{name}'; "
+                                f"{self._remedy()}.") from None
+            raise
+
+    def __exit__(self, exc_type, exc, tb):
+        super().__exit__(exc_type, exc, tb)
+        if exc_type is not None and issubclass(exc_type, OSError) and not isinstance(exc, UserError):
+            where = f" (reading '{self._fx_last}')" if self._fx_last else ""
+            raise UserError(f"artefact {self._fx_path} is corrupt{where}: {exc}; {self._remedy()}.") from None
+        return False
+
+
+def open_artefact(path: Path, kind: str, *, check: bool = True) -> ArtefactFile:
+    """Open an artefact for reading, refusing files of another kind or schema, or incomplete ones."""
+    path = Path(path)
+    if not path.is_file():
+        what = KINDS.get(kind)
+        hint = f"run '{what.made_by}' first" if what is not None else "run the stage that makes it first"
+        raise UserError(f"artefact {path} does not exist; {hint}.")
+    try:
+        f = ArtefactFile(path, "r")._setup(path, kind)
+    except OSError as e:
+        raise UserError(f"artefact {path} is not a readable HDF5 file ({e}); delete it and make it again.") from None
+    got_kind = f.attrs.get("kind")
+    if got_kind != kind:
+        f.close()
+        raise UserError(f"artefact {path} is a {got_kind!r} artefact, not {kind!r}.")
+    if int(f.attrs.get("schema_version", -1)) != SCHEMA_VERSIONS[kind]:
+        v = f.attrs.get("schema_version")
+        remedy = f._remedy()
+        f.close()
+        raise UserError(f"artefact {path} has schema version {v}; this fluxmap reads version "
+                        f"{SCHEMA_VERSIONS[kind]} of {kind!r}; {remedy}.")
+    spec = KINDS.get(kind)
+    if check and spec is not None:
+        missing = [d for d in spec.required if d not in f]
+        if missing:
+            remedy = f._remedy()
+            f.close()
+            raise UserError(f"artefact {path} is incomplete: it has no dataset '{missing[0]}'"
+                            + (f" (nor {len(missing) - 1} other(s))" if len(missing) > 1 else "") + f"; {remedy}.")
+    return f
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+# ------------------------------------------------------------------ content addresses
+def cache_key(parts: dict) -> str:
+    """Content address: sha256 of the canonical JSON of everything T depends on."""
+    return hashlib.sha256(json.dumps(parts, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def canonical(x):
+    """Numbers rounded to 1 nm / 1e-9 so that float noise does not change a key."""
+    if isinstance(x, dict):
+        return {str(k): canonical(v) for k, v in x.items()}
+    if isinstance(x, np.ndarray):
+        return [canonical(v) for v in x.tolist()]
+    if isinstance(x, (list, tuple)):
+        return [canonical(v) for v in x]
+    if isinstance(x, (bool, np.bool_)):
+        return bool(x)
+    if isinstance(x, (float, np.floating)):
+        r = round(float(x), 9)
+        return 0.0 if r == 0 else r
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    return x
+
+
+def inputs_digest(**parts) -> str:
+    """sha256 of what a stage's output depends on (config sections as dicts, digests)."""
+    return cache_key(canonical({k: v for k, v in parts.items()}))
+
+
+def is_up_to_date(path: Path, kind: str, digest: str) -> bool:
+    """True when ``path`` is a readable ``kind`` artefact built from exactly ``digest``."""
+    try:
+        with h5py.File(path, "r") as f:
+            return (f.attrs.get("kind") == kind and int(f.attrs.get("schema_version", -1)) == SCHEMA_VERSIONS[kind]
+                    and f.attrs.get("inputs_digest") == digest)
+    except (OSError, KeyError):
+        return False

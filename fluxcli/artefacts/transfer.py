@@ -1,0 +1,132 @@
+"""The transfer artefacts: one T file per pose (a content-addressed cache entry) and the index.
+
+The cache is a folder of ``<key>.h5`` files, ``key`` the sha256 of everything T depends
+on (:func:`fluxcli.pipeline.key_parts`).  An entry that cannot be read (a killed run, a
+corrupt chunk: every chunk carries a Fletcher-32 checksum) is reported by
+:func:`check_entry` so that the caller rebuilds it; :func:`load_T` of a corrupt entry
+names the file and the remedy.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..errors import UserError
+from .pieces import read_csr, write_csr, write_surface
+from .store import Provenance, open_artefact, put, write_artefact
+
+
+def entry_path(cache_dir: Path, key: str) -> Path:
+    return Path(cache_dir) / f"{key}.h5"
+
+
+@dataclass
+class TSummary:
+    """What build-T prints of a cached T: non-zeros, efficiency per view, build time."""
+
+    nnz: int
+    efficiency: dict[str, float]
+    seconds: float
+
+    def as_dict(self) -> dict:
+        return {"nnz": self.nnz, "efficiency": self.efficiency, "seconds": self.seconds}
+
+
+def efficiency(Tv: sp.csr_matrix, weight: float, areas_mm2: np.ndarray) -> float:
+    """Collection efficiency of one view: the fraction of the power of a uniformly glowing
+    surface the view delivers to the sensor (area-weighted mean column sum)."""
+    col = np.asarray(Tv.sum(axis=0)).ravel() * weight
+    return float(col @ areas_mm2 / areas_mm2.sum())
+
+
+def write_T(path: Path, *, T: sp.csr_matrix, T_per_view: list, view_kinds: list[str], weights: list[float],
+            stats: list[dict], pixels: tuple[int, int], surface, occluders, height_mm: float, rotation_deg: float,
+            estimator: str, seconds: float, config_sha256: str = "", provenance: Provenance | None = None) -> None:
+    """Write one pose's T file atomically."""
+    with write_artefact(path, "transfer", config_sha256=config_sha256, provenance=provenance) as f:
+        write_csr(f.create_group("T"), T)
+        f["T"].attrs["unit"] = "dimensionless (fraction of element power reaching the pixel)"
+        f["T"].attrs["pixel_order"] = "row-major [row, col]; flat index row * nx + col"
+        write_surface(f.create_group("surface"), surface)
+        occ = f.create_group("occluders")
+        for k, o in enumerate(occluders):
+            write_surface(occ.create_group(f"{k}"), o)
+        vg = f.create_group("views")
+        f.attrs["pixels"] = np.array(pixels)
+        for k, (kind, w, Tv, st) in enumerate(zip(view_kinds, weights, T_per_view, stats)):
+            g = vg.create_group(f"{k}")
+            g.attrs["kind"] = kind
+            g.attrs["weight"] = w
+            write_csr(g, Tv)
+            for name, val in st.items():
+                g.attrs[name] = val
+        f.attrs["pose_height_mm"] = height_mm
+        f.attrs["pose_rotation_deg"] = rotation_deg
+        f.attrs["estimator"] = estimator
+        f.attrs["build_seconds"] = seconds
+
+
+def load_T(path: Path) -> sp.csr_matrix:
+    """The combined T (CSR, pixels x elements) of one cached pose."""
+    with open_artefact(path, "transfer") as f:
+        return read_csr(f["T"])
+
+
+def load_view(path: Path, k: int) -> sp.csr_matrix:
+    """View ``k``'s T (0: direct) of one cached pose, its weight not applied."""
+    with open_artefact(path, "transfer") as f:
+        return read_csr(f[f"views/{k}"])
+
+
+def read_summary(path: Path, view_names: list[str], areas: np.ndarray) -> dict:
+    """Summary of a T file; reads every chunk, so a corrupt file raises UserError."""
+    with open_artefact(path, "transfer") as f:
+        eff = {}
+        for k, name in enumerate(view_names):
+            g = f[f"views/{k}"]
+            eff[name] = efficiency(read_csr(g), float(g.attrs["weight"]), areas)
+        T = read_csr(f["T"])
+        return TSummary(int(T.nnz), eff, float(f.attrs["build_seconds"])).as_dict()
+
+
+_CHECKED: dict[tuple, dict] = {}  # (path, size, mtime) -> summary, so one run reads an entry once
+
+
+def check_entry(path: Path, view_names: list[str], areas: np.ndarray) -> tuple[dict | None, str]:
+    """``(summary, "")`` for a good cache entry, ``(None, why)`` for a missing or bad one."""
+    try:
+        st = Path(path).stat()
+    except OSError:
+        return None, "missing"
+    memo = (str(path), st.st_size, st.st_mtime_ns, tuple(view_names))
+    if memo in _CHECKED:
+        return _CHECKED[memo], ""
+    try:
+        summary = read_summary(path, view_names, areas)
+    except UserError as e:
+        return None, str(e)
+    except (OSError, KeyError, ValueError) as e:
+        return None, f"{path} cannot be read ({e})"
+    _CHECKED[memo] = summary
+    return summary, ""
+
+
+def write_index(path: Path, *, heights_mm, rotations_deg, keys: list[str], paths: list[Path], efficiency_pv,
+                view_names: list[str], estimator: str, config_sha256: str = "",
+                provenance: Provenance | None = None) -> None:
+    import h5py
+    import json
+
+    with write_artefact(path, "transfer-index", config_sha256=config_sha256, inputs={k: k for k in keys},
+                        provenance=provenance) as f:
+        put(f, "heights_mm", np.asarray(heights_mm, float))
+        put(f, "rotations_deg", np.asarray(rotations_deg, float))
+        put(f, "keys", np.array(keys, dtype="S64"))
+        put(f, "paths", np.array([str(p) for p in paths], dtype=object), dtype=h5py.string_dtype())
+        put(f, "efficiency", np.asarray(efficiency_pv, float))
+        f.attrs["view_names"] = json.dumps(view_names)
+        f.attrs["estimator"] = estimator
