@@ -348,6 +348,9 @@ class Reconstruct(Model):
     noiseless: bool = Field(False, description="Reconstruct the simulation's noiseless images.")
     joint: bool = Field(True, description="Also reconstruct all poses jointly onto one surface.")
     read_noise_photons: float = Field(0.0, ge=0, description="Added to the shot-noise variance in weights (photons rms).")
+    noise: Literal["auto", "gaussian", "poisson", "emccd"] = Field(
+        "auto", description="Noise model of the images for weights, sigma and chi^2 (auto: the simulation's; emccd for "
+                            "count images, with system.camera.sensor; poisson otherwise).")
     sweep: Sweep | None = Field(None, description="A study: every level x repeat x pose for each method.")
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
