@@ -264,6 +264,8 @@ class DiffusionFlux(Model):
     wavelength_nm: int = Field(description="Which wavelength of 'optical' to simulate.")
     sources: tuple[Source, ...] = Field(min_length=1)
     mesh_edge_mm: float = Field(1.5, gt=0, description="Target tetrahedron edge length (mm).")
+    mesh_dir: Path | None = Field(None, description="Folder of tetrahedral meshes shipped with the config "
+                                  "(fTetWild is not deterministic; a shipped mesh makes a fresh clone byte-reproducible).")
 
     @model_validator(mode="after")
     def _check(self) -> "DiffusionFlux":
@@ -299,6 +301,9 @@ class Simulate(Model):
     flux: Flux
     transfer: "Transfer | None" = Field(None, description="Sampling of the forward T (default: twice as fine as 'transfer').")
     allow_inverse_crime: bool = Field(False, description="Allow the forward T to equal reconstruction's T.")
+    truth_refinement: int | None = Field(None, ge=0, le=3, description="The truth lives on the surface with each "
+                                         "triangle split into 4 this many times (default 1, or 0 with "
+                                         "allow_inverse_crime; 0: constant per element, half an inverse crime).")
     noise: Noise = Noise()
     export: Export = Export()
 
