@@ -320,8 +320,9 @@ class MethodSettings(Model):
     max_iter: int = Field(10, ge=1, description="paper: at most this many solves; smooth: this many.")
     tol: float = Field(0.01, gt=0, description="paper: stop when the fit improves by less than this fraction.")
     n_iter: int = Field(500, ge=1, description="mlem: EM iterations.")
-    unknowns: Literal["elements", "sub_elements"] = Field(
-        "elements", description="Solve per element, or per sub-element (phantom strips, else faces) summed per element.")
+    unknowns: Literal["auto", "elements", "sub_elements"] = Field(
+        "elements", description="Solve per element, or per sub-element (phantom strips, else faces) summed per element; "
+                                "auto: sub-elements for smooth when there are at most 4000 of them.")
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
 
@@ -346,7 +347,9 @@ class Reconstruct(Model):
     max_iter: int = Field(10, ge=1)
     tol: float = Field(0.01, gt=0)
     n_iter: int = Field(500, ge=1)
-    unknowns: Literal["elements", "sub_elements"] = "elements"
+    unknowns: Literal["auto", "elements", "sub_elements"] = Field(
+        "auto", description="auto (default): smooth solves per sub-element (faces, or strips) summed per element when "
+                            "there are at most 4000; elements or sub_elements to choose.")
     images: ImageFiles | None = Field(None, description="Images from files instead of simulation.h5.")
     level: int = Field(0, ge=0, description="Which signal level of the simulation to reconstruct.")
     repeat: int = Field(0, ge=0, description="Which noise repeat of the simulation to reconstruct.")

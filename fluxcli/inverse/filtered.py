@@ -52,11 +52,12 @@ class Filtered:
     total_at_half_and_double_lambda: tuple = (np.nan, np.nan)
     weighted: bool = False
     warnings: list = field(default_factory=list)
+    sigma_sums: np.ndarray | None = None
 
 
 def filtered_solve(T_obs, a, *, prior=None, k: int = 10, tol: float | None = None, lam: float | None = None,
                    rule: str = "gcv", gamma: float = 1.0, tau: float = 1.0, lambdas=None, variance=None,
-                   sigma2=None, weighted: bool = True, passes: int = 2, free_level: bool = False) -> Filtered:
+                   sigma2=None, weighted: bool = True, passes: int = 2, free_level: bool = False, sums=None) -> Filtered:
     """Solve ``min ‖W^½(a − Tb)‖² + λ̃ bᵀRb, b ≥ 0`` by ``k`` iterated clipped solves.
 
     Parameters
@@ -73,6 +74,7 @@ def filtered_solve(T_obs, a, *, prior=None, k: int = 10, tol: float | None = Non
     sigma2 : (m,) photons², a fixed noise variance (when there is no ``variance``).
     weighted : bool, weight the fit by ``1/σ²`` (needs ``variance`` or ``sigma2``).
     passes : int, reweighting passes when ``variance`` is given (the first is unweighted).
+    sums : sparse (n_groups, n_obs), optional: also the σ of these sums of the estimate.
     free_level : bool, leave the overall level to the data (one unpenalised scale factor
         fitted last), so the prior cannot shrink the total.
 
@@ -143,10 +145,12 @@ def filtered_solve(T_obs, a, *, prior=None, k: int = 10, tol: float | None = Non
                            "or too much regularisation)" if chi2 > hi else
                            "the fit follows the noise (too little regularisation, or the noise model overstates it)"))
     sigma = np.full(len(b), np.nan)
-    if weights is not None:
-        sigma = spec.sigma(lam_abs, it)
-    elif var_model is not None:
-        sigma = spec.sigma(lam_abs, it, sigma2=var_model)
+    sigma_sums = None if sums is None else np.full(sums.shape[0], np.nan)
+    if weights is not None or var_model is not None:
+        s2 = None if weights is not None else var_model
+        sigma = spec.sigma(lam_abs, it, sigma2=s2) * level
+        if sums is not None:
+            sigma_sums = spec.sigma(lam_abs, it, sigma2=s2, sums=sums) * level
     totals = (np.nan, np.nan)
     if lam is None and b.sum() > 0:
         def total_at(lam_x):
@@ -165,4 +169,5 @@ def filtered_solve(T_obs, a, *, prior=None, k: int = 10, tol: float | None = Non
                         "alone; treat it with care")
     return Filtered(power=b, sigma=sigma, lam=float(lam_p), lam_absolute=float(lam_abs), iterations=int(it),
                     converged=bool(conv), choice=choice, chi2_per_pixel=chi2,
-                    total_at_half_and_double_lambda=totals, weighted=weights is not None, warnings=warn)
+                    total_at_half_and_double_lambda=totals, weighted=weights is not None, warnings=warn,
+                    sigma_sums=sigma_sums)

@@ -545,6 +545,7 @@ class Result:
     chi2_per_pixel: float = float("nan")
     warnings: tuple = ()
     observation: np.ndarray | None = None
+    sigma_groups: np.ndarray | None = None
 
     @property
     def well_observed(self) -> np.ndarray:
@@ -616,6 +617,16 @@ class Problem:
     adjacency: object
     areas: np.ndarray | None
     rel_threshold: float
+    groups: tuple | None = None  # (parent (n_elements,), n_groups): also σ of the sums per group
+
+    def sums(self):
+        """Sparse (n_groups, n_obs) summing observed unknowns into their groups, or None."""
+        if self.groups is None:
+            return None
+        parent, n_groups = self.groups
+        idx = np.flatnonzero(self.mask)
+        return sp.csr_array((np.ones(idx.size), (np.asarray(parent)[idx], np.arange(idx.size))),
+                            shape=(n_groups, idx.size))
 
     @property
     def T_cov(self):
@@ -658,8 +669,8 @@ def _filtered(P, *, prior, k, tol, lam, rule, opts, weighted, free_level=False):
     s2 = None if P.sigma2 is None else P.sigma2[P.rows]
     out = filtered_solve(P.T_cov, P.a[P.rows], prior=prior, k=k, tol=tol, lam=lam, rule=rule or "gcv",
                          gamma=opts.get("gamma", 1.0), tau=opts.get("tau", 1.0), lambdas=opts.get("lambdas"),
-                         variance=P.variance, sigma2=s2, weighted=weighted, free_level=free_level)
-    return {"power": out.power, "sigma": out.sigma, "lam": out.lam, "lam_absolute": out.lam_absolute,
+                         variance=P.variance, sigma2=s2, weighted=weighted, free_level=free_level, sums=P.sums())
+    return {"sigma_groups": out.sigma_sums, "power": out.power, "sigma": out.sigma, "lam": out.lam, "lam_absolute": out.lam_absolute,
             "iterations": out.iterations, "converged": out.converged, "choice": out.choice,
             "chi2": out.chi2_per_pixel, "warnings": out.warnings}
 
@@ -767,7 +778,7 @@ METHODS = tuple(REGISTRY)
 
 
 def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | None = None,
-                sigma2=None, variance=None, adjacency=None, areas=None,
+                sigma2=None, variance=None, adjacency=None, areas=None, groups=None,
                 rel_threshold: float = c.DEFAULT_REL_THRESHOLD, **opts) -> Result:
     """Reconstruct the flux per element with one of :data:`METHODS` (:data:`REGISTRY`).
 
@@ -797,6 +808,10 @@ def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | 
         poorly-observed test.
     areas : ndarray, shape (n_elements,), optional
         Element areas in mm²; priors act on exitance ``b/S``.
+    groups : (parent, n_groups), optional
+        ``parent`` (n_elements,) int: when the unknowns are sub-elements, the element
+        each belongs to; ``Result.sigma_groups`` is then the σ of their sums, with the
+        covariances between parts (methods on the spectral engine; else None).
     rel_threshold : float, optional
         See :func:`observed_mask`.
     **opts
@@ -842,7 +857,7 @@ def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | 
         areas = c.as_elements(areas, T.shape[1], "areas (mm²)")
     mask = c.observed(T, rel_threshold)
     T_obs = sp.csr_array(T[:, mask])
-    P = Problem(T, a, mask, T_obs, c.covered_rows(T_obs), variance, sigma2, adjacency, areas, rel_threshold)
+    P = Problem(T, a, mask, T_obs, c.covered_rows(T_obs), variance, sigma2, adjacency, areas, rel_threshold, groups)
     out = spec.solve(P, lam, lam_rule, dict(opts))
 
     power = c.scatter(out["power"], mask)
@@ -876,4 +891,4 @@ def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | 
                   lam=float(lam_used), lam_absolute=float(out.get("lam_absolute", 0.0)),
                   iterations=int(out.get("iterations", 1)), converged=bool(out.get("converged", True)),
                   lam_choice=out.get("choice"), chi2_per_pixel=float(chi2), warnings=tuple(warnings),
-                  observation=observation)
+                  observation=observation, sigma_groups=out.get("sigma_groups"))

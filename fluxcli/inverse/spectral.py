@@ -99,16 +99,19 @@ class Spectrum:
         _, fos = self.factors(lam_abs, k)
         return self.V @ (fos * self.coef)
 
-    def sigma(self, lam_abs: float, k: int = 1, sigma2=None) -> np.ndarray:
+    def sigma(self, lam_abs: float, k: int = 1, sigma2=None, sums=None) -> np.ndarray:
         """Standard deviation (n_obs,) of the filtered estimator under noise, photons.
 
         ``sigma2`` (m,) is the per-pixel noise variance in photons²; None means the
-        weights already are ``1/σ²`` (then the covariance is ``V diag(f²/s) Vᵀ``)."""
+        weights already are ``1/σ²`` (then the covariance is ``V diag(f²/s) Vᵀ``).
+        ``sums`` (n_groups, n_obs), optional: the standard deviation of these sums of
+        the estimate instead (sub-elements summed per element, covariances included)."""
         f, fos = self.factors(lam_abs, k)
+        AV = self.V if sums is None else np.asarray(sums @ self.V)
         if sigma2 is None:
-            var = (self.V**2) @ (f * fos)
+            var = (AV**2) @ (f * fos)
         else:
-            M = (self.V * fos) @ self.V.T
+            M = (AV * fos) @ self.V.T
             TW = self.T if self.weights is None else sp.csr_array(sp.diags_array(self.weights) @ self.T)
             C = (TW.T @ sp.csr_array(sp.diags_array(sigma2) @ TW)).toarray()
             var = np.einsum("ij,jk,ik->i", M, C, M)

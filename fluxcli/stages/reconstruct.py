@@ -139,6 +139,7 @@ class Grid:
     parent: np.ndarray | None  # unknown -> element; None when the unknowns are the elements
     n_elements: int
     areas: np.ndarray | None = None  # (n_unknowns,) mm²: priors act on exitance
+    surface: object = None  # the elements' surface
 
 
 def make_grid(cfg: C.LoadedConfig, ctx: RunContext, surface, unknowns: str) -> Grid:
@@ -146,7 +147,7 @@ def make_grid(cfg: C.LoadedConfig, ctx: RunContext, surface, unknowns: str) -> G
     _, _, todo, _ = ensure_T(cfg, replace(ctx, force=False), label=label, unknowns=unknowns)
     grid_surface, parent = surface.unknowns() if unknowns == "sub_elements" else (surface, None)
     return Grid([load_T(pt.path) for _, pt in todo], grid_surface.element_adjacency(), parent, surface.n_elements,
-                grid_surface.element_areas_mm2)
+                grid_surface.element_areas_mm2, surface)
 
 
 def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSettings, noise: N.PhotonNoise,
@@ -157,7 +158,8 @@ def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSe
     (mm²) are what the exitance prior of ``smooth`` needs; with ``parent`` the unknowns are
     sub-elements, summed back into ``n_elements`` elements (an element counts as observed
     when any of its parts is, its class is its best part's; sigma is not propagated: NaN)."""
-    res, keep = _solve(T, a, valid, m, noise, adjacency, areas)
+    res, keep = _solve(T, a, valid, m, noise, adjacency, areas,
+                       groups=None if parent is None else (parent, n_elements))
     if parent is None:
         return res, keep
     obs = res.observed
@@ -165,11 +167,12 @@ def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSe
     observed = np.bincount(parent, weights=obs.astype(float), minlength=n_elements) > 0
     cls = np.zeros(n_elements, np.int8)
     np.maximum.at(cls, parent, res.observation)
+    sigma = res.sigma_groups if res.sigma_groups is not None else np.full(n_elements, np.nan)
     return replace(res, power=np.where(observed, power, np.nan), observed=observed,
-                   sigma=np.full(n_elements, np.nan), observation=cls), keep
+                   sigma=np.where(observed, sigma, np.nan), observation=cls), keep
 
 
-def _solve(T, a, valid, m, noise, adjacency, areas):
+def _solve(T, a, valid, m, noise, adjacency, areas, groups=None):
     keep = valid.ravel()
     Tm, am = T[keep], a.ravel()[keep]
     if m.method == "mlem":  # Poisson likelihood: bias-subtracted counts can dip below zero
@@ -190,7 +193,24 @@ def _solve(T, a, valid, m, noise, adjacency, areas):
         else:
             kw["lam_rule"] = m.lambda_rule
         kw.update(n_iter=m.max_iter)
-    return solve(Tm, am, method=m.method, variance=noise.variance, adjacency=adjacency, areas=areas, **kw), keep
+    return solve(Tm, am, method=m.method, variance=noise.variance, adjacency=adjacency, areas=areas, groups=groups,
+                 **kw), keep
+
+
+MAX_AUTO_SUB_ELEMENTS = 4000
+
+
+def resolve_unknowns(m: C.MethodSettings, surface) -> C.MethodSettings:
+    """``unknowns: auto``: ``smooth`` solves on the sub-elements (faces, or a phantom's strips)
+    and sums them per element when there are more of them than elements and at most
+    MAX_AUTO_SUB_ELEMENTS; the rest solve per element. Light varies within an element and
+    a camera resolves it: a model constant per element then cannot fit the data (under an
+    honest simulation, 3.4 % vs 1.6 % error on a 2 x 2-quad cylinder, SNR 30)."""
+    if m.unknowns != "auto":
+        return m
+    n_sub = surface.unknowns()[0].n_elements
+    sub = m.method == "smooth" and surface.n_elements < n_sub <= MAX_AUTO_SUB_ELEMENTS
+    return m.model_copy(update={"unknowns": "sub_elements" if sub else "elements"})
 
 
 def describe(m: C.MethodSettings) -> str:
@@ -228,9 +248,10 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     views, placer, todo, _ = ensure_T(cfg, replace(ctx, force=False), label="building T")
     P = len(todo)
     nx, ny = cfg.model.system.camera.pixels
-    m = rc.settings()
+    m = resolve_unknowns(rc.settings(), surface)
     grids = {u: make_grid(cfg, ctx, surface, u)
-             for u in {"elements", m.unknowns, *[s.unknowns for s in (rc.sweep.methods if rc.sweep else ())]}}
+             for u in {"elements", m.unknowns,
+                       *[resolve_unknowns(s, surface).unknowns for s in (rc.sweep.methods if rc.sweep else ())]}}
     Ts = grids["elements"].Ts
     gm = grids[m.unknowns]
     noise = photon_noise(cfg, inp.noise_kind, inp.exposure_s)
@@ -427,7 +448,7 @@ def _sweep(cfg: C.LoadedConfig, ctx: RunContext, g, grids: dict, todo) -> None:
             sensor = cfg.model.system.camera.sensor.model_dump() | {"exposure_s": float(f["images"].attrs["exposure_s"])}
     lv = list(sw.levels) if sw.levels is not None else list(range(L))
     reps = min(sw.repeats or R, R)
-    methods = list(sw.methods)
+    methods = [resolve_unknowns(x, grids["elements"].surface) for x in sw.methods]
     cells = [(li, k) for li in lv for k in range(P)]
     err = np.full((len(methods), L, P, reps), np.nan)
     t0 = time.perf_counter()
