@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
+import os
 import hashlib
 import json
 from dataclasses import dataclass, field
@@ -48,9 +49,10 @@ class Provenance:
     def geometry_sha256(self) -> str:
         return cache_key(canonical(self.geometry)) if self.geometry else ""
 
-    def add_file(self, name: str, path: Path) -> None:
-        """Record an input artefact or image file by name, path and content digest."""
-        self.input_files[name] = {"path": str(path), "sha256": file_sha256(path)}
+    def add_file(self, name: str, path: Path, base: Path | None = None) -> None:
+        """Record an input artefact or image file by name, path (relative to ``base`` when
+        given, so the artefact does not depend on where the project lives) and digest."""
+        self.input_files[name] = {"path": portable_path(path, base), "sha256": file_sha256(path)}
 
 
 def read_provenance(f: h5py.File) -> Provenance:
@@ -107,6 +109,22 @@ def check_geometry(path: Path, stored: Provenance, now_geometry: dict, *, remedy
 
 
 # ------------------------------------------------------------------ writing
+def _created() -> str:
+    """Creation time (UTC), or SOURCE_DATE_EPOCH's when set (reproducible-builds convention:
+    the same inputs then give the same bytes)."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH")
+    when = (_dt.datetime.fromtimestamp(int(epoch), _dt.timezone.utc) if epoch and epoch.isdigit()
+            else _dt.datetime.now(_dt.timezone.utc))
+    return when.isoformat(timespec="seconds")
+
+
+def portable_path(path, base=None) -> str:
+    """``path`` relative to ``base`` (a folder) when given, so that artefacts made in two
+    clones of the project are byte-identical; readers resolve it against the same base."""
+    if base is None:
+        return str(path)
+    return os.path.relpath(Path(path).resolve(), Path(base).resolve())
+
 @contextlib.contextmanager
 def write_artefact(path: Path, kind: str, *, config_sha256: str = "", inputs: dict[str, str] | None = None,
                    provenance: Provenance | None = None) -> Iterator[h5py.File]:
@@ -116,7 +134,7 @@ def write_artefact(path: Path, kind: str, *, config_sha256: str = "", inputs: di
             f.attrs["fluxmap_version"] = __version__
             f.attrs["kind"] = kind
             f.attrs["schema_version"] = SCHEMA_VERSIONS[kind]
-            f.attrs["created"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+            f.attrs["created"] = _created()
             f.attrs["config_sha256"] = config_sha256
             p = provenance or Provenance()
             # the names and hashes of input artefacts and image files, beside what the stage names

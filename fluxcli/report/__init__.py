@@ -165,7 +165,8 @@ def load(reconstruction: Path, *, t_cache_dir: Path | None = None, simulation: P
                                    look=tuple(float(x) for x in g["camera_look"]),
                                    up=tuple(float(x) for x in g["camera_up"]),
                                    view_names=tuple(json.loads(g["view_names"])))
-            t_files = [Path(p) for p in json.loads(g.get("T_files", "[]"))]
+            # relative paths are relative to the reconstruction's folder (portable artefacts)
+            t_files = [Path(reconstruction).parent / p for p in json.loads(g.get("T_files", "[]"))]
     if st.snr is None and st.truth_power is not None and simulation is not None and Path(simulation).is_file():
         with A.open_artefact(simulation, "simulation") as f:
             snr = f["images/max_snr"][()]

@@ -241,6 +241,9 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
                              reconstruct=rc.model_dump(mode="json", by_alias=True), images=sources)
     if not ctx.force and A.is_up_to_date(out, "reconstruction", digest):
         ctx.say(f"reconstruct: {out} is up to date (--force to redo)")
+        with A.open_artefact(out, "reconstruction") as f:
+            for line in json.loads(f.attrs.get("totals_summary", "[]")):
+                ctx.say(line)
         return out
     _, placer, todo = plan(cfg)
     surface = placer.surface
@@ -275,7 +278,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     rows = []
     prov = provenance(cfg, surface.digest())
     for name, path in (inp.files or {}).items():
-        prov.add_file(name, path)
+        prov.add_file(name, path, base=out.parent)
     with A.write_artefact(out, "reconstruction", config_sha256=cfg.sha256,
                           inputs={"T": json.dumps([pt.key for _, pt in todo]), "images": inp.source},
                           provenance=prov) as f:
@@ -337,6 +340,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
                 row += [f"{error_l1(joint.power, inp.truth):.2%}", f"{total_ratio(joint.power, inp.truth):.3f}"]
             rows.append(row)
         _warnings(ctx, f, per_pose, joint, todo)
+        summary = _total_summary(per_pose, joint, todo)
+        f.attrs["totals_summary"] = json.dumps(summary)
         pp.create_dataset("chi2_per_pixel", data=[r.chi2_per_pixel for r, _ in per_pose])
         pp.create_dataset("observation", data=np.array([r.observation for r, _ in per_pose]))
         if rc.sweep is not None:
@@ -348,7 +353,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         header += ["error", "total ratio"]
     ctx.table(header, rows)
     ctx.say(f"{seconds:.2f} s of solving")
-    _total_summary(ctx, per_pose, joint, todo)
+    for line in summary:
+        ctx.say(line)
     return out
 
 
@@ -360,9 +366,10 @@ def _write_geometry(g, cfg: C.LoadedConfig, placer, views, todo) -> None:
     g.attrs["camera_look"] = np.asarray(cam.pose.look, float)
     g.attrs["camera_up"] = np.asarray(cam.pose.up, float)
     g.attrs["view_names"] = json.dumps([v.name for v in views])
-    g.attrs["T_files"] = json.dumps([str(pt.path) for _, pt in todo])
+    base = cfg.workdir  # paths relative to the artefact's folder: the same bytes in any clone
+    g.attrs["T_files"] = json.dumps([A.portable_path(pt.path, base) for _, pt in todo])
     files = cfg.model.reconstruct.images.files if cfg.model.reconstruct.images is not None else None
-    g.attrs["image_files"] = json.dumps([str(cfg.resolve(p)) for p in files] if files else [])
+    g.attrs["image_files"] = json.dumps([A.portable_path(cfg.resolve(p), base) for p in files] if files else [])
 
 
 def _write_flux(g, res, areas) -> None:
@@ -398,19 +405,20 @@ def _warnings(ctx: RunContext, f, per_pose, joint, todo) -> list[str]:
     return out
 
 
-def _total_summary(ctx: RunContext, per_pose, joint, todo) -> None:
+def _total_summary(per_pose, joint, todo) -> list[str]:
     """The number the mission is about: the total per pose and jointly, with its spread."""
     tot = np.array([np.nansum(r.power) for r, _ in per_pose])
     well = np.array([np.nansum(np.where(r.well_observed, r.power, 0.0)) for r, _ in per_pose])
-    for (r, _), (_, pt), t, w in zip(per_pose, todo, tot, well):
-        ctx.say(f"total flux, pose {pt.pose.label}: {t:.4g} photons over observed elements "
-                f"({w:.4g} over well-observed)")
+    lines = [f"total flux, pose {pt.pose.label}: {t:.4g} photons over observed elements ({w:.4g} over well-observed)"
+             for (_, pt), t, w in zip(todo, tot, well)]
     if len(tot) > 1:
         spread = (tot.max() - tot.min()) / tot.mean() if tot.mean() > 0 else np.nan
-        ctx.say(f"total flux over {len(tot)} poses: mean {tot.mean():.4g} photons, spread (max-min)/mean {spread:.1%}")
+        lines.append(f"total flux over {len(tot)} poses: mean {tot.mean():.4g} photons, spread (max-min)/mean "
+                     f"{spread:.1%}, sd/mean {tot.std(ddof=1) / tot.mean():.1%}")
     if joint is not None:
-        ctx.say(f"total flux, all poses jointly: {np.nansum(joint.power):.4g} photons over observed elements "
-                f"({np.nansum(np.where(joint.well_observed, joint.power, 0.0)):.4g} over well-observed)")
+        lines.append(f"total flux, all poses jointly: {np.nansum(joint.power):.4g} photons over observed elements "
+                     f"({np.nansum(np.where(joint.well_observed, joint.power, 0.0)):.4g} over well-observed)")
+    return lines
 
 
 # ------------------------------------------------------------------ the study sweep

@@ -147,6 +147,11 @@ def source_positions(flux: C.DiffusionFlux, surface: Surface) -> np.ndarray:
     return np.array(out)
 
 
+def tetmesh_key(surface: Surface, mesh_edge_mm: float) -> str:
+    """Content address of the tetrahedral mesh of ``surface`` (cache and shipped meshes)."""
+    return A.cache_key({"surface": surface.digest(), "edge_length_mm": A.canonical(mesh_edge_mm), "mesher": "ftetwild-1"})
+
+
 def _diffusion_truth(flux: C.DiffusionFlux, surface: Surface, mesh_cache: Path, fine: Surface | None = None,
                      shipped: Path | None = None) -> tuple[np.ndarray, dict]:
     """Power per face of ``fine`` (default: per element of ``surface``) from the diffusion
@@ -160,7 +165,7 @@ def _diffusion_truth(flux: C.DiffusionFlux, surface: Surface, mesh_cache: Path, 
     pos = source_positions(flux, surface)
     # fTetWild is not deterministic: the tetrahedral mesh is cached by content so that the
     # same config gives the same bytes
-    key = A.cache_key({"surface": surface.digest(), "edge_length_mm": A.canonical(flux.mesh_edge_mm), "mesher": "ftetwild-1"})
+    key = tetmesh_key(surface, flux.mesh_edge_mm)
     path = mesh_cache / f"{key}.h5"
     if shipped is not None and (shipped / f"{key}.h5").is_file():
         path = shipped / f"{key}.h5"
@@ -299,7 +304,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         ig.attrs["seed"] = sim.noise.seed
         ig.attrs["exposure_s"] = sim.noise.exposure_s
         f.attrs["transfer_fwd"] = json.dumps(tr_fwd.model_dump(mode="json"))
-        f.attrs["transfer_fwd_cache"] = str(cache_dir(cfg))
+        f.attrs["transfer_fwd_cache"] = A.portable_path(cache_dir(cfg), out.parent)
         f.attrs["truth_seconds"] = truth_seconds
     if sim.export.format != "none":
         export_images(cfg, out.parent / "images", noisy, counts, todo, lv)
