@@ -182,3 +182,33 @@ def test_methods_come_from_a_registry():
     T, adj, lengths, centres = ring()
     with pytest.raises(ValueError, match="unknown options"):
         reconstruct(T, np.ones(T.shape[0]), method="paper", n_iter=3)
+
+
+def test_reconstruct_stage_reports_classes_totals_and_warnings(write_config, minimal_config, tmp_path):
+    """Through the CLI: the artefact holds the observation classes, totals over well-observed
+    and observed elements and the warnings; the console ends with the totals per pose, their
+    spread and the joint total (also when the artefact is up to date)."""
+    import h5py
+    from typer.testing import CliRunner
+
+    from conftest import cylinder_sim_config
+    from fluxcli.cli import app
+
+    p = write_config(cylinder_sim_config(minimal_config))
+    runner = CliRunner()
+    assert runner.invoke(app, ["simulate", str(p), "--quiet"]).exit_code == 0
+    r = runner.invoke(app, ["reconstruct", str(p)])
+    assert r.exit_code == 0, r.output
+    assert "total flux, pose" in r.output and "spread" in r.output and "jointly" in r.output
+    with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
+        cls = f["flux/observation"][()]
+        observed, well = f["flux/observed"][()], f["flux/well_observed"][()]
+        assert np.array_equal(observed, cls > 0) and np.array_equal(well, cls == 2)
+        power = f["flux/power"][()]
+        assert f["flux/total_well_observed"][()] == pytest.approx(np.nansum(power[well]))
+        assert f["flux/total"][()] == pytest.approx(np.nansum(power[observed]))
+        assert "warnings" in f and np.isfinite(f["per_pose/chi2_per_pixel"][()]).all()
+        truth = f["truth/power"][()]
+        assert abs(np.nansum(power[observed]) / truth[observed].sum() - 1) < 0.1
+    again = runner.invoke(app, ["reconstruct", str(p)])
+    assert "up to date" in again.output and "total flux, all poses jointly" in again.output
