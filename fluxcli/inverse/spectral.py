@@ -207,7 +207,9 @@ def _pick(spec, rule, k, grid, gamma, tau, noise_total) -> Choice:
             d = m - gamma * tr
             return np.where(d > 0, m * r / np.where(d > 0, d, 1.0) ** 2, np.inf)
 
-        crit = np.where(m - gamma * dof > 0, m * rho / np.maximum(m - gamma * dof, 1e-300) ** 2, np.inf)
+        d = m - gamma * dof
+        crit = np.full(grid.size, np.inf)
+        crit[d > 0] = m * rho[d > 0] / d[d > 0] ** 2  # no degrees of freedom left: not a candidate
         i = int(np.argmin(crit))
         lam, at_edge = grid[i], i in (0, n - 1)
         if not at_edge:
