@@ -51,6 +51,18 @@ def _fail(message: str) -> None:
     raise typer.Exit(2)
 
 
+# What each stage needs from the config beyond its own defaults; a missing key is exit 2 naming it.
+_GEOMETRY = ("system", "system.camera.lens", "system.camera.pose", "subject")
+STAGE_REQUIRES: dict[str, tuple[str, ...]] = {
+    "build-T": _GEOMETRY,
+    "simulate": _GEOMETRY + ("simulate",),
+    "reconstruct": _GEOMETRY,
+    "report": _GEOMETRY,
+    "calibrate": ("system", "system.camera", "calibrate"),
+    "capture-surface": ("rig", "capture"),
+}
+
+
 class Terminated(BaseException):
     """SIGTERM: unwind like Ctrl-C (temporary files removed, workers killed), exit 143."""
 
@@ -88,9 +100,14 @@ def _guard(body: Callable[[], None]) -> None:
         _fail("out of memory: the problem is larger than this machine can hold; use fewer pixels "
               "(system.camera.pixels), fewer elements (subject.surface) or fewer poses (subject.poses).")
     except OSError as e:
-        if getattr(e, "filename", None) is None:
-            _bug()
-        _fail(f"cannot use {e.filename}: {e.strerror or e} (check the path, its permissions and the free space).")
+        import errno
+
+        if getattr(e, "filename", None) is not None:
+            _fail(f"cannot use {e.filename}: {e.strerror or e} (check the path, its permissions and the free space).")
+        if e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS):
+            _fail(f"{e.strerror or e}: the workdir or the T cache (transfer.cache_dir) cannot take the file being "
+                  "written; free some space or choose another folder.")
+        _bug()
     except KeyboardInterrupt:
         typer.echo("fluxmap: interrupted; artefacts already written are complete, partial ones were discarded.", err=True)
         raise typer.Exit(130)
@@ -114,12 +131,15 @@ def _bug() -> None:
     raise typer.Exit(1)
 
 
-def _run(stage: Callable, config: Path, overrides: Optional[List[str]], force: bool, jobs: int, quiet: bool) -> None:
+def _run(name: str, stage: Callable, config: Path, overrides: Optional[List[str]], force: bool, jobs: int,
+         quiet: bool) -> None:
     def body() -> None:
-        from .config import load_config
+        from .config import load_config, require
         from .stages.context import RunContext
 
         cfg = load_config(config, overrides or [])
+        if not getattr(stage, "not_built", False):
+            require(cfg, name, STAGE_REQUIRES.get(name, ()))
         ctx = RunContext(force=force, jobs=jobs, quiet=quiet, overrides=tuple(overrides or ()))
         out = stage(cfg, ctx)
         if not quiet and out is not None:
@@ -132,69 +152,45 @@ def _not_built(name: str, issue: str) -> Callable:
     def stage(cfg, ctx):
         raise UserError(f"the '{name}' stage is not built yet in fluxmap {__version__} ({issue}); "
                         f"config {cfg.path} was read and is valid.")
+    stage.not_built = True  # type: ignore[attr-defined]
     return stage
 
 
-@app.command("build-T")
-def build_T(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, force: bool = ForceOpt,
-            jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
-    """Compute the transfer matrix T of each pose (cached by content).
+def _stage_command(name: str, module: str | None, doc: str) -> None:
+    """Register ``fluxmap <name> CONFIG`` running ``fluxcli.stages.<module>.run`` (one lifecycle for all)."""
+
+    def command(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, force: bool = ForceOpt,
+                jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
+        if module is None:
+            stage = _not_built(name, "not built yet")
+        else:
+            import importlib
+
+            stage = importlib.import_module(f".stages.{module}", __package__).run
+        _run(name, stage, config, set_, force, jobs, quiet)
+
+    command.__doc__ = doc
+    app.command(name)(command)
+
+
+_stage_command("build-T", "build_t", """Compute the transfer matrix T of each pose (cached by content).
 
     $ fluxmap build-T configs/paper-3d.yaml --jobs 2
-    """
-    from .stages import build_t
-
-    _run(build_t.run, config, set_, force, jobs, quiet)
-
-
-@app.command("simulate")
-def simulate(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, force: bool = ForceOpt,
-             jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
-    """Make ground-truth surface fluxes and realistic camera images.
+    """)
+_stage_command("simulate", "simulate", """Make ground-truth surface fluxes and realistic camera images.
 
     $ fluxmap simulate configs/paper-2d.yaml
-    """
-    from .stages import simulate as stage
-
-    _run(stage.run, config, set_, force, jobs, quiet)
-
-
-@app.command("reconstruct")
-def reconstruct(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, force: bool = ForceOpt,
-                jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
-    """Invert images into surface flux (photons per element).
+    """)
+_stage_command("reconstruct", "reconstruct", """Invert images into surface flux (photons per element).
 
     $ fluxmap reconstruct configs/paper-2d.yaml --jobs 2
-    """
-    from .stages import reconstruct as stage
-
-    _run(stage.run, config, set_, force, jobs, quiet)
-
-
-@app.command("report")
-def report(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, force: bool = ForceOpt,
-           jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
-    """Figures, summary.json and a self-contained HTML page, from the artefacts.
+    """)
+_stage_command("report", "report", """Figures, summary.json and a self-contained HTML page, from the artefacts.
 
     $ fluxmap report configs/paper-3d.yaml
-    """
-    from .stages import report as stage
-
-    _run(stage.run, config, set_, force, jobs, quiet)
-
-
-@app.command("calibrate")
-def calibrate(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, force: bool = ForceOpt,
-              jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
-    """Derive the camera model from grid images."""
-    _run(_not_built("calibrate", "no issue yet"), config, set_, force, jobs, quiet)
-
-
-@app.command("capture-surface")
-def capture_surface(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, force: bool = ForceOpt,
-                    jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
-    """Drive the rig (or its simulator) and capture the surface and images."""
-    _run(_not_built("capture-surface", "no issue yet"), config, set_, force, jobs, quiet)
+    """)
+_stage_command("calibrate", None, """(Not built yet.) Derive the camera model from grid images.""")
+_stage_command("capture-surface", None, """(Not built yet.) Drive the rig (or its simulator) and capture the surface and images.""")
 
 
 @app.command("info")

@@ -88,8 +88,8 @@ class Sensor(Model):
 class Camera(Model):
     pixels: tuple[int, int] = Field(description="Sensor size [nx, ny] in (binned) pixels: columns, rows.")
     pixel_pitch_mm: float = Field(gt=0, description="(Binned) pixel pitch on the detector (mm).")
-    lens: Lens
-    pose: CameraPose
+    lens: Lens | None = Field(None, description="The thin lens (required by every stage but calibrate, which derives it).")
+    pose: CameraPose | None = Field(None, description="Where the camera is and where it looks (required by every stage but calibrate).")
     apertures: tuple[Aperture, ...] = Field((), description="Extra circular apertures in front of the lens (the beta term).")
     sensor: Sensor = Field(Sensor(), description="Detector model used to turn photons into counts.")
 
@@ -185,8 +185,8 @@ class RotationAxis(Model):
 
 
 class Poses(Model):
-    heights_mm: tuple[float, ...] = Field((0.0,), description="Stage heights h (mm).")
-    rotations_deg: tuple[float, ...] = Field((0.0,), description="Rotations about the subject axis (deg).")
+    heights_mm: tuple[float, ...] = Field((0.0,), min_length=1, description="Stage heights h (mm).")
+    rotations_deg: tuple[float, ...] = Field((0.0,), min_length=1, description="Rotations about the subject axis (deg).")
 
 
 class Subject(Model):
@@ -326,6 +326,17 @@ class MethodSettings(Model):
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
 
+    @field_validator("lam")
+    @classmethod
+    def _lam(cls, v):
+        return _check_lambda(v)
+
+
+def _check_lambda(v):
+    if v != "auto" and not (math.isfinite(v) and v >= 0):
+        raise ValueError("lambda must be 'auto' or a finite number >= 0")
+    return v
+
 
 class ImageFiles(Model):
     files: tuple[Path, ...] = Field(description="One image file per pose (TIFF/FITS/EXR), in subject.poses order.")
@@ -334,7 +345,7 @@ class ImageFiles(Model):
 
 
 class Sweep(Model):
-    methods: tuple[MethodSettings, ...] = Field(description="Methods compared in the study.")
+    methods: tuple[MethodSettings, ...] = Field(min_length=1, description="Methods compared in the study.")
     levels: tuple[int, ...] | None = Field(None, description="Signal-level indices (default all).")
     repeats: int | None = Field(None, ge=1, description="Repeats per cell (default all).")
 
@@ -363,6 +374,11 @@ class Reconstruct(Model):
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
 
+    @field_validator("lam")
+    @classmethod
+    def _lam(cls, v):
+        return _check_lambda(v)
+
     def settings(self) -> MethodSettings:
         return MethodSettings(method=self.method, lam=self.lam, lambda_rule=self.lambda_rule,
                               max_iter=self.max_iter, tol=self.tol, n_iter=self.n_iter, unknowns=self.unknowns)
@@ -378,8 +394,10 @@ class ReportSettings(Model):
 # --------------------------------------------------------------------------- top level
 class Config(Model):
     workdir: Path | None = Field(None, description="Output folder (default runs/<config name>), relative to the config file.")
-    system: System
-    subject: Subject
+    # Optional at schema level: each stage states what it needs (fluxcli.cli.STAGE_REQUIRES), so
+    # `calibrate` runs without a lens or subject and `rig serve` with only `rig`.
+    system: System | None = None
+    subject: Subject | None = None
     transfer: Transfer = Transfer()
     # Sections of stages that validate their own keys when they are built.
     simulate: Simulate | None = None
@@ -387,6 +405,7 @@ class Config(Model):
     report: ReportSettings = ReportSettings()
     calibrate: dict[str, Any] | None = None
     capture: dict[str, Any] | None = None
+    rig: dict[str, Any] | None = None
 
 
 class LoadedConfig:
@@ -415,6 +434,22 @@ class LoadedConfig:
         return hashlib.sha256(yaml.safe_dump(self.raw, sort_keys=True).encode()).hexdigest()
 
 
+def _yaml_problem(e: yaml.YAMLError) -> str:
+    """One line: what is wrong and where (line, column), without YAML's source excerpt."""
+    problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+    mark = getattr(e, "problem_mark", None)
+    return f"{problem} at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else problem
+
+
+def _override_value(item: str, value: str) -> Any:
+    try:
+        return yaml.load(value, Loader=_UniqueKeyLoader)
+    except yaml.YAMLError as e:
+        why = _yaml_problem(e)
+        raise UserError(f"--set {item!r}: the value {value!r} is not valid YAML ({why}); quote lists and "
+                        "mappings for the shell, e.g. --set 'subject.poses.heights_mm=[0, 10]'.") from None
+
+
 def _apply_override(raw: dict[str, Any], item: str) -> None:
     """Apply ``dotted.key=value`` (list items by index: ``system.mirrors.0.reflectance=0.9``)."""
     if "=" not in item:
@@ -429,12 +464,12 @@ def _apply_override(raw: dict[str, Any], item: str) -> None:
             if not part.isdigit() or int(part) >= len(node):
                 raise UserError(f"--set {item!r}: {where} is a list of {len(node)} item(s); {part!r} is not an index in it.")
             if last:
-                node[int(part)] = yaml.safe_load(value)
+                node[int(part)] = _override_value(item, value)
             else:
                 node = node[int(part)]
         elif isinstance(node, dict):
             if last:
-                node[part] = yaml.safe_load(value)
+                node[part] = _override_value(item, value)
             else:
                 if node.get(part) is None:
                     node[part] = {}
@@ -443,9 +478,28 @@ def _apply_override(raw: dict[str, Any], item: str) -> None:
             raise UserError(f"--set {item!r}: {where} is a value, not a section, so it has no key {part!r}.")
 
 
-def _format_validation_error(err: ValidationError, path: Path) -> str:
+# union members of subject.surface, by the key that selects each
+_SURFACE_MEMBERS = {"phantom": ("MeshSurface", "ArtefactSurface"), "mesh": ("ArtefactSurface", "tagged-union"),
+                    "artefact": ("MeshSurface", "tagged-union")}
+
+
+def _relevant(errors: list, raw: Any) -> list:
+    """Drop errors from union members the user did not choose (a phantom with a bad radius
+    is not also 'missing its mesh key')."""
+    surf = raw.get("subject", {}).get("surface") if isinstance(raw, dict) and isinstance(raw.get("subject"), dict) else None
+    if not isinstance(surf, dict):
+        return errors
+    for key, others in _SURFACE_MEMBERS.items():
+        if key in surf:
+            kept = [e for e in errors if not any(isinstance(x, str) and x.startswith(others) for x in e["loc"])]
+            return kept or errors
+    return errors
+
+
+def _format_validation_error(err: ValidationError, path: Path, raw: Any = None) -> str:
     lines = []
-    for e in err.errors()[:6]:
+    errors = _relevant(err.errors(), raw)
+    for e in errors[:6]:
         loc = ".".join(str(x) for x in e["loc"] if not (isinstance(x, str) and x in _UNION_TAGS))
         if e["type"] == "extra_forbidden":
             msg = "unknown key (check its spelling against the README's config reference)"
@@ -454,7 +508,7 @@ def _format_validation_error(err: ValidationError, path: Path) -> str:
         else:
             msg = e["msg"].removeprefix("Value error, ")
         lines.append(f"'{loc}': {msg}" if loc else msg)
-    more = "" if len(err.errors()) <= 6 else f" (and {len(err.errors()) - 6} more)"
+    more = "" if len(errors) <= 6 else f" (and {len(errors) - 6} more)"
     return f"config {path}: " + "; ".join(lines) + more + "."
 
 
@@ -464,25 +518,94 @@ _UNION_TAGS = {"cylinder", "ring", "sphere", "patch", "MeshSurface", "ArtefactSu
                "function-after[_check(), Lens]", "tagged-union[CylinderPhantom,RingPhantom,SpherePhantom,PatchPhantom]"}
 
 
+def _camera_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
+    """Resolve ``system.camera`` given as a file (what ``calibrate`` writes as camera.yaml).
+
+    ``system.camera: calib/camera.yaml`` takes the file's top-level ``camera:`` block;
+    ``system.camera: {file: calib/camera.yaml, <key>: ...}`` does too, and the keys given beside
+    ``file`` replace the file's (sections are merged key by key)."""
+    system = raw.get("system")
+    if not isinstance(system, dict):
+        return
+    cam = system.get("camera")
+    if isinstance(cam, str):
+        ref, overrides = cam, {}
+    elif isinstance(cam, dict) and "file" in cam:
+        ref, overrides = cam["file"], {k: v for k, v in cam.items() if k != "file"}
+    else:
+        return
+    if not isinstance(ref, str) or not ref:
+        raise UserError(f"config {path}: 'system.camera.file' must be the path of a camera YAML file.")
+    file = Path(ref) if Path(ref).is_absolute() else (base_dir / ref).resolve()
+    if not file.is_file():
+        raise UserError(f"config {path}: 'system.camera': camera file {file} does not exist "
+                        f"(run `fluxmap calibrate` to make one, or give the camera block inline).")
+    try:
+        loaded = yaml.load(file.read_text(), Loader=_UniqueKeyLoader)
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise UserError(f"config {path}: 'system.camera': camera file {file} is not valid YAML: {e}".replace("\n", " ")) from None
+    if not isinstance(loaded, dict) or not isinstance(loaded.get("camera"), dict):
+        raise UserError(f"config {path}: 'system.camera': camera file {file} has no top-level 'camera:' block.")
+    system["camera"] = _merge(loaded["camera"], overrides)
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """safe_load that refuses a key given twice in one mapping (YAML keeps the last silently)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                hashable = key in seen
+            except TypeError:
+                continue
+            if hashable:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"duplicate key {key!r} (given twice in one section)", key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+def require(cfg: "LoadedConfig", stage: str, keys: tuple[str, ...] | list[str]) -> None:
+    """Refuse (exit 2) when a section the stage needs is absent, naming the first such key."""
+    for key in keys:
+        node: Any = cfg.model
+        for part in key.split("."):
+            node = getattr(node, part, None)
+            if node is None:
+                raise UserError(f"config {cfg.path}: '{stage}' needs '{key}', which the config does not give.")
+
+
 def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -> LoadedConfig:
     """Read, override and validate a config; raise UserError with one clear paragraph."""
     path = Path(path)
     if not path.is_file():
         raise UserError(f"config file {path} does not exist.")
     try:
-        raw = yaml.safe_load(path.read_text())
+        raw = yaml.load(path.read_text(), Loader=_UniqueKeyLoader)
     except yaml.YAMLError as e:
-        raise UserError(f"config file {path} is not valid YAML: {e}".replace("\n", " ")) from None
+        raise UserError(f"config file {path} is not valid YAML: {_yaml_problem(e)}.") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise UserError(f"config file {path} cannot be read: {e}.") from None
     if not isinstance(raw, dict):
         raise UserError(f"config file {path} must hold a mapping of keys (workdir, system, subject, ...).")
+    _camera_from_file(raw, path.resolve().parent, path)
     for item in overrides:
         _apply_override(raw, item)
     try:
         model = Config.model_validate(raw)
     except ValidationError as e:
-        raise UserError(_format_validation_error(e, path)) from None
+        raise UserError(_format_validation_error(e, path, raw)) from None
     loaded = LoadedConfig(model, path.resolve(), raw)
-    surf = model.subject.surface
+    surf = model.subject.surface if model.subject is not None else None
     for attr in ("mesh", "artefact"):
         p = getattr(surf, attr, None)
         if p is not None and not loaded.resolve(p).is_file():

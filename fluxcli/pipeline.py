@@ -6,6 +6,7 @@ Stages import this module, never each other.
 
 from __future__ import annotations
 
+import os
 import time
 from concurrent.futures import as_completed
 from dataclasses import dataclass
@@ -34,6 +35,69 @@ class PoseT:
     path: Path
 
 
+# ------------------------------------------------------------------ before any compute
+def check_writable(folder: Path, key: str) -> None:
+    """Make sure ``folder`` exists (creating it) and a file can be written in it; the
+    message names the config key that chose it."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise UserError(f"{key}: {folder} is a file, not a folder; choose another path.") from None
+    except OSError as e:
+        raise UserError(f"{key}: cannot create the folder {folder} ({e.strerror or e}); "
+                        "choose a path you can write to.") from None
+    if not folder.is_dir():
+        raise UserError(f"{key}: {folder} is not a folder; choose another path.")
+    probe = folder / f".fluxmap-write-test.{os.getpid()}"
+    try:
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise UserError(f"{key}: cannot write in {folder} ({e.strerror or e}); choose a folder you can "
+                        "write to, or fix its permissions.") from None
+
+
+def check_folders(cfg: LoadedConfig, *, cache: bool = True) -> None:
+    """The workdir (and the T cache) must be writable before a stage computes anything."""
+    check_writable(cfg.workdir, "workdir")
+    if cache:
+        check_writable(cache_dir(cfg), "transfer.cache_dir" if cfg.model.transfer.cache_dir else "workdir")
+
+
+# ------------------------------------------------------------------ sizes, before allocating
+def available_memory_bytes() -> int:
+    """Memory the OS says can be allocated now (MemAvailable), else the physical memory."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return 1 << 62
+
+
+def _gb(n: float) -> str:
+    return f"{n / 1e9:.3g} GB" if n >= 1e8 else f"{n / 1e6:.3g} MB"
+
+
+def check_memory(need_bytes: float, what: str, keys: str) -> None:
+    """Refuse work whose estimated memory exceeds what is available, naming the keys to change."""
+    avail = available_memory_bytes()
+    if need_bytes > 0.8 * avail:
+        raise UserError(f"{what} would need about {_gb(need_bytes)} of memory; {_gb(avail)} is available. "
+                        f"Reduce {keys}.")
+
+
+def transfer_bytes(n_pixels: int, n_views: int, n_elements: int) -> float:
+    """Rough peak memory of building one pose's T: CSR row pointers per view and combined,
+    the pending COO pieces, and per-element sampling arrays."""
+    return 8.0 * n_pixels * (2 * n_views + 4) + 2000.0 * n_elements
+
+
 # ------------------------------------------------------------------ provenance
 def geometry_of(cfg: LoadedConfig, surface_sha256: str | None = None) -> dict:
     """The set-up an artefact is made for: system (camera, lens, sensor, apertures, mirrors,
@@ -49,6 +113,17 @@ def geometry_of(cfg: LoadedConfig, surface_sha256: str | None = None) -> dict:
 def provenance(cfg: LoadedConfig, surface_sha256: str | None = None) -> A.Provenance:
     return A.Provenance(config=cfg.model.model_dump(mode="json", by_alias=True),
                         geometry=geometry_of(cfg, surface_sha256))
+
+
+def announce(ctx, placer: SubjectPlacer) -> None:
+    """Say what a mesh file yielded, and warn about what was repaired in it (once per run)."""
+    for k, note in enumerate(placer.notes):
+        if k == 0:
+            if note not in ctx.warned:
+                ctx.warned.add(note)
+                ctx.say(note)
+        else:
+            ctx.warn(note)
 
 
 # ------------------------------------------------------------------ the sensor
@@ -147,6 +222,13 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
     nnz, efficiency per view)."""
     tr = transfer or cfg.model.transfer
     views, placer, todo = plan(cfg, tr, unknowns)
+    announce(ctx, placer)
+    nx, ny = cfg.model.system.camera.pixels
+    n_el = todo[0][0].surface.n_elements if todo else 0
+    check_memory(transfer_bytes(nx * ny, len(views), n_el) * max(1, min(ctx.jobs, len(todo))),
+                 f"building T ({nx} x {ny} pixels, {len(views)} view(s), {n_el} elements"
+                 + (f", {ctx.jobs} jobs)" if ctx.jobs > 1 else ")"),
+                 "system.camera.pixels (bin the sensor), the elements of subject.surface, or --jobs")
     names = [v.name for v in views]
     results: dict[str, dict] = {}
     need, seen = [], set()

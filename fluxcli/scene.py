@@ -19,7 +19,7 @@ from .errors import UserError
 from .optics.camera import Aperture, PlaneMirror, ThinLensCamera
 from .optics.transfer import View, views_for
 from .surface import phantoms
-from .surface.mesh import Surface, box, read_mesh, rectangle
+from .surface.mesh import Surface, box, read_mesh_checked, rectangle, validated
 
 
 @dataclass(frozen=True)
@@ -89,6 +89,7 @@ class SubjectPlacer:
         s = model.subject.surface
         self.stage = model.system.stage
         self.rests_on_stage = isinstance(s, (C.CylinderPhantom, C.RingPhantom, C.SpherePhantom))
+        self.notes: list[str] = []  # what a mesh file yielded and what was repaired in it
         if isinstance(s, C.CylinderPhantom):
             surf, point, axis = phantoms.cylinder(radius_mm=s.radius_mm, length_mm=s.length_mm, n_angular=s.n_angular,
                                                   n_axial=s.n_axial, cap_elements=s.cap_elements)
@@ -102,7 +103,7 @@ class SubjectPlacer:
         elif isinstance(s, C.MeshSurface):
             path = cfg.resolve(s.mesh)
             try:
-                surf = read_mesh(path, scale_to_mm=s.scale_to_mm)
+                surf, self.notes = read_mesh_checked(path, scale_to_mm=s.scale_to_mm)
             except ValueError as e:
                 raise UserError(f"subject.surface.mesh: {e}.") from None
             lo, hi = surf.bounds_mm()
@@ -117,6 +118,11 @@ class SubjectPlacer:
                     surf = read_surface(f["surface"])
             except (OSError, KeyError) as e:
                 raise UserError(f"subject.surface.artefact: {path} holds no readable /surface group ({e}).") from None
+            try:
+                surf, self.notes = validated(surf.vertices_mm, surf.faces, surf.element_of_face, surf.n_elements,
+                                             name=str(path), element_ids=surf.element_ids)
+            except ValueError as e:
+                raise UserError(f"subject.surface.artefact: {e}.") from None
             lo, hi = surf.bounds_mm()
             point, axis = (lo + hi) / 2, np.array([1.0, 0, 0])
         if surf.n_elements == 0:

@@ -10,6 +10,7 @@ import sys
 import h5py
 import numpy as np
 import pytest
+import yaml
 from typer.testing import CliRunner
 
 from fluxcli.cli import app
@@ -159,3 +160,37 @@ def test_real_process_exit_code_and_no_traceback(tmp_path):
                        capture_output=True, text=True)
     assert r.returncode == 2
     assert "Traceback" not in r.stderr and "does not exist" in " ".join(r.stderr.split())
+
+
+# ------------------------------------------------------------------ optional sections, camera from a file
+def test_stage_names_the_section_it_needs(write_config, minimal_config):
+    cfg = {"workdir": "run", "system": {"camera": {"pixels": [8, 8], "pixel_pitch_mm": 0.1}}}
+    assert_user_error(run("build-T", write_config(cfg)), "build-T", "system.camera.lens")
+    cfg = dict(minimal_config)
+    cfg.pop("subject")
+    assert_user_error(run("reconstruct", write_config(cfg)), "reconstruct", "subject")
+
+
+def test_camera_from_a_file_in_one_line(write_config, minimal_config, tmp_path):
+    from fluxcli.config import load_config
+
+    cam = minimal_config["system"]["camera"]
+    (tmp_path / "calib").mkdir()
+    (tmp_path / "calib" / "camera.yaml").write_text(yaml.safe_dump({"camera": cam}))
+    inline = load_config(write_config(minimal_config, "inline.yaml"))
+    cfg = dict(minimal_config, system=dict(minimal_config["system"], camera="calib/camera.yaml"))
+    by_file = load_config(write_config(cfg, "byfile.yaml"))
+    assert by_file.model.system.camera == inline.model.system.camera
+    assert by_file.sha256 == load_config(write_config(cfg, "byfile2.yaml")).sha256
+    # keys beside `file` override the file's, section by section
+    cfg["system"]["camera"] = {"file": "calib/camera.yaml", "lens": {"f_number": 4.0}}
+    over = load_config(write_config(cfg, "over.yaml")).model.system.camera
+    assert over.lens.f_number == 4.0
+    assert over.lens.focal_length_mm == inline.model.system.camera.lens.focal_length_mm
+    cfg["system"]["camera"] = "calib/nope.yaml"
+    assert_user_error(run("build-T", write_config(cfg, "missing.yaml")), "system.camera", "nope.yaml")
+
+
+def test_duplicate_yaml_keys_are_refused(write_config):
+    text = "workdir: a\nworkdir: b\nsystem: {}\n"
+    assert_user_error(run("build-T", write_config(text)), "duplicate key", "workdir")

@@ -52,7 +52,7 @@ def _config(tmp_path: Path, minimal_config: dict, workdir: str) -> Path:
     cfg = cylinder_sim_config(minimal_config)
     cfg["workdir"] = workdir
     cfg["system"]["camera"]["pixels"] = [64, 64]
-    cfg["subject"]["poses"] = {"heights_mm": [0, 2, 4]}
+    cfg["subject"]["poses"] = {"heights_mm": [0, 2, 4, 6]}
     cfg["transfer"] = {"lens": {"surface_samples_per_pixel": 4, "lens_samples_min": 96}}
     p = tmp_path / f"{workdir}.yaml"
     p.write_text(yaml.safe_dump(cfg))
@@ -104,7 +104,7 @@ def test_SIGKILLed_build_T_leaves_no_workers_no_temp_files_and_a_rerun_gives_the
     assert not [p for p in cache.iterdir() if ".tmp" in p.name], list(cache.iterdir())
     ref = sorted((tmp_path / "clean" / "cache" / "T").glob("*.h5"))
     got = sorted(cache.glob("*.h5"))
-    assert [p.name for p in ref] == [p.name for p in got] and len(got) == 3
+    assert [p.name for p in ref] == [p.name for p in got] and len(got) == 4
     for a, b in zip(ref, got):
         Ta, Tb = load_T(a), load_T(b)
         assert Ta.shape == Tb.shape and (Ta != Tb).nnz == 0
@@ -116,7 +116,7 @@ def test_SIGTERM_and_ctrl_c_stop_build_T_within_2_s_and_kill_the_workers(tmp_pat
     cache = tmp_path / "run" / "cache" / "T"
     proc, workers, seconds = _start_and_signal(cfg, cache, sig, group=group)
     err = proc.stderr.read()
-    assert proc.returncode == code, err
+    assert proc.returncode == code, f"exit {proc.returncode} after {seconds:.2f} s: {err}"
     assert seconds < 2.0, f"took {seconds:.1f} s to stop"
     assert "Traceback" not in err and ("stopping" in err if sig == signal.SIGINT else "terminated" in err)
     assert not _wait_gone(workers, 3.0)

@@ -9,7 +9,7 @@ import h5py
 
 from ..errors import UserError
 from .kinds import KINDS, SCHEMA_VERSIONS
-from .store import read_provenance
+from .store import _show, canonical, read_provenance
 
 _SET_UP_KEYS = ("system.camera.pixels", "system.camera.pixel_pitch_mm", "system.camera.lens.focal_length_mm",
                 "system.camera.lens.f_number", "system.camera.lens.aperture_diameter_mm",
@@ -51,7 +51,7 @@ def describe(path: Path | str) -> str:
             for key in _SET_UP_KEYS:
                 v = _get(prov.geometry, key)
                 if v is not None:
-                    lines.append(f"    {key}: {v}")
+                    lines.append(f"    {key}: {_show(canonical(v))}")
             surf = _get(prov.geometry, "subject.surface")
             if isinstance(surf, dict):
                 lines.append(f"    subject.surface: {json.dumps(surf)}")

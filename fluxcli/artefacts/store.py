@@ -82,18 +82,23 @@ def _show(v: Any) -> str:
     if isinstance(v, float) and v == int(v) and abs(v) < 1e15:
         return f"{v:g}"
     if isinstance(v, list):
+        if not v:
+            return "none"
+        if any(isinstance(x, (dict, list)) for x in v):
+            return f"{len(v)} item(s)" if v else "none"
         return "[" + ", ".join(_show(x) for x in v) + "]"
     return str(v)
 
 
-def geometry_differences(stored: dict, now: dict) -> list[str]:
-    """Dotted keys whose values differ: ``"key: OLD in the artefact, NEW now"`` pieces."""
+def geometry_differences(stored: dict, now: dict, name: str = "the artefact") -> list[str]:
+    """Dotted keys whose values differ: ``"key: OLD in NAME, NEW now"`` pieces."""
     a, b = _flatten(canonical(stored)), _flatten(canonical(now))
     out = []
     for k in sorted(set(a) | set(b)):
         if a.get(k) != b.get(k):
             out.append((k, a.get(k), b.get(k)))
-    return [f"{k}: {_show(x)} in {{name}}, {_show(y)} now" for k, x, y in out]
+    label = {"surface_sha256": "the subject surface as built"}
+    return [f"{label.get(k, k)}: {_show(x)} in {name}, {_show(y)} now" for k, x, y in out]
 
 
 def check_geometry(path: Path, stored: Provenance, now_geometry: dict, *, remedy: str) -> None:
@@ -103,7 +108,7 @@ def check_geometry(path: Path, stored: Provenance, now_geometry: dict, *, remedy
                         f"against this config; {remedy}.")
     if canonical(stored.geometry) == canonical(now_geometry):
         return
-    diffs = [d.format(name=Path(path).name) for d in geometry_differences(stored.geometry, now_geometry)]
+    diffs = geometry_differences(stored.geometry, now_geometry, Path(path).name)
     shown = "; ".join(diffs[:6]) + (f" (and {len(diffs) - 6} more)" if len(diffs) > 6 else "")
     raise UserError(f"{path} was made for another set-up than this config describes: {shown}. {remedy}.")
 

@@ -14,11 +14,12 @@ from pathlib import Path
 from ..artefacts import transfer as AT
 from ..artefacts.transfer import load_T, read_summary  # noqa: F401  (public names of this stage's output)
 from ..config import LoadedConfig
-from ..pipeline import PoseT, cache_dir, ensure_T, key_parts, plan, provenance, summarise  # noqa: F401
+from ..pipeline import PoseT, check_folders, cache_dir, ensure_T, key_parts, plan, provenance, summarise  # noqa: F401
 from .context import RunContext
 
 
 def run(cfg: LoadedConfig, ctx: RunContext) -> Path:
+    check_folders(cfg)
     views, placer, todo = plan(cfg)  # validates the geometry before anything is printed
     ctx.say(f"build-T: {len(todo)} pose(s), {placer.surface.n_elements} elements, views "
             f"{', '.join(v.name for v in views)}, estimator {cfg.model.transfer.estimator}, cache {cache_dir(cfg)}")

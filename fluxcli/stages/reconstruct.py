@@ -15,6 +15,7 @@ are masked.  Elements no camera sees are reported as unobserved (NaN), never as 
 from __future__ import annotations
 
 import json
+import re
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -30,7 +31,7 @@ from ..imaging import noise as N
 from ..imaging.imagefiles import read_image
 from ..artefacts.transfer import load_T, load_view
 from ..inverse import backprojection, error_l1, reconstruct as solve, total_ratio
-from ..pipeline import emccd_model, ensure_T, geometry_of, plan, provenance
+from ..pipeline import check_folders, check_memory, emccd_model, ensure_T, geometry_of, plan, provenance
 from ..workers import worker_pool
 from .context import RunContext
 
@@ -55,33 +56,12 @@ def _simulation(cfg: C.LoadedConfig) -> Path:
     return path
 
 
-def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int, surface_sha256: str | None = None) -> Inputs:
+def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int, surface_sha256: str | None = None,
+                poses: list | None = None) -> Inputs:
     rc = cfg.model.reconstruct
     nx, ny = cfg.model.system.camera.pixels
     if rc.images is not None:
-        if len(rc.images.files) != n_poses:
-            raise UserError(f"reconstruct.images.files: {len(rc.images.files)} file(s) for {n_poses} pose(s).")
-        imgs, valid = [], []
-        model = None
-        if rc.images.units == "counts":
-            model = emccd_model(cfg.model.system.camera.sensor, rc.images.exposure_s)
-        for p in rc.images.files:
-            try:
-                img, _ = read_image(cfg.resolve(p))
-            except ValueError as e:
-                raise UserError(f"reconstruct.images.files: {e}") from None
-            if img.shape != (ny, nx):
-                raise UserError(f"reconstruct.images.files: {p} is {img.shape[1]} x {img.shape[0]} pixels; the "
-                                f"camera has {nx} x {ny}.")
-            ok = np.isfinite(img)
-            if model is not None:
-                ok &= ~N.saturated(img, model)
-                img = N.counts_to_photons(np.where(ok, img, 0), model)
-            imgs.append(img)
-            valid.append(ok)
-        files = {f"image pose {k}": cfg.resolve(p) for k, p in enumerate(rc.images.files)}
-        return Inputs(np.array(imgs), np.array(valid), None, "files", files=files,
-                      noise_kind="emccd" if model is not None else "poisson", exposure_s=rc.images.exposure_s)
+        return _image_files(cfg, n_poses, poses)
     path = _simulation(cfg)
     with A.open_artefact(path, "simulation") as f:
         A.check_geometry(path, A.read_provenance(f), geometry_of(cfg, surface_sha256),
@@ -109,6 +89,69 @@ def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int, surface_sha2
     return Inputs(imgs, valid, truth, f"{path} level {rc.level} " + ("noiseless" if rc.noiseless else f"repeat {rc.repeat}"),
                   snr, files={"simulation.h5": path}, noise_kind=kind if kind in N.NOISE_KINDS else "poisson",
                   exposure_s=exposure_s)
+
+
+MOSTLY_SATURATED = 0.5  # refuse an image with more than this fraction of its pixels at full scale
+
+
+def _image_files(cfg: C.LoadedConfig, n_poses: int, poses: list | None) -> Inputs:
+    """Images from files named per pose, each checked against what it claims to be."""
+    rc = cfg.model.reconstruct
+    im = rc.images
+    nx, ny = cfg.model.system.camera.pixels
+    if len(im.files) != n_poses:
+        raise UserError(f"reconstruct.images.files: {len(im.files)} file(s) for {n_poses} pose(s) "
+                        "(one file per pose, in subject.poses order: heights x rotations).")
+    model = None
+    if im.units == "counts":
+        if "sensor" not in cfg.model.system.camera.model_fields_set:
+            raise UserError("reconstruct.images.units is counts, but system.camera.sensor is not given: converting "
+                            "counts to photons needs the camera's bias, gain and quantum efficiency (give "
+                            "system.camera.sensor, or images in photons).")
+        model = emccd_model(cfg.model.system.camera.sensor, im.exposure_s)
+    imgs, valid = [], []
+    for k, p in enumerate(im.files):
+        where = f"reconstruct.images.files[{k}] ({cfg.resolve(p)})"
+        try:
+            img, meta = read_image(cfg.resolve(p))
+        except ValueError as e:
+            raise UserError(f"reconstruct.images.files[{k}]: {e}") from None
+        if img.shape != (ny, nx):
+            raise UserError(f"{where} is {img.shape[1]} x {img.shape[0]} pixels; the camera has {nx} x {ny} "
+                            "(system.camera.pixels).")
+        said = meta.get("fluxmap:units")
+        if isinstance(said, str) and said != im.units:
+            raise UserError(f"{where} holds {said} (its metadata says fluxmap:units = {said}), but "
+                            f"reconstruct.images.units is {im.units}.")
+        if poses is not None:
+            pose = poses[k]
+            for key, want in (("fluxmap:height_mm", pose.height_mm), ("fluxmap:rotation_deg", pose.rotation_deg)):
+                got = meta.get(key)
+                if isinstance(got, (int, float)) and abs(float(got) - want) > 1e-6:
+                    raise UserError(f"{where} was taken at {key.split(':')[1]} = {got:g} (its metadata), but it is "
+                                    f"listed for pose {pose.label}: reconstruct.images.files must follow "
+                                    "subject.poses (heights x rotations).")
+        finite = np.isfinite(img)
+        if not finite.any():
+            raise UserError(f"{where}: every pixel is NaN or infinite.")
+        ok = finite
+        if model is not None:
+            sat = N.saturated(np.where(finite, img, 0), model) & finite
+            if sat.sum() > MOSTLY_SATURATED * finite.sum():
+                raise UserError(f"{where}: {sat.sum() / finite.sum():.0%} of the pixels are saturated (at "
+                                f"{2 ** model.bit_depth - 1} counts); shorten the exposure or lower the EM gain.")
+            ok = finite & ~sat
+            img = N.counts_to_photons(np.where(finite, img, 0), model)
+            img = np.where(finite, img, np.nan)
+        if not np.any(img[ok] > 0):
+            raise UserError(f"{where}: no pixel holds a positive signal (all are zero or negative"
+                            + (" after the bias is subtracted" if model is not None else "") + "); a reconstruction "
+                            "from it would be zero everywhere.")
+        imgs.append(img)
+        valid.append(ok)
+    files = {f"image pose {k}": cfg.resolve(p) for k, p in enumerate(im.files)}
+    return Inputs(np.array(imgs), np.array(valid), None, "files", files=files,
+                  noise_kind="emccd" if model is not None else "poisson", exposure_s=im.exposure_s)
 
 
 def direct_roi(T_path: Path, image: np.ndarray) -> float:
@@ -193,8 +236,15 @@ def _solve(T, a, valid, m, noise, adjacency, areas, groups=None):
         else:
             kw["lam_rule"] = m.lambda_rule
         kw.update(n_iter=m.max_iter)
-    return solve(Tm, am, method=m.method, variance=noise.variance, adjacency=adjacency, areas=areas, groups=groups,
-                 **kw), keep
+    try:
+        return solve(Tm, am, method=m.method, variance=noise.variance, adjacency=adjacency, areas=areas,
+                     groups=groups, **kw), keep
+    except ValueError as e:  # say it in config keys, not the solver's parameter names
+        msg = str(e)
+        for internal, key in (("lam_rule", "reconstruct.lambda_rule"), ("lam", "reconstruct.lambda"),
+                              ("n_iter", "reconstruct.n_iter"), ("transfer matrix T", "T")):
+            msg = re.sub(rf"\b{internal}\b", key, msg)
+        raise UserError(f"reconstruct.method {m.method}: {msg}") from None
 
 
 MAX_AUTO_SUB_ELEMENTS = 4000
@@ -211,6 +261,26 @@ def resolve_unknowns(m: C.MethodSettings, surface) -> C.MethodSettings:
     n_sub = surface.unknowns()[0].n_elements
     sub = m.method == "smooth" and surface.n_elements < n_sub <= MAX_AUTO_SUB_ELEMENTS
     return m.model_copy(update={"unknowns": "sub_elements" if sub else "elements"})
+
+
+DENSE = ("paper", "tikhonov", "nnls", "weighted_lsq", "smooth")  # form T'WT (n x n) densely
+
+
+def _check_solver_size(cfg: C.LoadedConfig, ctx: RunContext, surface, n_poses: int) -> None:
+    """Dense normal matrices are n_unknowns^2: refuse before allocating, naming the keys."""
+    rc = cfg.model.reconstruct
+    methods = [resolve_unknowns(x, surface) for x in (rc.settings(), *(rc.sweep.methods if rc.sweep else ()))]
+    n_sub = {"elements": surface.n_elements}
+    if any(s.unknowns == "sub_elements" for s in methods):
+        n_sub["sub_elements"] = surface.unknowns()[0].n_elements
+    nx, ny = cfg.model.system.camera.pixels
+    need = 8.0 * nx * ny * n_poses * 8  # images, masks, fits and residuals
+    for s in methods:
+        if s.method in DENSE:
+            need = max(need, 8.0 * n_sub[s.unknowns] ** 2 * 4 * (ctx.jobs if rc.sweep else 1))
+    check_memory(need, f"reconstructing {surface.n_elements} elements ({', '.join(sorted({s.method for s in methods}))})",
+                 "the elements of subject.surface, use reconstruct.unknowns: elements, or choose "
+                 "reconstruct.method: mlem or backprojection (no dense normal matrix)")
 
 
 def describe(m: C.MethodSettings) -> str:
@@ -231,6 +301,7 @@ def _describe(m: C.MethodSettings) -> str:
 
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     rc = cfg.model.reconstruct
+    check_folders(cfg)
     out = cfg.workdir / "reconstruction.h5"
     m_ = cfg.model
     sources = ([A.file_sha256(cfg.resolve(p)) for p in rc.images.files if cfg.resolve(p).is_file()]
@@ -247,7 +318,11 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         return out
     _, placer, todo = plan(cfg)
     surface = placer.surface
-    inp = load_inputs(cfg, len(todo), surface.n_elements, surface.digest())  # checked before any T is built
+    _check_solver_size(cfg, ctx, surface, len(todo))
+    inp = load_inputs(cfg, len(todo), surface.n_elements, surface.digest(),  # checked before any T is built
+                      [pt.pose for _, pt in todo])
+    if rc.sweep is not None:
+        _check_sweep(cfg, inp)
     views, placer, todo, _ = ensure_T(cfg, replace(ctx, force=False), label="building T")
     P = len(todo)
     nx, ny = cfg.model.system.camera.pixels
@@ -345,8 +420,6 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         pp.create_dataset("chi2_per_pixel", data=[r.chi2_per_pixel for r, _ in per_pose])
         pp.create_dataset("observation", data=np.array([r.observation for r, _ in per_pose]))
         if rc.sweep is not None:
-            if inp.truth is None:
-                raise UserError("reconstruct.sweep: a sweep needs a simulation (ground truth), not image files.")
             _sweep(cfg, ctx, f.create_group("sweep"), grids, todo)
     header = ["height_mm", "rotation_deg", "total photons", "observed", "lambda"]
     if inp.truth is not None:
@@ -440,6 +513,20 @@ def _sweep_cell(sim_path: str, grids_k: dict, pose: int, level: int, repeats: in
             res, _ = run_method(T, imgs[r], valid, m, noise, adjacency, parent, n_el, areas)
             out[i, r] = error_l1(res.power, truth)
     return out
+
+
+def _check_sweep(cfg: C.LoadedConfig, inp: Inputs) -> None:
+    """Before any solving: a sweep needs the simulation's truth and levels that exist."""
+    sw = cfg.model.reconstruct.sweep
+    if inp.truth is None:
+        raise UserError("reconstruct.sweep: a sweep needs a simulation (ground truth), not image files "
+                        "(reconstruct.images).")
+    path = _simulation(cfg)
+    with A.open_artefact(path, "simulation") as f:
+        L = f["images/noisy"].shape[0]
+    bad = [li for li in (sw.levels or ()) if li >= L]
+    if bad:
+        raise UserError(f"reconstruct.sweep.levels: {path} holds {L} signal level(s) (0 to {L - 1}); asked for {bad}.")
 
 
 def _sweep(cfg: C.LoadedConfig, ctx: RunContext, g, grids: dict, todo) -> None:

@@ -18,11 +18,13 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
+
 from .. import artefacts as A
 from .. import config as C
 from .. import report as R
 from ..errors import UserError
-from ..pipeline import geometry_of
+from ..pipeline import check_writable, geometry_of
 from ..scene import SubjectPlacer
 from .context import RunContext
 
@@ -34,6 +36,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         raise UserError(f"report: {rec} does not exist; run 'fluxmap reconstruct {cfg.path}' first "
                         f"(after 'fluxmap simulate' or with reconstruct.images naming image files).")
     out_dir = cfg.workdir / "report"
+    check_writable(out_dir, "workdir")
     sim = cfg.workdir / "simulation.h5"
     inputs = {"reconstruction.h5": A.file_sha256(rec)}
     if sim.is_file():
@@ -49,6 +52,10 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
                          remedy=f"Run 'fluxmap reconstruct {cfg.path}' again")
     study = R.load(rec, simulation=sim if sim.is_file() else None)
     geometry = study.geometry
+    if geometry is None:
+        raise UserError(f"report: {rec} records no geometry (made by an older fluxmap); run "
+                        f"'fluxmap reconstruct {cfg.path} --force'.")
+    _check_slice(study, geometry, rs.slice_axial_mm)
     _remove_old_figures(out_dir)
     ctx.say(f"report: {study.n_poses} pose(s), {study.surface.n_elements} elements, method {study.method}")
     index, summary = R.make_report(study, out_dir, title=rs.title or cfg.path.stem, geometry=geometry,
@@ -62,6 +69,20 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         ctx.say(f"error {summary['error']:.2%}, total ratio {summary['total_ratio']:.3f}")
     ctx.say(f"{len(summary['figures'])} figure(s); open {index}")
     return index
+
+
+def _check_slice(study, geometry, at_mm: float) -> None:
+    """The slice must cut the subject: a plane beyond its ends would silently show the end ring."""
+    if study.is_line_detector:
+        return
+    surf = study.surface
+    axial = R.axial_positions_mm(surf.element_centroids_mm, surf.vertices_mm, np.asarray(geometry.axis_point_mm),
+                                 geometry.axis_direction)
+    lo, hi = float(axial.min()), float(axial.max())
+    size = float(np.sqrt(np.median(study.areas_mm2))) if len(study.areas_mm2) else 0.0
+    if not (lo - size <= at_mm <= hi + size):
+        raise UserError(f"report.slice_axial_mm: {at_mm:g} mm is outside the subject, whose elements lie between "
+                        f"{lo:.3g} and {hi:.3g} mm along its axis (from its centre).")
 
 
 def _previous(out_dir: Path) -> dict:

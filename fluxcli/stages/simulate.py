@@ -31,7 +31,7 @@ from ..scene import SubjectPlacer
 from ..surface.mesh import Surface
 from ..optics.transfer import ALGORITHM_VERSION
 from ..artefacts.transfer import load_T
-from ..pipeline import cache_dir, emccd_model, ensure_T, plan, provenance
+from ..pipeline import cache_dir, check_folders, check_memory, emccd_model, ensure_T, plan, provenance
 from .context import RunContext
 
 
@@ -162,6 +162,11 @@ def _diffusion_truth(flux: C.DiffusionFlux, surface: Surface, mesh_cache: Path, 
         raise UserError(f"simulate.flux: the diffusion model needs a closed subject surface; this one has "
                         f"{surface.boundary_edge_count()} open edge(s) (a ring or patch phantom, or an open mesh).")
     opt = flux.optical[flux.wavelength_nm]
+    t = surface.face_vertices_mm
+    volume = abs(float(np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6))
+    n_tets = 1.5 * volume / (flux.mesh_edge_mm ** 3 / (6 * np.sqrt(2)))  # regular tetrahedra, and some more
+    check_memory(1500.0 * n_tets, f"the diffusion model (about {n_tets:.3g} tetrahedra of {flux.mesh_edge_mm:g} mm "
+                 f"in {volume:.4g} mm^3)", "the mesh density: raise simulate.flux.mesh_edge_mm")
     pos = source_positions(flux, surface)
     # fTetWild is not deterministic: the tetrahedral mesh is cached by content so that the
     # same config gives the same bytes
@@ -228,6 +233,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     sim = cfg.model.simulate
     if sim is None:
         raise UserError(f"config {cfg.path}: 'simulate': section is missing (flux, noise, ...); see the README.")
+    check_folders(cfg)
     tr_fwd = forward_transfer(cfg)
     views, placer, todo = plan(cfg, tr_fwd, unknowns=f"refined:{truth_refinement(sim)}")
     _, _, todo_rec = plan(cfg)
@@ -259,6 +265,9 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     scale = lv / power.max()
     nx, ny = cfg.model.system.camera.pixels
     P, L, R = len(todo), len(lv), sim.noise.repeats
+    check_memory(4.0 * nx * ny * P * L * (1 + R * (1.5 if sim.noise.model == "emccd" else 1)) * 2,
+                 f"simulating {L} level(s) x {R} repeat(s) x {P} pose(s) of {nx} x {ny} pixels",
+                 "simulate.noise.peaks_photons, simulate.noise.repeats, subject.poses or system.camera.pixels")
     clean = np.zeros((L, P, ny, nx), np.float32)
     noisy = np.zeros((L, R, P, ny, nx), np.float32)
     counts = np.zeros((L, R, P, ny, nx), np.uint16) if sim.noise.model == "emccd" else None

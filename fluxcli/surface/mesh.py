@@ -203,8 +203,83 @@ def rectangle(center_mm, axis_u, axis_v, size_mm) -> Surface:
 
 
 def read_mesh(path: Path, *, scale_to_mm: float = 1.0) -> Surface:
-    """Read any mesh pyvista reads; each triangle an element unless the file has an integer
-    cell array ``element``.  Raises ValueError naming the file when it is empty or unreadable."""
+    """Read a mesh file and validate it (see :func:`read_mesh_checked`); the notes are dropped."""
+    return read_mesh_checked(path, scale_to_mm=scale_to_mm)[0]
+
+
+def read_mesh_checked(path: Path, *, scale_to_mm: float = 1.0) -> tuple[Surface, list[str]]:
+    """Read any mesh pyvista reads (PLY through plyfile, so face properties survive) and
+    validate it with :func:`validated`.
+
+    Each triangle is an element unless the file has an integer face property (PLY) or
+    cell array (VTK) ``element``; a polygon's triangles share its element.
+
+    Returns
+    -------
+    surface : Surface
+    notes : list of str
+        What the file yielded (triangles, elements) and what was repaired.
+
+    Raises
+    ------
+    ValueError
+        Naming the file: unreadable, empty, non-finite coordinates, face indices out of range,
+        elements of zero area, or inconsistent winding that cannot be repaired.
+    """
+    path = Path(path)
+    if path.suffix.lower() == ".ply":
+        verts, faces, element, how = _read_ply(path)
+    else:
+        verts, faces, element, how = _read_pyvista(path)
+    verts = verts * scale_to_mm
+    if element is not None:
+        ids, elem = np.unique(element, return_inverse=True)
+        surf, notes = validated(verts, faces, elem.ravel(), len(ids), name=str(path), element_ids=ids)
+    else:
+        surf, notes = validated(verts, faces, np.arange(len(faces)), len(faces), name=str(path))
+    notes.insert(0, f"mesh {path.name}: {len(surf.faces)} triangles, {surf.n_elements} elements ({how})")
+    return surf, notes
+
+
+def _read_ply(path: Path):
+    from plyfile import PlyData
+
+    try:
+        ply = PlyData.read(str(path))
+        v = ply["vertex"]
+        f = ply["face"]
+    except Exception as e:  # plyfile raises several kinds for malformed files
+        raise ValueError(f"mesh file {path} cannot be read as PLY: {e}") from None
+    try:
+        verts = np.column_stack([np.asarray(v[c], np.float64) for c in ("x", "y", "z")])
+    except (ValueError, KeyError) as e:
+        raise ValueError(f"mesh file {path}: vertices lack x, y, z ({e})") from None
+    names = [p.name for p in f.properties]
+    lists = "vertex_indices" if "vertex_indices" in names else "vertex_index" if "vertex_index" in names else None
+    if lists is None or len(f.data) == 0 or len(verts) == 0:
+        raise ValueError(f"mesh file {path} holds no surface triangles")
+    polys = f.data[lists]
+    element = None
+    how = "one per triangle"
+    if "element" in names:
+        e = np.asarray(f.data["element"])
+        if np.issubdtype(e.dtype, np.integer):
+            element, how = e.astype(np.int64), "from its integer face property 'element'"
+        else:
+            how = f"one per triangle; its face property 'element' is {e.dtype}, not integer, and is ignored"
+    tris, owner = [], []
+    for k, poly in enumerate(polys):
+        poly = np.asarray(poly, np.int64)
+        if len(poly) < 3:
+            raise ValueError(f"mesh file {path}: face {k} has {len(poly)} vertex index(es); a face needs 3 or more")
+        for j in range(1, len(poly) - 1):  # fan: a polygon's triangles keep its element
+            tris.append((poly[0], poly[j], poly[j + 1]))
+            owner.append(k)
+    faces = np.array(tris, np.int64)
+    return verts, faces, (element[np.array(owner)] if element is not None else None), how
+
+
+def _read_pyvista(path: Path):
     import pyvista as pv
 
     try:
@@ -223,8 +298,108 @@ def read_mesh(path: Path, *, scale_to_mm: float = 1.0) -> Surface:
     faces = tri.faces.reshape(-1, 4)[:, 1:]
     if len(faces) == 0:
         raise ValueError(f"mesh file {path} holds no surface triangles")
-    verts = np.asarray(tri.points, dtype=np.float64) * scale_to_mm
+    verts = np.asarray(tri.points, dtype=np.float64)
     if has_element:
-        ids, elem = np.unique(np.asarray(tri.cell_data["_element"]), return_inverse=True)
-        return Surface(verts, faces, elem.ravel(), len(ids), ids)
-    return Surface(verts, faces, np.arange(len(faces)), len(faces))
+        return verts, faces, np.asarray(tri.cell_data["_element"]).ravel(), "from its integer cell array 'element'"
+    return verts, faces, None, "one per triangle"
+
+
+def validated(vertices_mm, faces, element_of_face, n_elements: int, *, name: str = "the mesh",
+              element_ids=None) -> tuple[Surface, list[str]]:
+    """Check a triangle mesh and repair what can be repaired without guessing.
+
+    Refused (ValueError naming ``name``): non-finite coordinates, face indices outside the
+    vertex list, an element whose faces all have zero area.  Repaired with a note: faces of
+    zero area are dropped; an inconsistent winding is made consistent (faces flipped to
+    agree with their neighbours); a closed surface wound inward is turned outward.
+    """
+    v = np.asarray(vertices_mm, np.float64)
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    eof = np.asarray(element_of_face, np.int64)
+    notes: list[str] = []
+    bad = ~np.all(np.isfinite(v), axis=1)
+    if bad.any():
+        raise ValueError(f"{name}: {int(bad.sum())} vertex(es) have non-finite coordinates (first: vertex "
+                         f"{int(np.argmax(bad))}: {v[np.argmax(bad)].tolist()})")
+    if len(f) == 0:
+        raise ValueError(f"{name} holds no surface triangles")
+    out = (f < 0) | (f >= len(v))
+    if out.any():
+        k = int(np.argmax(out.any(axis=1)))
+        raise ValueError(f"{name}: face {k} uses vertex index {int(f[k][out[k]][0])}, but there are only "
+                         f"{len(v)} vertices (indices 0 to {len(v) - 1})")
+    t = v[f]
+    area = 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
+    scale = float(np.ptp(v, axis=0).max()) if len(v) else 0.0
+    degenerate = (area <= 1e-12 * max(scale, 1e-300) ** 2) | (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
+    if degenerate.any():
+        keep_area = np.bincount(eof[~degenerate & (eof >= 0)], weights=area[~degenerate & (eof >= 0)],
+                                minlength=n_elements)
+        empty = np.flatnonzero(keep_area <= 0)
+        if len(empty):
+            label = element_ids[empty[0]] if element_ids is not None else empty[0]
+            raise ValueError(f"{name}: element {label} has zero area (all its faces are degenerate); "
+                             f"{len(empty)} element(s) like it. An element of zero area would get an infinite exitance")
+        notes.append(f"{name}: dropped {int(degenerate.sum())} face(s) of zero area")
+        f, eof = f[~degenerate], eof[~degenerate]
+    try:
+        f, flipped = _consistent_winding(f)
+    except ValueError as e:
+        raise ValueError(f"{name}: {e}") from None
+    if flipped:
+        notes.append(f"{name}: {flipped} face(s) were wound against their neighbours and were flipped")
+    counts = edge_face_counts(f)
+    if np.all(counts == 2):
+        t = v[f]
+        volume = float(np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6)
+        if volume < 0:
+            f = f[:, ::-1].copy()
+            notes.append(f"{name}: the closed surface was wound inward (its faces' normals pointed into the subject); "
+                         "all faces were flipped to face outward")
+    return Surface(v, f, eof, n_elements, element_ids), notes
+
+
+def _consistent_winding(faces: np.ndarray) -> tuple[np.ndarray, int]:
+    """Flip faces so that every edge shared by two faces runs opposite ways in them (the
+    first face of each connected piece keeps its winding); returns faces and how many flipped."""
+    directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    _, counts = np.unique(directed, axis=0, return_counts=True)
+    if np.all(counts == 1):
+        return faces, 0
+    n = len(faces)
+    und = np.sort(directed, axis=1)
+    key = und[:, 0] * (int(und.max()) + 1) + und[:, 1]
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    starts = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
+    ends = np.r_[starts[1:], len(ks)]
+    neighbours: list[list[tuple[int, bool]]] = [[] for _ in range(n)]
+    for s0, e0 in zip(starts, ends):
+        if e0 - s0 != 2:  # boundary or non-manifold edge: no constraint
+            continue
+        a, b = order[s0], order[s0 + 1]
+        fa, fb = a // 3, b // 3
+        same = bool(np.all(directed[a] == directed[b]))  # same direction: one of the two must flip
+        neighbours[fa].append((fb, same))
+        neighbours[fb].append((fa, same))
+    flip = np.zeros(n, bool)
+    seen = np.zeros(n, bool)
+    for root in range(n):
+        if seen[root]:
+            continue
+        seen[root] = True
+        stack = [root]
+        while stack:
+            x = stack.pop()
+            for y, same in neighbours[x]:
+                want = flip[x] ^ same
+                if not seen[y]:
+                    seen[y] = True
+                    flip[y] = want
+                    stack.append(y)
+                elif flip[y] != want:
+                    raise ValueError("the mesh cannot be wound consistently (a Moebius-like surface or "
+                                     "faces that touch inconsistently)")
+    out = faces.copy()
+    out[flip] = out[flip][:, ::-1]
+    return out, int(flip.sum())
