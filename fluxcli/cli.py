@@ -205,6 +205,25 @@ def info(artefact: Path = typer.Argument(..., help="An HDF5 artefact (transfer.h
     _guard(lambda: typer.echo(describe(artefact)))
 
 
+# --------------------------------------------------------------------------- fluxmap rig ... (issue 11)
+rig_app = typer.Typer(no_args_is_help=True, help="The rig's devices: simulators on the real wire protocols.")
+app.add_typer(rig_app, name="rig")
+STAGE_REQUIRES["rig serve"] = ("rig",)
+
+
+@rig_app.command("serve")
+def rig_serve(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt) -> None:
+    """Serve simulators of the devices in `rig` until SIGINT/SIGTERM.
+
+    Prints one line per device, `<device> <url-or-pty-path>`, then `ready`.  A port `pty`
+    makes a new pseudo terminal, `socket://HOST:PORT` listens there (PORT 0: any free port).
+
+    $ fluxmap rig serve configs/rig-sim.yaml
+    """
+    from .stages import rig_serve as stage
+
+    _run("rig serve", stage.run, config, set_, False, 1, False)
+
 def main() -> None:
     app()
 

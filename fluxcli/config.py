@@ -391,6 +391,63 @@ class ReportSettings(Model):
     surface_views: bool = Field(True, description="Render the flux on the 3-D surface (pyvista, off-screen).")
 
 
+# --------------------------------------------------------------------------- rig (issue 11)
+class RigFault(Model):
+    kind: Literal["no_reply", "late_reply", "garbage", "drop", "error_reply", "stall", "wrong_position"] = Field(
+        description="What the simulated device does wrong.")
+    on: str = Field("*", description="Which command: '*', an FW102C command prefix ('pos=') or an APT message ('MOT_MOVE_ABSOLUTE', '0x0453').")
+    count: int = Field(1, ge=0, description="How many times it happens (0: every time).")
+    after: int = Field(0, ge=0, description="Let this many matching commands through first.")
+    delay_s: float = Field(0.0, ge=0, description="late_reply: how late (s); stall: how long it hangs (0: for ever).")
+    offset: float = Field(1.0, description="wrong_position: how far off (wheel positions, or mm for the stage).")
+
+
+class RigFilterWheel(Model):
+    port: str = Field(description="Serial port or pyserial URL (/dev/ttyUSB0, socket://HOST:PORT); 'pty' or 'socket://127.0.0.1:0' for a simulator.")
+    positions: Literal[6, 12] = Field(6, description="Number of wheel positions (the wheel's pcount).")
+    filters: dict[str, int] = Field(default_factory=dict, description="Filter name -> wheel position (1..positions).")
+    timeout_s: float = Field(2.0, gt=0, description="Bound on a reply that is not a move (s).")
+    faults: tuple[RigFault, ...] = Field((), description="Faults the simulator injects (tests, rehearsals).")
+
+    @model_validator(mode="after")
+    def _check(self) -> "RigFilterWheel":
+        for name, pos in self.filters.items():
+            if not 1 <= pos <= self.positions:
+                raise ValueError(f"filter {name!r} is at position {pos}, outside 1..{self.positions}")
+        return self
+
+
+class RigStage(Model):
+    port: str = Field(description="Serial port or pyserial URL; 'pty' or 'socket://127.0.0.1:0' for a simulator.")
+    counts_per_mm: float = Field(gt=0, description="Controller microsteps per mm (unverified for the L490MZ: 134737 or 2155789).")
+    travel_mm: tuple[float, float] = Field((0.0, 50.0), description="Allowed heights [low, high] (mm); moves outside are refused.")
+    velocity_mm_s: float = Field(0.5, gt=0, le=1.1, description="Move velocity set at connect (mm/s).")
+    acceleration_mm_s2: float = Field(0.5, gt=0, description="Move acceleration set at connect (mm/s^2).")
+    velocity_scale: float = Field(53.68, gt=0, description="Device velocity units per microstep/s (unverified; Trinamic 53.68).")
+    acceleration_scale: float = Field(1 / 90.9, gt=0, description="Device acceleration units per microstep/s^2 (unverified; Trinamic 1/90.9).")
+    channel: int = Field(1, ge=1, description="Motor channel.")
+    timeout_s: float = Field(2.0, gt=0, description="Bound on a reply that is not a move (s).")
+    faults: tuple[RigFault, ...] = Field((), description="Faults the simulator injects (tests, rehearsals).")
+
+    @field_validator("travel_mm")
+    @classmethod
+    def _travel(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if v[0] >= v[1]:
+            raise ValueError("travel_mm must be [low, high] with low < high")
+        return v
+
+
+class RigCamera(Model):
+    backend: Literal["simulated", "dcam"] = Field("simulated", description="simulated (default) or dcam (optional extra, the real camera).")
+
+
+class Rig(Model):
+    time_scale: float = Field(1.0, gt=0, description="Simulated device timing x this (tests use less); drivers scale their move timeouts by it.")
+    filter_wheel: RigFilterWheel | None = Field(None, description="The FW102C filter wheel.")
+    stage: RigStage | None = Field(None, description="The L490MZ lab jack (APT).")
+    camera: RigCamera | None = Field(None, description="The EMCCD.")
+
+
 # --------------------------------------------------------------------------- top level
 class Config(Model):
     workdir: Path | None = Field(None, description="Output folder (default runs/<config name>), relative to the config file.")
@@ -405,7 +462,7 @@ class Config(Model):
     report: ReportSettings = ReportSettings()
     calibrate: dict[str, Any] | None = None
     capture: dict[str, Any] | None = None
-    rig: dict[str, Any] | None = None
+    rig: Rig | None = Field(None, description="The devices of the rig (issue 11).")
 
 
 class LoadedConfig:

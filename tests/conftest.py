@@ -78,3 +78,30 @@ def tiny_run(tmp_path_factory):
         r = CliRunner().invoke(app, [stage, str(p), "-q"])
         assert r.exit_code == 0, r.output
     return d, cfg, p
+
+
+# ----------------------------------------------------------------------------- real devices (opt-in)
+def pytest_addoption(parser):
+    group = parser.getgroup("rig", "real rig devices (tests skipped unless a port is given)")
+    group.addoption("--fw102c", metavar="PORT", default=None, help="FW102C filter wheel port, e.g. /dev/ttyUSB0.")
+    group.addoption("--labjack", metavar="PORT", default=None, help="L490MZ lab-jack APT controller port.")
+    group.addoption("--labjack-counts-per-mm", type=float, default=134737.0,
+                    help="Microsteps per mm of the lab jack's controller (default 134737).")
+    group.addoption("--labjack-home", action="store_true", help="Also home the lab jack (only with nothing on it).")
+
+
+def _real_port(request, option: str, what: str) -> str:
+    port = request.config.getoption(option)
+    if not port:
+        pytest.skip(f"no real {what}: give {option} PORT")
+    return port
+
+
+@pytest.fixture
+def fw102c_port(request):
+    return _real_port(request, "--fw102c", "FW102C")
+
+
+@pytest.fixture
+def labjack_port(request):
+    return _real_port(request, "--labjack", "lab jack")
