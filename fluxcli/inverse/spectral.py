@@ -185,6 +185,16 @@ def choose(spec: Spectrum, rule: str = "gcv", *, k: int = 1, lambdas=None, gamma
                                np.logspace(hi, hi + 3, n_extra + 1)[1:]])
         widened += 1
     out.widened = widened
+    if out.at_edge and rule == "gcv":
+        # a safer rule: GCV has no minimum inside a wide range (typically under model error);
+        # the L-curve's corner does not need the residual to reach the noise level
+        alt = _pick(spec, "lcurve", k, grid, gamma, tau, noise_total)
+        if not alt.at_edge:
+            alt.widened = widened
+            alt.warnings.append(
+                f"lambda (gcv) sat at the edge of the search range ({out.lam:.3g}, range {grid[0]:.3g}..{grid[-1]:.3g}) "
+                f"after widening it {widened}x; fell back to the L-curve's corner ({alt.lam:.3g}).")
+            return alt
     if out.at_edge:
         out.warnings.append(
             f"lambda ({rule}) sits at the edge of the search range ({out.lam:.3g}, range "
