@@ -123,6 +123,12 @@ def _created() -> str:
     return when.isoformat(timespec="seconds")
 
 
+def recorded_seconds(seconds: float) -> float:
+    """A run time to store in an artefact: NaN under SOURCE_DATE_EPOCH (a reproducible run
+    records no wall-clock times, so two runs give the same bytes)."""
+    return float("nan") if os.environ.get("SOURCE_DATE_EPOCH") else float(seconds)
+
+
 def portable_path(path, base=None) -> str:
     """``path`` relative to ``base`` (a folder) when given, so that artefacts made in two
     clones of the project are byte-identical; readers resolve it against the same base."""

@@ -17,7 +17,7 @@ import scipy.sparse as sp
 
 from ..errors import UserError
 from .pieces import read_csr, write_csr, write_surface
-from .store import Provenance, open_artefact, portable_path, put, write_artefact
+from .store import Provenance, open_artefact, portable_path, put, recorded_seconds, write_artefact
 
 
 def entry_path(cache_dir: Path, key: str) -> Path:
@@ -67,7 +67,7 @@ def write_T(path: Path, *, T: sp.csr_matrix, T_per_view: list, view_kinds: list[
         f.attrs["pose_height_mm"] = height_mm
         f.attrs["pose_rotation_deg"] = rotation_deg
         f.attrs["estimator"] = estimator
-        f.attrs["build_seconds"] = seconds
+        f.attrs["build_seconds"] = recorded_seconds(seconds)
 
 
 def load_T(path: Path) -> sp.csr_matrix:

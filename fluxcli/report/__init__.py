@@ -326,7 +326,7 @@ def summarise(st: Study, *, title: str, slice_axial_mm: float, view_names: list[
                   for k, v in totals.items()}
     out = {
         "title": title,
-        "reconstruction": str(st.reconstruction_path),
+        "reconstruction": st.reconstruction_path.name,  # beside the report's folder: portable
         "images": st.images_source,
         "method": st.method,
         "settings": st.settings,

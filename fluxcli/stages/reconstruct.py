@@ -86,7 +86,8 @@ def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int, surface_sha2
         snr = f["images/max_snr"][rc.level]
         kind = str(f["images"].attrs.get("noise_model", "poisson"))
         exposure_s = float(f["images"].attrs.get("exposure_s", 1.0))
-    return Inputs(imgs, valid, truth, f"{path} level {rc.level} " + ("noiseless" if rc.noiseless else f"repeat {rc.repeat}"),
+    # named relative to the workdir: the artefact is the same in any clone
+    return Inputs(imgs, valid, truth, f"{path.name} level {rc.level} " + ("noiseless" if rc.noiseless else f"repeat {rc.repeat}"),
                   snr, files={"simulation.h5": path}, noise_kind=kind if kind in N.NOISE_KINDS else "poisson",
                   exposure_s=exposure_s)
 
@@ -386,7 +387,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         f.attrs["method"] = m.method
         f.attrs["settings"] = json.dumps(m.model_dump(mode="json", by_alias=True))
         f.attrs["lambda_used"] = float(main.lam) if main.lam is not None else np.nan
-        f.attrs["seconds"] = seconds
+        f.attrs["seconds"] = A.recorded_seconds(seconds)
         if inp.truth is not None:
             t = f.create_group("truth")
             t.create_dataset("power", data=inp.truth)
@@ -569,7 +570,7 @@ def _sweep(cfg: C.LoadedConfig, ctx: RunContext, g, grids: dict, todo) -> None:
     g.create_dataset("max_snr", data=snr)
     g.create_dataset("levels_peak_photons", data=levels)
     g.attrs["methods"] = json.dumps(names)
-    g.attrs["seconds"] = time.perf_counter() - t0
+    g.attrs["seconds"] = A.recorded_seconds(time.perf_counter() - t0)
     rows = []
     for k, (_, pt) in enumerate(todo):
         for li in lv:

@@ -294,7 +294,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         A.put(f, "truth/fine_parent", parent)
         g = f["truth"]
         g.attrs["kind"] = sim.flux.kind
-        g.attrs["notes"] = json.dumps(notes)
+        g.attrs["notes"] = json.dumps({k: (A.recorded_seconds(v) if k.endswith("_seconds") else v)
+                                       for k, v in notes.items()})
         A.put(f, "truth/levels_peak_photons", lv)
         A.put(f, "truth/level_scale", scale)
         A.put(f, "poses/heights_mm", [pt.pose.height_mm for _, pt in todo])
@@ -314,7 +315,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         ig.attrs["exposure_s"] = sim.noise.exposure_s
         f.attrs["transfer_fwd"] = json.dumps(tr_fwd.model_dump(mode="json"))
         f.attrs["transfer_fwd_cache"] = A.portable_path(cache_dir(cfg), out.parent)
-        f.attrs["truth_seconds"] = truth_seconds
+        f.attrs["truth_seconds"] = A.recorded_seconds(truth_seconds)
     if sim.export.format != "none":
         export_images(cfg, out.parent / "images", noisy, counts, todo, lv)
     rows = [[pt.pose.height_mm, pt.pose.rotation_deg, *[f"{snr[li, k]:.1f}" for li in range(L)]]
