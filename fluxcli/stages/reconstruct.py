@@ -249,18 +249,32 @@ def _solve(T, a, valid, m, noise, adjacency, areas, groups=None):
 
 
 MAX_AUTO_SUB_ELEMENTS = 4000
+MIN_PIXELS_PER_ELEMENT = 12.0
 
 
-def resolve_unknowns(m: C.MethodSettings, surface) -> C.MethodSettings:
+def pixels_per_element(camera: C.Camera, surface) -> float:
+    """Median element area in pixels at the focal plane, (S·v/u)²/pitch²: how finely the
+    camera resolves an element."""
+    f, u = camera.lens.focal_length_mm, camera.lens.focus_distance_mm
+    v = 1.0 / (1.0 / f - 1.0 / u)
+    return float(np.median(surface.element_areas_mm2) * (v / u / camera.pixel_pitch_mm) ** 2)
+
+
+def resolve_unknowns(m: C.MethodSettings, surface, camera: C.Camera | None = None) -> C.MethodSettings:
     """``unknowns: auto``: ``smooth`` solves on the sub-elements (faces, or a phantom's strips)
-    and sums them per element when there are more of them than elements and at most
-    MAX_AUTO_SUB_ELEMENTS; the rest solve per element. Light varies within an element and
-    a camera resolves it: a model constant per element then cannot fit the data (under an
-    honest simulation, 3.4 % vs 1.6 % error on a 2 x 2-quad cylinder, SNR 30)."""
+    and sums them per element when the camera resolves an element (≥ MIN_PIXELS_PER_ELEMENT
+    pixels) and there are more parts than elements, at most MAX_AUTO_SUB_ELEMENTS; the rest
+    solve per element. Light varies within an element, and where the camera resolves that a
+    model constant per element cannot fit the data (honest simulation of a 2 x 2-quad
+    cylinder at 21 pixels per element, SNR 30: 3.4 % error per element, 1.6 % on faces);
+    where it does not (the demo, ~5 pixels per element) the finer unknowns only add
+    freedom the data cannot pin down."""
     if m.unknowns != "auto":
         return m
     n_sub = surface.unknowns()[0].n_elements
     sub = m.method == "smooth" and surface.n_elements < n_sub <= MAX_AUTO_SUB_ELEMENTS
+    if sub and camera is not None:
+        sub = pixels_per_element(camera, surface) >= MIN_PIXELS_PER_ELEMENT
     return m.model_copy(update={"unknowns": "sub_elements" if sub else "elements"})
 
 
@@ -270,7 +284,8 @@ DENSE = ("paper", "tikhonov", "nnls", "weighted_lsq", "smooth")  # form T'WT (n 
 def _check_solver_size(cfg: C.LoadedConfig, ctx: RunContext, surface, n_poses: int) -> None:
     """Dense normal matrices are n_unknowns^2: refuse before allocating, naming the keys."""
     rc = cfg.model.reconstruct
-    methods = [resolve_unknowns(x, surface) for x in (rc.settings(), *(rc.sweep.methods if rc.sweep else ()))]
+    cam = cfg.model.system.camera
+    methods = [resolve_unknowns(x, surface, cam) for x in (rc.settings(), *(rc.sweep.methods if rc.sweep else ()))]
     n_sub = {"elements": surface.n_elements}
     if any(s.unknowns == "sub_elements" for s in methods):
         n_sub["sub_elements"] = surface.unknowns()[0].n_elements
@@ -327,10 +342,11 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     views, placer, todo, _ = ensure_T(cfg, replace(ctx, force=False), label="building T")
     P = len(todo)
     nx, ny = cfg.model.system.camera.pixels
-    m = resolve_unknowns(rc.settings(), surface)
+    m = resolve_unknowns(rc.settings(), surface, cfg.model.system.camera)
     grids = {u: make_grid(cfg, ctx, surface, u)
              for u in {"elements", m.unknowns,
-                       *[resolve_unknowns(s, surface).unknowns for s in (rc.sweep.methods if rc.sweep else ())]}}
+                       *[resolve_unknowns(s, surface, cfg.model.system.camera).unknowns
+                         for s in (rc.sweep.methods if rc.sweep else ())]}}
     Ts = grids["elements"].Ts
     gm = grids[m.unknowns]
     noise = photon_noise(cfg, inp.noise_kind, inp.exposure_s)
@@ -544,7 +560,7 @@ def _sweep(cfg: C.LoadedConfig, ctx: RunContext, g, grids: dict, todo) -> None:
             sensor = cfg.model.system.camera.sensor.model_dump() | {"exposure_s": float(f["images"].attrs["exposure_s"])}
     lv = list(sw.levels) if sw.levels is not None else list(range(L))
     reps = min(sw.repeats or R, R)
-    methods = [resolve_unknowns(x, grids["elements"].surface) for x in sw.methods]
+    methods = [resolve_unknowns(x, grids["elements"].surface, cfg.model.system.camera) for x in sw.methods]
     cells = [(li, k) for li in lv for k in range(P)]
     err = np.full((len(methods), L, P, reps), np.nan)
     t0 = time.perf_counter()
