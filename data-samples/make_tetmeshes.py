@@ -14,7 +14,6 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import h5py
 
 from fluxcli.config import load_config
 from fluxcli.diffusion.mesh import tetrahedralize

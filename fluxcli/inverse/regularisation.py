@@ -15,11 +15,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg as sla
-import scipy.optimize as sopt
 import scipy.sparse as sp
 
 from fluxcli.inverse import _common as c
-from fluxcli.inverse.spectral import Spectrum
+from fluxcli.inverse.spectral import Spectrum, _pick
 
 __all__ = ["LAMBDA_RULES", "LambdaChoice", "choose_lambda", "uncertainty"]
 
@@ -145,50 +144,13 @@ def choose_lambda(T, a, *, method: str = "gcv", sigma2=None, lambdas=None,
     weights = 1.0 / sigma2[cov] if weighted else None
     m = int(cov.sum())
     spec = Spectrum(T_cov, a_cov, weights)  # the one spectral-filter engine (k = 1: Tikhonov)
-    rho, eta, trace = spec.curves(lambdas * spec.scale)
-    target = np.nan
-
-    n = lambdas.size
-    if method == "gcv":
-        def gcv(log_lam):
-            r, _, tr = spec.curves(np.exp(log_lam) * spec.scale)
-            dof = m - gamma * tr
-            return np.where(dof > 0, r / np.where(dof > 0, dof, 1.0) ** 2, np.inf)
-
-        criterion = gcv(np.log(lambdas))
-        k = int(np.argmin(criterion))
-        lam, at_edge = lambdas[k], k in (0, n - 1)
-        if not at_edge:
-            res = sopt.minimize_scalar(lambda x: float(gcv(x)[0]), method="bounded",
-                                       bounds=(np.log(lambdas[k - 1]), np.log(lambdas[k + 1])))
-            if res.success and float(gcv(res.x)[0]) <= criterion[k]:
-                lam = float(np.exp(res.x))
-    elif method == "lcurve":
-        x, y = np.log(np.maximum(rho, 1e-300)), np.log(np.maximum(eta, 1e-300))
-        t = np.log(lambdas)
-        dx, dy = np.gradient(x, t), np.gradient(y, t)
-        ddx, ddy = np.gradient(dx, t), np.gradient(dy, t)
-        criterion = (dx * ddy - dy * ddx) / np.maximum((dx**2 + dy**2) ** 1.5, 1e-300)
-        # The ends of the grid have one-sided derivatives: never pick them.
-        criterion[[0, -1]] = -np.inf
-        k = int(np.argmax(criterion))
-        lam, at_edge = lambdas[k], k in (1, n - 2)
-    else:
-        target = tau * (m if weighted else float(np.sum(sigma2[cov])))
-        criterion = rho - target
-        if criterion[-1] < 0:  # even the largest λ fits the noise too well
-            lam, at_edge = lambdas[-1], True
-        elif criterion[0] >= 0:  # even the smallest λ cannot reach the noise level
-            lam, at_edge = lambdas[0], True
-        else:
-            k = int(np.nonzero(criterion >= 0)[0][0])
-
-            def excess(log_lam):
-                return float(spec.curves(np.exp(log_lam) * spec.scale)[0][0] - target)
-
-            log_lam = sopt.brentq(excess, np.log(lambdas[k - 1]), np.log(lambdas[k]),
-                                  xtol=1e-8)
-            lam, at_edge = float(np.exp(log_lam)), False
+    noise_total = None
+    if method == "discrepancy":
+        noise_total = m if weighted else float(np.sum(sigma2[cov]))
+    # the rules of the engine, on this grid as given (no widening: at_edge tells the caller)
+    pick = _pick(spec, method, 1, lambdas, gamma, tau, noise_total)
+    lam, at_edge, criterion, target = pick.lam, pick.at_edge, pick.criterion, pick.target
+    rho, eta = pick.residual_norm2, pick.solution_norm2
 
     return LambdaChoice(
         lam=float(lam), lam_absolute=float(lam * spec.scale), method=method,

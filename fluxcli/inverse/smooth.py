@@ -18,7 +18,6 @@ more than a blurred one, so its error depends on focus.  Here:
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg as sla
 import scipy.sparse as sp
 
 from . import _common as c

@@ -206,7 +206,7 @@ def choose(spec: Spectrum, rule: str = "gcv", *, k: int = 1, lambdas=None, gamma
     return out
 
 
-def _pick(spec, rule, k, grid, gamma, tau, noise_total) -> Choice:
+def _pick(spec, rule, k, grid, gamma, tau, noise_total) -> Choice:  # also regularisation.choose_lambda
     rho, eta, dof = spec.curves(grid * spec.scale, k)
     n = grid.size
     m = spec.m
