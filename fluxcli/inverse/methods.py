@@ -556,16 +556,19 @@ class Result:
 UNOBSERVED, POORLY_OBSERVED, WELL_OBSERVED = 0, 1, 2
 
 
-def observation_classes(T, power, sigma, *, adjacency=None, rel_threshold: float = c.DEFAULT_REL_THRESHOLD,
-                        neighbour_fraction: float = 0.1, sigma_floor_fraction: float = 0.01) -> np.ndarray:
+def observation_classes(T, power, sigma, *, adjacency=None, areas=None, rel_threshold: float = c.DEFAULT_REL_THRESHOLD,
+                        neighbour_fraction: float = 0.1, per_area_fraction: float = 0.25,
+                        sigma_floor_fraction: float = 0.01) -> np.ndarray:
     """Unobserved / poorly observed / well observed, per element.
 
     - unobserved (0): column sum ≤ ``rel_threshold`` × the largest (not solved for, NaN);
     - poorly observed (1): solved for, but the data cannot tell it from its neighbours:
       its column sum is below ``neighbour_fraction`` × the largest column sum among the
-      elements it touches (the silhouette band, imaged onto a sliver of a pixel), or its
-      σ is at least its value while also above ``sigma_floor_fraction`` of the largest
-      value (a dark element known to be dark is well observed);
+      elements it touches, or (with ``areas``) its sensitivity per unit area is below
+      ``per_area_fraction`` × the median over observed elements (the silhouette band, seen
+      edge-on and imaged onto a sliver of a pixel: cos θ ≲ 0.25), or its σ is at least its
+      value while also above ``sigma_floor_fraction`` of the largest value (a dark element
+      known to be dark is well observed);
     - well observed (2): the rest.
 
     Parameters
@@ -589,6 +592,9 @@ def observation_classes(T, power, sigma, *, adjacency=None, rel_threshold: float
         # largest column sum in each element's closed neighbourhood
         best = np.array([sums[A.indices[A.indptr[j]:A.indptr[j + 1]]].max() for j in range(A.shape[0])])
         poor |= sums < neighbour_fraction * best
+    if areas is not None and seen.any():
+        per_area = sums / np.maximum(np.asarray(areas, float), 1e-300)
+        poor |= per_area < per_area_fraction * np.median(per_area[seen])
     p = np.asarray(power, float)
     sg = np.asarray(sigma, float)
     top = np.nanmax(np.where(seen, p, np.nan)) if np.any(seen & np.isfinite(p)) else 0.0
@@ -884,7 +890,8 @@ def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | 
     else:
         sigma = np.full(power.shape, np.nan)
     if method != "backprojection":
-        observation = observation_classes(T, power, sigma, adjacency=adjacency, rel_threshold=rel_threshold)
+        observation = observation_classes(T, power, sigma, adjacency=adjacency, areas=areas,
+                                          rel_threshold=rel_threshold)
     else:
         observation = np.where(mask, WELL_OBSERVED, UNOBSERVED).astype(np.int8)
     return Result(power=power, observed=mask, sigma=sigma, fitted=fitted, residual=a - fitted, method=method,
