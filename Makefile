@@ -1,5 +1,6 @@
 # fluxmap: reproducible set-up, tests, benchmarks and experiments.
 #   make demo   create .venv, install, run the demo pipeline, print where its output is
+#   make demo-rig   the simulated rig: capture-surface -> build-T -> reconstruct -> report
 #   make test   create .venv if needed, install with test extras, run the test suite
 #   make bench  speed ratios measured in one run (slow checks included)
 #   make accuracy  issue 8's battery: error, totals, chi^2, lambda, warnings per case x method
@@ -11,7 +12,7 @@ PY      = $(VENV)/bin/python
 FLUXMAP = $(VENV)/bin/fluxmap
 JOBS   ?= 2
 
-.PHONY: all demo test bench samples figures clean help accuracy
+.PHONY: all demo demo-rig test bench samples figures clean help accuracy
 all: test
 
 $(VENV)/.installed: pyproject.toml
@@ -36,6 +37,14 @@ demo: $(VENV)/.installed
 accuracy: $(VENV)/.installed
 	$(PY) benchmarks/accuracy.py
 
+demo-rig: $(VENV)/.installed
+	$(FLUXMAP) capture-surface configs/demo-rig.yaml --resume
+	$(FLUXMAP) build-T configs/demo-rig.yaml --jobs $(JOBS)
+	$(FLUXMAP) reconstruct configs/demo-rig.yaml --jobs $(JOBS)
+	$(FLUXMAP) report configs/demo-rig.yaml
+	$(PY) pipelines/rig_totals.py runs/demo-rig/reconstruction.h5
+	@echo "demo-rig report: $(CURDIR)/runs/demo-rig/report/index.html"
+
 test: $(VENV)/.installed
 	$(PY) -m pytest -q
 
@@ -56,3 +65,10 @@ help:
 	@sed -n '2,6p' Makefile
 
 -include pipelines/*.mk
+
+# Calibration sample: fit the camera, draw its report, then reconstruct with it vs the true camera (1 % check).
+.PHONY: calibrate-demo
+calibrate-demo: $(VENV)/.installed
+	$(FLUXMAP) calibrate configs/calibrate.yaml
+	$(FLUXMAP) report configs/calibrate.yaml
+	$(PY) data-samples/calibration/check_end_to_end.py

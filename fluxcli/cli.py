@@ -57,8 +57,8 @@ STAGE_REQUIRES: dict[str, tuple[str, ...]] = {
     "build-T": _GEOMETRY,
     "simulate": _GEOMETRY + ("simulate",),
     "reconstruct": _GEOMETRY,
-    "report": _GEOMETRY,
-    "calibrate": ("system", "system.camera", "calibrate"),
+    "report": (),  # the stage checks: geometry for a reconstruction, nothing for a calibrate-only workdir
+    "calibrate": ("calibrate",),  # a grid needs system.camera (checked by the stage); radiometric alone does not
     "capture-surface": ("rig", "capture"),
 }
 
@@ -189,8 +189,26 @@ _stage_command("report", "report", """Figures, summary.json and a self-contained
 
     $ fluxmap report configs/paper-3d.yaml
     """)
-_stage_command("calibrate", None, """(Not built yet.) Derive the camera model from grid images.""")
-_stage_command("capture-surface", None, """(Not built yet.) Drive the rig (or its simulator) and capture the surface and images.""")
+_stage_command("calibrate", "calibrate", """Derive the camera model from grid images (and the sensor from radiometric frames).
+
+    $ fluxmap calibrate configs/calibrate.yaml
+    """)
+
+
+@app.command("capture-surface")
+def capture_surface(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt,
+                    force: bool = typer.Option(False, "--force", help="Start the capture over (replaces capture.h5)."),
+                    resume: bool = typer.Option(False, "--resume", help="Continue capture.h5: take only the frames it lacks."),
+                    jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
+    """Drive the rig (or its simulators) and acquire the emission images of the plan in 'capture:'.
+
+    $ fluxmap capture-surface configs/demo-rig.yaml --resume
+    """
+    from functools import partial
+
+    from .stages import capture as stage
+
+    _run("capture-surface", partial(stage.run, resume=resume), config, set_, force, jobs, quiet)
 
 
 @app.command("info")

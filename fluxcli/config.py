@@ -20,7 +20,7 @@ Vec3 = tuple[float, float, float]
 
 
 class Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # NaN/inf: never a length
 
 
 def _unit(v: Vec3, what: str) -> Vec3:
@@ -183,6 +183,12 @@ class RotationAxis(Model):
     point_mm: Vec3 | None = Field(None, description="A point on the axis (default: the subject's centre).")
     direction: Vec3 = Field((1.0, 0.0, 0.0), description="Axis direction.")
 
+    @field_validator("direction")
+    @classmethod
+    def _direction(cls, v: Vec3) -> Vec3:
+        _unit(v, "direction")
+        return v
+
 
 class Poses(Model):
     heights_mm: tuple[float, ...] = Field((0.0,), min_length=1, description="Stage heights h (mm).")
@@ -203,6 +209,16 @@ class LensSampling(Model):
     lens_samples_min: int = Field(32, ge=1, description="Lens samples per surface point, at least.")
     lens_samples_max: int = Field(2048, ge=1, description="Lens samples per surface point, at most.")
     lens_samples_per_blur_pixel: float = Field(4.0, gt=0, description="Lens samples per pixel of blur-disk area.")
+
+    @model_validator(mode="after")
+    def _ranges(self) -> "LensSampling":
+        if self.lens_samples_max < self.lens_samples_min:
+            raise ValueError(f"lens_samples_max ({self.lens_samples_max}) must be at least lens_samples_min "
+                             f"({self.lens_samples_min})")
+        if self.max_surface_subdivisions < self.min_surface_subdivisions:
+            raise ValueError(f"max_surface_subdivisions ({self.max_surface_subdivisions}) must be at least "
+                             f"min_surface_subdivisions ({self.min_surface_subdivisions})")
+        return self
 
 
 class PairwiseSampling(Model):
@@ -324,7 +340,7 @@ class MethodSettings(Model):
         "elements", description="Solve per element, or per sub-element (phantom strips, else faces) summed per element; "
                                 "auto: sub-elements for smooth when there are at most 4000 of them.")
 
-    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True, allow_inf_nan=False)
 
     @field_validator("lam")
     @classmethod
@@ -342,6 +358,19 @@ class ImageFiles(Model):
     files: tuple[Path, ...] = Field(description="One image file per pose (TIFF/FITS/EXR), in subject.poses order.")
     units: Literal["photons", "counts"] = Field("photons", description="counts are converted with system.camera.sensor.")
     exposure_s: float = Field(1.0, gt=0)
+    calibration: Path | None = Field(None, description="calibration.h5 whose /radiometric bias, dark and flat maps are applied to counts (units: counts).")
+
+    @model_validator(mode="after")
+    def _check(self) -> "ImageFiles":
+        if self.calibration is not None and self.units != "counts":
+            raise ValueError("calibration (bias, dark and flat maps) applies to images in counts; set units: counts")
+        return self
+
+
+class CaptureSource(Model):
+    capture: Path = Field(description="A capture artefact (capture.h5 of capture-surface): relative to the config file, else to the workdir.")
+    filter: str | None = Field(None, description="Whose frames to use, by filter name (default: the capture's only filter).")
+    exposure_s: float | None = Field(None, gt=0, description="Which exposure time's frames (s) (default: the capture's only one).")
 
 
 class Sweep(Model):
@@ -360,8 +389,9 @@ class Reconstruct(Model):
     n_iter: int = Field(500, ge=1)
     unknowns: Literal["auto", "elements", "sub_elements"] = Field(
         "auto", description="auto (default): smooth solves per sub-element (faces, or strips) summed per element when "
-                            "there are at most 4000; elements or sub_elements to choose.")
-    images: ImageFiles | None = Field(None, description="Images from files instead of simulation.h5.")
+                            "the camera resolves an element (>= 12 pixels) and there are at most 4000; elements or "
+                            "sub_elements to choose.")
+    images: ImageFiles | CaptureSource | None = Field(None, description="Images from files, or from a capture, instead of simulation.h5.")
     level: int = Field(0, ge=0, description="Which signal level of the simulation to reconstruct.")
     repeat: int = Field(0, ge=0, description="Which noise repeat of the simulation to reconstruct.")
     noiseless: bool = Field(False, description="Reconstruct the simulation's noiseless images.")
@@ -372,7 +402,7 @@ class Reconstruct(Model):
                             "count images, with system.camera.sensor; poisson otherwise).")
     sweep: Sweep | None = Field(None, description="A study: every level x repeat x pose for each method.")
 
-    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True, allow_inf_nan=False)
 
     @field_validator("lam")
     @classmethod
@@ -389,6 +419,72 @@ class ReportSettings(Model):
     title: str | None = Field(None, description="Page title (default: the config's name).")
     slice_axial_mm: float = Field(0.0, description="Where along the subject's axis (from its centre) to cut the circumference slice (mm).")
     surface_views: bool = Field(True, description="Render the flux on the 3-D surface (pyvista, off-screen).")
+
+
+# --------------------------------------------------------------------------- calibrate: radiometric
+class RadiometricPTCLevel(Model):
+    files: tuple[Path, ...] = Field(min_length=2, description="Two or more frames at one illumination and exposure (counts); consecutive frames are paired (1st-2nd, 3rd-4th, ...).")
+    exposure_s: float = Field(gt=0, description="Exposure of these frames (s).")
+    em_gain_on: bool = Field(False, description="Whether the EM gain was on (the camera's working gain) or off (conventional readout).")
+    illumination: str = Field("", description="Label of the light-source setting: gain-on and gain-off levels with the same label are compared per second of exposure to measure the EM gain.")
+
+
+class RadiometricDarks(Model):
+    files: tuple[Path, ...] = Field(min_length=1, description="Dark frames (no light) at one exposure (counts).")
+    exposure_s: float = Field(gt=0, description="Exposure of these frames (s).")
+    em_gain_on: bool = Field(True, description="Whether the EM gain was on (then converted with the measured gain).")
+
+
+class Radiometric(Model):
+    bias: tuple[Path, ...] = Field(min_length=2, description="Bias frames: no light, shortest exposure, EM gain off (counts); consecutive pairs give the read noise.")
+    ptc: tuple[RadiometricPTCLevel, ...] = Field(min_length=2, description="Photon-transfer series: at least two gain-off levels (electrons per count); gain-on levels give the EM gain.")
+    darks: tuple[RadiometricDarks, ...] = Field((), description="Dark frames per exposure; two or more exposures separate dark current from clock-induced charge.")
+    flats: tuple[Path, ...] = Field((), description="Flat frames of the evenly lit bare sensor, EM gain off (counts): the pixel-response map.")
+    saturation_counts: float = Field(65535.0, gt=0, description="Pixels at or above this (counts) are left out of the PTC.")
+    excess_noise_factor_squared: float = Field(2.0, ge=1, le=2, description="F^2 of the EM register assumed for the gain-on PTC slope (2 at high gain).")
+    gain_tolerance: float = Field(0.1, gt=0, description="Warn when the ratio and PTC EM gains differ by more than this fraction.")
+
+    @model_validator(mode="after")
+    def _check(self) -> "Radiometric":
+        if len([lv for lv in self.ptc if not lv.em_gain_on]) < 2:
+            raise ValueError("ptc needs at least two levels with em_gain_on: false (the gain-off curve gives electrons per count)")
+        if any(d.em_gain_on for d in self.darks) and not any(lv.em_gain_on for lv in self.ptc):
+            raise ValueError("darks taken with em_gain_on need ptc levels with em_gain_on: true to measure the EM gain")
+        return self
+
+
+# --------------------------------------------------------------------------- calibrate: geometric
+class CalibrationGrid(Model):
+    kind: Literal["dots", "checkerboard"] = Field("dots", description="dots (a regular dot grid) or checkerboard (its inner corners are the points).")
+    pitch_mm: float = Field(gt=0, description="Distance between neighbouring grid points (mm).")
+    shape: tuple[int, int] = Field(description="Points along x and along y [nx, ny] (checkerboard: inner corners).")
+
+    @field_validator("shape")
+    @classmethod
+    def _shape(cls, v: tuple[int, int]) -> tuple[int, int]:
+        if min(v) < 2:
+            raise ValueError("shape must be two integers [nx, ny], each 2 or more")
+        return v
+
+
+class CalibrationImage(Model):
+    file: Path = Field(description="Image of the grid lying flat (TIFF/FITS/EXR; counts or photons), relative to the config.")
+    plane_z_mm: float = Field(description="World z of the grid plane in this image (mm); the world frame is the grid's.")
+
+
+class Calibrate(Model):
+    grid: CalibrationGrid | None = Field(None, description="The target: world point (i, j) at ((i-(nx-1)/2) pitch, (j-(ny-1)/2) pitch, plane_z_mm).")
+    images: tuple[CalibrationImage, ...] = Field((), description="The grid at five or more known heights through and around focus.")
+    refine_mirrors: bool = Field(True, description="Refine the planes of system.mirrors from the grid seen in each mirror.")
+    radiometric: Radiometric | None = Field(None, description="Bias, dark, flat and photon-transfer frames: the sensor block.")
+
+    @model_validator(mode="after")
+    def _check(self) -> "Calibrate":
+        if (self.grid is None) != (len(self.images) == 0):
+            raise ValueError("give both grid and images (geometric calibration), or neither")
+        if self.grid is None and self.radiometric is None:
+            raise ValueError("give grid and images (geometric), radiometric, or both")
+        return self
 
 
 # --------------------------------------------------------------------------- rig (issue 11)
@@ -437,8 +533,21 @@ class RigStage(Model):
         return v
 
 
+class FilterLight(Model):
+    wavelength_nm: int | None = Field(None, description="Simulated camera: the wavelength whose simulate.flux.optical properties apply behind this filter (diffusion truths; default simulate's own).")
+    transmission: float = Field(1.0, ge=0, le=1, description="Simulated camera: fraction of the emission the filter passes.")
+
+
 class RigCamera(Model):
     backend: Literal["simulated", "dcam"] = Field("simulated", description="simulated (default) or dcam (optional extra, the real camera).")
+    binning: int = Field(1, ge=1, description="Binning set on the camera; system.camera.pixels/pixel_pitch_mm describe the binned image (the ImagEM: 4).")
+    filters: dict[str, FilterLight] = Field(default_factory=dict, description="Simulated camera: what reaches the sensor behind each filter (by name); unlisted filters pass simulate's truth unchanged.")
+    setpoint_c: float = Field(-65.0, description="Sensor temperature with the cooler on (deg C); dark_current_e_per_s holds there.")
+    ambient_c: float = Field(20.0, description="Simulated camera: sensor temperature with the cooler off (deg C).")
+    dark_doubling_c: float = Field(6.3, gt=0, description="Simulated camera: dark current doubles per this many deg C.")
+    em_gain_range: tuple[float, float] = Field((1.0, 1200.0), description="EM gains the camera accepts [low, high] (unverified: x4-x1200 for the ImagEM).")
+    device_index: int = Field(0, ge=0, description="dcam: which DCAM camera (0 = first).")
+    shutter_property: str | None = Field(None, description="dcam: name of the DCAM property that closes a shutter for dark frames (unverified; none: darks refused).")
 
 
 class Rig(Model):
@@ -446,6 +555,38 @@ class Rig(Model):
     filter_wheel: RigFilterWheel | None = Field(None, description="The FW102C filter wheel.")
     stage: RigStage | None = Field(None, description="The L490MZ lab jack (APT).")
     camera: RigCamera | None = Field(None, description="The EMCCD.")
+
+
+# --------------------------------------------------------------------------- capture (acquisition)
+class Capture(Model):
+    """The acquisition plan of ``fluxmap capture-surface``: darks first, then per height, per filter, repeats."""
+
+    heights_mm: tuple[float, ...] = Field(min_length=1, description="Stage heights to image at (mm), in this order.")
+    filters: tuple[str, ...] = Field(("open",), min_length=1, description="Filter names (keys of rig.filter_wheel.filters), in this order.")
+    exposure_s: float | tuple[float, ...] = Field(1.0, description="Exposure time (s), or several: each height and filter is taken at each.")
+    em_gain: float = Field(300.0, ge=1, description="EM gain of every frame.")
+    repeats: int = Field(1, ge=1, description="Frames per height and filter.")
+    darks: int = Field(4, ge=0, description="Dark frames (shutter closed, same exposure and gain), taken first.")
+    seed: int = Field(0, ge=0, description="Simulated camera: frame k's noise comes from the seed (seed, k).")
+
+    @field_validator("heights_mm", "filters")
+    @classmethod
+    def _distinct(cls, v):
+        if len(set(v)) != len(v):
+            raise ValueError("list the same value only once (use repeats for more frames)")
+        return v
+
+    @field_validator("exposure_s")
+    @classmethod
+    def _exposures(cls, v):
+        many = v if isinstance(v, tuple) else (v,)
+        if not many or min(many) <= 0 or len(set(many)) != len(many):
+            raise ValueError("give one or more distinct positive exposure times (s)")
+        return v
+
+    @property
+    def exposures_s(self) -> tuple[float, ...]:
+        return tuple(self.exposure_s) if isinstance(self.exposure_s, tuple) else (float(self.exposure_s),)
 
 
 # --------------------------------------------------------------------------- top level
@@ -460,8 +601,8 @@ class Config(Model):
     simulate: Simulate | None = None
     reconstruct: Reconstruct = Reconstruct()
     report: ReportSettings = ReportSettings()
-    calibrate: dict[str, Any] | None = None
-    capture: dict[str, Any] | None = None
+    calibrate: Calibrate | None = None
+    capture: Capture | None = Field(None, description="The acquisition plan of capture-surface.")
     rig: Rig | None = Field(None, description="The devices of the rig (issue 11).")
 
 
@@ -507,6 +648,25 @@ def _override_value(item: str, value: str) -> Any:
                         "mappings for the shell, e.g. --set 'subject.poses.heights_mm=[0, 10]'.") from None
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """safe_load, but a key given twice in one mapping is an error (YAML keeps the last silently)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen: dict = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                hash(key)
+            except TypeError:
+                continue
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"duplicate key: {key!r} is given twice (lines {seen[key] + 1} and {key_node.start_mark.line + 1})",
+                    key_node.start_mark)
+            seen[key] = key_node.start_mark.line
+        return super().construct_mapping(node, deep=deep)
+
+
 def _apply_override(raw: dict[str, Any], item: str) -> None:
     """Apply ``dotted.key=value`` (list items by index: ``system.mirrors.0.reflectance=0.9``)."""
     if "=" not in item:
@@ -542,7 +702,9 @@ _SURFACE_MEMBERS = {"phantom": ("MeshSurface", "ArtefactSurface"), "mesh": ("Art
 
 def _relevant(errors: list, raw: Any) -> list:
     """Drop errors from union members the user did not choose (a phantom with a bad radius
-    is not also 'missing its mesh key')."""
+    is not also 'missing its mesh key'), and a list's 'too short' when one of its items failed."""
+    items = {tuple(e["loc"][:-1]) for e in errors if e["loc"] and isinstance(e["loc"][-1], int)}
+    errors = [e for e in errors if not (e["type"] == "too_short" and tuple(e["loc"]) in items)]
     surf = raw.get("subject", {}).get("surface") if isinstance(raw, dict) and isinstance(raw.get("subject"), dict) else None
     if not isinstance(surf, dict):
         return errors
@@ -572,7 +734,7 @@ def _format_validation_error(err: ValidationError, path: Path, raw: Any = None) 
 # pydantic puts union member names into error locations; they are not keys the user wrote.
 _UNION_TAGS = {"cylinder", "ring", "sphere", "patch", "MeshSurface", "ArtefactSurface",
                "gaussian", "uniform", "file", "diffusion", "float", "literal['auto']",
-               "function-after[_check(), Lens]", "tagged-union[CylinderPhantom,RingPhantom,SpherePhantom,PatchPhantom]"}
+               "function-after[_check(), Lens]", "ImageFiles", "CaptureSource", "tagged-union[CylinderPhantom,RingPhantom,SpherePhantom,PatchPhantom]"}
 
 
 def _camera_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
@@ -606,6 +768,24 @@ def _camera_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
     system["camera"] = _merge(loaded["camera"], overrides)
 
 
+def _mirrors_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
+    """``system.mirrors: calib/camera.yaml`` takes the file's top-level ``mirrors:`` list (refined by calibrate)."""
+    system = raw.get("system")
+    if not isinstance(system, dict) or not isinstance(system.get("mirrors"), str):
+        return
+    ref = system["mirrors"]
+    file = Path(ref) if Path(ref).is_absolute() else (base_dir / ref).resolve()
+    if not file.is_file():
+        raise UserError(f"config {path}: 'system.mirrors': file {file} does not exist.")
+    try:
+        loaded = yaml.load(file.read_text(), Loader=_UniqueKeyLoader)
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise UserError(f"config {path}: 'system.mirrors': file {file} is not valid YAML: {e}".replace("\n", " ")) from None
+    if not isinstance(loaded, dict) or not isinstance(loaded.get("mirrors"), list):
+        raise UserError(f"config {path}: 'system.mirrors': file {file} has no top-level 'mirrors:' list.")
+    system["mirrors"] = loaded["mirrors"]
+
+
 def _merge(base: dict, over: dict) -> dict:
     out = dict(base)
     for k, v in over.items():
@@ -613,22 +793,6 @@ def _merge(base: dict, over: dict) -> dict:
     return out
 
 
-class _UniqueKeyLoader(yaml.SafeLoader):
-    """safe_load that refuses a key given twice in one mapping (YAML keeps the last silently)."""
-
-    def construct_mapping(self, node, deep=False):
-        seen = set()
-        for key_node, _ in node.value:
-            key = self.construct_object(key_node, deep=deep)
-            try:
-                hashable = key in seen
-            except TypeError:
-                continue
-            if hashable:
-                raise yaml.constructor.ConstructorError(
-                    None, None, f"duplicate key {key!r} (given twice in one section)", key_node.start_mark)
-            seen.add(key)
-        return super().construct_mapping(node, deep=deep)
 
 
 def require(cfg: "LoadedConfig", stage: str, keys: tuple[str, ...] | list[str]) -> None:
@@ -644,6 +808,8 @@ def require(cfg: "LoadedConfig", stage: str, keys: tuple[str, ...] | list[str]) 
 def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -> LoadedConfig:
     """Read, override and validate a config; raise UserError with one clear paragraph."""
     path = Path(path)
+    if path.is_dir():
+        raise UserError(f"config file {path} is a folder; give the YAML file itself.")
     if not path.is_file():
         raise UserError(f"config file {path} does not exist.")
     try:
@@ -655,6 +821,7 @@ def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -
     if not isinstance(raw, dict):
         raise UserError(f"config file {path} must hold a mapping of keys (workdir, system, subject, ...).")
     _camera_from_file(raw, path.resolve().parent, path)
+    _mirrors_from_file(raw, path.resolve().parent, path)
     for item in overrides:
         _apply_override(raw, item)
     try:

@@ -19,13 +19,15 @@ from .artefacts import transfer as AT
 from .config import LoadedConfig, Sensor, Transfer
 from .errors import UserError
 from .imaging import noise as N
-from .optics.transfer import ALGORITHM_VERSION, LensSampling, PairwiseSampling, View, build_transfer
+from .optics.transfer import (ALGORITHM_VERSION, LensSampling, PairwiseSampling, View, build_transfer,
+                             surface_sample_count)
 from .scene import PlacedScene, Pose, SubjectPlacer, poses_from_config, views_from_config
 from .workers import worker_pool
 
-# build-T refuses a pose whose views collect nothing, and warns below this fraction of the
-# collection efficiency the best pose reaches (a view that barely sees the subject)
+# build-T refuses a pose whose views collect nothing, and warns when a view collects less than
+# WEAK_VIEW_FRACTION of what the best view does, or sees less than SEEN_FRACTION of the subject's area
 WEAK_VIEW_FRACTION = 0.02
+SEEN_FRACTION = 0.05
 
 
 @dataclass(frozen=True)
@@ -61,6 +63,7 @@ def check_writable(folder: Path, key: str) -> None:
 def check_folders(cfg: LoadedConfig, *, cache: bool = True) -> None:
     """The workdir (and the T cache) must be writable before a stage computes anything."""
     check_writable(cfg.workdir, "workdir")
+    A.clean_stale_temps(cfg.workdir)
     if cache:
         check_writable(cache_dir(cfg), "transfer.cache_dir" if cfg.model.transfer.cache_dir else "workdir")
 
@@ -90,6 +93,9 @@ def check_memory(need_bytes: float, what: str, keys: str) -> None:
     if need_bytes > 0.8 * avail:
         raise UserError(f"{what} would need about {_gb(need_bytes)} of memory; {_gb(avail)} is available. "
                         f"Reduce {keys}.")
+
+
+SAMPLE_BYTES = 600.0  # per surface sample point: position, normal, weights, edges, lens disk, masks and copies
 
 
 def transfer_bytes(n_pixels: int, n_views: int, n_elements: int) -> float:
@@ -210,7 +216,8 @@ def summarise(res, scene: PlacedScene) -> dict:
     surface that the view delivers to the sensor (area-weighted mean column sum)."""
     areas = scene.surface.element_areas_mm2
     eff = {view.name: AT.efficiency(Tv, view.weight, areas) for view, Tv in zip(res.views, res.T_per_view)}
-    return {"nnz": int(res.T.nnz), "efficiency": eff}
+    seen = {view.name: AT.seen_fraction(Tv, areas) for view, Tv in zip(res.views, res.T_per_view)}
+    return {"nnz": int(res.T.nnz), "efficiency": eff, "seen": seen}
 
 
 def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: str = "building T",
@@ -223,12 +230,21 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
     tr = transfer or cfg.model.transfer
     views, placer, todo = plan(cfg, tr, unknowns)
     announce(ctx, placer)
+    A.clean_stale_temps(cache_dir(cfg))  # what killed runs left, even when nothing is rebuilt
     nx, ny = cfg.model.system.camera.pixels
     n_el = todo[0][0].surface.n_elements if todo else 0
-    check_memory(transfer_bytes(nx * ny, len(views), n_el) * max(1, min(ctx.jobs, len(todo))),
+    jobs = max(1, min(ctx.jobs, len(todo)))
+    check_memory(transfer_bytes(nx * ny, len(views), n_el) * jobs,
                  f"building T ({nx} x {ny} pixels, {len(views)} view(s), {n_el} elements"
                  + (f", {ctx.jobs} jobs)" if ctx.jobs > 1 else ")"),
                  "system.camera.pixels (bin the sensor), the elements of subject.surface, or --jobs")
+    if todo:
+        n = max(surface_sample_count(s.surface, views, tr.estimator, LensSampling(**tr.lens.model_dump()),
+                                     PairwiseSampling(**tr.pairwise.model_dump())) for s, _ in todo[:1] + todo[-1:])
+        check_memory(SAMPLE_BYTES * n * jobs, f"building T ({n:.3g} surface sample points per view"
+                     + (f", {ctx.jobs} jobs)" if ctx.jobs > 1 else ")"),
+                     "transfer.lens.surface_samples_per_pixel or transfer.lens.max_surface_subdivisions "
+                     "(or transfer.pairwise.surface_subdivisions), the faces of subject.surface, or --jobs")
     names = [v.name for v in views]
     results: dict[str, dict] = {}
     need, seen = [], set()
@@ -260,18 +276,38 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
     return views, placer, todo, results
 
 
+def ensure_pose_T(cfg: LoadedConfig, pose: Pose, transfer: Transfer | None = None,
+                  placer: SubjectPlacer | None = None):
+    """T (CSR) of one pose that need not be in ``subject.poses`` (the simulated rig renders
+    at the stage's physical height), from the T cache or built and cached."""
+    tr = transfer or cfg.model.transfer
+    views = views_from_config(cfg.model.system)
+    scene = (placer or SubjectPlacer(cfg)).scene(pose, cfg.model.system)
+    path = AT.entry_path(cache_dir(cfg), A.cache_key(key_parts(scene, views, tr)))
+    if not path.is_file():
+        _build_and_store(scene, views, tr, path, cfg.sha256, provenance(cfg))
+    return AT.load_T(path)
+
+
 def check_collection(todo, results: dict, view_names: list[str], ctx) -> None:
     """Refuse a pose no view collects light from; warn about views that barely see the subject."""
-    best = max((max(results[p.key]["efficiency"].values()) for _, p in todo), default=0.0)
+    def finite(x):
+        return x if np.isfinite(x) else 0.0
+
+    best = max((max(finite(v) for v in results[p.key]["efficiency"].values()) for _, p in todo), default=0.0)
     for _, p in todo:
-        eff = results[p.key]["efficiency"]
-        if sum(eff.values()) <= 0:
+        eff = {k: finite(v) for k, v in results[p.key]["efficiency"].items()}
+        if not sum(eff.values()) > 0:
             raise UserError(
                 f"at pose {p.pose.label} no camera view collects any light from the subject (T is all zero): "
                 "check system.camera.pose.lens_center_mm and system.camera.pose.look (does the camera look at "
                 "the subject?), system.camera.lens.focus_distance_mm, system.mirrors, and subject.poses.heights_mm "
                 "(is the subject between the stage and the lens?).")
         for name in view_names:
+            seen = results[p.key].get("seen", {}).get(name)
             if best > 0 and eff[name] < WEAK_VIEW_FRACTION * best:
                 ctx.warn(f"view {name} at pose {p.pose.label} collects {eff[name] / best:.1%} of the light the best "
                          f"view collects (below {WEAK_VIEW_FRACTION:.0%}): it barely sees the subject.")
+            elif seen is not None and seen < SEEN_FRACTION:
+                ctx.warn(f"view {name} at pose {p.pose.label} sees {seen:.1%} of the subject's area (below "
+                         f"{SEEN_FRACTION:.0%}): check its placement (system.camera.pose, system.mirrors).")

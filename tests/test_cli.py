@@ -151,9 +151,12 @@ def test_mirror_facing_away_from_the_camera(write_config, minimal_config):
     assert_user_error(run("build-T", write_config(cfg)), "faces away")
 
 
-@pytest.mark.parametrize("stage", ["calibrate", "capture-surface"])
-def test_stages_not_built_yet_say_so(stage, write_config, minimal_config):
-    assert_user_error(run(stage, write_config(minimal_config)), "not built yet")
+def test_calibrate_without_its_section_names_it(write_config, minimal_config):
+    assert_user_error(run("calibrate", write_config(minimal_config)), "calibrate", "needs")
+
+
+def test_capture_surface_without_a_plan_names_the_section(write_config, minimal_config):
+    assert_user_error(run("capture-surface", write_config(minimal_config)), "needs 'rig'")
 
 
 def test_real_process_exit_code_and_no_traceback(tmp_path):

@@ -14,6 +14,7 @@ import pytest
 import yaml
 
 from fluxcli.artefacts import atomic_path, clean_stale_temps
+from fluxcli.artefacts.atomic import host_tag
 from fluxcli.artefacts.transfer import load_T
 
 from conftest import cylinder_sim_config
@@ -98,7 +99,7 @@ def test_SIGKILLed_build_T_leaves_no_workers_no_temp_files_and_a_rerun_gives_the
     assert not _wait_gone(workers), "workers outlived their SIGKILLed parent by 5 s"
     # besides whatever the kill left, the exact file a writer killed mid-write leaves (its pid is dead)
     cache.mkdir(parents=True, exist_ok=True)
-    (cache / f".{'0' * 64}.h5.{max(workers)}.0123abcd.tmp.h5").write_bytes(b"\0" * 4096)
+    (cache / f".{'0' * 64}.h5.{host_tag()}.{max(workers)}.0123abcd.tmp.h5").write_bytes(b"\0" * 4096)
     r = subprocess.run([*FLUXMAP, "build-T", str(cfg), "-q"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert not [p for p in cache.iterdir() if ".tmp" in p.name], list(cache.iterdir())
@@ -124,13 +125,14 @@ def test_SIGTERM_and_ctrl_c_stop_build_T_within_2_s_and_kill_the_workers(tmp_pat
 
 
 def test_temp_files_of_live_writers_are_kept_and_dead_ones_removed(tmp_path):
-    live = tmp_path / f".x.h5.{os.getpid()}.0123abcd.tmp.h5"
+    live = tmp_path / f".x.h5.{host_tag()}.{os.getpid()}.0123abcd.tmp.h5"
     dead_pid = 2 ** 22 + 12345  # above the default pid_max of most systems: no such process
-    dead = tmp_path / f".x.h5.{dead_pid}.0123abcd.tmp.h5"
-    live.write_bytes(b"x")
-    dead.write_bytes(b"x")
+    dead = tmp_path / f".x.h5.{host_tag()}.{dead_pid}.0123abcd.tmp.h5"
+    elsewhere = tmp_path / f".x.h5.another-machine.{dead_pid}.0123abcd.tmp.h5"  # its pids are not ours to judge
+    for p in (live, dead, elsewhere):
+        p.write_bytes(b"x")
     assert clean_stale_temps(tmp_path) == [dead]
-    assert live.exists() and not dead.exists()
+    assert live.exists() and not dead.exists() and elsewhere.exists()
 
 
 def test_atomic_writes_honour_the_umask_and_leave_nothing_on_failure(tmp_path):

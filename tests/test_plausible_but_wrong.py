@@ -21,6 +21,7 @@ from fluxcli.imaging.imagefiles import write_image
 from fluxcli.surface.mesh import read_mesh, read_mesh_checked, validated
 
 from conftest import ROOT
+from tiny_pipeline import tiny_run  # noqa: F401  (the session fixture)
 from test_user_mistakes import ply
 
 runner = CliRunner()

@@ -22,6 +22,8 @@ from typer.testing import CliRunner
 from fluxcli.cli import app
 from fluxcli.imaging.imagefiles import write_image
 
+from tiny_pipeline import tiny_run  # noqa: F401  (the session fixture)
+
 ROOT = Path(__file__).resolve().parents[1]
 runner = CliRunner()
 
@@ -234,8 +236,9 @@ MISTAKES = [
     # --- the config file
     ("config-missing", "build-T", lambda c, d, b: ["--set", "x=1"] and None, ["does not exist"]),
     ("yaml-invalid", "build-T", None, ["not valid YAML"]),
+    ("config-is-a-folder", "build-T", None, ["is a folder"]),
     ("yaml-not-mapping", "build-T", None, ["mapping"]),
-    ("yaml-duplicate-key", "build-T", None, ["duplicate key 'workdir'"]),
+    ("yaml-duplicate-key", "build-T", None, ["duplicate key", "'workdir'"]),
     ("unknown-top-key", "build-T", _cfg("sytem", {}), ["'sytem'", "unknown key"]),
     ("unknown-nested-key", "build-T", _cfg("system.camera.pixel_pitch", 0.1), ["system.camera.pixel_pitch"]),
     ("missing-lens", "build-T", _del("system.camera.lens"), ["system.camera.lens"]),
@@ -302,6 +305,9 @@ MISTAKES = [
     ("diffusion-too-deep", "simulate", _diffusion(**{"sources": [{"depth_mm": 50.0, "power_photons": 1e8}]}),
      ["simulate.flux.sources.0.depth_mm"]),
     ("fem-too-fine", "simulate", _diffusion(mesh_edge_mm=0.001), ["simulate.flux.mesh_edge_mm", "tetrahedra"]),
+    ("export-folder-is-a-file", "simulate",
+     lambda c, d, b: ((d / "run").mkdir(), (d / "run" / "images").write_text("x"), put(c, "workdir", str(d / "run")),
+                      put(c, "simulate.export", {"format": "tiff"})) and None, ["run/images"]),
     ("noise-peaks-negative", "simulate", _cfg("simulate.noise.peaks_photons", [-1]), ["simulate.noise.peaks_photons"]),
     ("noise-repeats-zero", "simulate", _cfg("simulate.noise.repeats", 0), ["simulate.noise.repeats"]),
     ("inverse-crime", "simulate", _cfg("simulate.transfer", {"lens": {"lens_samples_min": 16}}), ["simulate.transfer"]),
@@ -324,6 +330,21 @@ MISTAKES = [
     ("sweep-level-out-of-range", "reconstruct",
      lambda c, d, b: (put(c, "reconstruct.sweep", {"methods": [{"method": "nnls"}], "levels": [4]}), _own_run()(c, d, b)) and None,
      ["reconstruct.sweep.levels"]),
+    ("sweep-repeats-out-of-range", "reconstruct",
+     lambda c, d, b: (put(c, "reconstruct.sweep", {"methods": [{"method": "nnls"}], "repeats": 100}), _own_run()(c, d, b)) and None,
+     ["reconstruct.sweep.repeats"]),
+    ("sim-saturated-level", "reconstruct",
+     lambda c, d, b: (put(c, "simulate.noise", {"model": "emccd", "peaks_photons": [1e12]}),
+                      put(c, "system.camera.sensor", {"em_gain": 300}), put(c, "workdir", str(d / "run"))) and None,
+     ["reconstruct.level", "saturated"]),
+    ("poisson-level-too-high", "simulate", _cfg("simulate.noise.peaks_photons", [1e30]), ["simulate.noise.peaks_photons"]),
+    ("rotation-axis-zero", "build-T", _cfg("subject.rotation_axis", {"direction": [0, 0, 0]}),
+     ["subject.rotation_axis.direction"]),
+    ("rotation-nan", "build-T", _set("subject.poses.rotations_deg=[.nan]"), ["subject.poses.rotations_deg"]),
+    ("lens-samples-max-below-min", "build-T", _cfg("transfer.lens.lens_samples_max", 2), ["lens_samples_max"]),
+    ("too-many-surface-samples", "build-T",
+     _set("transfer.lens.surface_samples_per_pixel=1e5", "transfer.lens.max_surface_subdivisions=1000000"),
+     ["transfer.lens.surface_samples_per_pixel", "GB"]),
     ("sweep-without-truth", "reconstruct", _with_images_and_sweep, ["reconstruct.sweep"]),
     ("sim-corrupt-file", "reconstruct", _own_run(_garbage("simulation.h5")), ["simulation.h5", "not a readable HDF5"]),
     ("sim-missing-dataset", "reconstruct", _own_run(_drop_dataset("truth/power")), ["simulation.h5", "truth/power"]),
@@ -338,6 +359,12 @@ MISTAKES = [
      ["img0.tif", "fluxmap:units = counts", "reconstruct.images.units"]),
     ("counts-without-sensor", "reconstruct", _images(dtype=np.uint16, units="counts", cfg_units="counts"),
      ["reconstruct.images.units", "system.camera.sensor"]),
+    ("image-integers-as-photons", "reconstruct",
+     lambda c, d, b: (write_image(d / "u0.tif", np.full((24, 24), 700, np.uint16)),
+                      write_image(d / "u1.tif", np.full((24, 24), 700, np.uint16)),
+                      put(c, "reconstruct.images", {"files": [str(d / "u0.tif"), str(d / "u1.tif")]}),
+                      put(c, "workdir", str(d / "run"))) and None,
+     ["u0.tif", "uint16", "reconstruct.images.units"]),
     ("image-all-nan", "reconstruct", _images(nan=True), ["img0.tif", "NaN"]),
     ("image-all-negative", "reconstruct", _images(value=-5.0), ["img0.tif", "positive"]),
     ("image-saturated", "reconstruct", _saturated, ["img0.tif", "saturated"]),
@@ -362,6 +389,8 @@ def test_user_mistake_exits_2_naming_the_key_or_file(case, base, tmp_path):
     p = tmp_path / "cfg.yaml"
     if name == "config-missing":
         p = tmp_path / "missing.yaml"
+    elif name == "config-is-a-folder":
+        p = tmp_path
     elif name == "yaml-invalid":
         p.write_text("system: [1,\n")
     elif name == "yaml-not-mapping":
@@ -370,6 +399,9 @@ def test_user_mistake_exits_2_naming_the_key_or_file(case, base, tmp_path):
         p.write_text(yaml.safe_dump(cfg) + f"workdir: {tmp_path}\n")
     else:
         p.write_text(yaml.safe_dump(cfg))
+    if name == "sim-saturated-level":  # a saturated simulation, then its reconstruction
+        r, out = invoke("simulate", p, "-q")
+        assert r.exit_code == 0, out
     r, out = invoke(stage, p, *extra)
     assert r.exit_code == 2, out
     assert "Traceback" not in out, out

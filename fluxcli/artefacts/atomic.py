@@ -1,11 +1,12 @@
 """The one atomic writer: every file fluxmap writes appears complete under its name or not at all.
 
-A file is written to a temporary name in its target folder (``.NAME.PID.RANDOM.tmp``),
+A file is written to a temporary name in its target folder (``.NAME.HOST.PID.RANDOM.tmp``),
 flushed to disk (fsync), renamed over the target, and the folder is fsynced so that the
 rename survives a power cut.  Files are created with mode 0666 minus the umask (0644 by
 default), so colleagues can read results and share a T cache.  A temporary file whose
 writing process no longer runs (a killed run) is removed the next time anything is
-written to that folder.
+written to that folder (only this machine's: another machine sharing the folder may still
+be writing its own).
 """
 
 from __future__ import annotations
@@ -14,10 +15,17 @@ import contextlib
 import os
 import re
 import secrets
+import socket
 from pathlib import Path
 from typing import Iterator
 
-_TMP = re.compile(r"^\..+\.(\d+)\.[0-9a-f]{8}\.tmp(\.[A-Za-z0-9]+)?$")
+_TMP = re.compile(r"^\..+\.([A-Za-z0-9-]+)\.(\d+)\.[0-9a-f]{8}\.tmp(\.[A-Za-z0-9]+)?$")
+
+
+def host_tag() -> str:
+    """This machine's name as it appears in temporary names (a shared T cache on a network
+    file system must not lose another machine's file in progress)."""
+    return re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname())[:40] or "host"
 
 
 def _alive(pid: int) -> bool:
@@ -41,7 +49,7 @@ def clean_stale_temps(folder: Path) -> list[Path]:
         return removed
     for name in names:
         m = _TMP.match(name)
-        if m and not _alive(int(m.group(1))):
+        if m and m.group(1) == host_tag() and not _alive(int(m.group(2))):
             p = Path(folder) / name
             with contextlib.suppress(OSError):
                 p.unlink()
@@ -52,7 +60,7 @@ def clean_stale_temps(folder: Path) -> list[Path]:
 def temp_name(path: Path) -> Path:
     """A temporary name beside ``path`` that says which process writes it (same suffix,
     so libraries that pick a format by suffix still do)."""
-    return path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp{path.suffix}")
+    return path.with_name(f".{path.name}.{host_tag()}.{os.getpid()}.{secrets.token_hex(4)}.tmp{path.suffix}")
 
 
 def fsync_path(path: Path, *, directory: bool = False) -> None:

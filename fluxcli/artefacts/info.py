@@ -28,6 +28,8 @@ def _get(d: dict, dotted: str):
 def describe(path: Path | str) -> str:
     """A multi-line description of the artefact at ``path``; UserError if it is not one."""
     path = Path(path)
+    if path.is_dir():
+        raise UserError(f"info: {path} is a folder; give an artefact file (e.g. {path / 'simulation.h5'}).")
     if not path.is_file():
         raise UserError(f"info: {path} does not exist.")
     try:

@@ -133,3 +133,34 @@ register(Kind("tetmesh", 1, "fluxmap simulate", "tetrahedral mesh of the subject
     Dataset("nodes", "mm", "node positions (N, 3)"),
     Dataset("tets", "", "tetrahedra (M, 4)"),
 )))
+
+
+register(Kind("calibration", 1, "fluxmap calibrate", "camera model from grid images, sensor from frames", (
+    Dataset("camera_yaml", "", "the camera.yaml written beside this file (text)"),
+    Dataset("geometric/lens_center_mm", "mm", "lens centre C in the grid's frame", required=False),
+    Dataset("geometric/rotation", "", "rows: camera right, down, look (world directions)", required=False),
+    Dataset("geometric/images", "", "per image k: plane_z_mm, ij, xy_px, residual_px, residual_mm, "
+            "blur_diameter_px, axial_mm (pixel centres at integer (col, row))", required=False),
+    Dataset("radiometric", "", "bias/dark/flat maps, PTC, sensor scalars", required=False),
+)))
+
+
+register(Kind("capture", 1, "fluxmap capture-surface", "emission images acquired on the rig, frame by frame", (
+    Dataset("frames/counts", "ADC counts", "counts[frame, row, col]; frame k is plan slot k, row 0 first"),
+    Dataset("frames/time_unix", "s", "when the frame was read out (s since 1970-01-01 UTC)"),
+    Dataset("frames/stage_height_mm", "mm", "stage height read back from the stage"),
+    Dataset("frames/filter_position", "", "filter-wheel position read back (1-based)"),
+    Dataset("frames/filter_name", "", "name of that position in rig.filter_wheel.filters"),
+    Dataset("frames/exposure_s", "s", "exposure read back from the camera"),
+    Dataset("frames/em_gain", "", "EM gain read back from the camera"),
+    Dataset("frames/temperature_c", "deg C", "sensor temperature read back from the camera"),
+    Dataset("frames/shutter_open", "", "1 light frame, 0 dark frame (shutter closed)"),
+    Dataset("frames/committed", "", "1 once frame k and its metadata are durable (written last); 0: not taken"),
+    Dataset("plan/dark", "", "1 for a planned dark frame"),
+    Dataset("plan/height_mm", "mm", "planned stage height of each frame"),
+    Dataset("plan/filter", "", "planned filter of each frame"),
+    Dataset("plan/repeat", "", "repeat index of each frame"),
+    Dataset("plan/exposure_s", "s", "planned exposure time of each frame"),
+    Dataset("truth", "photons per element per second (subject at rest)",
+            "simulated camera only: truth/<filter>/power, what reaches the camera through each filter", required=False),
+)))

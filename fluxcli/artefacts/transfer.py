@@ -31,9 +31,16 @@ class TSummary:
     nnz: int
     efficiency: dict[str, float]
     seconds: float
+    seen: dict[str, float] | None = None  # per view: fraction of the subject's area it sees
 
     def as_dict(self) -> dict:
-        return {"nnz": self.nnz, "efficiency": self.efficiency, "seconds": self.seconds}
+        return {"nnz": self.nnz, "efficiency": self.efficiency, "seconds": self.seconds, "seen": self.seen or {}}
+
+
+def seen_fraction(Tv: sp.csr_matrix, areas_mm2: np.ndarray) -> float:
+    """Fraction of the subject's area (elements with a non-zero column) that a view sees."""
+    col = np.asarray(Tv.sum(axis=0)).ravel()
+    return float(areas_mm2[col > 0].sum() / areas_mm2.sum())
 
 
 def efficiency(Tv: sp.csr_matrix, weight: float, areas_mm2: np.ndarray) -> float:
@@ -85,12 +92,14 @@ def load_view(path: Path, k: int) -> sp.csr_matrix:
 def read_summary(path: Path, view_names: list[str], areas: np.ndarray) -> dict:
     """Summary of a T file; reads every chunk, so a corrupt file raises UserError."""
     with open_artefact(path, "transfer") as f:
-        eff = {}
+        eff, seen = {}, {}
         for k, name in enumerate(view_names):
             g = f[f"views/{k}"]
-            eff[name] = efficiency(read_csr(g), float(g.attrs["weight"]), areas)
+            Tv = read_csr(g)
+            eff[name] = efficiency(Tv, float(g.attrs["weight"]), areas)
+            seen[name] = seen_fraction(Tv, areas)
         T = read_csr(f["T"])
-        return TSummary(int(T.nnz), eff, float(f.attrs["build_seconds"])).as_dict()
+        return TSummary(int(T.nnz), eff, float(f.attrs["build_seconds"]), seen).as_dict()
 
 
 _CHECKED: dict[tuple, dict] = {}  # (path, size, mtime) -> summary, so one run reads an entry once

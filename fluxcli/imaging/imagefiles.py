@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 
-__all__ = ["SUFFIXES", "read_image", "write_image"]
+__all__ = ["SUFFIXES", "read_image", "sample_type", "write_image"]
 
 SUFFIXES = (".tif", ".tiff", ".fits", ".exr")
 """File name suffixes :func:`write_image` can write (case-insensitive)."""
@@ -273,3 +273,32 @@ def read_image(path) -> tuple[np.ndarray, dict[str, str | float | int]]:
         and not isinstance(value, bool)
     }
     return image, metadata
+
+
+def sample_type(path) -> str:
+    """The sample type the file stores, as numpy names it (``"uint16"``, ``"float32"``, ...).
+
+    FITS counts written by :func:`write_image` are stored as int32 and EXR counts as
+    float32 (see the module docstring), so only TIFF keeps ``uint16`` for counts.
+
+    Raises
+    ------
+    ValueError
+        The file does not exist or cannot be read.
+    """
+    path = Path(path)
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        reason = oiio.geterror().strip().rstrip(".") or "unknown format"
+        raise ValueError(f"Image file '{path}' cannot be read: {reason}.")
+    try:
+        fmt = inp.spec().format
+    finally:
+        inp.close()
+    names = {oiio.UINT8: "uint8", oiio.INT8: "int8", oiio.UINT16: "uint16", oiio.INT16: "int16",
+             oiio.UINT32: "uint32", oiio.INT32: "int32", oiio.HALF: "float16", oiio.FLOAT: "float32",
+             oiio.DOUBLE: "float64"}
+    for t, name in names.items():
+        if fmt == t:
+            return name
+    return str(fmt)

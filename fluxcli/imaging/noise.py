@@ -28,6 +28,7 @@ __all__ = [
     "NOISE_KINDS",
     "PhotonNoise",
     "excess_noise_factor2",
+    "conventional_counts",
     "counts_to_photons",
     "emccd_counts",
     "expected_counts",
@@ -275,6 +276,39 @@ def emccd_counts(photons_per_pixel, model: EMCCDModel, rng: np.random.Generator)
     return np.clip(np.rint(counts), 0, model.max_count).astype(np.uint16)
 
 
+def conventional_counts(photons_per_pixel, model: EMCCDModel, rng: np.random.Generator) -> np.ndarray:
+    """Simulate counts read out with the EM gain off (no multiplication).
+
+    As :func:`emccd_counts` without step 2: electrons ``n ~ Poisson(λ)`` read out
+    directly, ``bias_counts + (n + Normal(0, read_noise_e)) / electrons_per_count``,
+    rounded and clipped; ``model.em_gain`` is ignored. Mean ``bias + λ / g`` and variance
+    ``λ / g² + (σ_r / g)²`` counts²: the photon-transfer curve of a conventional CCD,
+    slope ``1 / g``. This is how a camera's "EM gain off" frames for calibration are made
+    (the gamma model of :func:`emccd_counts` keeps ``F² = 2`` even at ``em_gain = 1``).
+
+    Parameters
+    ----------
+    photons_per_pixel : array_like of float, any shape
+        Expected photons reaching each pixel during the exposure, ≥ 0.
+    model : EMCCDModel
+        Camera parameters (``em_gain`` unused).
+    rng : numpy.random.Generator
+        Source of randomness.
+
+    Returns
+    -------
+    numpy.ndarray of uint16, same shape
+        Counts per pixel.
+    """
+    photons = _check_photons(photons_per_pixel)
+    model = _check_model(model)
+    _check_rng(rng)
+    electrons = rng.poisson(_mean_input_electrons(photons, model)).astype(np.float64)
+    electrons = electrons + model.read_noise_e * rng.standard_normal(photons.shape)
+    counts = model.bias_counts + electrons / model.electrons_per_count
+    return np.clip(np.rint(counts), 0, model.max_count).astype(np.uint16)
+
+
 def saturated(counts_per_pixel, model: EMCCDModel) -> np.ndarray:
     """Mask of pixels at the ADC's full scale.
 
@@ -439,14 +473,20 @@ class PhotonNoise:
     floor_photons2 : float
         Smallest variance returned (photons²): a pixel whose model is dark must not get
         an infinite weight (default 0.25, a quarter of a photon²).
+    frames_averaged : int
+        The image is the mean of this many frames (its variance is that much smaller).
     """
 
     kind: str = "poisson"
     read_noise_photons: float = 0.0
     sensor: EMCCDModel | None = None
     floor_photons2: float = 0.25
+    frames_averaged: int = 1
 
     def __post_init__(self) -> None:
+        if isinstance(self.frames_averaged, bool) or not isinstance(self.frames_averaged, numbers.Integral) \
+                or self.frames_averaged < 1:
+            raise ValueError(f"PhotonNoise.frames_averaged must be an integer ≥ 1, got {self.frames_averaged!r}.")
         if self.kind not in NOISE_KINDS:
             raise ValueError(f"noise kind must be one of {', '.join(NOISE_KINDS)}; got {self.kind!r}.")
         if self.kind == "emccd":
@@ -486,7 +526,7 @@ class PhotonNoise:
             var = (f2 * (qe * a + s.background_e_per_pixel) + (s.read_noise_e / gain) ** 2) / qe**2
         else:
             var = a + self.read_noise_photons**2
-        return np.maximum(var, self.floor_photons2)
+        return np.maximum(var / self.frames_averaged, self.floor_photons2)
 
     @property
     def variance_per_photon(self) -> float:

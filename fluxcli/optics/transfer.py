@@ -218,17 +218,38 @@ def _sampling_disks(cam: ThinLensCamera, P: np.ndarray, z: np.ndarray) -> tuple[
     return centre, radius
 
 
+def _lens_subdivisions(surface: Surface, faces: np.ndarray, cam, s: LensSampling) -> np.ndarray:
+    """Sub-triangles per edge of each face: ``surface_samples_per_pixel`` per pixel footprint."""
+    tri = surface.face_vertices_mm[faces]
+    edge = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2), axis=1)
+    z_face = np.maximum(cam.axial(tri.mean(axis=1)), 1e-6)
+    footprint = cam.focal_pixel_mm * z_face / cam.focus_distance_mm  # pixel size seen at that depth
+    return np.clip(np.ceil(edge / footprint * s.surface_samples_per_pixel),
+                   s.min_surface_subdivisions, s.max_surface_subdivisions).astype(np.int64)
+
+
+def surface_sample_count(surface: Surface, views: list[View], estimator: str = "lens",
+                         lens_sampling: LensSampling | None = None,
+                         pairwise_sampling: PairwiseSampling | None = None) -> int:
+    """How many surface points :func:`build_transfer` holds in memory at once for its
+    largest view (before lens sampling, which is batched): for sizing a job beforehand."""
+    most = 0
+    for view in views:
+        faces = _candidate_faces(surface, view)
+        if estimator == "lens":
+            n = _lens_subdivisions(surface, faces, view.camera, lens_sampling or LensSampling())
+        else:
+            n = np.full(len(faces), (pairwise_sampling or PairwiseSampling()).surface_subdivisions)
+        most = max(most, int(np.sum(n.astype(np.float64) ** 2)))
+    return most
+
+
 def _lens_pairs(surface: Surface, view: View, s: LensSampling, rays_per_batch: int) -> Iterator[tuple]:
     cam = view.camera
     faces = _candidate_faces(surface, view)
     if len(faces) == 0:
         return
-    tri = surface.face_vertices_mm[faces]
-    edge = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2), axis=1)
-    z_face = np.maximum(cam.axial(tri.mean(axis=1)), 1e-6)
-    footprint = cam.focal_pixel_mm * z_face / cam.focus_distance_mm  # pixel size seen at that depth
-    n_sub = np.clip(np.ceil(edge / footprint * s.surface_samples_per_pixel),
-                    s.min_surface_subdivisions, s.max_surface_subdivisions).astype(np.int64)
+    n_sub = _lens_subdivisions(surface, faces, cam, s)
     P, N, E, W, G = sample_faces(surface, faces, n_sub)
     z = cam.axial(P)
     front = (z > 0) & (np.einsum("ij,ij->i", N, cam.center_mm - P) > -cam.aperture_radius_mm)

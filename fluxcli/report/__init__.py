@@ -405,7 +405,8 @@ class Geometry:
 
 
 def make_report(study: Study, out_dir: Path, *, title: str, geometry: Geometry, slice_axial_mm: float = 0.0,
-                surface_views: bool = True, renderer: str = "auto", extra: dict | None = None) -> tuple[Path, dict]:
+                surface_views: bool = True, renderer: str = "auto", extra: dict | None = None,
+                sections: list | None = None) -> tuple[Path, dict]:
     """Draw every figure into ``out_dir``, write summary.json and index.html.
 
     ``renderer`` is ``auto`` (pyvista, else matplotlib), ``pyvista`` or ``matplotlib``
@@ -564,6 +565,8 @@ def make_report(study: Study, out_dir: Path, *, title: str, geometry: Geometry, 
         page.figure(save(fig, "sensitivity.png"), "System sensitivity per element.")
         summary["sensitivity"] = jsonable({"angle_deg": s_ang, "per_pose": s_vals, "unit": "dimensionless"})
 
+    for add in sections or ():  # more sections (e.g. the calibration): add(page, save) -> numbers for summary.json
+        summary.update(jsonable(add(page, save)))
     page.notes(study.notes)
     summary["notes"] = list(study.notes)
     summary["figures"] = figures

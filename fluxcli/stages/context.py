@@ -45,6 +45,18 @@ class RunContext:
             task = bar.add_task(label, total=total)
             yield lambda: bar.advance(task)
 
+    @contextlib.contextmanager
+    def progress_steps(self, label: str, total: int, completed: int = 0) -> Iterator[Callable[..., None]]:
+        """A progress bar that also shows the current step: ``update(step, advance=False)``."""
+        if self.quiet or total == 0:
+            yield lambda step, advance=False: None
+            return
+        bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                       TextColumn("{task.fields[step]}"), console=Console(file=sys.stderr), transient=False)
+        with bar:
+            task = bar.add_task(label, total=total, completed=completed, step="")
+            yield lambda step, advance=False: bar.update(task, step=step, advance=1 if advance else 0)
+
     def table(self, header: list[str], rows: list[list]) -> None:
         if self.quiet:
             return

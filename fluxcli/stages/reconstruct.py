@@ -28,11 +28,13 @@ from .. import artefacts as A
 from .. import config as C
 from ..errors import UserError
 from ..imaging import noise as N
-from ..imaging.imagefiles import read_image
+from ..imaging.imagefiles import read_image, sample_type
 from ..artefacts.transfer import load_T, load_view
 from ..inverse import backprojection, error_l1, reconstruct as solve, total_ratio
 from ..pipeline import check_folders, check_memory, emccd_model, ensure_T, geometry_of, plan, provenance
 from ..workers import worker_pool
+from ..imaging.sensor_maps import counts_to_photons_with_maps
+from ._radiometric import read_radiometric_maps
 from .context import RunContext
 
 
@@ -46,6 +48,7 @@ class Inputs:
     files: dict[str, Path] | None = None  # name -> input file (image files or simulation.h5), for provenance
     noise_kind: str = "poisson"  # how the images are noisy: gaussian | poisson | emccd
     exposure_s: float = 1.0
+    frames_averaged: int = 1
 
 
 def _simulation(cfg: C.LoadedConfig) -> Path:
@@ -56,10 +59,54 @@ def _simulation(cfg: C.LoadedConfig) -> Path:
     return path
 
 
+def _capture_path(cfg: C.LoadedConfig) -> Path:
+    p = cfg.model.reconstruct.images.capture
+    first = cfg.resolve(p)
+    return first if first.is_file() or p.is_absolute() else cfg.workdir / p
+
+
+def _from_capture(cfg: C.LoadedConfig, n_elements: int) -> Inputs:
+    """One image per pose (= stage height) from a capture: darks subtracted, counts -> photons."""
+    from ..acquisition import read_capture
+    from ..scene import poses_from_config
+
+    path = _capture_path(cfg)
+    src = cfg.model.reconstruct.images
+    cap = read_capture(path, src.filter, src.exposure_s)
+    order = cap.pose_order([p.height_mm for p in poses_from_config(cfg.model.subject)])
+    photons, valid = cap.photons(emccd_model(cfg.model.system.camera.sensor, cap.exposure_s))
+    nx, ny = cfg.model.system.camera.pixels
+    if photons.shape[1:] != (ny, nx):
+        raise UserError(f"reconstruct.images.capture: {path} holds {photons.shape[2]} x {photons.shape[1]} pixel "
+                        f"frames; system.camera.pixels is {nx} x {ny}.")
+    truth = cap.truth_power if cap.truth_power is not None and len(cap.truth_power) == n_elements else None
+    return Inputs(photons[order], valid[order] & np.isfinite(photons[order]), truth,
+                  f"{path} filter {cap.filter}, {cap.repeats} repeat(s) averaged, {cap.n_darks} dark(s) subtracted",
+                  files={"capture.h5": path}, noise_kind="emccd", exposure_s=float(cap.exposure_s),
+                  frames_averaged=max(int(cap.repeats), 1))
+
+
+def _image_sources(cfg: C.LoadedConfig) -> list[str]:
+    """sha256 of the image files reconstruct reads (what makes its output stale)."""
+    rc = cfg.model.reconstruct
+    if isinstance(rc.images, C.CaptureSource):
+        p = _capture_path(cfg)
+        return [A.file_sha256(p)] if p.is_file() else []
+    if rc.images is not None:
+        out = [A.file_sha256(cfg.resolve(p)) for p in rc.images.files if cfg.resolve(p).is_file()]
+        if rc.images.calibration is not None and cfg.resolve(rc.images.calibration).is_file():
+            out.append(A.file_sha256(cfg.resolve(rc.images.calibration)))
+        return out
+    sim = cfg.workdir / "simulation.h5"
+    return [A.file_sha256(sim)] if sim.is_file() else []
+
+
 def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int, surface_sha256: str | None = None,
                 poses: list | None = None) -> Inputs:
     rc = cfg.model.reconstruct
     nx, ny = cfg.model.system.camera.pixels
+    if isinstance(rc.images, C.CaptureSource):
+        return _from_capture(cfg, n_elements)
     if rc.images is not None:
         return _image_files(cfg, n_poses, poses)
     path = _simulation(cfg)
@@ -81,7 +128,14 @@ def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int, surface_sha2
         valid = np.isfinite(imgs)
         if "counts" in f["images"] and not rc.noiseless:
             model = emccd_model(cfg.model.system.camera.sensor, float(f["images"].attrs["exposure_s"]))
-            valid &= ~N.saturated(f["images/counts"][rc.level, rc.repeat], model)
+            sat = N.saturated(f["images/counts"][rc.level, rc.repeat], model)
+            lit = f["images/noiseless"][rc.level] > 0
+            for k in range(sat.shape[0]):
+                if lit[k].any() and sat[k][lit[k]].mean() > MOSTLY_SATURATED:
+                    raise UserError(f"reconstruct.level: at level {rc.level} ({path}) {sat[k][lit[k]].mean():.0%} of "
+                                    f"the lit pixels of pose {k} are saturated; reconstruct a lower level or "
+                                    "simulate with a lower simulate.noise.peaks_photons or system.camera.sensor.em_gain.")
+            valid &= ~sat
         truth = power * f["truth/level_scale"][rc.level]
         snr = f["images/max_snr"][rc.level]
         kind = str(f["images"].attrs.get("noise_model", "poisson"))
@@ -110,6 +164,8 @@ def _image_files(cfg: C.LoadedConfig, n_poses: int, poses: list | None) -> Input
                             "counts to photons needs the camera's bias, gain and quantum efficiency (give "
                             "system.camera.sensor, or images in photons).")
         model = emccd_model(cfg.model.system.camera.sensor, im.exposure_s)
+    maps = {} if im.calibration is None else read_radiometric_maps(  # per-pixel bias, dark, flat (radiometry)
+        cfg.resolve(im.calibration), "reconstruct.images.calibration", (ny, nx))
     imgs, valid = [], []
     for k, p in enumerate(im.files):
         where = f"reconstruct.images.files[{k}] ({cfg.resolve(p)})"
@@ -121,6 +177,11 @@ def _image_files(cfg: C.LoadedConfig, n_poses: int, poses: list | None) -> Input
             raise UserError(f"{where} is {img.shape[1]} x {img.shape[0]} pixels; the camera has {nx} x {ny} "
                             "(system.camera.pixels).")
         said = meta.get("fluxmap:units")
+        stored = sample_type(cfg.resolve(p))
+        if im.units == "photons" and stored.startswith(("uint", "int")) and not isinstance(said, str):
+            raise UserError(f"{where} stores {stored} integers, which are camera counts, but reconstruct.images.units "
+                            "is photons; set reconstruct.images.units: counts (with system.camera.sensor), or give "
+                            "photons as floating-point images.")
         if isinstance(said, str) and said != im.units:
             raise UserError(f"{where} holds {said} (its metadata says fluxmap:units = {said}), but "
                             f"reconstruct.images.units is {im.units}.")
@@ -142,7 +203,8 @@ def _image_files(cfg: C.LoadedConfig, n_poses: int, poses: list | None) -> Input
                 raise UserError(f"{where}: {sat.sum() / finite.sum():.0%} of the pixels are saturated (at "
                                 f"{2 ** model.bit_depth - 1} counts); shorten the exposure or lower the EM gain.")
             ok = finite & ~sat
-            img = N.counts_to_photons(np.where(finite, img, 0), model)
+            img = counts_to_photons_with_maps(np.where(finite, img, 0), model, **maps)
+            ok &= np.isfinite(img)  # dead pixels of the flat map
             img = np.where(finite, img, np.nan)
         if not np.any(img[ok] > 0):
             raise UserError(f"{where}: no pixel holds a positive signal (all are zero or negative"
@@ -162,13 +224,13 @@ def direct_roi(T_path: Path, image: np.ndarray) -> float:
     return float(np.nansum(image.ravel()[rows]))
 
 
-def photon_noise(cfg: C.LoadedConfig, kind: str, exposure_s: float) -> N.PhotonNoise:
+def photon_noise(cfg: C.LoadedConfig, kind: str, exposure_s: float, frames_averaged: int = 1) -> N.PhotonNoise:
     """The noise model of the images (``reconstruct.noise``, or ``auto``: what the simulation
     used, EMCCD for count images, Poisson otherwise): every weight, σ and χ² comes from it."""
     rc = cfg.model.reconstruct
     kind = (kind if kind in N.NOISE_KINDS else "poisson") if rc.noise == "auto" else rc.noise
     sensor = emccd_model(cfg.model.system.camera.sensor, exposure_s) if kind == "emccd" else None
-    return N.PhotonNoise(kind, read_noise_photons=rc.read_noise_photons, sensor=sensor)
+    return N.PhotonNoise(kind, read_noise_photons=rc.read_noise_photons, sensor=sensor, frames_averaged=frames_averaged)
 
 
 REGULARISED = ("paper", "tikhonov", "nnls", "weighted_lsq")  # lambda rules of fluxcli.inverse
@@ -320,9 +382,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     check_folders(cfg)
     out = cfg.workdir / "reconstruction.h5"
     m_ = cfg.model
-    sources = ([A.file_sha256(cfg.resolve(p)) for p in rc.images.files if cfg.resolve(p).is_file()]
-               if rc.images is not None else
-               [A.file_sha256(cfg.workdir / "simulation.h5")] if (cfg.workdir / "simulation.h5").is_file() else [])
+    sources = _image_sources(cfg)
     digest = A.inputs_digest(system=m_.system.model_dump(mode="json"), subject=m_.subject.model_dump(mode="json"),
                              transfer=m_.transfer.model_dump(mode="json"),
                              reconstruct=rc.model_dump(mode="json", by_alias=True), images=sources)
@@ -349,7 +409,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
                          for s in (rc.sweep.methods if rc.sweep else ())]}}
     Ts = grids["elements"].Ts
     gm = grids[m.unknowns]
-    noise = photon_noise(cfg, inp.noise_kind, inp.exposure_s)
+    noise = photon_noise(cfg, inp.noise_kind, inp.exposure_s, inp.frames_averaged)
     ctx.say(f"reconstruct: {inp.source}; {describe(m)}, {P} pose(s); {noise.kind} noise model")
     t0 = time.perf_counter()
     per_pose = []
@@ -458,7 +518,7 @@ def _write_geometry(g, cfg: C.LoadedConfig, placer, views, todo) -> None:
     g.attrs["view_names"] = json.dumps([v.name for v in views])
     base = cfg.workdir  # paths relative to the artefact's folder: the same bytes in any clone
     g.attrs["T_files"] = json.dumps([A.portable_path(pt.path, base) for _, pt in todo])
-    files = cfg.model.reconstruct.images.files if cfg.model.reconstruct.images is not None else None
+    files = getattr(cfg.model.reconstruct.images, "files", None)  # image files (not a capture)
     g.attrs["image_files"] = json.dumps([A.portable_path(cfg.resolve(p), base) for p in files] if files else [])
 
 
@@ -540,7 +600,10 @@ def _check_sweep(cfg: C.LoadedConfig, inp: Inputs) -> None:
                         "(reconstruct.images).")
     path = _simulation(cfg)
     with A.open_artefact(path, "simulation") as f:
-        L = f["images/noisy"].shape[0]
+        L, R = f["images/noisy"].shape[:2]
+    if sw.repeats is not None and sw.repeats > R:
+        raise UserError(f"reconstruct.sweep.repeats: {path} holds {R} noise repeat(s); asked for {sw.repeats} "
+                        "(simulate more with simulate.noise.repeats).")
     bad = [li for li in (sw.levels or ()) if li >= L]
     if bad:
         raise UserError(f"reconstruct.sweep.levels: {path} holds {L} signal level(s) (0 to {L - 1}); asked for {bad}.")

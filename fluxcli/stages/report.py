@@ -29,9 +29,16 @@ from ..scene import SubjectPlacer
 from .context import RunContext
 
 
+_GEOMETRY = ("system", "system.camera.lens", "system.camera.pose", "subject")
+
+
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     rs = cfg.model.report
     rec = cfg.workdir / "reconstruction.h5"
+    cal = cfg.workdir / "calibration.h5"
+    if cal.is_file() and not rec.is_file():
+        return _calibration_only(cfg, cal, ctx)
+    C.require(cfg, "report", _GEOMETRY)
     if not rec.is_file():
         raise UserError(f"report: {rec} does not exist; run 'fluxmap reconstruct {cfg.path}' first "
                         f"(after 'fluxmap simulate' or with reconstruct.images naming image files).")
@@ -39,6 +46,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     check_writable(out_dir, "workdir")
     sim = cfg.workdir / "simulation.h5"
     inputs = {"reconstruction.h5": A.file_sha256(rec)}
+    if cal.is_file():
+        inputs["calibration.h5"] = A.file_sha256(cal)
     if sim.is_file():
         inputs["simulation.h5"] = A.file_sha256(sim)
     settings = rs.model_dump(mode="json") | {"config_sha256": cfg.sha256}
@@ -48,9 +57,15 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         return index
 
     with A.open_artefact(rec, "reconstruction") as f:  # the result must be the one this config describes
-        A.check_geometry(rec, A.read_provenance(f), geometry_of(cfg, SubjectPlacer(cfg).surface.digest()),
+        prov = A.read_provenance(f)
+        A.check_geometry(rec, prov, geometry_of(cfg, SubjectPlacer(cfg).surface.digest()),
                          remedy=f"Run 'fluxmap reconstruct {cfg.path}' again")
-    study = R.load(rec, simulation=sim if sim.is_file() else None)
+    used = prov.input_files.get("simulation.h5", {}).get("sha256")
+    same_sim = sim.is_file() and used is not None and used == inputs.get("simulation.h5")
+    if sim.is_file() and used is not None and not same_sim:
+        ctx.warn(f"{sim} changed since {rec.name} was made from it; its SNR table is left out "
+                 f"(run 'fluxmap reconstruct {cfg.path}' again to use it).")
+    study = R.load(rec, simulation=sim if same_sim else None)
     geometry = study.geometry
     if geometry is None:
         raise UserError(f"report: {rec} records no geometry (made by an older fluxmap); run "
@@ -60,7 +75,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     ctx.say(f"report: {study.n_poses} pose(s), {study.surface.n_elements} elements, method {study.method}")
     index, summary = R.make_report(study, out_dir, title=rs.title or cfg.path.stem, geometry=geometry,
                                    slice_axial_mm=rs.slice_axial_mm, surface_views=rs.surface_views,
-                                   extra={"provenance": {"inputs": inputs, "settings": settings}})
+                                   extra={"provenance": {"inputs": inputs, "settings": settings}},
+                                   sections=[_calibration_section(cal)] if cal.is_file() else None)
     for note in summary["notes"]:
         ctx.say(f"note: {note}")
     sp = summary["spreads"]
@@ -98,3 +114,39 @@ def _remove_old_figures(out_dir: Path) -> None:
         p = out_dir / Path(name).name
         if p.suffix == ".png" and p.is_file():
             p.unlink()
+
+
+def _calibration_section(cal: Path):
+    from ..report.calibration_figures import add_calibration_section
+
+    def add(page, save):
+        return {"calibration": add_calibration_section(page, save, cal)}
+    return add
+
+
+def _calibration_only(cfg: C.LoadedConfig, cal: Path, ctx: RunContext) -> Path:
+    """A calibrate-only workdir: the report is the calibration section alone."""
+    from ..report import _write_text, jsonable
+    from ..report import figures as F
+    from ..report.calibration_figures import add_calibration_section
+    from ..report.page import Page
+
+    with A.open_artefact(cal, "calibration"):
+        pass
+    out_dir = cfg.workdir / "report"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    figures: list[str] = []
+
+    def save(fig, name):
+        F.save(fig, out_dir / name)
+        figures.append(name)
+        return out_dir / name
+
+    page = Page(cfg.model.report.title or cfg.path.stem)
+    summary = {"calibration": add_calibration_section(page, save, cal), "figures": figures,
+               "provenance": {"inputs": {"calibration.h5": A.file_sha256(cal)}}}
+    _write_text(out_dir / "summary.json", json.dumps(jsonable(summary), indent=1))
+    index = out_dir / "index.html"
+    _write_text(index, page.html(out_dir))
+    ctx.say(f"report: calibration, {len(figures)} figure(s); open {index}")
+    return index

@@ -280,7 +280,11 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
             clean[li, k] = a.reshape(ny, nx)
             for r in range(R):
                 rng = np.random.default_rng([sim.noise.seed, li, r, k])
-                ph, c = add_noise(a, sim.noise, cfg.model.system.camera.sensor, rng)
+                try:
+                    ph, c = add_noise(a, sim.noise, cfg.model.system.camera.sensor, rng)
+                except ValueError as e:  # e.g. numpy's Poisson sampler above ~1e19 photons
+                    raise UserError(f"simulate.noise.peaks_photons: level {lv[li]:.3g} photons cannot be sampled "
+                                    f"with the {sim.noise.model} noise model ({e}); use a lower level.") from None
                 noisy[li, r, k] = ph.reshape(ny, nx)
                 if counts is not None:
                     counts[li, r, k] = c.reshape(ny, nx)

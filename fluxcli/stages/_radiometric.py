@@ -1,0 +1,198 @@
+"""Glue between ``calibrate.radiometric`` (config), image files, the radiometry library
+and the ``/radiometric`` group of ``calibration.h5``.
+
+- :func:`run_radiometric` reads the frames a :class:`~fluxcli.config.Radiometric` section
+  names and runs :func:`fluxcli.calibration.radiometry.calibrate_radiometric`;
+- :func:`write_radiometric` stores a result in an HDF5 group (the one layout, with units);
+- :func:`read_radiometric_maps` gives ``reconstruct`` the bias, dark and flat maps back.
+
+Bad files (missing, unreadable, of another size) raise :class:`~fluxcli.errors.UserError`
+naming the config key and the file.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+import h5py
+import numpy as np
+
+from .. import config as C
+from ..calibration import radiometry as R
+from ..errors import UserError
+from ..imaging.imagefiles import read_image
+from .context import RunContext
+
+KEY = "calibrate.radiometric"
+GROUP = "radiometric"
+MAPS = {  # dataset name in /radiometric -> unit
+    "bias_counts_map": "counts",
+    "dark_e_per_s_map": "electrons/s per pixel",
+    "flat_map": "relative response, mean 1",
+}
+SCALARS = {  # attribute of /radiometric -> unit
+    "electrons_per_count": "electrons/count",
+    "em_gain": "1",
+    "em_gain_from_ratio": "1",
+    "em_gain_from_ptc": "1",
+    "read_noise_counts": "counts rms",
+    "read_noise_e": "electrons rms",
+    "bias_counts": "counts",
+    "dark_current_e_per_s": "electrons/s per pixel",
+    "cic_e_per_pixel": "electrons per pixel per frame",
+}
+
+
+def section_files(section: C.Radiometric) -> list[Path]:
+    """Every file the section names (as written in the config), for input digests."""
+    files = [*section.bias, *section.flats]
+    for level in section.ptc:
+        files += level.files
+    for dark in section.darks:
+        files += dark.files
+    return list(files)
+
+
+def _read_frames(files, key: str, resolve: Callable[[Path], Path], shape: list) -> np.ndarray:
+    """Frames of ``files`` as [frame, row, col]; the first file read fixes ``shape[0]``."""
+    frames = []
+    for i, name in enumerate(files):
+        path = resolve(name)
+        try:
+            image, _ = read_image(path)
+        except ValueError as e:
+            raise UserError(f"{KEY}.{key}[{i}]: {e}") from None
+        if shape[0] is None:
+            shape[0] = image.shape
+        elif image.shape != shape[0]:
+            raise UserError(f"{KEY}.{key}[{i}]: {path} is {image.shape[1]} x {image.shape[0]} pixels; "
+                            f"{shape[1]} is {shape[0][1]} x {shape[0][0]}. All radiometric frames must have one size.")
+        frames.append(image)
+    return np.array(frames)
+
+
+def run_radiometric(section: C.Radiometric, resolve: Callable[[Path], Path], ctx: RunContext, *,
+                    expected_shape: tuple[int, int] | None = None) -> R.RadiometricResult:
+    """Read the frames named by ``calibrate.radiometric`` and calibrate.
+
+    Parameters
+    ----------
+    section : fluxcli.config.Radiometric
+        The validated section.
+    resolve : callable
+        Turns a path from the config into an absolute path (``LoadedConfig.resolve``).
+    ctx : RunContext
+        Where the summary and the warnings are said.
+    expected_shape : (ny, nx), optional
+        Frame size the camera has (``system.camera.pixels`` reversed); other sizes are
+        refused.
+
+    Returns
+    -------
+    fluxcli.calibration.radiometry.RadiometricResult
+    """
+    shape: list = [tuple(expected_shape) if expected_shape is not None else None,
+                   "system.camera.pixels" if expected_shape is not None else f"{KEY}.bias[0]"]
+    bias = _read_frames(section.bias, "bias", resolve, shape)
+    ptc = [R.PTCLevel(_read_frames(lv.files, f"ptc[{j}].files", resolve, shape), lv.exposure_s, lv.em_gain_on,
+                      lv.illumination) for j, lv in enumerate(section.ptc)]
+    darks = [(_read_frames(d.files, f"darks[{j}].files", resolve, shape), d.exposure_s, d.em_gain_on)
+             for j, d in enumerate(section.darks)]
+    flats = _read_frames(section.flats, "flats", resolve, shape) if section.flats else None
+    try:
+        result = R.calibrate_radiometric(
+            bias=bias, ptc=ptc, darks=darks or None, flats=flats, max_counts=section.saturation_counts,
+            excess_noise_factor_squared=section.excess_noise_factor_squared, gain_tolerance=section.gain_tolerance)
+    except ValueError as e:
+        raise UserError(f"{KEY}: {e}") from None
+    ctx.table(["quantity", "value", "1 sigma"], summary_rows(result))
+    for w in result.warnings:
+        ctx.say(f"calibrate: warning: {w}")
+    return result
+
+
+def summary_rows(result: R.RadiometricResult) -> list[list[str]]:
+    """Rows (name with unit, value, sigma) of the measured scalars, for a table."""
+    rows = []
+    for name, unit in SCALARS.items():
+        value = getattr(result, name)
+        if value is not None:
+            sigma = getattr(result, f"{name}_sigma")
+            rows.append([f"{name} ({unit})", f"{value:.5g}", f"{sigma:.2g}" if sigma is not None else "-"])
+    return rows
+
+
+def write_radiometric(group: h5py.Group, result: R.RadiometricResult) -> None:
+    """Store ``result`` in ``group`` (normally ``/radiometric`` of calibration.h5).
+
+    Layout: attributes ``<name>`` and ``<name>_sigma`` for each scalar (``SCALARS``, NaN
+    when not measured) with ``<name>_unit``; datasets ``bias_counts_map``,
+    ``dark_e_per_s_map``, ``flat_map`` when measured (attribute ``unit``); one subgroup
+    per PTC series in ``ptc/`` with datasets ``exposure_s``, ``mean_counts``,
+    ``variance_counts2``, ``variance_sigma_counts2``, ``n_pixels`` and scalar datasets
+    ``slope_counts``, ``intercept_counts2`` (and their ``*_sigma*``), ``em_gain_on``;
+    attribute ``warnings`` (JSON list) and ``sensor_block`` (JSON).
+    """
+    import json
+
+    for name, unit in SCALARS.items():
+        value, sigma = getattr(result, name), getattr(result, f"{name}_sigma")
+        group.attrs[name] = np.nan if value is None else float(value)
+        group.attrs[f"{name}_sigma"] = np.nan if sigma is None else float(sigma)
+        group.attrs[f"{name}_unit"] = unit
+    group.attrs["excess_noise_factor_squared"] = float(result.excess_noise_factor_squared)
+    group.attrs["warnings"] = json.dumps(result.warnings)
+    group.attrs["sensor_block"] = json.dumps(result.sensor_block())
+    for name, unit in MAPS.items():
+        arr = getattr(result, name)
+        if arr is not None:
+            group.create_dataset(name, data=np.asarray(arr, dtype=np.float64), compression="gzip").attrs["unit"] = unit
+    ptc = group.create_group("ptc")
+    for name, s in result.ptc.items():
+        g = ptc.create_group(name)
+        for field, unit in (("exposure_s", "s"), ("mean_counts", "counts above bias"),
+                            ("variance_counts2", "counts^2"), ("variance_sigma_counts2", "counts^2 (1 sigma)"),
+                            ("n_pixels", "pixels")):
+            g.create_dataset(field, data=getattr(s, field)).attrs["unit"] = unit
+        g.create_dataset("illumination", data=np.array(s.illumination, dtype=h5py.string_dtype()))
+        for field in ("slope_counts", "slope_sigma_counts", "intercept_counts2", "intercept_sigma_counts2",
+                      "reduced_chi2"):
+            g.create_dataset(field, data=float(getattr(s, field)))
+        g.create_dataset("em_gain_on", data=bool(s.em_gain_on))
+
+
+def read_radiometric_maps(path: Path, key: str, shape: tuple[int, int]) -> dict[str, np.ndarray | None]:
+    """The bias, dark and flat maps of ``<path>:/radiometric``, checked against ``shape``.
+
+    Parameters
+    ----------
+    path : Path
+        A calibration.h5 written by ``fluxmap calibrate`` with radiometric inputs.
+    key : str
+        The config key that named ``path`` (for messages).
+    shape : (ny, nx)
+        Size of the images the maps will be applied to.
+
+    Returns
+    -------
+    dict
+        ``bias_counts_map``, ``dark_e_per_s_map``, ``flat_map``: arrays (ny, nx) or None
+        when that map was not measured.
+    """
+    try:
+        f = h5py.File(path, "r")
+    except (OSError, FileNotFoundError) as e:
+        reason = "it does not exist" if not Path(path).is_file() else f"it is not a readable HDF5 file ({e})"
+        raise UserError(f"{key}: cannot read {path}: {reason}.") from None
+    with f:
+        if GROUP not in f:
+            raise UserError(f"{key}: {path} holds no /{GROUP} group; run 'fluxmap calibrate' with "
+                            f"{KEY} inputs to make one.")
+        g = f[GROUP]
+        maps = {name: (g[name][()] if name in g else None) for name in MAPS}
+    for name, arr in maps.items():
+        if arr is not None and arr.shape != tuple(shape):
+            raise UserError(f"{key}: the {name} in {path} is {arr.shape[1]} x {arr.shape[0]} pixels; the images "
+                            f"are {shape[1]} x {shape[0]}. Calibrate with frames of the same size and binning.")
+    return maps

@@ -1,0 +1,256 @@
+"""Geometric calibration against a camera the code did not see: images ray traced inside the test.
+
+The camera here differs from the sample data's in every parameter (focal length, focus
+distance, aperture, lens offset, tilt, in-plane rotation, sensor size, grid), so nothing is
+tuned to one camera.  The renderer (fluxcli.calibration.synthetic) traces rays through the
+thin lens to the grid plane; the fit models dots as defocused disks, so the two are
+independent implementations of the optics.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from fluxcli.calibration.fit import calibrate_geometry
+from fluxcli.calibration.synthetic import camera_looking_down, render_grid_set
+from fluxcli.cli import app
+from fluxcli.imaging.imagefiles import write_image
+from fluxcli.imaging.noise import EMCCDModel
+
+TRUE = dict(lens_center_mm=(-2.1, 1.4, 150.3), tilt_deg=0.8, tilt_azimuth_deg=120.0, roll_deg=-20.0,
+            focal_length_mm=16.0, focus_distance_mm=151.0, aperture_diameter_mm=8.0, nx=128, ny=128,
+            pixel_pitch_mm=0.052)
+GRID = dict(pitch_mm=3.5, shape=(13, 9), dot_radius_mm=0.8)
+HEIGHTS = (-26.0, -13.0, 0.0, 10.0, 20.0)
+
+
+def _angle_deg(a, b) -> float:
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return float(np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1))))
+
+
+@pytest.fixture(scope="module")
+def grid_set(tmp_path_factory):
+    cam = camera_looking_down(**TRUE)
+    sensor = EMCCDModel(em_gain=50.0, read_noise_e=30.0, bias_counts=300.0, electrons_per_count=5.0)
+    imgs = render_grid_set(cam, HEIGHTS, pitch_mm=GRID["pitch_mm"], shape=GRID["shape"], dot_radius_mm=GRID["dot_radius_mm"],
+                           peak_photons=600.0, background_fraction=0.08, sub=2, lens_samples=48, seed=7,
+                           noise_model=sensor)
+    folder = tmp_path_factory.mktemp("grid")
+    files = []
+    for z, im in zip(HEIGHTS, imgs):
+        p = folder / f"g{z:+.0f}.tif"
+        write_image(p, im)
+        files.append(p)
+    return cam, imgs, files, folder
+
+
+def test_second_camera_recovered(grid_set):
+    cam, imgs, _, _ = grid_set
+    res = calibrate_geometry(imgs, list(HEIGHTS), kind="dots", pitch_mm=GRID["pitch_mm"], shape=GRID["shape"],
+                             pixel_pitch_mm=TRUE["pixel_pitch_mm"])
+    c = res.camera
+    focal_plane_true = cam.center_mm[2] + cam.focus_distance_mm * cam.axis[2]
+    assert abs(res.focal_length_mm / TRUE["focal_length_mm"] - 1) < 0.005
+    assert abs(res.focal_plane_z_mm - focal_plane_true) < 2.0
+    assert np.linalg.norm(c.center_mm - np.array(TRUE["lens_center_mm"])) < 1.0
+    assert _angle_deg(c.look, cam.axis) < 0.5
+    assert _angle_deg(c.up, -cam.down) < 0.5
+    assert abs(res.aperture_diameter_mm / TRUE["aperture_diameter_mm"] - 1) < 0.10
+    assert res.rms_px < 0.2
+    # the uncertainties are honest: the errors are within a few sigma (or tiny)
+    assert abs(c.image_distance_mm - cam.image_distance_mm) < max(5 * res.sigma["image_distance_mm"], 0.02)
+
+
+def test_wrong_heights_rejected(grid_set):
+    _, imgs, _, _ = grid_set
+    swapped = [HEIGHTS[1], HEIGHTS[0], *HEIGHTS[2:]]
+    with pytest.raises(ValueError, match="heights do not match|plane_z_mm"):
+        calibrate_geometry(imgs, swapped, kind="dots", pitch_mm=GRID["pitch_mm"], shape=GRID["shape"],
+                           pixel_pitch_mm=TRUE["pixel_pitch_mm"])
+
+
+def _config(folder, files, heights=HEIGHTS, shape=GRID["shape"], pixels=(128, 128)):
+    cfg = {"workdir": str(folder / "out"),
+           "system": {"camera": {"pixels": list(pixels), "pixel_pitch_mm": TRUE["pixel_pitch_mm"]}},
+           "calibrate": {"grid": {"kind": "dots", "pitch_mm": GRID["pitch_mm"], "shape": list(shape)},
+                         "images": [{"file": str(f), "plane_z_mm": z} for f, z in zip(files, heights)]}}
+    p = folder / "cal.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    return p
+
+
+def _run(path):
+    return CliRunner().invoke(app, ["calibrate", str(path), "--force", "-q"])
+
+
+def test_cli_writes_a_camera_other_configs_can_use(grid_set, tmp_path):
+    cam, _, files, _ = grid_set
+    r = _run(_config(tmp_path, files))
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "out" / "calibration.h5").is_file()
+    rep = CliRunner().invoke(app, ["report", str(tmp_path / "cal.yaml"), "-q"])  # a calibrate-only workdir
+    assert rep.exit_code == 0, rep.output
+    for name in ("calibration_detections.png", "calibration_residuals.png", "calibration_focus.png", "index.html"):
+        assert (tmp_path / "out" / "report" / name).is_file()
+    use = tmp_path / "use.yaml"
+    use.write_text(yaml.safe_dump({"system": {"camera": str(tmp_path / "out" / "camera.yaml")},
+                                   "subject": {"surface": {"phantom": "sphere"}}}))
+    from fluxcli.config import load_config
+
+    loaded = load_config(use)
+    lens = loaded.model.system.camera.lens
+    assert abs(lens.focal_length_mm / TRUE["focal_length_mm"] - 1) < 0.005
+    assert _angle_deg(loaded.model.system.camera.pose.look, cam.axis) < 0.5
+
+
+@pytest.mark.parametrize("case", ["missing", "unreadable", "size", "no_grid", "shape", "heights"])
+def test_bad_input_exits_2(grid_set, tmp_path, case):
+    _, imgs, files, _ = grid_set
+    files = list(files)
+    kw = {}
+    if case == "missing":
+        files[1] = tmp_path / "nope.tif"
+    elif case == "unreadable":
+        files[1] = tmp_path / "junk.tif"
+        files[1].write_bytes(b"not an image at all")
+    elif case == "size":
+        kw["pixels"] = (100, 128)
+    elif case == "no_grid":
+        files[2] = tmp_path / "noise.tif"
+        write_image(files[2], np.random.default_rng(0).integers(300, 400, (128, 128)).astype(np.uint16))
+    elif case == "shape":
+        kw["shape"] = (13, 7)
+    elif case == "heights":
+        kw["heights"] = [HEIGHTS[1], HEIGHTS[0], *HEIGHTS[2:]]
+    r = _run(_config(tmp_path, files, **kw))
+    assert r.exit_code == 2, r.output
+    assert "Traceback" not in r.output
+    assert "calibrate" in r.output
+
+
+def test_renderer_matches_the_transfer_matrix():
+    """The ray tracer that makes the calibration images against fluxmap's own T (lens estimator).
+
+    A uniform square patch, defocused, seen by the thin lens: same total photons and the same
+    image, by two independent integrations of the same radiometry.
+    """
+    from fluxcli.calibration.synthetic import render_plane
+    from fluxcli.optics.camera import ThinLensCamera
+    from fluxcli.optics.transfer import LensSampling, View, build_transfer
+    from fluxcli.surface.phantoms import patch
+
+    cam = ThinLensCamera.from_pose(lens_center_mm=(1.0, -0.5, 150.0), look=(0, 0, -1), up=(0, 1, 0),
+                                   focal_length_mm=16.0, aperture_radius_mm=4.0, focus_distance_mm=150.0,
+                                   nx=48, ny=48, pixel_pitch_mm=0.052)
+    z, half, J = -12.0, 4.0, 1000.0  # plane height (mm), patch half-size (mm), exitance (photons/mm^2)
+    surf = patch(size_mm=(2 * half, 2 * half), n=(1, 1), center_mm=(0.0, 0.0, z), normal=(0, 0, 1))[0]
+    res = build_transfer(surf, [View("direct", cam)], estimator="lens",
+                         lens_sampling=LensSampling(surface_samples_per_pixel=4.0, lens_samples_min=256))
+    a_T = np.asarray(res.T[:, 0].todense()).reshape(48, 48) * J * (2 * half) ** 2
+    a_R = render_plane(cam, z, lambda x, y: ((np.abs(x) <= half) & (np.abs(y) <= half)).astype(float),
+                       exitance_photons_per_mm2=J, sub=4, lens_samples=128)
+    assert abs(a_R.sum() / a_T.sum() - 1) < 0.01
+    assert np.abs(a_R - a_T).sum() / a_T.sum() < 0.05
+
+
+def test_mirror_plane_refined_from_its_view():
+    """A tilted mirror beside the grid: from 2 deg and 1.5 mm off to the plane that made the images."""
+    from fluxcli.calibration.geometry import CameraGeometry
+    from fluxcli.calibration.mirrors import refine_mirrors
+    from fluxcli.calibration.synthetic import dot_grid_pattern, render_plane
+    from fluxcli.optics.camera import PlaneMirror
+
+    cam = camera_looking_down(**TRUE)
+    a = np.radians(70)
+    n = np.array([-np.sin(a), 0, np.cos(a)])
+    mir = PlaneMirror.from_axis((20.0, 0.0, 20.0), n, (0, 1, 0), (40, 24))
+    shape, pitch = (7, 5), 3.5
+
+    def pat(x, y):
+        return dot_grid_pattern(x, y, pitch_mm=pitch, shape=shape, dot_radius_mm=0.8)
+
+    rng = np.random.default_rng(0)
+    heights = [-13.0, 0.0, 10.0]
+    imgs = []
+    for z in heights:
+        direct = render_plane(cam, z, pat, exitance_photons_per_mm2=3e6, background_fraction=0.05, sub=2,
+                              lens_samples=32, occluders=(mir,), rng=rng)
+        seen = render_plane(cam, z, pat, exitance_photons_per_mm2=3e6, background_fraction=0.05, sub=2,
+                            lens_samples=32, mirror=mir, rng=rng)
+        imgs.append(rng.poisson(direct + seen).astype(np.float32))
+    geo = CameraGeometry(cam.center_mm, np.stack([cam.right, cam.down, cam.axis]), cam.image_distance_mm,
+                         cam.pixel_pitch_mm, cam.nx, cam.ny)
+    off = np.cross(n, [0, 1, 0])
+    n_approx = np.cos(np.radians(2)) * n + np.sin(np.radians(2)) * off / np.linalg.norm(off)
+    fit = refine_mirrors(imgs, heights, geo, center_mm=mir.center_mm + 1.5 * n, normal=n_approx, axis=(0, 1, 0),
+                         size_mm=(40, 24), pitch_mm=pitch, shape=shape)
+    assert fit.n_points >= 12
+    assert _angle_deg(fit.normal, n) < 0.3
+    assert abs((fit.center_mm - mir.center_mm) @ n) < 0.2
+    assert fit.rms_px < 0.3
+
+
+def _radiometric_frames(folder, shape=(64, 64)):
+    """Bias, gain-off and gain-on photon-transfer frames from fluxmap's EMCCD model (glue test only;
+    the radiometry library is tested against an independent simulator in its own tests)."""
+    from fluxcli.imaging.noise import conventional_counts, emccd_counts
+
+    rng = np.random.default_rng(5)
+    m = EMCCDModel(em_gain=80.0, read_noise_e=30.0, bias_counts=400.0, electrons_per_count=6.0, exposure_s=0.1)
+    sec = {"bias": [], "ptc": []}
+    for i in range(4):
+        p = folder / f"bias{i}.tif"
+        write_image(p, conventional_counts(np.zeros(shape), m, rng).astype(np.uint16))
+        sec["bias"].append(str(p))
+    for lvl, photons in enumerate((2000.0, 8000.0, 20000.0)):
+        files = []
+        for i in range(2):
+            p = folder / f"off{lvl}_{i}.tif"
+            write_image(p, conventional_counts(np.full(shape, photons), m, rng).astype(np.uint16))
+            files.append(str(p))
+        sec["ptc"].append({"files": files, "exposure_s": 0.1, "em_gain_on": False, "illumination": f"L{lvl}"})
+    for lvl, photons in enumerate((2000.0, 8000.0)):  # same lamp settings, 50x shorter, EM gain on
+        files = []
+        for i in range(2):
+            p = folder / f"on{lvl}_{i}.tif"
+            write_image(p, emccd_counts(np.full(shape, photons / 50), m, rng).astype(np.uint16))
+            files.append(str(p))
+        sec["ptc"].append({"files": files, "exposure_s": 0.002, "em_gain_on": True, "illumination": f"L{lvl}"})
+    return sec
+
+
+def test_radiometric_only_config_writes_the_sensor_block(tmp_path):
+    sec = _radiometric_frames(tmp_path)
+    cfg = {"workdir": str(tmp_path / "out"), "system": {"camera": {"pixels": [64, 64], "pixel_pitch_mm": 0.05}},
+           "calibrate": {"radiometric": sec}}
+    p = tmp_path / "rad.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    r = _run(p)
+    assert r.exit_code == 0, r.output
+    doc = yaml.safe_load((tmp_path / "out" / "camera.yaml").read_text())
+    assert abs(doc["camera"]["sensor"]["electrons_per_count"] / 6.0 - 1) < 0.1
+    import h5py
+
+    with h5py.File(tmp_path / "out" / "calibration.h5", "r") as f:
+        assert "radiometric" in f and "geometric" not in f
+
+
+def test_grid_and_radiometric_together_give_one_camera_block(grid_set, tmp_path):
+    _, _, files, _ = grid_set
+    sec = _radiometric_frames(tmp_path, shape=(128, 128))
+    p = _config(tmp_path, files)
+    cfg = yaml.safe_load(p.read_text())
+    cfg["calibrate"]["radiometric"] = sec
+    cfg["system"]["camera"]["apertures"] = [{"distance_mm": 30.0, "diameter_mm": 25.0}]
+    p.write_text(yaml.safe_dump(cfg))
+    r = _run(p)
+    assert r.exit_code == 0, r.output
+    from fluxcli.config import Camera
+
+    cam = Camera.model_validate(yaml.safe_load((tmp_path / "out" / "camera.yaml").read_text())["camera"])
+    assert cam.lens is not None and cam.pose is not None and cam.apertures
+    assert abs(cam.sensor.electrons_per_count / 6.0 - 1) < 0.1
