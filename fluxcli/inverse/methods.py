@@ -554,6 +554,7 @@ class Result:
 
 
 UNOBSERVED, POORLY_OBSERVED, WELL_OBSERVED = 0, 1, 2
+POOR_SHARE_WARNING = 0.10  # warn when poorly observed elements hold more of the total than this
 
 
 def observation_classes(T, power, sigma, *, adjacency=None, areas=None, rel_threshold: float = c.DEFAULT_REL_THRESHOLD,
@@ -894,6 +895,12 @@ def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | 
                                           rel_threshold=rel_threshold)
     else:
         observation = np.where(mask, WELL_OBSERVED, UNOBSERVED).astype(np.int8)
+    total = np.nansum(np.where(mask, power, 0.0))
+    poor_share = np.nansum(np.where(observation == POORLY_OBSERVED, power, 0.0)) / total if total > 0 else 0.0
+    if poor_share > POOR_SHARE_WARNING:
+        warnings.append(f"{poor_share:.0%} of the total over observed elements lies in poorly observed elements "
+                        "(seen edge-on, or uncertain beyond their value): that total is not pinned down by the data; "
+                        "the total over well-observed elements is the one to trust.")
     return Result(power=power, observed=mask, sigma=sigma, fitted=fitted, residual=a - fitted, method=method,
                   lam=float(lam_used), lam_absolute=float(out.get("lam_absolute", 0.0)),
                   iterations=int(out.get("iterations", 1)), converged=bool(out.get("converged", True)),
