@@ -1,6 +1,7 @@
 # fluxmap: reproducible set-up, tests, benchmarks and experiments.
 #   make demo   create .venv, install, run the demo pipeline, print where its output is
 #   make demo-rig   the simulated rig: capture-surface -> build-T -> reconstruct -> report
+#   make structured-light   structured-light surface capture on the simulated rig, against the truth
 #   make test   create .venv if needed, install with test extras, run the test suite
 #   make bench  speed ratios measured in one run (slow checks included)
 #   make accuracy  issue 8's battery: error, totals, chi^2, lambda, warnings per case x method
@@ -12,7 +13,7 @@ PY      = $(VENV)/bin/python
 FLUXMAP = $(VENV)/bin/fluxmap
 JOBS   ?= 2
 
-.PHONY: all demo demo-rig test bench samples figures clean help accuracy
+.PHONY: all demo demo-rig structured-light demo-rig-captured test bench samples figures clean help accuracy
 all: test
 
 $(VENV)/.installed: pyproject.toml
@@ -48,12 +49,21 @@ demo-rig: $(VENV)/.installed
 test: $(VENV)/.installed
 	$(PY) -m pytest -q
 
+structured-light: $(VENV)/.installed  # issue 12: simulated structured-light capture measured against the truth
+	$(PY) pipelines/structured_light.py runs/structured-light
+
+demo-rig-captured: $(VENV)/.installed  # demo-rig's frames reconstructed on the captured mesh (after demo-rig, structured-light)
+	$(FLUXMAP) build-T configs/demo-rig-captured.yaml --jobs $(JOBS)
+	$(FLUXMAP) reconstruct configs/demo-rig-captured.yaml --jobs $(JOBS)
+	$(PY) pipelines/rig_totals.py runs/demo-rig-captured/reconstruction.h5 runs/demo-rig/reconstruction.h5
+
 bench: $(VENV)/.installed
 	$(PY) -m pytest -q -m slow --benchmark-disable || test $$? -eq 5  # 5: no slow checks collected
 	$(PY) benchmarks/bench_transfer.py
 
 samples: $(VENV)/.installed
 	$(PY) data-samples/make_samples.py
+	$(PY) data-samples/calibration/make_radiometric.py
 
 figures: $(VENV)/.installed
 	$(PY) docs/make_figures.py
@@ -62,7 +72,7 @@ clean:
 	rm -rf runs .pytest_cache
 
 help:
-	@sed -n '2,6p' Makefile
+	@sed -n '2,7p' Makefile
 
 -include pipelines/*.mk
 

@@ -422,11 +422,22 @@ class ReportSettings(Model):
 
 
 # --------------------------------------------------------------------------- calibrate: radiometric
+def _distinct(files: tuple[Path, ...]) -> tuple[Path, ...]:
+    if len(set(files)) != len(files):
+        raise ValueError("a file is listed twice: paired frames must be two different exposures")
+    return files
+
+
 class RadiometricPTCLevel(Model):
     files: tuple[Path, ...] = Field(min_length=2, description="Two or more frames at one illumination and exposure (counts); consecutive frames are paired (1st-2nd, 3rd-4th, ...).")
     exposure_s: float = Field(gt=0, description="Exposure of these frames (s).")
-    em_gain_on: bool = Field(False, description="Whether the EM gain was on (the camera's working gain) or off (conventional readout).")
+    em_gain_on: bool = Field(False, description="EM gain on (the working gain) or off (gain set to 1 in EM mode: same output amplifier, no multiplication).")
     illumination: str = Field("", description="Label of the light-source setting: gain-on and gain-off levels with the same label are compared per second of exposure to measure the EM gain.")
+
+    @field_validator("files")
+    @classmethod
+    def _files(cls, v: tuple[Path, ...]) -> tuple[Path, ...]:
+        return _distinct(v)
 
 
 class RadiometricDarks(Model):
@@ -436,13 +447,19 @@ class RadiometricDarks(Model):
 
 
 class Radiometric(Model):
+    directory: Path | None = Field(None, description="Folder the frame file names below are relative to (itself relative to the config file); default the config's folder.")
     bias: tuple[Path, ...] = Field(min_length=2, description="Bias frames: no light, shortest exposure, EM gain off (counts); consecutive pairs give the read noise.")
     ptc: tuple[RadiometricPTCLevel, ...] = Field(min_length=2, description="Photon-transfer series: at least two gain-off levels (electrons per count); gain-on levels give the EM gain.")
     darks: tuple[RadiometricDarks, ...] = Field((), description="Dark frames per exposure; two or more exposures separate dark current from clock-induced charge.")
     flats: tuple[Path, ...] = Field((), description="Flat frames of the evenly lit bare sensor, EM gain off (counts): the pixel-response map.")
-    saturation_counts: float = Field(65535.0, gt=0, description="Pixels at or above this (counts) are left out of the PTC.")
+    saturation_counts: float = Field(65535.0, gt=0, description="Saturation level (counts): such pixels are left out of the PTC, and a pair with over 1 % of them is dropped.")
     excess_noise_factor_squared: float = Field(2.0, ge=1, le=2, description="F^2 of the EM register assumed for the gain-on PTC slope (2 at high gain).")
     gain_tolerance: float = Field(0.1, gt=0, description="Warn when the ratio and PTC EM gains differ by more than this fraction.")
+
+    @field_validator("bias")
+    @classmethod
+    def _bias(cls, v: tuple[Path, ...]) -> tuple[Path, ...]:
+        return _distinct(v)
 
     @model_validator(mode="after")
     def _check(self) -> "Radiometric":

@@ -164,3 +164,12 @@ register(Kind("capture", 1, "fluxmap capture-surface", "emission images acquired
     Dataset("truth", "photons per element per second (subject at rest)",
             "simulated camera only: truth/<filter>/power, what reaches the camera through each filter", required=False),
 )))
+
+# --- structured-light surface (issue 12): what `subject.surface: {artefact: ...}` reads
+register(Kind("surface", 1, "fluxmap capture-surface (structured light)",
+              "the subject's closed surface measured by structured light, in world coordinates", (
+    *_SURFACE,
+    Dataset("points/positions_mm", "mm", "triangulated points the surface was built from (n, 3)", required=False),
+    Dataset("points/view", "", "view each point was seen in: 0 direct, j through mirror j-1", required=False),
+    Dataset("points/projector", "", "index of the projector that coded each point", required=False),
+)))

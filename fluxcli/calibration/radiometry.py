@@ -10,8 +10,8 @@ The camera model is the one of :mod:`fluxcli.imaging.noise` (Hirsch et al. 2013)
 ``counts = bias + x / K`` with ``x`` the electrons at the output node, ``K`` electrons
 per count, ``x = Σ`` over ``n ~ Poisson(λ)`` input electrons multiplied by the EM
 register (mean gain ``G``, excess noise factor ``F² → 2`` at high gain) or not multiplied
-(EM gain off, conventional readout: ``x = n``), plus Gaussian read noise ``σ_r``
-electrons. So for a pixel with mean signal ``S = E[counts] − bias`` (counts):
+(EM gain off: ``x = n``; the gain set to 1 in EM mode, read through the same amplifier,
+so ``K`` is the same in both), plus Gaussian read noise ``σ_r`` electrons. So for a pixel with mean signal ``S = E[counts] − bias`` (counts):
 
 - EM gain off: ``Var = S / K + (σ_r / K)²`` — the photon-transfer curve (Janesick,
   *Photon Transfer*, SPIE 2007): its slope is ``1 / K``;
@@ -110,8 +110,8 @@ def bias_frames(frames) -> tuple[float, float, np.ndarray]:
     return level, sigma, bias_map
 
 
-def pair_statistics(frame_a, frame_b, bias_counts=0.0, *, max_counts: float | None = None
-                    ) -> tuple[float, float, float, int]:
+def pair_statistics(frame_a, frame_b, bias_counts=0.0, *, max_counts: float | None = None,
+                    outlier_sigma: float | None = 8.0) -> tuple[float, float, float, int]:
     """Mean signal and temporal variance of one pair of frames at the same exposure.
 
     ``mean = mean((a + b) / 2 − bias)`` and ``variance = var(a − b) / 2``; the
@@ -128,6 +128,11 @@ def pair_statistics(frame_a, frame_b, bias_counts=0.0, *, max_counts: float | No
     max_counts : float, optional
         Pixels at or above this in either frame (saturated), or at or below 0
         (clipped), are left out.
+    outlier_sigma : float or None, optional
+        Pixels whose difference lies further than this many standard deviations from
+        the mean difference (cosmic-ray hits, flickering pixels) are left out, once.
+        At 8 sigma this removes no Gaussian pixel and a fraction ~1e-5 of the
+        exponential-tailed EM-gain differences (a ~0.1 % bias on their variance).
 
     Returns
     -------
@@ -148,11 +153,17 @@ def pair_statistics(frame_a, frame_b, bias_counts=0.0, *, max_counts: float | No
     ok = np.isfinite(a) & np.isfinite(b) & (a > 0) & (b > 0)
     if max_counts is not None:
         ok &= (a < max_counts) & (b < max_counts)
+    if outlier_sigma is not None and ok.sum() > 1:
+        d = (a - b)[ok]
+        ok[ok] = np.abs(d - d.mean()) <= outlier_sigma * d.std()
     n = int(ok.sum())
     if n < 16:
         raise ValueError(f"a frame pair has only {n} usable pixels (the rest saturated or clipped at 0).")
     signal = (0.5 * (a + b) - bias)[ok]
     diff = (a - b)[ok]
+    if not np.any(diff):
+        raise ValueError("the two frames of a pair are identical (the same file twice?): a pair must be two "
+                         "exposures.")
     centred = diff - diff.mean()
     half_sq = 0.5 * centred**2
     variance = float(half_sq.sum() / (n - 1))
@@ -160,7 +171,7 @@ def pair_statistics(frame_a, frame_b, bias_counts=0.0, *, max_counts: float | No
     return float(signal.mean()), variance, variance_sigma, n
 
 
-def read_noise_counts(frames) -> tuple[float, float]:
+def read_noise_counts(frames, *, quantization_counts: float = 1.0) -> tuple[float, float]:
     """Read noise from pairs of bias frames: ``σ² = var(a − b) / 2``, pooled over pairs.
 
     Parameters
@@ -168,25 +179,32 @@ def read_noise_counts(frames) -> tuple[float, float]:
     frames : array_like, shape (n_frames, ny, nx), n_frames ≥ 2
         Bias frames (counts), EM gain off; consecutive frames (0, 1), (2, 3), ... are
         paired.
+    quantization_counts : float, optional
+        ADC step (counts, 1 for integer frames; 0 for frames that are not quantised).
 
     Returns
     -------
     read_noise_counts : float
-        RMS read noise (counts); multiply by electrons per count for electrons.
+        RMS read noise at the output node expressed in counts (multiply by electrons
+        per count for electrons).
     read_noise_counts_sigma : float
         Its 1-sigma uncertainty (counts).
 
     Notes
     -----
-    The ADC's quantisation adds ``1/12`` count² and is included, as it is in any frame.
+    Rounding to whole counts adds ``q²/12`` to the variance of every frame; it is taken
+    off (Sheppard's correction) so that the result is the Gaussian read noise of the
+    camera model, which fluxmap's noise model adds before the ADC. The correction holds
+    once the noise spans a count or more; below ``q/2`` rms nothing is taken off.
     """
     stack = _stack(frames, "bias frames for the read noise", min_frames=2)
     stats = [pair_statistics(a, b) for a, b in _pairs(stack)]
-    var = np.array([s[1] for s in stats])
-    var_sigma = np.array([s[2] for s in stats])
-    w = 1.0 / var_sigma**2
-    variance = float((w * var).sum() / w.sum())
-    variance_sigma = float(1.0 / math.sqrt(w.sum()))
+    n = np.array([s[3] for s in stats], dtype=np.float64)
+    variance = float((n * np.array([s[1] for s in stats])).sum() / n.sum())
+    variance_sigma = float(np.sqrt((n**2 * np.array([s[2] for s in stats]) ** 2).sum()) / n.sum())
+    step2 = quantization_counts**2 / 12.0
+    if variance > 3.0 * step2:  # noise of half a step rms or more
+        variance -= step2
     sigma = math.sqrt(max(variance, 0.0))
     return sigma, (variance_sigma / (2.0 * sigma) if sigma > 0 else math.inf)
 
@@ -272,16 +290,45 @@ def fit_ptc(mean_counts, variance_counts2, variance_sigma_counts2
             float(math.sqrt(cov[0, 0]) * scale), chi2)
 
 
+MAX_SATURATED_FRACTION = 0.01
+"""A PTC pair with more of its pixels saturated (or clipped at 0) is left out of the fit:
+dropping only the saturated pixels would keep their neighbours in value that noise
+happened to push down, and bias the variance low."""
+
+
 def _ptc_series(pairs: list, exposures_s: list[float], labels: list[str], bias_counts, em_gain_on: bool,
-                max_counts: float | None) -> PTCSeries:
-    stats = [pair_statistics(a, b, bias_counts, max_counts=max_counts) for a, b in pairs]
-    mean = np.array([s[0] for s in stats])
-    var = np.array([s[1] for s in stats])
-    var_sigma = np.array([s[2] for s in stats])
-    n_pixels = np.array([s[3] for s in stats])
-    slope, slope_sigma, icpt, icpt_sigma, chi2 = fit_ptc(mean, var, var_sigma)
-    return PTCSeries(em_gain_on, np.asarray(exposures_s, dtype=np.float64), mean, var, var_sigma, n_pixels,
-                     tuple(labels), slope, slope_sigma, icpt, icpt_sigma, chi2)
+                max_counts: float | None, warnings: list[str]) -> PTCSeries:
+    name = "gain-on" if em_gain_on else "gain-off"
+    stats, keep = [], []
+    for k, (a, b) in enumerate(pairs):
+        bad = (a <= 0) | (b <= 0)
+        if max_counts is not None:
+            bad |= (a >= max_counts) | (b >= max_counts)
+        lost = float(bad.mean())
+        st = pair_statistics(a, b, bias_counts, max_counts=max_counts) if lost <= MAX_SATURATED_FRACTION else None
+        if lost > MAX_SATURATED_FRACTION:
+            warnings.append(f"the {name} PTC level at {exposures_s[k]:g} s has {lost:.0%} of its pixels saturated "
+                            "or clipped at 0: it is left out of the fit.")
+            continue
+        if lost > 0:
+            warnings.append(f"the {name} PTC level at {exposures_s[k]:g} s: {lost:.2%} of its pixels saturated or "
+                            "clipped at 0 were left out.")
+        stats.append(st)
+        keep.append(k)
+    settings = {(exposures_s[k], labels[k]) for k in keep}  # distinct illumination x exposure
+    if len(settings) < (1 if em_gain_on else 2):
+        raise ValueError(f"too few {name} photon-transfer levels: the gain-off curve needs two different exposures "
+                         "or illuminations free of saturation, the gain-on one at least one.")
+    mean = np.array([st[0] for st in stats])
+    var = np.array([st[1] for st in stats])
+    var_sigma = np.array([st[2] for st in stats])
+    n_pixels = np.array([st[3] for st in stats])
+    if len(settings) >= 2:
+        slope, slope_sigma, icpt, icpt_sigma, chi2 = fit_ptc(mean, var, var_sigma)
+    else:  # one gain-on level: its signal still gives the gain ratio, but no slope
+        slope = slope_sigma = icpt = icpt_sigma = chi2 = math.nan
+    return PTCSeries(em_gain_on, np.asarray(exposures_s, dtype=np.float64)[keep], mean, var, var_sigma, n_pixels,
+                     tuple(labels[k] for k in keep), slope, slope_sigma, icpt, icpt_sigma, chi2)
 
 
 def em_gain_from_ptc(slope_on_counts: float, slope_on_sigma_counts: float, electrons_per_count: float,
@@ -394,9 +441,10 @@ def dark_current(frame_sets, exposures_s, bias_counts, electrons_per_count: floa
         raise ValueError("dark_current: exposures must be positive.")
     e_maps = np.array([(s.mean(axis=0) - bias) * electrons_per_count / g for s, g in zip(stacks, em_gains)])
     e_means = e_maps.mean(axis=(1, 2))
-    # sigma of each mean: temporal scatter of per-frame means (or pixel scatter for one frame)
+    # sigma of each mean: the temporal noise per pixel over all pixels and frames (with one
+    # frame, the pixel-to-pixel scatter, which also holds the fixed pattern: conservative)
     e_sig = np.array([
-        (np.std(s.mean(axis=(1, 2)), ddof=1) / math.sqrt(len(s)) if len(s) > 1 else s[0].std(ddof=1) / math.sqrt(s[0].size))
+        (math.sqrt(s.var(axis=0, ddof=1).mean() / s.size) if len(s) > 1 else s[0].std(ddof=1) / math.sqrt(s[0].size))
         * electrons_per_count / g for s, g in zip(stacks, em_gains)])
     e_sig = np.maximum(e_sig, 1e-12)
     if len(np.unique(t)) >= 2:
@@ -622,12 +670,8 @@ def calibrate_radiometric(
                 exposures.append(level.exposure_s)
                 labels.append(level.illumination)
         name = "em_gain_on" if on else "em_gain_off"
-        s = _ptc_series(pairs, exposures, labels, bias_map, on, max_counts)
+        s = _ptc_series(pairs, exposures, labels, bias_map, on, max_counts, warnings)
         series[name] = s
-        clipped = 1.0 - s.n_pixels.min() / (shape[0] * shape[1])
-        if clipped > 0.001:
-            warnings.append(f"{clipped:.1%} of the pixels of a {name.replace('_', ' ')} PTC level are saturated or "
-                            "clipped at 0 and were left out.")
         if s.reduced_chi2 > 4.0:
             warnings.append(f"the {name.replace('_', ' ')} photon-transfer curve is not a straight line "
                             f"(reduced chi² {s.reduced_chi2:.1f}): saturation, non-linearity or unstable light?")
@@ -654,8 +698,12 @@ def calibrate_radiometric(
 
     on = series.get("em_gain_on")
     if on is not None:
-        result.em_gain_from_ptc, result.em_gain_from_ptc_sigma = em_gain_from_ptc(
-            on.slope_counts, on.slope_sigma_counts, K, K_sigma, excess_noise_factor_squared=excess_noise_factor_squared)
+        if math.isfinite(on.slope_counts):
+            result.em_gain_from_ptc, result.em_gain_from_ptc_sigma = em_gain_from_ptc(
+                on.slope_counts, on.slope_sigma_counts, K, K_sigma,
+                excess_noise_factor_squared=excess_noise_factor_squared)
+        else:
+            warnings.append("one gain-on PTC level: the EM gain has no PTC-slope cross-check (take two or more).")
         ratios = []
         labels_off = np.array(off.illumination)
         labels_on = np.array(on.illumination)
@@ -668,12 +716,16 @@ def calibrate_radiometric(
             result.em_gain_from_ratio = float((w * g).sum() / w.sum())
             result.em_gain_from_ratio_sigma = float(1.0 / math.sqrt(w.sum()))
             result.em_gain, result.em_gain_sigma = result.em_gain_from_ratio, result.em_gain_from_ratio_sigma
-            diff = abs(result.em_gain_from_ptc - result.em_gain_from_ratio) / result.em_gain_from_ratio
+            diff = (abs(result.em_gain_from_ptc - result.em_gain_from_ratio) / result.em_gain_from_ratio
+                    if result.em_gain_from_ptc is not None else 0.0)
             if diff > gain_tolerance:
                 warnings.append(
                     f"EM gain from the signal ratio ({result.em_gain_from_ratio:.4g}) and from the gain-on PTC slope "
                     f"with F² = {excess_noise_factor_squared:g} ({result.em_gain_from_ptc:.4g}) differ by {diff:.0%}: "
                     "check the illumination was the same, saturation, and F².")
+        elif result.em_gain_from_ptc is None:
+            raise ValueError("the EM gain cannot be measured: the gain-on levels share no illumination label with "
+                             "gain-off levels (for the signal ratio) and are too few for a PTC slope.")
         else:
             result.em_gain, result.em_gain_sigma = result.em_gain_from_ptc, result.em_gain_from_ptc_sigma
             warnings.append("no gain-on and gain-off PTC levels share an illumination: the EM gain comes from the "
@@ -688,6 +740,13 @@ def calibrate_radiometric(
         (result.dark_current_e_per_s, result.dark_current_e_per_s_sigma, result.cic_e_per_pixel,
          result.cic_e_per_pixel_sigma, result.dark_e_per_s_map) = dark_current(
             [d[0] for d in darks], [d[1] for d in darks], bias_map, K, gains)
+        # the conversion to electrons scales with K / G: their uncertainties carry over
+        rel = math.hypot(K_sigma / K, (result.em_gain_sigma / result.em_gain)
+                         if any(d[2] for d in darks) and result.em_gain_sigma is not None else 0.0)
+        result.dark_current_e_per_s_sigma = math.hypot(result.dark_current_e_per_s_sigma,
+                                                       rel * abs(result.dark_current_e_per_s))
+        if result.cic_e_per_pixel is not None:
+            result.cic_e_per_pixel_sigma = math.hypot(result.cic_e_per_pixel_sigma, rel * abs(result.cic_e_per_pixel))
         if result.cic_e_per_pixel is None:
             warnings.append("dark frames at a single exposure: clock-induced charge is counted as dark current.")
     if flats is not None:

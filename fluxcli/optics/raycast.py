@@ -47,3 +47,15 @@ class OcclusionScene:
         out = self._scene.run(np.ascontiguousarray(origins_mm, np.float32),
                               np.ascontiguousarray(directions, np.float32), output=1)
         return np.where(out["geomID"] >= 0, out["tfar"].astype(np.float64), np.inf)
+
+    def first_hit_face(self, origins_mm: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distance along each unit direction to the first triangle hit (inf where none) and
+        that triangle's index in ``faces`` (-1 where none)."""
+        n = len(origins_mm)
+        if self._empty or n == 0:
+            return np.full(n, np.inf), np.full(n, -1, np.int64)
+        out = self._scene.run(np.ascontiguousarray(origins_mm, np.float32),
+                              np.ascontiguousarray(directions, np.float32), output=1)
+        hit = out["geomID"] >= 0
+        return (np.where(hit, out["tfar"].astype(np.float64), np.inf),
+                np.where(hit, out["primID"].astype(np.int64), -1))

@@ -45,13 +45,15 @@ SCALARS = {  # attribute of /radiometric -> unit
 
 
 def section_files(section: C.Radiometric) -> list[Path]:
-    """Every file the section names (as written in the config), for input digests."""
+    """Every file the section names, relative to the config file (as ``resolve`` takes
+    them), for input digests."""
     files = [*section.bias, *section.flats]
     for level in section.ptc:
         files += level.files
     for dark in section.darks:
         files += dark.files
-    return list(files)
+    folder = Path(section.directory) if section.directory is not None else Path()
+    return [folder / f for f in files]
 
 
 def _read_frames(files, key: str, resolve: Callable[[Path], Path], shape: list) -> np.ndarray:
@@ -61,8 +63,10 @@ def _read_frames(files, key: str, resolve: Callable[[Path], Path], shape: list) 
         path = resolve(name)
         try:
             image, _ = read_image(path)
-        except ValueError as e:
+        except (ValueError, OSError) as e:
             raise UserError(f"{KEY}.{key}[{i}]: {e}") from None
+        if not np.all(np.isfinite(image)):
+            raise UserError(f"{KEY}.{key}[{i}]: {path} holds non-finite values (NaN or inf); frames must be counts.")
         if shape[0] is None:
             shape[0] = image.shape
         elif image.shape != shape[0]:
@@ -92,6 +96,9 @@ def run_radiometric(section: C.Radiometric, resolve: Callable[[Path], Path], ctx
     -------
     fluxcli.calibration.radiometry.RadiometricResult
     """
+    if section.directory is not None:
+        folder, outer = Path(section.directory), resolve
+        resolve = lambda name: outer(folder / name)  # noqa: E731
     shape: list = [tuple(expected_shape) if expected_shape is not None else None,
                    "system.camera.pixels" if expected_shape is not None else f"{KEY}.bias[0]"]
     bias = _read_frames(section.bias, "bias", resolve, shape)
@@ -192,6 +199,8 @@ def read_radiometric_maps(path: Path, key: str, shape: tuple[int, int]) -> dict[
         g = f[GROUP]
         maps = {name: (g[name][()] if name in g else None) for name in MAPS}
     for name, arr in maps.items():
+        if arr is not None and (arr.ndim != 2 or not np.all(np.isfinite(arr))):
+            raise UserError(f"{key}: the {name} in {path} is not a 2-D map of finite numbers; calibrate again.")
         if arr is not None and arr.shape != tuple(shape):
             raise UserError(f"{key}: the {name} in {path} is {arr.shape[1]} x {arr.shape[0]} pixels; the images "
                             f"are {shape[1]} x {shape[0]}. Calibrate with frames of the same size and binning.")

@@ -1,0 +1,78 @@
+"""One projector's scan end to end: simulated frames, decoding, points per view.
+
+:func:`simulate_frames` is the simulated rig (the renderer, scaled to photons, through
+the EMCCD chain); :func:`points_from_frames` is what runs on real frames as well:
+decode, triangulate along each pixel's (direct or mirrored) chief ray, and return the
+points with the direction they were seen along.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..imaging import noise as N
+from ..optics.camera import PlaneMirror, ThinLensCamera
+from .patterns import Decoded, PatternSet, decode
+from .projector import Projector
+from .render import PatternRenderer
+from .triangulate import chief_rays, triangulate_columns
+
+__all__ = ["simulate_frames", "ScanPoints", "points_from_frames"]
+
+
+def simulate_frames(renderer: PatternRenderer, patterns: PatternSet, *, photons_white: float, ambient_photons: float,
+                    sensor: N.EMCCDModel, rng: np.random.Generator, scale: float | None = None) -> tuple[np.ndarray, float]:
+    """The camera's counts ``[n, ny, nx]`` (uint16) for each pattern, and the scale used.
+
+    ``photons_white``: photons per pixel (per exposure) at the 99th percentile of the
+    lit pixels under the full-white pattern (sets ``scale``, photons per unit of
+    rendered radiance, unless ``scale`` is given); ``ambient_photons`` per pixel are added
+    to every frame (stray light)."""
+    images = [renderer.render(p) for p in patterns.frames]
+    if scale is None:
+        lit = images[0][images[0] > 0]
+        scale = photons_white / np.percentile(lit, 99) if len(lit) else 0.0
+    counts = np.stack([N.emccd_counts(img * scale + ambient_photons, sensor, rng) for img in images])
+    return counts, float(scale)
+
+
+@dataclass(frozen=True)
+class ScanPoints:
+    """Triangulated points of one projector's scan.
+
+    ``points_mm`` (n, 3); ``view_dirs`` (n, 3) unit directions they were seen along;
+    ``pixel`` (n,) flat camera pixel; ``view`` (n,) 0 direct, j through mirror j-1;
+    ``decoded`` the per-pixel decoding."""
+
+    points_mm: np.ndarray
+    view_dirs: np.ndarray
+    pixel: np.ndarray
+    view: np.ndarray
+    decoded: Decoded
+
+
+def points_from_frames(photons: np.ndarray, patterns: PatternSet, camera: ThinLensCamera, mirrors: list[PlaneMirror],
+                       projector: Projector, *, min_contrast: float, min_modulation_fraction: float = 0.25) -> ScanPoints:
+    """Decode frames (photons, or bias-subtracted counts) and triangulate every valid pixel."""
+    dec = decode(photons, patterns, min_contrast=min_contrast, min_modulation_fraction=min_modulation_fraction,
+                 width_px=projector.width_px)
+    origins, dirs, tmax = chief_rays(camera, mirrors)
+    col = dec.column_px.ravel()
+    pix = np.flatnonzero(np.isfinite(col))
+    P = np.full((len(pix), 3), np.nan)
+    V = np.full((len(pix), 3), np.nan)
+    view = np.full(len(pix), -1)
+    for j in range(len(mirrors) + 1):
+        todo = np.flatnonzero(~np.isfinite(P[:, 0]) & np.isfinite(origins[j, pix, 0]))
+        if len(todo) == 0:
+            continue
+        p = pix[todo]
+        pts, _ = triangulate_columns(projector, origins[j, p], dirs[j, p], col[p], t_max=tmax[j, p])
+        ok = np.isfinite(pts[:, 0])
+        P[todo[ok]] = pts[ok]
+        V[todo[ok]] = dirs[j, p[ok]]
+        view[todo[ok]] = j
+    ok = np.isfinite(P[:, 0])
+    return ScanPoints(P[ok], V[ok], pix[ok], view[ok], dec)
