@@ -5,6 +5,7 @@
 #   make structured-light   structured-light surface capture on the simulated rig, against the truth
 #   make test   create .venv if needed, install with test extras, run the test suite
 #   make bench  speed ratios measured in one run (slow checks included)
+#   make accuracy  issue 8's battery: error, totals, chi^2, lambda, warnings per case x method
 #   make paper-2d | paper-3d | heights   the paper's experiments (pipelines/experiments.mk)
 
 PYTHON ?= python3
@@ -13,7 +14,7 @@ PY      = $(VENV)/bin/python
 FLUXMAP = $(VENV)/bin/fluxmap
 JOBS   ?= 2
 
-.PHONY: all demo demo-rig structured-light demo-rig-captured check-report config-reference test bench samples figures clean help
+.PHONY: all demo demo-rig structured-light demo-rig-captured check-report config-reference accuracy test bench samples figures clean help
 all: test
 
 $(VENV)/.installed: pyproject.toml
@@ -39,6 +40,10 @@ demo: $(VENV)/.installed
 check-report: $(VENV)/.installed
 	@test -f runs/demo/report/index.html || $(MAKE) demo
 	$(PY) -m fluxcli.report.browser_check runs/demo/report/index.html runs/demo/report/screenshot.png
+
+# issue 8: realistic, honestly simulated cases x methods (a benchmark, ~15 min on 2 cores)
+accuracy: $(VENV)/.installed
+	$(PY) benchmarks/accuracy.py
 
 demo-rig: $(VENV)/.installed
 	$(FLUXMAP) capture-surface configs/demo-rig.yaml --resume

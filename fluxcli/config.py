@@ -303,6 +303,8 @@ class DiffusionFlux(Model):
     wavelength_nm: int = Field(description="Which wavelength of 'optical' to simulate.")
     sources: tuple[Source, ...] = Field(min_length=1, description="Light sources inside the subject.")
     mesh_edge_mm: float = Field(1.5, gt=0, description="Target tetrahedron edge length (mm).")
+    mesh_dir: Path | None = Field(None, description="Folder of tetrahedral meshes shipped with the config "
+                                  "(fTetWild is not deterministic; a shipped mesh makes a fresh clone byte-reproducible).")
 
     @model_validator(mode="after")
     def _check(self) -> "DiffusionFlux":
@@ -338,6 +340,9 @@ class Simulate(Model):
     flux: Flux = Field(description="The ground truth on the surface: kind gaussian, uniform, file or diffusion.")
     transfer: "Transfer | None" = Field(None, description="Sampling of the forward T (default: twice as fine as 'transfer').")
     allow_inverse_crime: bool = Field(False, description="Allow the forward T to equal reconstruction's T.")
+    truth_refinement: int | None = Field(None, ge=0, le=3, description="The truth lives on the surface with each "
+                                         "triangle split into 4 this many times (default 1, or 0 with "
+                                         "allow_inverse_crime; 0: constant per element, half an inverse crime).")
     noise: Noise = Field(Noise(), description="Noise model, signal levels, repeats, seed and exposure of the images.")
     export: Export = Field(Export(), description="Also write the images as files.")
 
@@ -354,8 +359,9 @@ class MethodSettings(Model):
     max_iter: int = Field(10, ge=1, description="paper: at most this many solves; smooth: this many.")
     tol: float = Field(0.01, gt=0, description="paper: stop when the fit improves by less than this fraction.")
     n_iter: int = Field(500, ge=1, description="mlem: EM iterations.")
-    unknowns: Literal["elements", "sub_elements"] = Field(
-        "elements", description="Solve per element, or per sub-element (phantom strips, else faces) summed per element.")
+    unknowns: Literal["auto", "elements", "sub_elements"] = Field(
+        "elements", description="Solve per element, or per sub-element (phantom strips, else faces) summed per element; "
+                                "auto: sub-elements for smooth when there are at most 4000 of them.")
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True, allow_inf_nan=False)
 
@@ -409,13 +415,19 @@ class Reconstruct(Model):
     max_iter: int = Field(10, ge=1, description="paper: at most this many solves; smooth: this many.")
     tol: float = Field(0.01, gt=0, description="paper: stop when the fit improves by less than this fraction.")
     n_iter: int = Field(500, ge=1, description="mlem: EM iterations.")
-    unknowns: Literal["elements", "sub_elements"] = Field("elements", description="Solve per element, or per sub-element summed per element.")
+    unknowns: Literal["auto", "elements", "sub_elements"] = Field(
+        "auto", description="auto (default): smooth solves per sub-element (faces, or strips) summed per element when "
+                            "the camera resolves an element (>= 12 pixels) and there are at most 4000; elements or "
+                            "sub_elements to choose.")
     images: ImageFiles | CaptureSource | None = Field(None, description="Images from files, or from a capture, instead of simulation.h5.")
     level: int = Field(0, ge=0, description="Which signal level of the simulation to reconstruct.")
     repeat: int = Field(0, ge=0, description="Which noise repeat of the simulation to reconstruct.")
     noiseless: bool = Field(False, description="Reconstruct the simulation's noiseless images.")
     joint: bool = Field(True, description="Also reconstruct all poses jointly onto one surface.")
     read_noise_photons: float = Field(0.0, ge=0, description="Added to the shot-noise variance in weights (photons rms).")
+    noise: Literal["auto", "gaussian", "poisson", "emccd"] = Field(
+        "auto", description="Noise model of the images for weights, sigma and chi^2 (auto: the simulation's; emccd for "
+                            "count images, with system.camera.sensor; poisson otherwise).")
     sweep: Sweep | None = Field(None, description="A study: every level x repeat x pose for each method.")
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True, allow_inf_nan=False)

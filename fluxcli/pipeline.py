@@ -170,7 +170,8 @@ def plan(cfg: LoadedConfig, transfer: Transfer | None = None, unknowns: str = "e
     """The views, the subject placer, and per pose its placed scene and cache entry.
 
     ``transfer`` overrides ``cfg.model.transfer`` (simulate builds a finer T this way);
-    ``unknowns="sub_elements"`` gives T's columns per sub-element (Surface.unknowns)."""
+    ``unknowns="sub_elements"`` gives T's columns per sub-element (Surface.unknowns),
+    ``"refined:n"`` per face of the surface refined n times (Surface.refined)."""
     tr = transfer or cfg.model.transfer
     views = views_from_config(cfg.model.system)
     placer = SubjectPlacer(cfg)
@@ -180,6 +181,10 @@ def plan(cfg: LoadedConfig, transfer: Transfer | None = None, unknowns: str = "e
         scene = placer.scene(pose, cfg.model.system)
         if unknowns == "sub_elements":
             scene = PlacedScene(scene.pose, scene.surface.unknowns()[0], scene.occluders)
+        elif unknowns.startswith("refined:"):  # simulate: columns per face of the refined surface
+            levels = int(unknowns.split(":")[1])
+            if levels > 0:
+                scene = PlacedScene(scene.pose, scene.surface.refined(levels)[0], scene.occluders)
         key = A.cache_key(key_parts(scene, views, tr))
         out.append((scene, PoseT(pose, key, AT.entry_path(cdir, key))))
     return views, placer, out

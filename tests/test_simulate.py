@@ -51,11 +51,19 @@ def test_gaussian_truth_images_and_determinism(write_config, sim_config, tmp_pat
         cfg = load_config(p)
         from fluxcli.stages.simulate import forward_transfer
 
-        _, _, todo = plan(cfg, forward_transfer(cfg))
+        # ... on the refined surface the truth lives on (finer than the elements), whose
+        # faces sum back to the elements' truth
+        _, _, todo = plan(cfg, forward_transfer(cfg), unknowns="refined:1")
         _, _, todo_rec = plan(cfg)
         assert [t.key for _, t in todo] != [t.key for _, t in todo_rec]
-        a = load_T(todo[1][1].path) @ power
+        fine, parent = f["truth/power_fine"][()], f["truth/fine_parent"][()]
+        assert np.all(np.bincount(parent, minlength=len(power)) >= 4)  # each element split in >= 4
+        assert np.allclose(np.bincount(parent, weights=fine, minlength=len(power)), power, rtol=1e-12)
+        a = load_T(todo[1][1].path) @ fine
         assert np.allclose(clean[0, 1].ravel(), a, rtol=1e-6)
+        # the truth varies within an element (a Gaussian in exitance, not a constant per element)
+        spread = [np.ptp(fine[parent == j]) / fine[parent == j].mean() for j in np.argsort(power)[-20:]]
+        assert max(spread) > 0.01
         assert np.allclose(clean[1], clean[0] * 1e-2, rtol=1e-6)  # levels scale the truth
         assert np.allclose(snr, np.sqrt(clean.reshape(2, 2, -1).max(axis=2)))
         # Poisson: the mean over repeats and pixels follows the noiseless image

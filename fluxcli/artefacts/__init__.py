@@ -12,12 +12,12 @@ from .atomic import atomic_path, clean_stale_temps, write_bytes, write_text
 from .kinds import KINDS, SCHEMA_VERSIONS, Dataset, Kind, register
 from .pieces import read_csr, read_surface, write_csr, write_surface
 from .store import (ArtefactFile, Provenance, cache_key, canonical, check_geometry, file_sha256,
-                    geometry_differences, inputs_digest, is_up_to_date, open_artefact, put, read_provenance,
-                    write_artefact)
+                    geometry_differences, inputs_digest, is_up_to_date, open_artefact, portable_path, put,
+                    read_provenance, recorded_seconds, write_artefact)
 
 __all__ = [
     "KINDS", "SCHEMA_VERSIONS", "ArtefactFile", "Dataset", "Kind", "Provenance", "atomic_path", "cache_key",
     "canonical", "check_geometry", "clean_stale_temps", "file_sha256", "geometry_differences", "inputs_digest",
-    "is_up_to_date", "open_artefact", "put", "read_csr", "read_provenance", "read_surface", "register",
+    "is_up_to_date", "open_artefact", "portable_path", "put", "recorded_seconds", "read_csr", "read_provenance", "read_surface", "register",
     "write_artefact", "write_bytes", "write_csr", "write_surface", "write_text",
 ]

@@ -83,6 +83,10 @@ register(Kind("simulation", 2, "fluxmap simulate", "ground-truth surface flux an
     Dataset("truth/exitance", "photons mm^-2 per exposure", "power / element area"),
     Dataset("truth/levels_peak_photons", "photons", "brightest element's power at each signal level"),
     Dataset("truth/level_scale", "", "truth at level l = power * level_scale[l]"),
+    Dataset("truth/power_fine", "photons per exposure, per fine face",
+            "the truth on the refined surface the images were made from (summed per element = truth/power)",
+            required=False),
+    Dataset("truth/fine_parent", "", "element of each fine face", required=False),
     Dataset("poses/heights_mm", "mm", "stage height of each pose"),
     Dataset("poses/rotations_deg", "deg", "rotation of each pose"),
     Dataset("poses/T_fwd_keys", "", "forward T of each pose (T-cache key)"),
@@ -116,6 +120,13 @@ register(Kind("reconstruction", 2, "fluxmap reconstruct", "surface flux reconstr
     Dataset("fit/valid", "", "pixels used (finite, not saturated)"),
     Dataset("geometry", "", "what the report draws: subject axis, camera look/up, view names, T files"),
     Dataset("truth/power", "photons", "ground truth at the reconstructed level", required=False),
+    Dataset("flux/observation", "", "0 unobserved, 1 poorly observed, 2 well observed", required=False),
+    Dataset("flux/well_observed", "", "observed and pinned down by the data", required=False),
+    Dataset("flux/total_well_observed", "photons", "sum of power over well-observed elements", required=False),
+    Dataset("flux/total_poorly_observed", "photons", "sum of power over poorly observed elements", required=False),
+    Dataset("per_pose/chi2_per_pixel", "", "chi^2 per pixel under the noise model [pose]", required=False),
+    Dataset("per_pose/observation", "", "[pose, element] 0/1/2 as flux/observation", required=False),
+    Dataset("warnings", "", "what the solves detected (lambda at an edge, chi^2 far from 1, ...)", required=False),
 )))
 
 register(Kind("tetmesh", 1, "fluxmap simulate", "tetrahedral mesh of the subject (cached by content)", (

@@ -49,9 +49,10 @@ class Provenance:
     def geometry_sha256(self) -> str:
         return cache_key(canonical(self.geometry)) if self.geometry else ""
 
-    def add_file(self, name: str, path: Path) -> None:
-        """Record an input artefact or image file by name, path and content digest."""
-        self.input_files[name] = {"path": str(path), "sha256": file_sha256(path)}
+    def add_file(self, name: str, path: Path, base: Path | None = None) -> None:
+        """Record an input artefact or image file by name, path (relative to ``base`` when
+        given, so the artefact does not depend on where the project lives) and digest."""
+        self.input_files[name] = {"path": portable_path(path, base), "sha256": file_sha256(path)}
 
 
 def read_provenance(f: h5py.File) -> Provenance:
@@ -113,6 +114,19 @@ def check_geometry(path: Path, stored: Provenance, now_geometry: dict, *, remedy
 
 
 # ------------------------------------------------------------------ writing
+def recorded_seconds(seconds: float) -> float:
+    """A run time to store in an artefact: NaN under SOURCE_DATE_EPOCH (a reproducible run
+    records no wall-clock times, so two runs give the same bytes)."""
+    return float("nan") if os.environ.get("SOURCE_DATE_EPOCH") else float(seconds)
+
+
+def portable_path(path, base=None) -> str:
+    """``path`` relative to ``base`` (a folder) when given, so that artefacts made in two
+    clones of the project are byte-identical; readers resolve it against the same base."""
+    if base is None:
+        return str(path)
+    return os.path.relpath(Path(path).resolve(), Path(base).resolve())
+
 @contextlib.contextmanager
 def write_artefact(path: Path, kind: str, *, config_sha256: str = "", inputs: dict[str, str] | None = None,
                    provenance: Provenance | None = None) -> Iterator[h5py.File]:

@@ -17,7 +17,7 @@ import scipy.sparse as sp
 
 from ..errors import UserError
 from .pieces import read_csr, write_csr, write_surface
-from .store import Provenance, open_artefact, put, write_artefact
+from .store import Provenance, open_artefact, portable_path, put, recorded_seconds, write_artefact
 
 
 def entry_path(cache_dir: Path, key: str) -> Path:
@@ -74,7 +74,7 @@ def write_T(path: Path, *, T: sp.csr_matrix, T_per_view: list, view_kinds: list[
         f.attrs["pose_height_mm"] = height_mm
         f.attrs["pose_rotation_deg"] = rotation_deg
         f.attrs["estimator"] = estimator
-        f.attrs["build_seconds"] = seconds
+        f.attrs["build_seconds"] = recorded_seconds(seconds)
 
 
 def load_T(path: Path) -> sp.csr_matrix:
@@ -135,7 +135,9 @@ def write_index(path: Path, *, heights_mm, rotations_deg, keys: list[str], paths
         put(f, "heights_mm", np.asarray(heights_mm, float))
         put(f, "rotations_deg", np.asarray(rotations_deg, float))
         put(f, "keys", np.array(keys, dtype="S64"))
-        put(f, "paths", np.array([str(p) for p in paths], dtype=object), dtype=h5py.string_dtype())
+        # relative to the index's folder: the same bytes wherever the project lives
+        put(f, "paths", np.array([portable_path(p, Path(path).parent) for p in paths], dtype=object),
+            dtype=h5py.string_dtype())
         put(f, "efficiency", np.asarray(efficiency_pv, float))
         f.attrs["view_names"] = json.dumps(view_names)
         f.attrs["estimator"] = estimator

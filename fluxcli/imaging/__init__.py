@@ -10,8 +10,10 @@
 from fluxcli.imaging.imagefiles import read_image, write_image
 from fluxcli.imaging.noise import (
     EMCCDModel,
+    PhotonNoise,
     counts_to_photons,
     emccd_counts,
+    excess_noise_factor2,
     expected_counts,
     expected_variance_counts,
     gaussian_shot,
@@ -22,8 +24,10 @@ from fluxcli.imaging.noise import (
 
 __all__ = [
     "EMCCDModel",
+    "PhotonNoise",
     "counts_to_photons",
     "emccd_counts",
+    "excess_noise_factor2",
     "expected_counts",
     "expected_variance_counts",
     "gaussian_shot",

@@ -25,6 +25,9 @@ import numpy as np
 
 __all__ = [
     "EMCCDModel",
+    "NOISE_KINDS",
+    "PhotonNoise",
+    "excess_noise_factor2",
     "conventional_counts",
     "counts_to_photons",
     "emccd_counts",
@@ -419,3 +422,115 @@ def counts_to_photons(counts_per_pixel, model: EMCCDModel) -> np.ndarray:
         raise ValueError("counts_per_pixel must be finite everywhere.")
     electrons_in = (counts - model.bias_counts) * model.electrons_per_count / model.em_gain
     return (electrons_in - model.background_e_per_pixel) / model.quantum_efficiency
+
+
+# ------------------------------------------------------------------ the one noise model
+NOISE_KINDS = ("gaussian", "poisson", "emccd")
+
+
+def excess_noise_factor2(em_gain: float) -> float:
+    """Excess noise factor ``F²`` of an EM register of mean gain ``G``: ``2 − 1/G``.
+
+    This is the many-stage limit of ``F² = 2(G − 1)G^(−(N+1)/N) + 1/G`` (Robbins & Hadwen
+    2003): 1 without multiplication, → 2 at high gain (2 − 1/300 = 1.997 at G = 300).
+
+    Parameters
+    ----------
+    em_gain : float
+        Mean EM gain ``G`` ≥ 1 (dimensionless).
+
+    Returns
+    -------
+    float
+        ``F²`` (dimensionless).
+    """
+    em_gain = float(em_gain)
+    if not math.isfinite(em_gain) or em_gain < 1:
+        raise ValueError(f"em_gain must be a finite number ≥ 1, got {em_gain!r}.")
+    return 2.0 - 1.0 / em_gain
+
+
+@dataclass(frozen=True)
+class PhotonNoise:
+    """How noisy a measured photon image is: the variance of each pixel given its mean.
+
+    The one noise model of fluxmap: every weight, σ, χ² and discrepancy target of the
+    reconstruction evaluates :meth:`variance` on a *model* image (``T b̂``), never on
+    the measured one (that would bias totals low at low counts).
+
+    Attributes
+    ----------
+    kind : {"gaussian", "poisson", "emccd"}
+        ``gaussian`` (the paper's ``a + N(0, √a)``) and ``poisson`` both have variance
+        ``a``; ``emccd`` is the EMCCD chain of :func:`emccd_counts` read back with
+        :func:`counts_to_photons`.
+    read_noise_photons : float
+        Extra additive noise (rms photons) for ``gaussian``/``poisson`` (a conventional
+        camera's read noise referred to the input); ignored for ``emccd``, whose read
+        noise comes from ``sensor``.
+    sensor : EMCCDModel or None
+        Required for ``emccd``.
+    floor_photons2 : float
+        Smallest variance returned (photons²): a pixel whose model is dark must not get
+        an infinite weight (default 0.25, a quarter of a photon²).
+    frames_averaged : int
+        The image is the mean of this many frames (its variance is that much smaller).
+    """
+
+    kind: str = "poisson"
+    read_noise_photons: float = 0.0
+    sensor: EMCCDModel | None = None
+    floor_photons2: float = 0.25
+    frames_averaged: int = 1
+
+    def __post_init__(self) -> None:
+        if isinstance(self.frames_averaged, bool) or not isinstance(self.frames_averaged, numbers.Integral) \
+                or self.frames_averaged < 1:
+            raise ValueError(f"PhotonNoise.frames_averaged must be an integer ≥ 1, got {self.frames_averaged!r}.")
+        if self.kind not in NOISE_KINDS:
+            raise ValueError(f"noise kind must be one of {', '.join(NOISE_KINDS)}; got {self.kind!r}.")
+        if self.kind == "emccd":
+            _check_model(self.sensor)
+        for name in ("read_noise_photons", "floor_photons2"):
+            v = getattr(self, name)
+            if not (isinstance(v, numbers.Real) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"PhotonNoise.{name} must be a finite number ≥ 0, got {v!r}.")
+
+    def variance(self, mean_photons) -> np.ndarray:
+        """Variance of a measured pixel, in photons², given its mean ``a`` (photons).
+
+        - gaussian, poisson: ``σ² = a + read_noise_photons²``;
+        - emccd: ``σ² = [F²(QE·a + d) + (σ_r/G)²] / QE²`` with ``d`` dark + CIC electrons,
+          ``σ_r`` the read noise (electrons rms at the output), ``G`` the EM gain and
+          ``F² = 2 − 1/G`` (:func:`excess_noise_factor2`) — the variance of
+          :func:`counts_to_photons` of :func:`emccd_counts` (ADC rounding neglected).
+
+        Negative means (a model may dip below 0) count as 0; the result is at least
+        ``floor_photons2``.
+
+        Parameters
+        ----------
+        mean_photons : array_like of float, any shape
+            Expected photons per pixel.
+
+        Returns
+        -------
+        numpy.ndarray of float64, same shape
+            Variance in photons².
+        """
+        a = np.maximum(np.asarray(mean_photons, dtype=np.float64), 0.0)
+        if self.kind == "emccd":
+            s = self.sensor
+            qe, gain = s.quantum_efficiency, s.em_gain
+            f2 = excess_noise_factor2(gain)
+            var = (f2 * (qe * a + s.background_e_per_pixel) + (s.read_noise_e / gain) ** 2) / qe**2
+        else:
+            var = a + self.read_noise_photons**2
+        return np.maximum(var / self.frames_averaged, self.floor_photons2)
+
+    @property
+    def variance_per_photon(self) -> float:
+        """``dσ²/da`` (photons² per photon): 1 for shot noise, ``F²/QE`` for an EMCCD."""
+        if self.kind == "emccd":
+            return excess_noise_factor2(self.sensor.em_gain) / self.sensor.quantum_efficiency
+        return 1.0

@@ -37,6 +37,9 @@ from fluxcli.inverse import _common as c
 
 __all__ = [
     "METHODS",
+    "REGISTRY",
+    "observation_classes",
+    "register",
     "Result",
     "backprojection",
     "mlem",
@@ -49,7 +52,6 @@ __all__ = [
     "weighted_lsq",
 ]
 
-METHODS = ("backprojection", "paper", "tikhonov", "nnls", "weighted_lsq", "mlem", "smooth")
 
 
 # --------------------------------------------------------------------------- helpers
@@ -517,8 +519,16 @@ class Result:
         Solves or EM iterations made (1 for direct solvers).
     converged : bool
         Whether the method's stopping criterion was met before its iteration limit.
-    lam_choice : LambdaChoice or None
-        The λ-selection curve when ``lam_rule`` was used.
+    lam_choice : LambdaChoice, spectral.Choice or None
+        The λ-selection curve when λ was chosen automatically.
+    chi2_per_pixel : float
+        ``Σ (a − T b̃)²/σ²(T b̃) / m`` under the noise model (NaN without one).
+    warnings : tuple of str
+        What the solve detected and the user must know (λ at the edge of its range,
+        χ²/pixel far from 1, a total that depends on λ, …). Never silent.
+    observation : ndarray of int8, shape (n_elements,)
+        :data:`UNOBSERVED` (0), :data:`POORLY_OBSERVED` (1) or :data:`WELL_OBSERVED` (2),
+        see :func:`observation_classes`.
     """
 
     power: np.ndarray
@@ -532,15 +542,252 @@ class Result:
     iterations: int
     converged: bool
     lam_choice: object = None
+    chi2_per_pixel: float = float("nan")
+    warnings: tuple = ()
+    observation: np.ndarray | None = None
+    sigma_groups: np.ndarray | None = None
+
+    @property
+    def well_observed(self) -> np.ndarray:
+        """Observed elements the data pin down (not :data:`POORLY_OBSERVED`)."""
+        return self.observed if self.observation is None else self.observation == WELL_OBSERVED
 
 
-_DEFAULT_LAM = {"paper": 10.0, "tikhonov": 0.0, "nnls": 0.0, "weighted_lsq": 0.0}
+UNOBSERVED, POORLY_OBSERVED, WELL_OBSERVED = 0, 1, 2
+POOR_SHARE_WARNING = 0.10  # warn when poorly observed elements hold more of the total than this
+
+
+def observation_classes(T, power, sigma, *, adjacency=None, areas=None, rel_threshold: float = c.DEFAULT_REL_THRESHOLD,
+                        neighbour_fraction: float = 0.1, per_area_fraction: float = 0.25,
+                        sigma_floor_fraction: float = 0.01) -> np.ndarray:
+    """Unobserved / poorly observed / well observed, per element.
+
+    - unobserved (0): column sum ≤ ``rel_threshold`` × the largest (not solved for, NaN);
+    - poorly observed (1): solved for, but the data cannot tell it from its neighbours:
+      its column sum is below ``neighbour_fraction`` × the largest column sum among the
+      elements it touches, or (with ``areas``) its sensitivity per unit area is below
+      ``per_area_fraction`` × the median over observed elements (the silhouette band, seen
+      edge-on and imaged onto a sliver of a pixel: cos θ ≲ 0.25), or its σ is at least its
+      value while also above ``sigma_floor_fraction`` of the largest value (a dark element
+      known to be dark is well observed);
+    - well observed (2): the rest.
+
+    Parameters
+    ----------
+    T : sparse (n_pixels, n_elements), dimensionless.
+    power, sigma : (n_elements,) photons (NaN where unobserved / unknown).
+    adjacency : (n_elements, n_elements) sparse, nonzero where elements touch; without it
+        only the σ test applies.
+
+    Returns
+    -------
+    ndarray of int8, shape (n_elements,)
+    """
+    T = c.as_transfer(T)
+    sums = c.column_sums(T)
+    seen = sums > rel_threshold * sums.max()
+    poor = np.zeros(seen.size, bool)
+    if adjacency is not None:
+        A = sp.csr_array(adjacency, dtype=np.float64)
+        A = sp.csr_array(A + sp.eye_array(A.shape[0], format="csr"))
+        # largest column sum in each element's closed neighbourhood
+        best = np.array([sums[A.indices[A.indptr[j]:A.indptr[j + 1]]].max() for j in range(A.shape[0])])
+        poor |= sums < neighbour_fraction * best
+    if areas is not None and seen.any():
+        per_area = sums / np.maximum(np.asarray(areas, float), 1e-300)
+        poor |= per_area < per_area_fraction * np.median(per_area[seen])
+    p = np.asarray(power, float)
+    sg = np.asarray(sigma, float)
+    top = np.nanmax(np.where(seen, p, np.nan)) if np.any(seen & np.isfinite(p)) else 0.0
+    with np.errstate(invalid="ignore"):
+        poor |= np.isfinite(sg) & (sg >= np.abs(p)) & (sg > sigma_floor_fraction * top)
+        poor |= np.isinf(sg)
+    out = np.where(seen, np.where(poor, POORLY_OBSERVED, WELL_OBSERVED), UNOBSERVED)
+    return out.astype(np.int8)
+
+
+# ------------------------------------------------------------------ the method registry
+
+
+@dataclass
+class Problem:
+    """What every method receives: the observed columns, the pixels that see them, and the
+    noise model."""
+
+    T: sp.csr_array  # (n_pixels, n_elements)
+    a: np.ndarray  # (n_pixels,) photons
+    mask: np.ndarray  # (n_elements,) observed
+    T_obs: sp.csr_array  # (n_pixels, n_obs)
+    rows: np.ndarray  # (n_pixels,) pixels that see an observed element
+    variance: object  # callable photons -> photons², or None
+    sigma2: np.ndarray | None  # fixed variance (n_pixels,) photons², or None
+    adjacency: object
+    areas: np.ndarray | None
+    rel_threshold: float
+    groups: tuple | None = None  # (parent (n_elements,), n_groups): also σ of the sums per group
+
+    def sums(self):
+        """Sparse (n_groups, n_obs) summing observed unknowns into their groups, or None."""
+        if self.groups is None:
+            return None
+        parent, n_groups = self.groups
+        idx = np.flatnonzero(self.mask)
+        return sp.csr_array((np.ones(idx.size), (np.asarray(parent)[idx], np.arange(idx.size))),
+                            shape=(n_groups, idx.size))
+
+    @property
+    def T_cov(self):
+        return sp.csr_array(self.T_obs[self.rows])
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """A reconstruction method: how to run it and what it accepts."""
+
+    name: str
+    solve: object  # (Problem, lam, lam_rule, opts) -> dict
+    options: frozenset
+    default_lam: float | None  # None: the method takes no λ
+    lam_rules: tuple
+
+
+REGISTRY: dict[str, MethodSpec] = {}
+
+
+def register(name: str, *, options=(), default_lam=None, lam_rules=()):
+    """Add a method to :data:`REGISTRY` (decorator)."""
+    def deco(fn):
+        REGISTRY[name] = MethodSpec(name, fn, frozenset(options), default_lam, tuple(lam_rules))
+        return fn
+    return deco
+
+
+_RULE_OPTS = ("lambdas", "tau", "gamma")
+
+
+@register("backprojection")
+def _run_backprojection(P, lam, rule, opts):
+    return {"power": _backprojection(P.T_obs, P.a)[0], "no_sigma": True}
+
+
+def _filtered(P, *, prior, k, tol, lam, rule, opts, weighted, free_level=False):
+    from fluxcli.inverse.filtered import filtered_solve
+
+    s2 = None if P.sigma2 is None else P.sigma2[P.rows]
+    out = filtered_solve(P.T_cov, P.a[P.rows], prior=prior, k=k, tol=tol, lam=lam, rule=rule or "gcv",
+                         gamma=opts.get("gamma", 1.0), tau=opts.get("tau", 1.0), lambdas=opts.get("lambdas"),
+                         variance=P.variance, sigma2=s2, weighted=weighted, free_level=free_level, sums=P.sums())
+    return {"sigma_groups": out.sigma_sums, "power": out.power, "sigma": out.sigma, "lam": out.lam, "lam_absolute": out.lam_absolute,
+            "iterations": out.iterations, "converged": out.converged, "choice": out.choice,
+            "chi2": out.chi2_per_pixel, "warnings": out.warnings}
+
+
+@register("paper", options=("max_iter", "tol", *_RULE_OPTS), default_lam=10.0, lam_rules=("gcv", "lcurve", "discrepancy"))
+def _run_paper(P, lam, rule, opts):
+    # the paper's unweighted scheme; an automatic λ is chosen on its own filter factors
+    return _filtered(P, prior=None, k=c.check_positive_int(opts.get("max_iter", 10), "max_iter"),
+                     tol=c.check_nonneg_number(opts.get("tol", 0.01), "tol"), lam=lam, rule=rule, opts=opts,
+                     weighted=False)
+
+
+@register("smooth", options=("adjacency", "n_iter", *_RULE_OPTS), default_lam=None,
+          lam_rules=("gcv", "lcurve", "discrepancy"))
+def _run_smooth(P, lam, rule, opts):
+    from fluxcli.inverse.smooth import exitance_prior
+
+    if P.adjacency is None:
+        raise ValueError("method 'smooth' needs the element adjacency (adjacency=...).")
+    opts = {"gamma": 1.4} | opts
+    R = exitance_prior(P.adjacency, P.mask, P.areas)
+    return _filtered(P, prior=R, k=c.check_positive_int(opts.get("n_iter", 10), "n_iter"), tol=None, lam=lam,
+                     rule=rule, opts=opts, weighted=True, free_level=True)
+
+
+def _lam_from_rule(P, lam, rule, opts, weighted):
+    if rule is None:
+        return lam, None
+    from fluxcli.inverse.regularisation import choose_lambda
+
+    s2 = P.sigma2
+    if s2 is None and P.variance is not None:  # σ² of a model image: a first unregularised-ish fit
+        b0, *_ = _nnls(P.T_obs, P.a, None, 1e-6)
+        s2 = P.variance(P.T_obs @ b0)
+    choice = choose_lambda(P.T_obs, P.a, method=rule, sigma2=s2, weighted=weighted, rel_threshold=0.0,
+                           **{k: v for k, v in opts.items() if k in _RULE_OPTS})
+    return choice.lam, choice
+
+
+@register("tikhonov", options=_RULE_OPTS, default_lam=0.0, lam_rules=("gcv", "lcurve", "discrepancy"))
+def _run_tikhonov(P, lam, rule, opts):
+    lam, choice = _lam_from_rule(P, lam, rule, opts, False)
+    b, it, conv, lam_abs = _tikhonov(P.T_obs, P.a, lam, None)
+    return {"power": b, "lam": lam, "lam_absolute": lam_abs, "iterations": it, "converged": conv, "choice": choice}
+
+
+@register("nnls", options=("weights", *_RULE_OPTS), default_lam=0.0, lam_rules=("gcv", "lcurve", "discrepancy"))
+def _run_nnls(P, lam, rule, opts):
+    lam, choice = _lam_from_rule(P, lam, rule, opts, False)
+    w = opts.get("weights")
+    if w is not None:
+        w = c.as_pixels(w, P.a.size, "weights", nonnegative=True, allow_scalar=True)
+    b, it, conv, lam_abs = _nnls(P.T_obs, P.a, w, lam)
+    return {"power": b, "lam": lam, "lam_absolute": lam_abs, "iterations": it, "converged": conv, "choice": choice}
+
+
+@register("weighted_lsq", options=_RULE_OPTS, default_lam=0.0, lam_rules=("gcv", "lcurve", "discrepancy"))
+def _run_weighted_lsq(P, lam, rule, opts):
+    if P.sigma2 is None and P.variance is None:
+        raise ValueError("method 'weighted_lsq' needs the noise variance sigma2 (photons²) or a noise model.")
+    if P.sigma2 is not None:
+        w = 1.0 / P.sigma2
+    else:  # weights from the model image of an unweighted fit, reweighted once
+        b0, *_ = _nnls(P.T_obs, P.a, None, 1e-6)
+        w = 1.0 / P.variance(P.T_obs @ b0)
+    lam, choice = _lam_from_rule(P, lam, rule, opts, True) if P.sigma2 is not None else (
+        _lam_from_rule(Problem(**{**P.__dict__, "sigma2": 1.0 / w}), lam, rule, opts, True))
+    b, it, conv, lam_abs = _nnls(P.T_obs, P.a, w, lam)
+    if P.sigma2 is None:
+        b, it, conv, lam_abs = _nnls(P.T_obs, P.a, 1.0 / P.variance(P.T_obs @ b), lam)
+    return {"power": b, "lam": lam, "lam_absolute": lam_abs, "iterations": it, "converged": conv, "choice": choice,
+            "weighted": True}
+
+
+@register("mlem", options=("n_iter", "background", "smooth", "adjacency", "rel_tol"))
+def _run_mlem(P, lam, rule, opts):
+    if np.any(P.a < 0):
+        raise ValueError("image a (photons) must be non-negative for MLEM (Poisson counts).")
+    n_iter = c.check_positive_int(opts.get("n_iter", 200), "n_iter")
+    smooth = c.check_nonneg_number(opts.get("smooth", 0.0), "smooth")
+    rel_tol = c.check_nonneg_number(opts.get("rel_tol", 1e-6), "rel_tol")
+    background = c.as_pixels(opts.get("background", 0.0), P.a.size, "background (photons)", nonnegative=True,
+                              allow_scalar=True)
+    lap = None
+    if smooth > 0:
+        adjacency = opts.get("adjacency", P.adjacency)
+        if adjacency is None:
+            raise ValueError("smooth > 0 needs an element adjacency matrix (adjacency=...).")
+        lap = _exitance_laplacian(adjacency, P.mask, P.areas)
+    b, it, conv, lam_abs = _mlem(P.T_obs, P.a, n_iter, background, smooth, lap, rel_tol)
+    return {"power": b, "iterations": it, "converged": conv, "weighted": True, "lam": 0.0}
+
+
+def _exitance_laplacian(adjacency, mask, areas):
+    """MLEM's smoothing acts on exitance J = b/S: the penalty JᵀLJ is bᵀDLDb, D = S̄/S."""
+    L = _laplacian(adjacency, mask)
+    if areas is None:
+        return L
+    S = np.asarray(areas, float)[mask]
+    d = sp.diags_array(S.mean() / S)
+    return sp.csr_array(d @ L @ d)
+
+
+METHODS = tuple(REGISTRY)
 
 
 def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | None = None,
-                sigma2=None, rel_threshold: float = c.DEFAULT_REL_THRESHOLD,
-                **opts) -> Result:
-    """Reconstruct the flux per element with one of :data:`METHODS`.
+                sigma2=None, variance=None, adjacency=None, areas=None, groups=None,
+                rel_threshold: float = c.DEFAULT_REL_THRESHOLD, **opts) -> Result:
+    """Reconstruct the flux per element with one of :data:`METHODS` (:data:`REGISTRY`).
 
     Parameters
     ----------
@@ -548,116 +795,114 @@ def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | 
         Transfer matrix, dimensionless, ≥ 0 (stack views with :func:`stack_views`).
     a : ndarray, shape (n_pixels,)
         Image in photons.
-    method : {"backprojection", "paper", "tikhonov", "nnls", "weighted_lsq", "mlem"}
+    method : str
+        A key of :data:`REGISTRY`: backprojection, paper, smooth, tikhonov, nnls,
+        weighted_lsq, mlem.
     lam : float, optional
-        Relative regularisation for the Tikhonov family; default 10 for ``"paper"``
-        (the paper's 2-D value), 0 otherwise. Not allowed together with ``lam_rule``.
+        Relative regularisation (``λ̃ = lam × max diag TᵀWT``); default 10 for ``paper``,
+        0 for the other Tikhonov-family methods, chosen automatically for ``smooth``.
     lam_rule : {"gcv", "lcurve", "discrepancy"}, optional
-        Choose ``lam`` automatically with :func:`fluxcli.inverse.choose_lambda`
-        (weighted by ``1/sigma2`` for ``"weighted_lsq"``, unweighted otherwise).
+        Choose ``lam`` automatically (``paper`` and ``smooth`` on the filter factors of
+        their own iterated scheme). Not allowed together with ``lam``.
     sigma2 : float or ndarray, shape (n_pixels,), optional
-        Noise variance per pixel in photons². Required by ``"weighted_lsq"`` and by
-        ``lam_rule="discrepancy"``; when given, ``Result.sigma`` is filled in.
+        A fixed noise variance per pixel in photons² (weights, σ, χ²).
+    variance : callable, optional
+        The noise model (e.g. :meth:`fluxcli.imaging.PhotonNoise.variance`): photons →
+        photons², evaluated on model images (iteratively reweighted). Preferred over
+        ``sigma2``.
+    adjacency : sparse (n_elements, n_elements), optional
+        Elements touching: the ``smooth`` prior, MLEM smoothing, and the
+        poorly-observed test.
+    areas : ndarray, shape (n_elements,), optional
+        Element areas in mm²; priors act on exitance ``b/S``.
+    groups : (parent, n_groups), optional
+        ``parent`` (n_elements,) int: when the unknowns are sub-elements, the element
+        each belongs to; ``Result.sigma_groups`` is then the σ of their sums, with the
+        covariances between parts (methods on the spectral engine; else None).
     rel_threshold : float, optional
         See :func:`observed_mask`.
     **opts
-        Passed to the method: ``max_iter``, ``tol`` (paper); ``n_iter``, ``background``,
-        ``smooth``, ``adjacency``, ``rel_tol`` (mlem); ``weights`` (nnls); ``lambdas``,
-        ``tau``, ``gamma`` (lam_rule).
+        Method options: ``max_iter``, ``tol`` (paper); ``n_iter`` (smooth, mlem);
+        ``background``, ``smooth``, ``rel_tol`` (mlem); ``weights`` (nnls); ``lambdas``,
+        ``tau``, ``gamma`` (automatic λ).
 
     Returns
     -------
     Result
     """
-    from fluxcli.inverse.regularisation import choose_lambda, uncertainty
-
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {', '.join(METHODS)}; got {method!r}.")
+    if method not in REGISTRY:
+        raise ValueError(f"method must be one of {', '.join(REGISTRY)}; got {method!r}.")
+    spec = REGISTRY[method]
     T = c.as_transfer(T)
     a = c.as_pixels(a, T.shape[0], "image a (photons)")
-    if method == "smooth":
-        from fluxcli.inverse.smooth import smooth_iterated
-
-        if lam_rule not in (None, "gcv"):
-            raise ValueError("method 'smooth' chooses lambda by (modified) GCV only.")
-        unknown = set(opts) - {"adjacency", "n_iter", "gamma", "lambdas"}
-        if unknown or "adjacency" not in opts:
-            raise ValueError(f"method 'smooth' needs adjacency and takes n_iter, gamma, lambdas; got {sorted(opts)}.")
-        out = smooth_iterated(T, a, lam=lam, sigma2=sigma2, rel_threshold=rel_threshold, **opts)
-        fitted = T @ np.where(out["observed"], out["power"], 0.0)
-        return Result(power=out["power"], observed=out["observed"], sigma=out["sigma"], fitted=fitted,
-                      residual=a - fitted, method=method, lam=out["lam"], lam_absolute=out["lam_absolute"],
-                      iterations=out["iterations"], converged=True, lam_choice=out["gcv"])
-    choice_opts = {k: opts.pop(k) for k in ("lambdas", "tau", "gamma") if k in opts}
-    weighted = method == "weighted_lsq"
-    if weighted and sigma2 is None:
-        raise ValueError("method 'weighted_lsq' needs the noise variance sigma2 (photons²).")
-
-    choice = None
+    if "adjacency" in opts and adjacency is None:
+        adjacency = opts.pop("adjacency")
+    unknown = set(opts) - spec.options
+    if unknown:
+        raise ValueError(f"unknown options for method {method!r}: {sorted(unknown)} "
+                         f"(it takes {', '.join(sorted(spec.options)) or 'none'}).")
     if lam_rule is not None:
-        if method not in _DEFAULT_LAM:
+        if lam_rule not in spec.lam_rules:
             raise ValueError(f"lam_rule applies to the Tikhonov family, not to method {method!r}.")
         if lam is not None:
             raise ValueError("give either lam or lam_rule, not both.")
-        choice = choose_lambda(T, a, method=lam_rule, sigma2=sigma2, weighted=weighted,
-                               rel_threshold=rel_threshold, **choice_opts)
-        lam = choice.lam
-    elif choice_opts:
-        raise ValueError(f"options {sorted(choice_opts)} only apply with lam_rule.")
-    if lam is None:
-        lam = _DEFAULT_LAM.get(method, 0.0)
-    elif method not in _DEFAULT_LAM:
-        raise ValueError(f"method {method!r} takes no lam.")
-    lam = c.check_nonneg_number(lam, "lam")
-
-    allowed = {
-        "backprojection": set(),
-        "paper": {"max_iter", "tol"},
-        "tikhonov": set(),
-        "nnls": {"weights"},
-        "weighted_lsq": set(),
-        "mlem": {"n_iter", "background", "smooth", "adjacency", "rel_tol"},
-    }[method]
-    unknown = set(opts) - allowed
-    if unknown:
-        raise ValueError(f"unknown options for method {method!r}: {sorted(unknown)}.")
-
-    if method == "backprojection":
-        mask = c.observed(T, rel_threshold)
-        power = c.scatter(_backprojection(sp.csr_array(T[:, mask]), a)[0], mask)
-        it, conv, lam_abs = 1, True, 0.0
-    elif method == "paper":
-        power, it, conv, lam_abs = _paper_info(
-            T, a, lam=lam, max_iter=opts.get("max_iter", 10), tol=opts.get("tol", 0.01),
-            rel_threshold=rel_threshold)
-    elif method == "tikhonov":
-        mask = c.observed(T, rel_threshold)
-        b, it, conv, lam_abs = _tikhonov(sp.csr_array(T[:, mask]), a, lam, None)
-        power = c.scatter(b, mask)
-    elif method == "nnls":
-        power, it, conv, lam_abs = _nnls_info(T, a, weights=opts.get("weights"), lam=lam,
-                                              rel_threshold=rel_threshold)
-    elif method == "weighted_lsq":
-        power, it, conv, lam_abs = _nnls_info(
-            T, a, weights=_weights_from_sigma2(sigma2, a.size), lam=lam,
-            rel_threshold=rel_threshold)
-    else:
-        power, it, conv, lam_abs = _mlem_info(
-            T, a, n_iter=opts.get("n_iter", 200), background=opts.get("background", 0.0),
-            smooth=opts.get("smooth", 0.0), adjacency=opts.get("adjacency"),
-            rel_tol=opts.get("rel_tol", 1e-6), rel_threshold=rel_threshold)
-
+    elif any(k in opts for k in _RULE_OPTS) and spec.default_lam is not None and method != "smooth":
+        raise ValueError(f"options {sorted(k for k in opts if k in _RULE_OPTS)} only apply with lam_rule.")
+    if lam is not None:
+        if spec.default_lam is None and method != "smooth":
+            raise ValueError(f"method {method!r} takes no lam.")
+        lam = c.check_nonneg_number(lam, "lam")
+    elif lam_rule is None:
+        if method == "smooth":
+            lam_rule = "gcv"
+        elif spec.default_lam is not None:
+            lam = spec.default_lam
+    if sigma2 is not None:
+        sigma2 = c.as_pixels(sigma2, T.shape[0], "noise variance sigma2 (photons²)", positive=True,
+                             allow_scalar=True)
+    if areas is not None:
+        areas = c.as_elements(areas, T.shape[1], "areas (mm²)")
     mask = c.observed(T, rel_threshold)
+    T_obs = sp.csr_array(T[:, mask])
+    P = Problem(T, a, mask, T_obs, c.covered_rows(T_obs), variance, sigma2, adjacency, areas, rel_threshold, groups)
+    out = spec.solve(P, lam, lam_rule, dict(opts))
+
+    power = c.scatter(out["power"], mask)
     fitted = T @ np.where(mask, power, 0.0)
-    sigma = np.full(power.shape, np.nan)
-    if sigma2 is not None and method != "backprojection":
-        # The scatter of the linear estimator at the method's λ under noise σ² (see
-        # uncertainty, kind="sampling"); MLEM as the weighted λ = 0 estimator, i.e. the
-        # inverse Fisher information when σ² is the model image.
-        sigma = uncertainty(T, a, power, sigma2=sigma2,
-                            lam=0.0 if method == "mlem" else lam,
-                            weighted=weighted or method == "mlem", kind="sampling",
-                            rel_threshold=rel_threshold)
-    return Result(power=power, observed=mask, sigma=sigma, fitted=fitted,
-                  residual=a - fitted, method=method, lam=lam, lam_absolute=lam_abs,
-                  iterations=int(it), converged=bool(conv), lam_choice=choice)
+    var = sigma2 if sigma2 is not None else (variance(fitted) if variance is not None else None)
+    chi2 = out.get("chi2", np.nan)
+    warnings = list(out.get("warnings", []))
+    rows = P.rows
+    if var is not None and not np.isfinite(chi2):
+        from fluxcli.inverse.filtered import chi2_per_pixel
+
+        chi2 = chi2_per_pixel(a[rows], fitted[rows], var[rows])
+    lam_used = out.get("lam", 0.0)
+    if "sigma" in out:
+        sigma = c.scatter(out["sigma"], mask)
+    elif var is not None and not out.get("no_sigma"):
+        # the scatter of the linear estimator at the method's λ (uncertainty, kind="sampling");
+        # MLEM as the weighted λ = 0 estimator (inverse Fisher information at the model image)
+        from fluxcli.inverse.regularisation import uncertainty
+
+        weighted = bool(out.get("weighted"))
+        sigma = uncertainty(T, a, power, sigma2=var, lam=lam_used if method != "mlem" else 0.0,
+                            weighted=weighted, kind="sampling", rel_threshold=rel_threshold)
+    else:
+        sigma = np.full(power.shape, np.nan)
+    if method != "backprojection":
+        observation = observation_classes(T, power, sigma, adjacency=adjacency, areas=areas,
+                                          rel_threshold=rel_threshold)
+    else:
+        observation = np.where(mask, WELL_OBSERVED, UNOBSERVED).astype(np.int8)
+    total = np.nansum(np.where(mask, power, 0.0))
+    poor_share = np.nansum(np.where(observation == POORLY_OBSERVED, power, 0.0)) / total if total > 0 else 0.0
+    if poor_share > POOR_SHARE_WARNING:
+        warnings.append(f"{poor_share:.0%} of the total over observed elements lies in poorly observed elements "
+                        "(seen edge-on, or uncertain beyond their value): that total is not pinned down by the data; "
+                        "the total over well-observed elements is the one to trust.")
+    return Result(power=power, observed=mask, sigma=sigma, fitted=fitted, residual=a - fitted, method=method,
+                  lam=float(lam_used), lam_absolute=float(out.get("lam_absolute", 0.0)),
+                  iterations=int(out.get("iterations", 1)), converged=bool(out.get("converged", True)),
+                  lam_choice=out.get("choice"), chi2_per_pixel=float(chi2), warnings=tuple(warnings),
+                  observation=observation, sigma_groups=out.get("sigma_groups"))

@@ -15,10 +15,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg as sla
-import scipy.optimize as sopt
 import scipy.sparse as sp
 
 from fluxcli.inverse import _common as c
+from fluxcli.inverse.spectral import Spectrum, _pick
 
 __all__ = ["LAMBDA_RULES", "LambdaChoice", "choose_lambda", "uncertainty"]
 
@@ -68,35 +68,6 @@ class LambdaChoice:
     n_data: int
     weighted: bool
     at_edge: bool
-
-
-class _Spectrum:
-    """Tikhonov residual, solution norm and trace for any λ̃ from one eigendecomposition."""
-
-    def __init__(self, T_cov, a_cov, weights):
-        G, g = c.normal_equations(T_cov, a_cov, weights)
-        self.scale = c.lam_scale(G)
-        ev, V = sla.eigh(G, check_finite=False)
-        self.ev = np.clip(ev, 0.0, None)
-        beta = V.T @ g
-        self.beta2 = beta**2
-        self.pos = self.ev > self.ev.max() * G.shape[0] * np.finfo(float).eps
-        # The least-squares residual is computed explicitly, and each λ adds a positive
-        # term to it: ‖r_λ‖² = ‖r_LS‖² + Σ β²λ̃²/(w(w+λ̃)²). Subtracting from aᵀWa instead
-        # would cancel catastrophically when the fit is good.
-        b_ls = V[:, self.pos] @ (beta[self.pos] / self.ev[self.pos])
-        r_ls = a_cov - T_cov @ b_ls
-        self.rho_ls = float(np.sum(r_ls**2 if weights is None else weights * r_ls**2))
-
-    def curves(self, lam_abs):
-        L = np.atleast_1d(np.asarray(lam_abs, dtype=np.float64))[:, None]
-        ev, b2, pos = self.ev[None, :], self.beta2[None, :], self.pos
-        extra = np.sum((b2 * L**2 / (ev * (ev + L) ** 2))[:, pos], axis=1)
-        null = np.sum((b2 * (ev + 2 * L) / (ev + L) ** 2)[:, ~pos], axis=1)
-        rho = np.maximum(self.rho_ls + extra - null, 0.0)
-        eta = np.sum(b2 / (ev + L) ** 2, axis=1)
-        trace = np.sum(ev / (ev + L), axis=1)
-        return rho, eta, trace
 
 
 def choose_lambda(T, a, *, method: str = "gcv", sigma2=None, lambdas=None,
@@ -172,51 +143,14 @@ def choose_lambda(T, a, *, method: str = "gcv", sigma2=None, lambdas=None,
     T_cov, a_cov = sp.csr_array(T_obs[cov]), a[cov]
     weights = 1.0 / sigma2[cov] if weighted else None
     m = int(cov.sum())
-    spec = _Spectrum(T_cov, a_cov, weights)
-    rho, eta, trace = spec.curves(lambdas * spec.scale)
-    target = np.nan
-
-    n = lambdas.size
-    if method == "gcv":
-        def gcv(log_lam):
-            r, _, tr = spec.curves(np.exp(log_lam) * spec.scale)
-            dof = m - gamma * tr
-            return np.where(dof > 0, r / np.where(dof > 0, dof, 1.0) ** 2, np.inf)
-
-        criterion = gcv(np.log(lambdas))
-        k = int(np.argmin(criterion))
-        lam, at_edge = lambdas[k], k in (0, n - 1)
-        if not at_edge:
-            res = sopt.minimize_scalar(lambda x: float(gcv(x)[0]), method="bounded",
-                                       bounds=(np.log(lambdas[k - 1]), np.log(lambdas[k + 1])))
-            if res.success and float(gcv(res.x)[0]) <= criterion[k]:
-                lam = float(np.exp(res.x))
-    elif method == "lcurve":
-        x, y = np.log(np.maximum(rho, 1e-300)), np.log(np.maximum(eta, 1e-300))
-        t = np.log(lambdas)
-        dx, dy = np.gradient(x, t), np.gradient(y, t)
-        ddx, ddy = np.gradient(dx, t), np.gradient(dy, t)
-        criterion = (dx * ddy - dy * ddx) / np.maximum((dx**2 + dy**2) ** 1.5, 1e-300)
-        # The ends of the grid have one-sided derivatives: never pick them.
-        criterion[[0, -1]] = -np.inf
-        k = int(np.argmax(criterion))
-        lam, at_edge = lambdas[k], k in (1, n - 2)
-    else:
-        target = tau * (m if weighted else float(np.sum(sigma2[cov])))
-        criterion = rho - target
-        if criterion[-1] < 0:  # even the largest λ fits the noise too well
-            lam, at_edge = lambdas[-1], True
-        elif criterion[0] >= 0:  # even the smallest λ cannot reach the noise level
-            lam, at_edge = lambdas[0], True
-        else:
-            k = int(np.nonzero(criterion >= 0)[0][0])
-
-            def excess(log_lam):
-                return float(spec.curves(np.exp(log_lam) * spec.scale)[0][0] - target)
-
-            log_lam = sopt.brentq(excess, np.log(lambdas[k - 1]), np.log(lambdas[k]),
-                                  xtol=1e-8)
-            lam, at_edge = float(np.exp(log_lam)), False
+    spec = Spectrum(T_cov, a_cov, weights)  # the one spectral-filter engine (k = 1: Tikhonov)
+    noise_total = None
+    if method == "discrepancy":
+        noise_total = m if weighted else float(np.sum(sigma2[cov]))
+    # the rules of the engine, on this grid as given (no widening: at_edge tells the caller)
+    pick = _pick(spec, method, 1, lambdas, gamma, tau, noise_total)
+    lam, at_edge, criterion, target = pick.lam, pick.at_edge, pick.criterion, pick.target
+    rho, eta = pick.residual_norm2, pick.solution_norm2
 
     return LambdaChoice(
         lam=float(lam), lam_absolute=float(lam * spec.scale), method=method,

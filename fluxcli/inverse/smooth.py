@@ -18,7 +18,6 @@ more than a blurred one, so its error depends on focus.  Here:
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg as sla
 import scipy.sparse as sp
 
 from . import _common as c
@@ -39,75 +38,85 @@ def element_laplacian(adjacency, mask: np.ndarray, ridge: float = 1e-3) -> np.nd
     return (L / peak if peak > 0 else L) + ridge * np.eye(len(L))
 
 
+def exitance_prior(adjacency, mask: np.ndarray, areas=None, ridge: float = 1e-3) -> np.ndarray:
+    """The smoothness prior on exitance ``J = b/S`` as a matrix on power ``b``.
+
+    ``Jᵀ(L + ridge·I)J = bᵀ D(L + ridge·I)D b`` with ``D = diag(S̄/S_j)`` (``S̄`` the mean
+    observed area, so equal areas give back :func:`element_laplacian`): light leaving a
+    diffusing body is smooth *per unit area*; a prior on power per element would pull
+    small elements up and large ones down.
+
+    Parameters
+    ----------
+    adjacency : (n_elements, n_elements), nonzero where two elements touch.
+    mask : (n_elements,) bool, the observed elements.
+    areas : (n_elements,) mm², or None for equal areas.
+    ridge : weight of the identity (penalises a constant exitance a little).
+
+    Returns
+    -------
+    (n_obs, n_obs) symmetric positive definite matrix.
+    """
+    L = element_laplacian(adjacency, mask, ridge)
+    if areas is None:
+        return L
+    S = np.asarray(areas, dtype=np.float64)
+    if S.shape != mask.shape or not np.all(S[mask] > 0):
+        raise ValueError(f"areas must be ({mask.size},) and > 0 on observed elements.")
+    d = S[mask].mean() / S[mask]
+    return d[:, None] * L * d[None, :]
+
+
 def smooth_iterated(T, a, *, adjacency, lam: float | None = None, n_iter: int = 10, gamma: float = 1.4,
-                    lambdas=None, sigma2=None, rel_threshold: float = c.DEFAULT_REL_THRESHOLD) -> dict:
-    """Non-negative iterated Tikhonov with a smoothness prior; λ by modified GCV if not given.
+                    lambdas=None, sigma2=None, rel_threshold: float = c.DEFAULT_REL_THRESHOLD,
+                    areas=None, variance=None, rule: str = "gcv") -> dict:
+    """Non-negative iterated Tikhonov with a smoothness prior on exitance; λ by modified GCV
+    (on the filter factors of the ``n_iter`` solves) if not given.
 
     Parameters
     ----------
     T : sparse (n_pixels, n_elements), dimensionless.
     a : (n_pixels,) photons.
     adjacency : (n_elements, n_elements) sparse or dense; nonzero where two elements touch.
-    lam : relative λ (λ̃ = lam · max diag(TᵀT)); None chooses it.
+    lam : relative λ (λ̃ = lam · max diag(TᵀWT)); None chooses it.
     n_iter : k, the number of clipped solves (the paper used 5–10).
     gamma : the modified-GCV factor (1 is plain GCV).
-    lambdas : the relative grid searched (default 10^-8 … 10^4, 73 values).
-    sigma2 : (n_pixels,) noise variance in photons²; when given, the per-element standard
-        deviation of the linear (unclipped) estimator is returned.
+    lambdas : the relative grid searched (default 10^-9 … 10^3, widened at an edge pick).
+    sigma2 : (n_pixels,) fixed noise variance in photons², used for ``sigma`` only (the
+        fit stays unweighted).
+    areas : (n_elements,) element areas in mm² (the prior acts on exitance); None: equal.
+    variance : callable, photons → photons², the noise model; when given the fit is
+        weighted by ``1/σ²`` of the model image, iteratively reweighted, and σ and χ²
+        follow from it.
+    rule : "gcv" | "lcurve" | "discrepancy".
 
     Returns
     -------
     dict with power (n_elements, NaN where unobserved), observed, sigma, lam, lam_absolute,
-    iterations, gcv (the curve: lambdas, criterion).
+    iterations, converged, chi2_per_pixel, warnings, gcv (the curve: lambdas, criterion).
     """
+    from fluxcli.inverse.filtered import filtered_solve
+
     T = c.as_transfer(T)
     a = c.as_pixels(a, T.shape[0], "image a (photons)")
     n_iter = c.check_positive_int(n_iter, "n_iter")
+    if lam is not None:
+        lam = c.check_nonneg_number(lam, "lam")
     mask = c.observed(T, rel_threshold)
-    idx = np.flatnonzero(mask)
-    To = sp.csr_array(T[:, idx])
-    G, g = c.normal_equations(To, a, None)
-    L = element_laplacian(adjacency, mask)
-    scale = c.lam_scale(G)
-    s, V = sla.eigh(G, L)  # G V = L V diag(s), Vᵀ L V = I
-    s = np.maximum(s, 0.0)
-    coef = V.T @ g
-    seen = np.asarray(To.sum(axis=1)).ravel() > 0
-    m = int(seen.sum())
-    a2 = float(a[seen] @ a[seen])
-
-    def filt(lam_abs):
-        f = 1.0 - (lam_abs / (s + lam_abs)) ** n_iter
-        with np.errstate(divide="ignore", invalid="ignore"):
-            f_over_s = np.where(s > 1e-14 * scale, f / s, n_iter / lam_abs)
-        return f, f_over_s
-
-    grid = np.logspace(-8, 4, 73) if lambdas is None else np.asarray(lambdas, float)
-    crit = np.full(len(grid), np.inf)
-    if lam is None:
-        for i, lr in enumerate(grid):
-            f, fos = filt(lr * scale)
-            # ‖a − T b_λ‖² = ‖a‖² − Σ (2 − f) f c²/s  for b_λ = V diag(f/s) Vᵀ Tᵀa
-            r2 = a2 - float(((2 - f) * coef * coef * fos).sum())
-            dof = m - gamma * f.sum()
-            if dof > 0:
-                crit[i] = m * max(r2, 0.0) / dof**2
-        lam = float(grid[int(np.argmin(crit))])
-    lam = c.check_nonneg_number(lam, "lam")
-    lam_abs = lam * scale
-    H = G + lam_abs * L
-    cf = c.cholesky(H, "TᵀT + λ̃L")
-    b = np.maximum(sla.cho_solve(cf, g, check_finite=False), 0.0)
-    for _ in range(n_iter - 1):
-        r = a - To @ b
-        b = np.maximum(b + sla.cho_solve(cf, To.T @ r, check_finite=False), 0.0)
-    sigma = np.full(mask.size, np.nan)
+    To = sp.csr_array(T[:, mask])
+    rows = c.covered_rows(To)
+    Tc, ac = sp.csr_array(To[rows]), a[rows]
+    s2 = None
     if sigma2 is not None:
-        s2 = c.as_pixels(sigma2, T.shape[0], "sigma2", positive=True)
-        _, fos = filt(lam_abs)
-        M = (V * fos) @ V.T  # the linear estimator is M Tᵀ a
-        TS = To.T.multiply(s2[None, :]) if hasattr(To.T, "multiply") else To.T @ sp.diags(s2)
-        C = (sp.csr_array(TS) @ To).toarray()
-        sigma[idx] = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", M, C, M), 0.0))
-    return {"power": c.scatter(b, mask), "observed": mask, "sigma": sigma, "lam": lam, "lam_absolute": lam_abs,
-            "iterations": n_iter, "gcv": {"lambdas": grid, "criterion": crit}}
+        s2 = c.as_pixels(sigma2, T.shape[0], "sigma2", positive=True, allow_scalar=True)[rows]
+    R = exitance_prior(adjacency, mask, areas)
+    out = filtered_solve(Tc, ac, prior=R, k=n_iter, lam=lam, rule=rule, gamma=gamma, lambdas=lambdas,
+                         variance=variance, sigma2=s2, weighted=variance is not None, free_level=True)
+    sigma = np.full(mask.size, np.nan)
+    sigma[mask] = out.sigma
+    ch = out.choice
+    return {"power": c.scatter(out.power, mask), "observed": mask, "sigma": sigma, "lam": out.lam,
+            "lam_absolute": out.lam_absolute, "iterations": out.iterations, "converged": out.converged,
+            "chi2_per_pixel": out.chi2_per_pixel, "warnings": out.warnings, "filtered": out,
+            "gcv": {"lambdas": ch.lambdas if ch else np.array([out.lam]),
+                    "criterion": ch.criterion if ch else np.array([np.nan])}}

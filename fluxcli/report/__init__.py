@@ -82,6 +82,10 @@ class Study:
     transfer: list[PoseTransfer] | None = None
     geometry: "Geometry | None" = None  # from /geometry of the reconstruction
     notes: list[str] = field(default_factory=list)
+    poorly: np.ndarray | None = None  # (n,) bool: poorly observed (/flux/observation == 1)
+    pose_poorly: np.ndarray | None = None  # (P, n)
+    warnings: list[str] = field(default_factory=list)  # /warnings of the reconstruction
+    total_well_observed: float | None = None
 
     @property
     def n_poses(self) -> int:
@@ -144,6 +148,13 @@ def load(reconstruction: Path, *, t_cache_dir: Path | None = None, simulation: P
             backprojection_total=_opt(pp, "backprojection_total"),
             direct_roi_photons=_opt(pp, "direct_roi_photons"),
         )
+        if "observation" in flux:  # issue 8: poorly observed elements are shown hatched, summed apart
+            st.poorly = flux["observation"][()] == 1
+            st.total_well_observed = float(flux["total_well_observed"][()])
+        if "observation" in pp:
+            st.pose_poorly = pp["observation"][()] == 1
+        if "warnings" in f:
+            st.warnings = [w.decode() if isinstance(w, bytes) else str(w) for w in f["warnings"][()]]
         if "truth" in f:
             t = f["truth"]
             st.truth_power = t["power"][()]
@@ -165,7 +176,8 @@ def load(reconstruction: Path, *, t_cache_dir: Path | None = None, simulation: P
                                    look=tuple(float(x) for x in g["camera_look"]),
                                    up=tuple(float(x) for x in g["camera_up"]),
                                    view_names=tuple(json.loads(g["view_names"])))
-            t_files = [Path(p) for p in json.loads(g.get("T_files", "[]"))]
+            # relative paths are relative to the reconstruction's folder (portable artefacts)
+            t_files = [Path(reconstruction).parent / p for p in json.loads(g.get("T_files", "[]"))]
     if st.snr is None and st.truth_power is not None and simulation is not None and Path(simulation).is_file():
         with A.open_artefact(simulation, "simulation") as f:
             snr = f["images/max_snr"][()]
@@ -314,7 +326,7 @@ def summarise(st: Study, *, title: str, slice_axial_mm: float, view_names: list[
                   for k, v in totals.items()}
     out = {
         "title": title,
-        "reconstruction": str(st.reconstruction_path),
+        "reconstruction": st.reconstruction_path.name,  # beside the report's folder: portable
         "images": st.images_source,
         "method": st.method,
         "settings": st.settings,
@@ -326,6 +338,9 @@ def summarise(st: Study, *, title: str, slice_axial_mm: float, view_names: list[
         "poses": poses,
         "flux_total_photons": float(np.nansum(st.power)),
         "flux_observed_fraction": float(st.observed.mean()),
+        "flux_total_well_observed_photons": st.total_well_observed,
+        "flux_poorly_observed_fraction": float(st.poorly.mean()) if st.poorly is not None else None,
+        "warnings": st.warnings,
         "totals_normalised_by_mean": normalised,
         "spreads": {k: spread(v) for k, v in totals.items()},
         "slice_axial_mm": slice_axial_mm,

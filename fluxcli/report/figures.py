@@ -230,6 +230,7 @@ class Panel:
     row: int = 0
     col: int = 0
     row_label: str = ""
+    poorly: np.ndarray | None = None  # (n_elements,) bool: drawn hatched
 
 
 def exitance_limits(pose_exitance, exitance, truth_exitance=None) -> tuple[float, float, bool]:
@@ -261,19 +262,22 @@ def surface_panels(study, geometry, truth_exitance, labels) -> tuple[list[Panel]
     if study.pose_vertices_mm is not None:
         for k in range(study.n_poses):
             cam.append(Panel(study.pose_vertices_mm[k], s.faces, s.element_of_face, study.pose_exitance[k], look, up,
-                             f"{k + 1}: {labels[k]}"))
-    columns = [(f"{k + 1}: {labels[k]}", study.pose_exitance[k]) for k in range(study.n_poses)]
+                             f"{k + 1}: {labels[k]}",
+                             poorly=None if study.pose_poorly is None else study.pose_poorly[k]))
+    pp = study.pose_poorly
+    columns = [(f"{k + 1}: {labels[k]}", study.pose_exitance[k], None if pp is None else pp[k])
+               for k in range(study.n_poses)]
     if study.joint:
-        columns.append(("joint", study.exitance))
+        columns.append(("joint", study.exitance, study.poorly))
     if truth_exitance is not None:
-        columns.append(("ground truth", truth_exitance))
+        columns.append(("ground truth", truth_exitance, None))
     rest = []
     for r, turn in enumerate((0.0, 120.0, 240.0)):
         R = _rotation(geometry.axis_direction, turn)
         name = "camera\nside" if turn == 0 else f"turned\n{turn:g}°\nabout\nthe axis"
-        for c, (title, values) in enumerate(columns):
+        for c, (title, values, poorly) in enumerate(columns):
             rest.append(Panel(s.vertices_mm, s.faces, s.element_of_face, values, R @ look, R @ up,
-                              title if r == 0 else "", r, c, name))
+                              title if r == 0 else "", r, c, name, poorly))
     return cam, rest
 
 
@@ -293,6 +297,10 @@ def _face_colours(panel: Panel, norm: Normalize, cmap) -> np.ndarray:
     rgb = cmap(norm(np.nan_to_num(vals, nan=0.0)))[:, :3]
     rgb[~np.isfinite(vals)] = UNOBSERVED_GREY
     rgb[e < 0] = NO_ELEMENT_GREY
+    if panel.poorly is not None:  # poorly observed: hatched, alternate faces washed out (stripes)
+        poor = (e >= 0) & panel.poorly[np.maximum(e, 0)] & np.isfinite(vals)
+        stripe = poor & (np.arange(len(e)) % 2 == 0)
+        rgb[stripe] = 0.45 * rgb[stripe] + 0.55
     t = panel.vertices_mm[panel.faces]
     n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
@@ -449,9 +457,13 @@ def surface_figure(panels: list[Panel], clim: tuple[float, float, bool], *, rend
     cax = fig.add_axes(((W - bar + 0.2) / W, bottom / H, 0.16 / W, bar_h / H))
     cb = fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), cax=cax, extend="max" if over else "neither")
     cb.set_label(scaled(cb.ax.yaxis, max(abs(vmin), abs(vmax)), *EXITANCE), fontsize=9)
-    fig.legend(handles=[Patch(color=UNOBSERVED_GREY, label="unobserved element"),
-                        Patch(color=NO_ELEMENT_GREY, label="not an element (occluder only)")],
-               loc="lower center", bbox_to_anchor=(0.5, 0.0), ncol=2, fontsize=8, frameon=False)
+    handles = [Patch(color=UNOBSERVED_GREY, label="unobserved element"),
+               Patch(color=NO_ELEMENT_GREY, label="not an element (occluder only)")]
+    if any(p.poorly is not None and p.poorly.any() for p in panels):
+        handles.append(Patch(facecolor="white", edgecolor="0.4", hatch="///",
+                             label="poorly observed (hatched: pale stripes)"))
+    fig.legend(handles=handles, loc="lower center", bbox_to_anchor=(0.5, 0.0), ncol=len(handles), fontsize=8,
+               frameon=False)
     fig.suptitle(title)
     return fig, used
 

@@ -72,6 +72,9 @@ class Page:
                 ("total flux, " + ("joint over poses" if s.get("joint_over_poses") else "first pose") + " (photons)",
                  fmt(s.get("flux_total_photons"))),
                 ("observed elements", fmt(s.get("flux_observed_fraction"), "%"))]
+        if s.get("flux_total_well_observed_photons") is not None:
+            rows += [("total over well-observed elements (photons)", fmt(s["flux_total_well_observed_photons"])),
+                     ("poorly observed elements (hatched)", fmt(s.get("flux_poorly_observed_fraction"), "%"))]
         if "truth_total_photons" in s:
             rows += [("ground-truth total (photons)", fmt(s["truth_total_photons"])),
                      ("error Σ|b̃ − b| / Σb", fmt(s.get("error"), "%")),
@@ -79,6 +82,9 @@ class Page:
         self.parts.append('<table class="meta">' + "".join(
             f'<tr><th class="l">{html.escape(k)}</th><td class="l">{html.escape(str(v))}</td></tr>' for k, v in rows)
             + "</table>")
+        if s.get("warnings"):  # what the solves detected: never silent
+            self.parts.append('<p><b>Warnings from the reconstruction:</b></p><ul>' + "".join(
+                f"<li>{html.escape(w)}</li>" for w in s["warnings"]) + "</ul>")
 
     def section(self, anchor: str, title: str) -> None:
         self.toc.append((anchor, title))

@@ -37,7 +37,8 @@ from .outputs import export_3d
 
 
 def forward_transfer(cfg: C.LoadedConfig) -> C.Transfer:
-    """The forward T's sampling: as configured, or twice as fine as reconstruction's."""
+    """The forward T's sampling: as configured, or finer than reconstruction's in every
+    sampling key (and built on the refined surface the truth lives on)."""
     sim = cfg.model.simulate
     if sim.transfer is not None:
         return sim.transfer
@@ -45,7 +46,10 @@ def forward_transfer(cfg: C.LoadedConfig) -> C.Transfer:
     return tr.model_copy(update={
         "lens": tr.lens.model_copy(update={
             "surface_samples_per_pixel": 2 * tr.lens.surface_samples_per_pixel,
+            "max_surface_subdivisions": 2 * tr.lens.max_surface_subdivisions,
+            "min_surface_subdivisions": 2 * tr.lens.min_surface_subdivisions,
             "lens_samples_min": 4 * tr.lens.lens_samples_min,
+            "lens_samples_max": 2 * tr.lens.lens_samples_max,
             "lens_samples_per_blur_pixel": 2 * tr.lens.lens_samples_per_blur_pixel}),
         "pairwise": tr.pairwise.model_copy(update={
             "surface_subdivisions": 2 * tr.pairwise.surface_subdivisions,
@@ -55,14 +59,50 @@ def forward_transfer(cfg: C.LoadedConfig) -> C.Transfer:
 
 # ------------------------------------------------------------------ ground truth
 def truth_power(cfg: C.LoadedConfig, surface: Surface) -> tuple[np.ndarray, dict]:
-    """Power per element (photons per exposure) of the subject at rest, and notes."""
+    """Power per element (photons per exposure) of the subject at rest, and notes: the
+    fine truth (:func:`truth_fine`) summed per element."""
+    fine, parent, notes = truth_fine(cfg, surface)
+    return np.bincount(parent, weights=fine, minlength=surface.n_elements), notes
+
+
+def truth_refinement(sim: C.Simulate) -> int:
+    """How often the truth surface splits each triangle into 4: as configured, else 1 (0 when
+    an inverse crime is explicitly allowed: the same T then reproduces the images exactly)."""
+    if sim.truth_refinement is not None:
+        return sim.truth_refinement
+    return 0 if sim.allow_inverse_crime else 1
+
+
+def truth_fine(cfg: C.LoadedConfig, surface: Surface) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The truth on a surface finer than the reconstruction's elements (no inverse crime):
+    power per face of ``surface.refined(simulate.truth_refinement)``, with the element each
+    fine face belongs to. Gaussian, uniform and diffusion truths vary within an element;
+    a per-element file can only be spread by area (constant exitance within the element)."""
+    levels = truth_refinement(cfg.model.simulate)
+    fine, parent = surface.refined(levels)
     flux = cfg.model.simulate.flux
-    areas = surface.element_areas_mm2
     if isinstance(flux, C.GaussianFlux):
+        # exitance J(x) = exp(-|x - c|²/2w²) integrated over the fine faces, scaled so the
+        # brightest element emits peak_photons
         cen = surface.element_centroids_mm
         centre = np.asarray(flux.center_mm) if flux.center_mm is not None else cen[np.argmax(cen[:, 2])]
-        d2 = ((cen - centre) ** 2).sum(axis=1)
-        return flux.peak_photons * np.exp(-d2 / (2 * flux.width_mm**2)), {"center_mm": centre.tolist()}
+        d2 = ((fine.element_centroids_mm - centre) ** 2).sum(axis=1)
+        p = np.exp(-d2 / (2 * flux.width_mm**2)) * fine.element_areas_mm2
+        per_element = np.bincount(parent, weights=p, minlength=surface.n_elements)
+        return p * flux.peak_photons / per_element.max(), parent, {"center_mm": centre.tolist(),
+                                                                   "truth_refinement": levels}
+    if isinstance(flux, C.DiffusionFlux):
+        p, notes = _diffusion_truth(flux, surface, cfg.workdir / "cache" / "mesh", fine=fine,
+                                    shipped=cfg.resolve(flux.mesh_dir) if flux.mesh_dir is not None else None)
+        return p, parent, notes | {"truth_refinement": levels}
+    per_element, notes = _truth_per_element(cfg, surface)
+    share = fine.element_areas_mm2 / surface.element_areas_mm2[parent]
+    return per_element[parent] * share, parent, notes | {"truth_refinement": levels}
+
+
+def _truth_per_element(cfg: C.LoadedConfig, surface: Surface) -> tuple[np.ndarray, dict]:
+    flux = cfg.model.simulate.flux
+    areas = surface.element_areas_mm2
     if isinstance(flux, C.UniformFlux):
         return flux.exitance_photons_per_mm2 * areas, {}
     if isinstance(flux, C.FileFlux):
@@ -80,7 +120,7 @@ def truth_power(cfg: C.LoadedConfig, surface: Surface) -> tuple[np.ndarray, dict
         if np.any(values < 0) or not np.all(np.isfinite(values)):
             raise UserError(f"simulate.flux.path: {path} holds negative or non-finite values.")
         return (values if flux.quantity == "power" else values * areas), {}
-    return _diffusion_truth(flux, surface, cfg.workdir / "cache" / "mesh")
+    raise AssertionError(f"unhandled flux kind {flux.kind}")
 
 
 def source_positions(flux: C.DiffusionFlux, surface: Surface) -> np.ndarray:
@@ -108,7 +148,17 @@ def source_positions(flux: C.DiffusionFlux, surface: Surface) -> np.ndarray:
     return np.array(out)
 
 
-def _diffusion_truth(flux: C.DiffusionFlux, surface: Surface, mesh_cache: Path) -> tuple[np.ndarray, dict]:
+def tetmesh_key(surface: Surface, mesh_edge_mm: float) -> str:
+    """Content address of the tetrahedral mesh of ``surface`` (cache and shipped meshes)."""
+    return A.cache_key({"surface": surface.digest(), "edge_length_mm": A.canonical(mesh_edge_mm), "mesher": "ftetwild-1"})
+
+
+def _diffusion_truth(flux: C.DiffusionFlux, surface: Surface, mesh_cache: Path, fine: Surface | None = None,
+                     shipped: Path | None = None) -> tuple[np.ndarray, dict]:
+    """Power per face of ``fine`` (default: per element of ``surface``) from the diffusion
+    FEM in the closed ``surface``. The tetrahedral mesh is read from ``shipped`` (a folder
+    of meshes kept with the config, what makes a fresh clone byte-reproducible), else
+    from the cache, else made and cached."""
     if not surface.is_closed:
         raise UserError(f"simulate.flux: the diffusion model needs a closed subject surface; this one has "
                         f"{surface.boundary_edge_count()} open edge(s) (a ring or patch phantom, or an open mesh).")
@@ -121,8 +171,10 @@ def _diffusion_truth(flux: C.DiffusionFlux, surface: Surface, mesh_cache: Path) 
     pos = source_positions(flux, surface)
     # fTetWild is not deterministic: the tetrahedral mesh is cached by content so that the
     # same config gives the same bytes
-    key = A.cache_key({"surface": surface.digest(), "edge_length_mm": A.canonical(flux.mesh_edge_mm), "mesher": "ftetwild-1"})
+    key = tetmesh_key(surface, flux.mesh_edge_mm)
     path = mesh_cache / f"{key}.h5"
+    if shipped is not None and (shipped / f"{key}.h5").is_file():
+        path = shipped / f"{key}.h5"
     mesh = None
     if path.is_file():
         try:
@@ -131,21 +183,31 @@ def _diffusion_truth(flux: C.DiffusionFlux, surface: Surface, mesh_cache: Path) 
         except UserError as e:
             warnings.warn(f"the cached tetrahedral mesh is unreadable and is remade: {e}")
             mesh = None
+    if mesh is None:
+        from ..diffusion.mesh import tetrahedralize
+
+        try:
+            mesh = tetrahedralize(surface.vertices_mm, surface.faces, edge_length_mm=flux.mesh_edge_mm)
+        except ValueError as e:
+            raise UserError(f"simulate.flux: {e}") from None
+        with A.write_artefact(path, "tetmesh") as f:
+            A.put(f, "nodes", mesh[0])
+            A.put(f, "tets", mesh[1])
+        made = True
+    else:
+        made = False
     try:
         power, info = element_power_from_sources(
-            surface, mua_per_mm=opt.mua_per_mm, musp_per_mm=opt.musp_per_mm, refractive_index=opt.refractive_index,
+            fine if fine is not None else surface, mua_per_mm=opt.mua_per_mm, musp_per_mm=opt.musp_per_mm, refractive_index=opt.refractive_index,
             positions_mm=pos, radii_mm=np.array([s.radius_mm for s in flux.sources]),
             powers_photons=np.array([s.power_photons for s in flux.sources]), edge_length_mm=flux.mesh_edge_mm,
             mesh=mesh)
     except ValueError as e:
         raise UserError(f"simulate.flux: {e}") from None
-    nodes, tets = info.pop("nodes_mm"), info.pop("tets")
-    if mesh is None:
-        with A.write_artefact(path, "tetmesh") as f:
-            A.put(f, "nodes", nodes)
-            A.put(f, "tets", tets)
+    info.pop("nodes_mm"), info.pop("tets")
     info["source_positions_mm"] = pos.tolist()
-    info["mesh_cached"] = mesh is not None
+    info["mesh_cached"] = not made
+    info["mesh_key"] = key
     return power, info
 
 
@@ -174,11 +236,15 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         raise UserError(f"config {cfg.path}: 'simulate': section is missing (flux, noise, ...); see the README.")
     check_folders(cfg)
     tr_fwd = forward_transfer(cfg)
-    views, placer, todo = plan(cfg, tr_fwd)
+    views, placer, todo = plan(cfg, tr_fwd, unknowns=f"refined:{truth_refinement(sim)}")
     _, _, todo_rec = plan(cfg)
-    if not sim.allow_inverse_crime and [p.key for _, p in todo] == [p.key for _, p in todo_rec]:
-        raise UserError("simulate.transfer: the forward T would be the very T that reconstruct uses (an inverse "
-                        "crime); sample it more finely, or set simulate.allow_inverse_crime: true.")
+    what_T_depends_on = {"estimator", "lens", "pairwise", "ray_offset_mm"}  # not where it is cached
+    same_sampling = (tr_fwd.model_dump(include=what_T_depends_on)
+                     == cfg.model.transfer.model_dump(include=what_T_depends_on))
+    if not sim.allow_inverse_crime and (same_sampling or [p.key for _, p in todo] == [p.key for _, p in todo_rec]):
+        raise UserError("simulate.transfer: the forward T would be sampled exactly as the T that reconstruct uses "
+                        "(an inverse crime, even on the refined truth surface); sample it more finely, or set "
+                        "simulate.allow_inverse_crime: true.")
     surface = placer.surface
     out = cfg.workdir / "simulation.h5"
     m = cfg.model
@@ -189,13 +255,15 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         ctx.say(f"simulate: {out} is up to date (--force to redo)")
         return out
     t0 = time.perf_counter()
-    power, notes = truth_power(cfg, surface)
+    fine_power, parent, notes = truth_fine(cfg, surface)
+    power = np.bincount(parent, weights=fine_power, minlength=surface.n_elements)
     if power.max() <= 0:
         raise UserError("simulate.flux: the ground truth is zero everywhere.")
     truth_seconds = time.perf_counter() - t0
     ctx.say(f"simulate: truth '{sim.flux.kind}' on {surface.n_elements} elements, total "
             f"{power.sum():.4g} photons, peak {power.max():.4g} ({truth_seconds:.1f} s)")
-    views, placer, todo, built = ensure_T(cfg, replace(ctx, force=False), tr_fwd, label="building forward T")
+    views, placer, todo, built = ensure_T(cfg, replace(ctx, force=False), tr_fwd, label="building forward T",
+                                          unknowns=f"refined:{truth_refinement(sim)}")
     lv = levels(cfg, power)
     scale = lv / power.max()
     nx, ny = cfg.model.system.camera.pixels
@@ -207,7 +275,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     noisy = np.zeros((L, R, P, ny, nx), np.float32)
     counts = np.zeros((L, R, P, ny, nx), np.uint16) if sim.noise.model == "emccd" else None
     for k, (scene, pt) in enumerate(todo):
-        a1 = load_T(pt.path) @ power
+        a1 = load_T(pt.path) @ fine_power  # the truth varies within the elements
         for li in range(L):
             a = a1 * scale[li]
             clean[li, k] = a.reshape(ny, nx)
@@ -229,9 +297,12 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         A.write_surface(f.create_group("surface"), surface)
         A.put(f, "truth/power", power)
         A.put(f, "truth/exitance", power / surface.element_areas_mm2)
+        A.put(f, "truth/power_fine", fine_power)
+        A.put(f, "truth/fine_parent", parent)
         g = f["truth"]
         g.attrs["kind"] = sim.flux.kind
-        g.attrs["notes"] = json.dumps(notes)
+        g.attrs["notes"] = json.dumps({k: (A.recorded_seconds(v) if k.endswith("_seconds") else v)
+                                       for k, v in notes.items()})
         A.put(f, "truth/levels_peak_photons", lv)
         A.put(f, "truth/level_scale", scale)
         A.put(f, "poses/heights_mm", [pt.pose.height_mm for _, pt in todo])
@@ -250,8 +321,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         ig.attrs["seed"] = sim.noise.seed
         ig.attrs["exposure_s"] = sim.noise.exposure_s
         f.attrs["transfer_fwd"] = json.dumps(tr_fwd.model_dump(mode="json"))
-        f.attrs["transfer_fwd_cache"] = str(cache_dir(cfg))
-        f.attrs["truth_seconds"] = truth_seconds
+        f.attrs["transfer_fwd_cache"] = A.portable_path(cache_dir(cfg), out.parent)
+        f.attrs["truth_seconds"] = A.recorded_seconds(truth_seconds)
     if sim.export.format != "none":
         export_images(cfg, out.parent / "images", noisy, counts, todo, lv)
     rows = [[pt.pose.height_mm, pt.pose.rotation_deg, *[f"{snr[li, k]:.1f}" for li in range(L)]]

@@ -126,6 +126,37 @@ class Surface:
         parent[inv] = self.element_of_face[ok]
         return Surface(self.vertices_mm, self.faces, eof, len(ids)), parent
 
+    def refined(self, levels: int = 1) -> tuple["Surface", np.ndarray]:
+        """The same surface with every triangle split into 4 (edge midpoints) ``levels``
+        times; each fine face that belongs to an element becomes its own element.
+
+        What an honest simulation puts its truth on: finer than the elements that are
+        reconstructed, summed back per element with the returned parent.
+
+        Returns
+        -------
+        fine : Surface, n_elements = number of fine faces with an element; faces with
+            element -1 (occluders only) stay -1.
+        parent : (fine.n_elements,) int64, the element of this surface each fine one is in.
+            ``levels=0`` returns this surface and the identity.
+        """
+        if int(levels) == 0:  # no refinement: the elements themselves
+            return self, np.arange(self.n_elements, dtype=np.int64)
+        v, f, eof = self.vertices_mm, self.faces, self.element_of_face
+        for _ in range(int(levels)):
+            edges = np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+            uniq, inv = np.unique(edges, axis=0, return_inverse=True)
+            mid = len(v) + inv.reshape(-1, 3)  # midpoint vertex of edges (01, 12, 20)
+            v = np.concatenate([v, 0.5 * (v[uniq[:, 0]] + v[uniq[:, 1]])])
+            a, b, c = f[:, 0], f[:, 1], f[:, 2]
+            ab, bc, ca = mid[:, 0], mid[:, 1], mid[:, 2]
+            f = np.concatenate([np.stack(t, axis=1) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+            eof = np.tile(eof, 4)
+        ok = eof >= 0
+        fine_eof = np.full(len(f), -1, np.int64)
+        fine_eof[ok] = np.arange(int(ok.sum()))
+        return Surface(v, f, fine_eof, int(ok.sum())), eof[ok].astype(np.int64)
+
     def digest(self) -> str:
         """Content hash of the placed geometry (rounded to 1 nm, so float noise does not matter)."""
         h = hashlib.sha256()
