@@ -131,7 +131,9 @@ def record_of(cfg: C.LoadedConfig, digests: dict[str, str]) -> list[tuple[str, s
     m = cfg.model
     cam = m.system.camera
     lens = cam.lens
-    rows = [("config", f"{cfg.path} (sha256 {cfg.sha256[:16]}…)"),
+    # paths relative to the workdir (as the artefacts store them): the same run in two clones
+    # gives the same page, byte for byte
+    rows = [("config", f"{A.portable_path(cfg.path, cfg.workdir)} (sha256 {cfg.sha256[:16]}…)"),
             ("camera", f"{cam.pixels[0]} × {cam.pixels[1]} pixels of {cam.pixel_pitch_mm:g} mm (binned); "
                        f"lens centre {list(cam.pose.lens_center_mm)} mm looking {list(cam.pose.look)}, "
                        f"up {list(cam.pose.up)}"),
@@ -153,8 +155,9 @@ def record_of(cfg: C.LoadedConfig, digests: dict[str, str]) -> list[tuple[str, s
     elif rc.images is not None:
         for k, p in enumerate(rc.images.files):
             path = cfg.resolve(p)
-            rows.append((f"image, pose {k + 1}", f"{path} (sha256 {A.file_sha256(path)[:16]}…)" if path.is_file()
-                         else f"{path} (missing now)"))
+            shown = A.portable_path(path, cfg.workdir)
+            rows.append((f"image, pose {k + 1}", f"{shown} (sha256 {A.file_sha256(path)[:16]}…)" if path.is_file()
+                         else f"{shown} (missing now)"))
     elif m.simulate is not None:
         rows.append(("images", f"simulated: truth '{m.simulate.flux.kind}', noise '{m.simulate.noise.model}' "
                                f"(seed {m.simulate.noise.seed}); level {rc.level}, "
