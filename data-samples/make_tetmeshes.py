@@ -18,7 +18,7 @@ from pathlib import Path
 from fluxcli.config import load_config
 from fluxcli.diffusion.mesh import tetrahedralize
 from fluxcli.scene import SubjectPlacer
-from fluxcli.stages.simulate import tetmesh_key
+from fluxcli.truth import tetmesh_key
 
 HERE = Path(__file__).resolve().parent / "tetmesh"
 

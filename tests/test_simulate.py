@@ -49,7 +49,7 @@ def test_gaussian_truth_images_and_determinism(write_config, sim_config, tmp_pat
         assert clean.shape == (2, 2, 40, 40) and noisy.shape == (2, 3, 2, 40, 40)
         # the images are the forward T (not reconstruction's) applied to the truth
         cfg = load_config(p)
-        from fluxcli.stages.simulate import forward_transfer
+        from fluxcli.truth import forward_transfer
 
         # ... on the refined surface the truth lives on (finer than the elements), whose
         # faces sum back to the elements' truth
@@ -152,7 +152,7 @@ def test_bad_simulation_input(write_config, sim_config, minimal_config):
 def test_a_source_deeper_than_the_centre_and_one_deeper_than_the_subject(write_config, sim_config, tmp_path):
     from fluxcli.config import load_config
     from fluxcli.scene import SubjectPlacer
-    from fluxcli.stages.simulate import source_positions
+    from fluxcli.truth import source_positions
 
     cfg = copy.deepcopy(sim_config)
     cfg["simulate"]["flux"] = {"kind": "diffusion", "wavelength_nm": 650, "mesh_edge_mm": 3.0,

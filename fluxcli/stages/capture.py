@@ -89,7 +89,7 @@ class SimulatedScene:
     def power_rate(self, name: str) -> np.ndarray:
         """Photons/s leaving each element (subject at rest) as seen through filter ``name``."""
         if name not in self._rates:
-            from .simulate import truth_power
+            from ..truth import truth_power
 
             spec = self.light.get(name)
             m = self.cfg.model
@@ -112,7 +112,7 @@ class SimulatedScene:
         if key not in self._images:
             from ..pipeline import ensure_pose_T
             from ..scene import Pose
-            from .simulate import forward_transfer  # the forward T's sampling, as simulate uses
+            from ..truth import forward_transfer  # the forward T's sampling, as simulate uses
 
             rot = (self.cfg.model.subject.poses or C.Poses()).rotations_deg[0]
             T = ensure_pose_T(self.cfg, Pose(key[0], float(rot)), forward_transfer(self.cfg), self.placer)
