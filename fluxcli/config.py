@@ -800,17 +800,25 @@ def _camera_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
         return
     if not isinstance(ref, str) or not ref:
         raise UserError(f"config {path}: 'system.camera.file' must be the path of a camera YAML file.")
+    hint = "run `fluxmap calibrate` to make one, or give the camera block inline"
+    loaded = _block_from_file(ref, "camera", dict, "system.camera", base_dir, path, hint)
+    system["camera"] = _merge(loaded, overrides)
+
+
+def _block_from_file(ref: str, block: str, kind: type, key: str, base_dir: Path, path: Path, hint: str):
+    """The top-level ``block`` (a mapping or a list) of the YAML file ``ref`` names (relative to the
+    config), for config keys given as a file (``system.camera``, ``system.mirrors``)."""
     file = Path(ref) if Path(ref).is_absolute() else (base_dir / ref).resolve()
     if not file.is_file():
-        raise UserError(f"config {path}: 'system.camera': camera file {file} does not exist "
-                        f"(run `fluxmap calibrate` to make one, or give the camera block inline).")
+        raise UserError(f"config {path}: '{key}': file {file} does not exist ({hint}).")
     try:
         loaded = yaml.load(file.read_text(), Loader=_UniqueKeyLoader)
     except (yaml.YAMLError, UnicodeDecodeError) as e:
-        raise UserError(f"config {path}: 'system.camera': camera file {file} is not valid YAML: {e}".replace("\n", " ")) from None
-    if not isinstance(loaded, dict) or not isinstance(loaded.get("camera"), dict):
-        raise UserError(f"config {path}: 'system.camera': camera file {file} has no top-level 'camera:' block.")
-    system["camera"] = _merge(loaded["camera"], overrides)
+        raise UserError(f"config {path}: '{key}': file {file} is not valid YAML: {e}".replace("\n", " ")) from None
+    if not isinstance(loaded, dict) or not isinstance(loaded.get(block), kind):
+        what = "block" if kind is dict else "list"
+        raise UserError(f"config {path}: '{key}': file {file} has no top-level '{block}:' {what}.")
+    return loaded[block]
 
 
 def _mirrors_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
@@ -818,17 +826,8 @@ def _mirrors_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
     system = raw.get("system")
     if not isinstance(system, dict) or not isinstance(system.get("mirrors"), str):
         return
-    ref = system["mirrors"]
-    file = Path(ref) if Path(ref).is_absolute() else (base_dir / ref).resolve()
-    if not file.is_file():
-        raise UserError(f"config {path}: 'system.mirrors': file {file} does not exist.")
-    try:
-        loaded = yaml.load(file.read_text(), Loader=_UniqueKeyLoader)
-    except (yaml.YAMLError, UnicodeDecodeError) as e:
-        raise UserError(f"config {path}: 'system.mirrors': file {file} is not valid YAML: {e}".replace("\n", " ")) from None
-    if not isinstance(loaded, dict) or not isinstance(loaded.get("mirrors"), list):
-        raise UserError(f"config {path}: 'system.mirrors': file {file} has no top-level 'mirrors:' list.")
-    system["mirrors"] = loaded["mirrors"]
+    system["mirrors"] = _block_from_file(system["mirrors"], "mirrors", list, "system.mirrors", base_dir, path,
+                                         "calibrate writes it beside camera.yaml")
 
 
 def _merge(base: dict, over: dict) -> dict:
