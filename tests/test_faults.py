@@ -53,8 +53,10 @@ def _config(tmp_path: Path, minimal_config: dict, workdir: str) -> Path:
     cfg = cylinder_sim_config(minimal_config)
     cfg["workdir"] = workdir
     cfg["system"]["camera"]["pixels"] = [64, 64]
-    cfg["subject"]["poses"] = {"heights_mm": [0, 2, 4, 6]}
-    cfg["transfer"] = {"lens": {"surface_samples_per_pixel": 4, "lens_samples_min": 96}}
+    # long enough (~4 s with --jobs 2 on an idle 2-core machine) that the signal always lands
+    # while the workers compute: a build that ends first would make the test race the machine
+    cfg["subject"]["poses"] = {"heights_mm": [0, 2, 4, 6, 8, 10, 12, 14]}
+    cfg["transfer"] = {"lens": {"surface_samples_per_pixel": 4, "lens_samples_min": 512}}
     p = tmp_path / f"{workdir}.yaml"
     p.write_text(yaml.safe_dump(cfg))
     return p
@@ -70,7 +72,7 @@ def _start_and_signal(cfg: Path, cache: Path, sig: int, *, group: bool = False):
     while time.monotonic() < t_start + 30:  # mid-pose: both workers exist; mid-write if a T temp file shows
         workers |= _children(proc.pid)
         writing = cache.is_dir() and any(p.name.endswith(".tmp.h5") for p in cache.iterdir())
-        if len(workers) >= 2 and (writing or time.monotonic() > t_start + 2.5):
+        if len(workers) >= 2 and (writing or time.monotonic() > t_start + 1.0):
             break
         time.sleep(0.01)
     assert len(workers) >= 2 and proc.poll() is None, proc.stderr.read()
@@ -105,7 +107,7 @@ def test_SIGKILLed_build_T_leaves_no_workers_no_temp_files_and_a_rerun_gives_the
     assert not [p for p in cache.iterdir() if ".tmp" in p.name], list(cache.iterdir())
     ref = sorted((tmp_path / "clean" / "cache" / "T").glob("*.h5"))
     got = sorted(cache.glob("*.h5"))
-    assert [p.name for p in ref] == [p.name for p in got] and len(got) == 4
+    assert [p.name for p in ref] == [p.name for p in got] and len(got) == 8
     for a, b in zip(ref, got):
         Ta, Tb = load_T(a), load_T(b)
         assert Ta.shape == Tb.shape and (Ta != Tb).nnz == 0
