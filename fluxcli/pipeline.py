@@ -22,7 +22,7 @@ from .optics.transfer import (ALGORITHM_VERSION, LensSampling, PairwiseSampling,
                              surface_sample_count)
 from .scene import PlacedScene, Pose, SubjectPlacer, poses_from_config, views_from_config
 from .progress import run_tasks
-from .workers import worker_pool
+from .workers import pool_for
 
 # build-T refuses a pose whose views collect nothing, and warns when a view collects less than
 # WEAK_VIEW_FRACTION of what the best view does, or sees less than SEEN_FRACTION of the subject's area
@@ -262,13 +262,26 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
                 ctx.warn(f"the cached T of pose {p.pose.label} is unreadable and is rebuilt: {why}")
         need.append((s, p))
     prov = provenance(cfg, placer.surface.digest())
+    cluster = getattr(ctx, "client", None)  # --scheduler: a Dask cluster builds the poses
     # one bar over the poses, advanced after every batch of rays in every worker (with an ETA)
     built = run_tasks(_build_and_store, [(s, views, tr, p.path, cfg.sha256, prov) for s, p in need], label=label,
-                      jobs=ctx.jobs, quiet=ctx.quiet,
-                      pool=lambda n: worker_pool(n, temp_dirs=(cache_dir(cfg),)))
+                      jobs=ctx.jobs, quiet=ctx.quiet, remote=cluster is not None,
+                      pool=pool_for(cluster, temp_dirs=(cache_dir(cfg),)))
+    if cluster is not None:
+        check_shared(cache_dir(cfg), [p.path for _, p in need])
     results |= {p.key: r | {"cached": False} for (_, p), r in zip(need, built)}
     check_collection(todo, results, names, ctx)
     return views, placer, todo, results
+
+
+def check_shared(folder: Path, written: list[Path]) -> None:
+    """After a cluster built files: each must be visible here (the workers wrote them under
+    the same absolute path, so the folder must be shared by every worker and this machine)."""
+    missing = [p for p in written if not Path(p).is_file()]
+    if missing:
+        raise UserError(f"transfer.cache_dir: the Dask workers wrote {len(missing)} T file(s) such as {missing[0]}, "
+                        f"which this machine does not see: with --scheduler the T cache ({folder}) and the workdir "
+                        "must be a folder every worker and this machine share under the same path.")
 
 
 def ensure_pose_T(cfg: LoadedConfig, pose: Pose, transfer: Transfer | None = None,

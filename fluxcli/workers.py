@@ -70,3 +70,13 @@ def worker_pool(jobs: int, temp_dirs: tuple = ()) -> Iterator[ProcessPoolExecuto
             clean_stale_temps(d)
         raise
     ex.shutdown(wait=True)
+
+
+def pool_for(client=None, temp_dirs: tuple = ()):
+    """``pool(n_workers)`` -> executor context: local worker processes (:func:`worker_pool`),
+    or the Dask cluster behind ``client`` (``--scheduler``; :mod:`fluxcli.cluster`)."""
+    if client is not None:
+        from .cluster import dask_pool
+
+        return lambda n: dask_pool(client)
+    return lambda n: worker_pool(n, temp_dirs=temp_dirs)
