@@ -52,10 +52,10 @@ def run_tasks(fn: Callable, arglists: Sequence[tuple], *, label: str, jobs: int 
     fn : picklable callable taking ``progress`` (called with the fraction 0..1 done).
     arglists : the positional arguments of each task.
     jobs : worker processes (1: run here).
-    pool : ``pool(n_workers)`` -> context manager yielding an executor (default ProcessPoolExecutor).
-        An executor with a ``progress_queue()`` context (a Dask cluster, :mod:`fluxcli.cluster`)
-        carries the fractions itself; otherwise they go through a local manager queue.
-    remote : send every task to ``pool`` even with one job or one task (a cluster).
+    pool : ``pool(n_workers)`` -> context manager yielding an executor (default ProcessPoolExecutor);
+        local workers send their fractions through a manager queue.
+    remote : ``pool`` is a cluster (:mod:`fluxcli.cluster`): every task goes to it even with one
+        job or one task, and its executor's ``progress_queue()`` carries the fractions.
     """
     n = len(arglists)
     frac = [0.0] * n
@@ -71,7 +71,13 @@ def run_tasks(fn: Callable, arglists: Sequence[tuple], *, label: str, jobs: int 
                 note(i, 1.0)
             return out
         make_pool = pool or (lambda k: ProcessPoolExecutor(max_workers=k))
-        with make_pool(n if remote else min(jobs, n)) as ex, _progress_queue(ex) as q:
+        with contextlib.ExitStack() as stack:
+            if remote:  # a cluster carries the fractions itself
+                ex = stack.enter_context(make_pool(n))
+                q = stack.enter_context(ex.progress_queue())
+            else:  # the manager outlives the pool: on Ctrl-C the workers are killed first
+                q = stack.enter_context(_manager_queue())
+                ex = stack.enter_context(make_pool(min(jobs, n)))
             futs = {ex.submit(fn, *args, progress=q.sender(i)): i for i, args in enumerate(arglists)}
             pending = set(futs)
             while pending:
@@ -100,19 +106,14 @@ class _ManagerQueue:
 
 
 @contextlib.contextmanager
-def _progress_queue(ex) -> Iterator:
-    """The executor's own channel for fractions done, else a local manager queue."""
-    own = getattr(ex, "progress_queue", None)
-    if own is not None:
-        with own() as q:
-            yield q
-        return
+def _manager_queue() -> Iterator[_ManagerQueue]:
+    """A queue served by a manager process that dies with this one, like the workers."""
     import os
     from multiprocessing.managers import SyncManager
 
     from .workers import _init_worker
 
     manager = SyncManager()
-    manager.start(_init_worker, (os.getpid(),))  # the queue's server dies with this process, like the workers
+    manager.start(_init_worker, (os.getpid(),))
     with manager:
         yield _ManagerQueue(manager.Queue())
