@@ -305,6 +305,9 @@ class DiffusionFlux(Model):
     mesh_edge_mm: float = Field(1.5, gt=0, description="Target tetrahedron edge length (mm).")
     mesh_dir: Path | None = Field(None, description="Folder of tetrahedral meshes shipped with the config "
                                   "(fTetWild is not deterministic; a shipped mesh makes a fresh clone byte-reproducible).")
+    solver: Literal["auto", "direct", "amg"] = Field("auto", description="FEM solver: direct (sparse LU), amg "
+                                                     "(multigrid-preconditioned CG to a 1e-10 relative residual), or auto "
+                                                     "(amg above 100 000 nodes).")
 
     @model_validator(mode="after")
     def _check(self) -> "DiffusionFlux":
