@@ -66,7 +66,7 @@ demo-rig-captured: $(VENV)/.installed  # demo-rig's frames reconstructed on the 
 
 bench: $(VENV)/.installed
 	$(PY) -m pytest -q -m slow --benchmark-disable || test $$? -eq 5  # 5: no slow checks collected
-	$(PY) benchmarks/bench_transfer.py
+	$(PY) benchmarks/run.py  # one table + runs/bench/bench.json (benchmarks/bench_*.py)
 
 samples: $(VENV)/.installed
 	$(PY) data-samples/make_samples.py
