@@ -103,8 +103,10 @@ def run_module(name: str, repeats: int) -> tuple[list[dict], bool]:
         mod = importlib.import_module(name)
         if hasattr(mod, "run"):
             rows = list(mod.run(repeats=repeats))
-        else:  # an older module with only a printing main(): run it, say so
-            mod.main() if hasattr(mod, "main") else None
+        else:  # an older module that only prints (bench_transfer before issue 14's items 1-3): run it as a script
+            import runpy
+
+            runpy.run_path(str(HERE / f"{name}.py"), run_name="__main__")
             rows = [{"item": "?", "name": f"{name}: printed above (no run())", "unit": "", "min": float("nan"),
                      "median": float("nan"), "target": None, "met": None,
                      "note": "module without the run(repeats) interface"}]
