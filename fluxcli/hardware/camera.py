@@ -223,6 +223,8 @@ class SimulatedEmccd(Camera):
         return replace(self._sensor, em_gain=self._em_gain, exposure_s=self._exposure_s, dark_current_e_per_s=dark)
 
     def _expected_photons(self, *, open_shutter: bool) -> np.ndarray:
+        if not open_shutter and self._shape is not None:
+            return np.zeros(self.shape)  # a dark frame: nothing to render
         rate = np.asarray(self._render(float(self._height()), str(self._filter()), projectors=self._projectors(),
                                        binning=self._binning), dtype=np.float64)
         want = self.shape if self._shape is not None else None

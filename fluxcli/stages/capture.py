@@ -274,7 +274,8 @@ def _surface_plan(cfg: C.LoadedConfig, sf: C.CaptureSurface, rig: C.Rig, camera)
                        shape=(int(shape[0]), int(shape[1])), n_gray=ps.n_gray, n_steps=ps.n_steps, content=content)
 
 
-def _camera(cfg: C.LoadedConfig, cap: C.Capture, rig: C.Rig, sims: dict, wheel, stage, scene, displays: dict):
+def _camera(cfg: C.LoadedConfig, cap: C.Capture, rig: C.Rig, sims: dict, wheel, stage, scene,
+            displays: dict | None = None):
     from ..pipeline import emccd_model
 
     cc = rig.camera or C.RigCamera()
@@ -291,7 +292,7 @@ def _camera(cfg: C.LoadedConfig, cap: C.Capture, rig: C.Rig, sims: dict, wheel, 
     height = (lambda: sims["stage"].position_mm) if "stage" in sims else stage.position_mm
     pos = (lambda: sims["filter_wheel"].position) if "filter_wheel" in sims else (lambda: wheel.position)
     def shown():  # what the simulated projectors show right now (black ones left out)
-        return {n: d.current for n, d in displays.items() if d.current.any()}
+        return {n: d.current for n, d in (displays or {}).items() if d.current.any()}
 
     return SimulatedEmccd(scene.render, stage_height_mm=height, filter_name=lambda: positions.get(pos(), f"position {pos()}"),
                           projectors=shown,
