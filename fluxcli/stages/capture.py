@@ -149,20 +149,14 @@ class SimulatedScene:
         key = (round(float(height_mm), 4), int(binning), projector)
         if key not in self._pattern_renderers:
             from ..hardware.projector import projector_model
-            from ..scene import Pose, camera_from_config, plane_mirrors
+            from ..scene import Pose, plane_mirrors
             from ..structured.render import PatternRenderer, pixel_etendue_mm2_sr
 
             m = self.cfg.model
-            k = self.camera_settings.binning // int(binning)
-            cam_cfg = m.system.camera.model_copy(update={"pixels": (m.system.camera.pixels[0] * k,
-                                                                    m.system.camera.pixels[1] * k),
-                                                         "pixel_pitch_mm": m.system.camera.pixel_pitch_mm / k})
-            camera = camera_from_config(cam_cfg)
-            rot = (m.subject.poses or C.Poses()).rotations_deg[0]
-            pose = Pose(key[0], float(rot))
-            lit = [(self.placer.place(pose), self.camera_settings.subject_albedo)]
+            camera = camera_at_binning(m.system.camera, self.camera_settings.binning // int(binning))
+            lit = [(self.true_surface_at(key[0]), self.camera_settings.subject_albedo)]
             if m.system.stage is not None:  # the stage top (the first occluder) is lit too
-                lit.append((self.placer.occluders(pose, m.system)[0], self.camera_settings.stage_albedo))
+                lit.append((self.placer.occluders(Pose(key[0], 0.0), m.system)[0], self.camera_settings.stage_albedo))
             mirrors = [(pm, mm.reflectance) for pm, mm in zip(plane_mirrors(m.system), m.system.mirrors)]
             spec = m.rig.projectors[projector]
             renderer = PatternRenderer(camera, mirrors, lit, [], projector_model(spec))
@@ -195,6 +189,15 @@ class SimulatedScene:
             nx, ny = self.cfg.model.system.camera.pixels
             self._images[key] = (T @ self.power_rate(name)).reshape(ny, nx)
         return self._images[key]
+
+
+def camera_at_binning(camera: C.Camera, k: int):
+    """The thin-lens camera of ``system.camera`` with its pixels split ``k x k`` (a binning k
+    times finer than the one system.camera describes)."""
+    from ..scene import camera_from_config
+
+    return camera_from_config(camera.model_copy(update={"pixels": (camera.pixels[0] * k, camera.pixels[1] * k),
+                                                        "pixel_pitch_mm": camera.pixel_pitch_mm / k}))
 
 
 # ------------------------------------------------------------------ devices
@@ -411,10 +414,9 @@ def _make_surface(cfg: C.LoadedConfig, ctx: RunContext, sf: C.CaptureSurface, sc
     from ..acquisition import read_patterns
     from ..hardware.projector import projector_model
     from ..pipeline import emccd_model, provenance, write_surface_artefact
-    from ..scene import camera_from_config, mirror_names, plane_mirrors
+    from ..scene import mirror_names, plane_mirrors
     from ..structured.mesh import distances_to_surface
-    from ..structured.scan import merge_points, points_from_frames, surface_from_points
-    from ..structured.triangulate import chief_rays
+    from ..structured.scan import decode_images, merge_points, points_from_frames, surface_from_points, views_of_pixels
 
     m = cfg.model
     out = cfg.workdir / "surface.h5"
@@ -425,17 +427,11 @@ def _make_surface(cfg: C.LoadedConfig, ctx: RunContext, sf: C.CaptureSurface, sc
         ctx.say(f"capture-surface: {out} is up to date")
         return out
     pc = read_patterns(capture_path)
-    k = (m.rig.camera or C.RigCamera()).binning // pc.binning  # pattern pixels per system.camera pixel, per side
-    cam_cfg = m.system.camera.model_copy(update={"pixels": (m.system.camera.pixels[0] * k, m.system.camera.pixels[1] * k),
-                                                 "pixel_pitch_mm": m.system.camera.pixel_pitch_mm / k})
-    camera = camera_from_config(cam_cfg)
+    camera = camera_at_binning(m.system.camera, (m.rig.camera or C.RigCamera()).binning // pc.binning)
     mirrors = plane_mirrors(m.system)
     views = ["direct"] + mirror_names(m.system)
     photons = pc.photons(emccd_model(m.system.camera.sensor, pc.exposure_s))
-    origins, _, _ = chief_rays(camera, mirrors)
-    view_of_pixel = np.zeros(camera.ny * camera.nx, int)
-    for j in range(1, len(views)):
-        view_of_pixel[np.isfinite(origins[j, :, 0])] = j
+    view_of_pixel = views_of_pixels(camera, mirrors)
     scans, decode = [], {}
     with ctx.progress("decode", len(pc.projectors)) as tick:
         for name in pc.projectors:
@@ -444,13 +440,7 @@ def _make_surface(cfg: C.LoadedConfig, ctx: RunContext, sf: C.CaptureSurface, sc
                                       min_contrast=sf.min_contrast_photons,
                                       min_modulation_fraction=sf.min_modulation_fraction)
             scans.append(scan)
-            used = np.zeros(camera.ny * camera.nx, bool)
-            used[scan.pixel] = True
-            for j, v in enumerate(views):
-                here = (view_of_pixel == j).reshape(camera.ny, camera.nx)
-                decode[(v, name)] = {"phase": np.where(here, scan.decoded.wrapped_phase, np.nan),
-                                     "column_px": np.where(here, scan.decoded.column_px, np.nan),
-                                     "mask": (here & used.reshape(here.shape)).astype(np.uint8)}
+            decode |= {(views[j], name): images for j, images in enumerate(decode_images(scan, view_of_pixel, len(views)))}
             tick()
     h = pc.height_mm
     floor = (m.system.stage.top_z_mm + h) if m.system.stage is not None else None
