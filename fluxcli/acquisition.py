@@ -147,9 +147,23 @@ class Plan:
         mine = self.as_dict()
         names = {"scene": "the simulated scene (system, subject, simulate, rig.camera)", "shape": "frame shape",
                  "exposures_s": "capture.exposure_s", "filter_positions": "rig.filter_wheel.filters",
-                 "camera": "rig.camera.backend", "surface": "capture.surface (or rig.projectors)"}
-        return [f"{names.get(k, 'capture.' + k)}: file has {other.get(k)!r}, config has {mine[k]!r}"
-                for k in mine if other.get(k) != mine[k]]
+                 "camera": "rig.camera.backend"}
+        out = []
+        for k in mine:
+            theirs = other.get(k)
+            if theirs == mine[k]:
+                continue
+            if k == "surface" and isinstance(theirs, dict) and isinstance(mine[k], dict):
+                sub = {"content": "the patterns or rig.projectors", "shape": "pattern frame shape",
+                       "patterns": "the pattern sequence"}
+                out += [f"{sub.get(j, 'capture.surface.' + j)}: file has {theirs.get(j)!r}, config has {v!r}"
+                        for j, v in mine[k].items() if theirs.get(j) != v]
+            elif k == "surface":
+                out.append(f"capture.surface: the file was captured {'without' if theirs is None else 'with'} "
+                           f"structured-light frames, the config asks {'without' if mine[k] is None else 'with'} them")
+            else:
+                out.append(f"{names.get(k, 'capture.' + k)}: file has {theirs!r}, config has {mine[k]!r}")
+        return out
 
 
 @dataclass

@@ -202,7 +202,9 @@ def test_surface_block_names_bad_keys(reference, tmp_path):
     cfg, *_ = reference
     for key, value, named in ((("capture", "surface", "projectors"), ["nope"], "capture.surface.projectors"),
                               (("capture", "surface", "filter"), "red", "capture.surface.filter"),
-                              (("capture", "surface", "binning"), 3, "capture.surface.binning")):
+                              (("capture", "surface", "binning"), 3, "capture.surface.binning"),
+                              (("rig", "projectors", "left"), {**cfg["rig"]["projectors"]["left"], "display": "window"},
+                               "rig.projectors.left.display")):
         c = copy.deepcopy(cfg)
         c[key[0]][key[1]][key[2]] = value
         p = tmp_path / "bad.yaml"
@@ -238,3 +240,17 @@ def test_pattern_photons_per_pixel_agree_with_the_emission_forward_model():
     # T's surface sampling scatters single pixels by a few per cent; over the inner field the means agree
     assert photons[inner].mean() == pytest.approx(expected[inner].mean(), rel=0.01)
     assert np.allclose(photons[inner], expected[inner], rtol=0.08)
+
+
+def test_resume_refuses_other_pattern_settings_naming_the_key(reference, tmp_path):
+    cfg, _, ref_cap, _ = reference
+    import shutil
+
+    c = copy.deepcopy(cfg)
+    c["capture"]["surface"]["em_gain"] = 20
+    (tmp_path / "run").mkdir()
+    shutil.copy(ref_cap, tmp_path / "run" / "capture.h5")
+    p = tmp_path / "cfg.yaml"
+    p.write_text(yaml.safe_dump(c))
+    r = CliRunner().invoke(app, ["capture-surface", str(p), "--resume"])
+    assert r.exit_code == 2 and "capture.surface.em_gain: file has 10.0, config has 20.0" in r.output, r.output
