@@ -133,7 +133,7 @@ def merge_points(scans: list[ScanPoints], *, floor_z_mm: float, stage_margin_mm:
 def surface_from_points(pts: MergedPoints, *, floor_z_mm: float, element_size_mm: float = 4.0,
                         face_size_mm: float = 1.0) -> Surface:
     n = estimate_normals(pts.points_mm, pts.view_dirs)
-    return closed_surface(pts.points_mm, n, floor_z_mm=floor_z_mm, voxel_mm=1.0, centre_spacing_mm=2.5,
+    return closed_surface(pts.points_mm, n, floor_z_mm=floor_z_mm, voxel_mm=0.8, centre_spacing_mm=2.5,
                           face_size_mm=face_size_mm, element_size_mm=element_size_mm, free_rays=pts.free_rays)
 
 
