@@ -685,6 +685,37 @@ class RigCamera(Model):
     em_gain_range: tuple[float, float] = Field((1.0, 1200.0), description="EM gains the camera accepts [low, high] (unverified: x4-x1200 for the ImagEM).")
     device_index: int = Field(0, ge=0, description="dcam: which DCAM camera (0 = first).")
     shutter_property: str | None = Field(None, description="dcam: name of the DCAM property that closes a shutter for dark frames (unverified; none: darks refused).")
+    true_surface: Union[Phantom, MeshSurface] | None = Field(None, description="Simulated camera: the subject's true surface it renders (emission and projected patterns), when subject.surface is the one capture-surface measures (default subject.surface).")
+    subject_albedo: float = Field(0.8, gt=0, le=1, description="Simulated camera: Lambertian reflectance of the subject under the projectors.")
+    stage_albedo: float = Field(0.5, ge=0, le=1, description="Simulated camera: Lambertian reflectance of the stage top under the projectors.")
+
+
+class ProjectorPose(Model):
+    center_mm: Vec3 = Field(description="World position of the projector's centre of projection (mm).")
+    look: Vec3 = Field(description="Projection axis, from the projector into the scene.")
+    up: Vec3 = Field(description="World direction of the panel's row 0 (top of the projected image).")
+
+    @model_validator(mode="after")
+    def _check(self) -> "ProjectorPose":
+        n, u = _unit(self.look, "look"), _unit(self.up, "up")
+        if abs(sum(a * b for a, b in zip(n, u))) > 0.999:
+            raise ValueError("up must not be parallel to look")
+        return self
+
+
+class RigProjector(Model):
+    """A projector showing structured-light patterns: its display and its pinhole-plus-radial-distortion model."""
+
+    display: Literal["simulated", "window"] = Field("simulated", description="simulated (an image sink the simulated camera renders) or window (a full-screen window on a monitor: the lab; needs pyglet).")
+    screen: int = Field(1, ge=0, description="window: which monitor the projector is (0 = primary).")
+    settle_s: float = Field(0.1, ge=0, description="window: wait after a pattern is shown before the camera exposes (s).")
+    pixels: tuple[int, int] = Field(description="Panel resolution [width, height] (projector pixels).")
+    focal_px: tuple[float, float] = Field(description="Focal lengths [fx, fy] (projector pixels).")
+    principal_px: tuple[float, float] | None = Field(None, description="Principal point [cx, cy] (projector pixels; default the panel centre).")
+    distortion: tuple[float, float] = Field((0.0, 0.0), description="Radial distortion [k1, k2] (Brown's model, dimensionless).")
+    gamma: float = Field(1.0, gt=0, description="Panel response: emitted radiance = value ** gamma.")
+    pose: ProjectorPose = Field(description="Where the projector is and where it points.")
+    intensity_photons_per_s_per_sr: float = Field(1e12, gt=0, description="Simulated projector: photons per second per steradian on its axis at full white, as the camera sees them through the pattern frames' filter.")
 
 
 class Rig(Model):
@@ -692,11 +723,39 @@ class Rig(Model):
     filter_wheel: RigFilterWheel | None = Field(None, description="The FW102C filter wheel.")
     stage: RigStage | None = Field(None, description="The L490MZ lab jack (APT).")
     camera: RigCamera | None = Field(None, description="The EMCCD.")
+    projectors: dict[str, RigProjector] = Field(default_factory=dict, description="Structured-light projectors by name (capture.surface).")
 
 
 # --------------------------------------------------------------------------- capture (acquisition)
+class SurfacePatterns(Model):
+    period_px: int = Field(16, ge=4, multiple_of=4, description="Fringe period of the phase-shift patterns (projector pixels, a multiple of 4).")
+    n_steps: int = Field(8, ge=3, description="Phase steps (8 leaves a gamma-2.2 phase error below 1e-3 period).")
+
+
+class SurfaceMesh(Model):
+    element_size_mm: float = Field(4.0, gt=0, description="Target size of an element of the captured surface (mm).")
+    face_size_mm: float = Field(1.0, gt=0, description="Target edge length of its triangles (mm).")
+    voxel_mm: float = Field(0.8, gt=0, description="Grid step the implicit surface is contoured on (mm).")
+    centre_spacing_mm: float = Field(2.5, gt=0, description="Points are thinned to one per cube of this side as RBF centres (mm).")
+
+
+class CaptureSurface(Model):
+    """Structured light: each projector shows the Gray-code + phase-shift sequence, one camera frame per pattern."""
+
+    projectors: tuple[str, ...] | None = Field(None, description="Projectors (keys of rig.projectors), in this order (default: all).")
+    height_mm: float = Field(0.0, description="Stage height of the pattern frames (mm); the surface is stored at rest (as at height 0).")
+    filter: str = Field("open", description="Filter in the beam for the pattern frames (a key of rig.filter_wheel.filters).")
+    exposure_s: float = Field(0.01, gt=0, description="Exposure of a pattern frame (s).")
+    em_gain: float = Field(10.0, ge=1, description="EM gain of the pattern frames.")
+    binning: int | None = Field(None, ge=1, description="Camera binning of the pattern frames (default rig.camera.binning); must divide rig.camera.binning (finer frames: more points).")
+    patterns: SurfacePatterns = Field(SurfacePatterns(), description="The pattern sequence.")
+    min_contrast_photons: float = Field(200.0, gt=0, description="A pixel is lit when white - black exceeds this (photons): the shadow mask.")
+    min_modulation_fraction: float = Field(0.25, gt=0, lt=1, description="The fringes' amplitude must reach this fraction of (white - black)/2: the low-modulation mask.")
+    mesh: SurfaceMesh = Field(SurfaceMesh(), description="From points to the closed surface.")
+
+
 class Capture(Model):
-    """The acquisition plan of ``fluxmap capture-surface``: darks first, then per height, per filter, repeats."""
+    """The acquisition plan of ``fluxmap capture-surface``: pattern frames (``surface``) first, then darks, then per height, per filter, repeats."""
 
     heights_mm: tuple[float, ...] = Field(min_length=1, description="Stage heights to image at (mm), in this order.")
     filters: tuple[str, ...] = Field(("open",), min_length=1, description="Filter names (keys of rig.filter_wheel.filters), in this order.")
@@ -705,6 +764,7 @@ class Capture(Model):
     repeats: int = Field(1, ge=1, description="Frames per height and filter.")
     darks: int = Field(4, ge=0, description="Dark frames (shutter closed, same exposure and gain), taken first.")
     seed: int = Field(0, ge=0, description="Simulated camera: frame k's noise comes from the seed (seed, k).")
+    surface: CaptureSurface | None = Field(None, description="Structured-light pattern frames, decoded into <workdir>/surface.h5.")
 
     @field_validator("heights_mm", "filters")
     @classmethod
@@ -763,6 +823,12 @@ class LoadedConfig:
     def workdir(self) -> Path:
         w = self.model.workdir or Path("runs") / self.path.stem
         return self.resolve(w)
+
+    @property
+    def captured_surface_path(self) -> Path | None:
+        """``<workdir>/surface.h5`` when ``capture.surface`` makes it, else None."""
+        cap = self.model.capture
+        return self.workdir / "surface.h5" if cap is not None and cap.surface is not None else None
 
     @property
     def sha256(self) -> str:
@@ -985,6 +1051,8 @@ def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -
     for attr in ("mesh", "artefact"):
         p = getattr(surf, attr, None)
         if p is not None and not loaded.resolve(p).is_file():
+            if attr == "artefact" and loaded.resolve(p) == loaded.captured_surface_path:
+                continue  # this config's capture-surface makes it; stages that need it say so
             raise UserError(f"config {path}: 'subject.surface.{attr}': file {loaded.resolve(p)} does not exist.")
     return loaded
 
