@@ -130,8 +130,8 @@ class Stage(Model):
 
 class ProjectorPose(Model):
     center_mm: Vec3 = Field(description="World position of the projector's centre of projection (mm).")
-    look: Vec3 = Field(description="Optical axis, from the projector into the scene.")
-    up: Vec3 = Field(description="World direction of the panel's row 0 (its top).")
+    look: Vec3 = Field(description="Projection axis, from the projector into the scene.")
+    up: Vec3 = Field(description="World direction of the panel's row 0 (top of the projected image).")
 
     @model_validator(mode="after")
     def _check(self) -> "ProjectorPose":
@@ -142,14 +142,14 @@ class ProjectorPose(Model):
 
 
 class ProjectorModel(Model):
-    """A structured-light projector: pinhole with radial distortion (fluxcli.structured.projector)."""
+    """A structured-light projector's optics: pinhole with radial distortion (fluxcli.structured.projector);
+    what ``calibrate`` writes into camera.yaml's ``projectors:`` mapping."""
 
-    name: str | None = Field(None, description="Name (default projector0, projector1, ...).")
-    pixels: tuple[int, int] = Field(description="Panel resolution [width, height] (pixels).")
-    focal_px: tuple[float, float] = Field(description="Focal lengths [fx, fy] (panel pixels).")
-    center_px: tuple[float, float] | None = Field(None, description="Principal point [cx, cy] (pixels; default the panel centre).")
-    distortion: tuple[float, float] = Field((0.0, 0.0), description="Radial distortion [k1, k2] (Brown, as OpenCV).")
-    gamma: float = Field(1.0, gt=0, description="Panel response: radiance = value ** gamma.")
+    pixels: tuple[int, int] = Field(description="Panel resolution [width, height] (projector pixels).")
+    focal_px: tuple[float, float] = Field(description="Focal lengths [fx, fy] (projector pixels).")
+    principal_px: tuple[float, float] | None = Field(None, description="Principal point [cx, cy] (projector pixels; default the panel centre).")
+    distortion: tuple[float, float] = Field((0.0, 0.0), description="Radial distortion [k1, k2] (Brown's model, dimensionless).")
+    gamma: float = Field(1.0, gt=0, description="Panel response: emitted radiance = value ** gamma.")
     pose: ProjectorPose = Field(description="Where the projector is and where it points.")
 
     @field_validator("pixels")
@@ -171,7 +171,6 @@ class System(Model):
     camera: Camera = Field(description="The camera: sensor, lens, pose, apertures (or a camera.yaml path from calibrate).")
     mirrors: tuple[Mirror, ...] = Field((), description="Plane mirrors; each adds a view.")
     stage: Stage | None = Field(None, description="The stage plate (an occluder); phantoms rest on its top.")
-    projectors: tuple[ProjectorModel, ...] = Field((), description="Structured-light projectors (or a camera.yaml path: its projectors list, from calibrate).")
 
 
 # --------------------------------------------------------------------------- subject
@@ -586,7 +585,7 @@ class SimulatedProjectorFrames(Model):
 
 
 class ProjectorCalibration(Model):
-    name: str | None = Field(None, description="Name (default projector0, ...); camera.yaml's projectors list keeps it.")
+    name: str | None = Field(None, description="Name (default projector0, ...): its key in camera.yaml's projectors mapping (rig.projectors).")
     pixels: tuple[int, int] = Field(description="Panel resolution [width, height] (pixels).")
     patterns: ProjectorPatternSettings = Field(ProjectorPatternSettings(), description="The Gray code + phase-shift sequence that was shown.")
     images: tuple[ProjectorFrames, ...] = Field((), description="Frames of the board at two or more known heights.")
@@ -611,7 +610,7 @@ class Calibrate(Model):
     images: tuple[CalibrationImage, ...] = Field((), description="The grid at five or more known heights through and around focus.")
     refine_mirrors: bool = Field(True, description="Refine the planes of system.mirrors from the grid seen in each mirror.")
     radiometric: Radiometric | None = Field(None, description="Bias, dark, flat and photon-transfer frames: the sensor block.")
-    projectors: tuple[ProjectorCalibration, ...] = Field((), description="Structured-light projectors to calibrate against the calibrated camera (needs grid and images).")
+    projectors: tuple[ProjectorCalibration, ...] = Field((), description="Structured-light projectors to calibrate against the calibrated camera (needs grid and images); written to camera.yaml's projectors mapping.")
 
     @model_validator(mode="after")
     def _check(self) -> "Calibrate":
@@ -690,31 +689,13 @@ class RigCamera(Model):
     stage_albedo: float = Field(0.5, ge=0, le=1, description="Simulated camera: Lambertian reflectance of the stage top under the projectors.")
 
 
-class ProjectorPose(Model):
-    center_mm: Vec3 = Field(description="World position of the projector's centre of projection (mm).")
-    look: Vec3 = Field(description="Projection axis, from the projector into the scene.")
-    up: Vec3 = Field(description="World direction of the panel's row 0 (top of the projected image).")
-
-    @model_validator(mode="after")
-    def _check(self) -> "ProjectorPose":
-        n, u = _unit(self.look, "look"), _unit(self.up, "up")
-        if abs(sum(a * b for a, b in zip(n, u))) > 0.999:
-            raise ValueError("up must not be parallel to look")
-        return self
-
-
-class RigProjector(Model):
-    """A projector showing structured-light patterns: its display and its pinhole-plus-radial-distortion model."""
+class RigProjector(ProjectorModel):
+    """A projector showing structured-light patterns: its pinhole-plus-radial-distortion model
+    (ProjectorModel's keys, e.g. from calibrate's camera.yaml) and its display."""
 
     display: Literal["simulated", "window"] = Field("simulated", description="simulated (an image sink the simulated camera renders) or window (a full-screen window on a monitor: the lab; needs pyglet).")
     screen: int = Field(1, ge=0, description="window: which monitor the projector is (0 = primary).")
     settle_s: float = Field(0.1, ge=0, description="window: wait after a pattern is shown before the camera exposes (s).")
-    pixels: tuple[int, int] = Field(description="Panel resolution [width, height] (projector pixels).")
-    focal_px: tuple[float, float] = Field(description="Focal lengths [fx, fy] (projector pixels).")
-    principal_px: tuple[float, float] | None = Field(None, description="Principal point [cx, cy] (projector pixels; default the panel centre).")
-    distortion: tuple[float, float] = Field((0.0, 0.0), description="Radial distortion [k1, k2] (Brown's model, dimensionless).")
-    gamma: float = Field(1.0, gt=0, description="Panel response: emitted radiance = value ** gamma.")
-    pose: ProjectorPose = Field(description="Where the projector is and where it points.")
     intensity_photons_per_s_per_sr: float = Field(1e12, gt=0, description="Simulated projector: photons per second per steradian on its axis at full white, as the camera sees them through the pattern frames' filter.")
 
 
@@ -723,7 +704,7 @@ class Rig(Model):
     filter_wheel: RigFilterWheel | None = Field(None, description="The FW102C filter wheel.")
     stage: RigStage | None = Field(None, description="The L490MZ lab jack (APT).")
     camera: RigCamera | None = Field(None, description="The EMCCD.")
-    projectors: dict[str, RigProjector] = Field(default_factory=dict, description="Structured-light projectors by name (capture.surface).")
+    projectors: dict[str, RigProjector] = Field(default_factory=dict, description="Structured-light projectors by name (capture.surface); or a camera.yaml path (its projectors mapping, from calibrate), or {file: PATH, <name>: {overrides}}.")
 
 
 # --------------------------------------------------------------------------- capture (acquisition)
@@ -989,14 +970,21 @@ def _mirrors_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
 
 
 def _projectors_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
-    """``system.projectors: calib/camera.yaml`` takes the file's top-level ``projectors:`` list (from calibrate);
-    ``calibrate.projectors[k].simulated.camera: truth.yaml`` its ``camera:`` block."""
-    system = raw.get("system")
-    if isinstance(system, dict) and isinstance(system.get("projectors"), str):
-        system["projectors"] = _block_from_file(system["projectors"], "projectors", list, "system.projectors",
-                                                base_dir, path, "calibrate writes it beside camera.yaml")
+    """``rig.projectors: calib/camera.yaml`` takes the file's top-level ``projectors:`` mapping (what
+    calibrate writes); ``rig.projectors: {file: calib/camera.yaml, left: {display: window}}`` too, with
+    the keys beside ``file`` merged into the file's entries.  ``calibrate.projectors[k].simulated.camera:
+    truth.yaml`` takes that file's ``camera:`` block."""
+    rig = raw.get("rig")
+    projs = rig.get("projectors") if isinstance(rig, dict) else None
+    if isinstance(projs, str) or (isinstance(projs, dict) and "file" in projs):
+        ref, overrides = (projs, {}) if isinstance(projs, str) else (projs["file"], {k: v for k, v in projs.items() if k != "file"})
+        if not isinstance(ref, str) or not ref:
+            raise UserError(f"config {path}: 'rig.projectors.file' must be the path of a YAML file (calibrate's camera.yaml).")
+        loaded = _block_from_file(ref, "projectors", dict, "rig.projectors", base_dir, path,
+                                  "calibrate writes it beside camera.yaml when calibrate.projectors is given")
+        rig["projectors"] = _merge(loaded, overrides)
     cal = raw.get("calibrate")
-    for k, pc in enumerate(cal.get("projectors") or [] if isinstance(cal, dict) else []):
+    for k, pc in enumerate((cal.get("projectors") or []) if isinstance(cal, dict) else []):
         sim = pc.get("simulated") if isinstance(pc, dict) else None
         if isinstance(sim, dict) and isinstance(sim.get("camera"), str):
             sim["camera"] = _block_from_file(sim["camera"], "camera", dict, f"calibrate.projectors[{k}].simulated.camera",

@@ -49,25 +49,6 @@ def camera_from_config(cam: C.Camera) -> ThinLensCamera:
     )
 
 
-def projector_from_config(p: C.ProjectorModel):
-    """The structured-light projector (fluxcli.structured.projector.Projector) a config or camera.yaml describes."""
-    from .structured.projector import Projector
-
-    cx, cy = p.center_px if p.center_px is not None else (p.pixels[0] / 2, p.pixels[1] / 2)
-    return Projector.from_pose(center_mm=p.pose.center_mm, look=p.pose.look, up=p.pose.up, width_px=p.pixels[0],
-                               height_px=p.pixels[1], fx_px=p.focal_px[0], fy_px=p.focal_px[1], cx_px=cx, cy_px=cy,
-                               k1=p.distortion[0], k2=p.distortion[1], gamma=p.gamma)
-
-
-def projectors_from_config(system: C.System) -> list:
-    """``system.projectors`` as Projector objects, in order (names: :func:`projector_names`)."""
-    return [projector_from_config(p) for p in system.projectors]
-
-
-def projector_names(system: C.System) -> list[str]:
-    return [p.name or f"projector{k}" for k, p in enumerate(system.projectors)]
-
-
 def mirror_names(system: C.System) -> list[str]:
     return [m.name or f"mirror{k}" for k, m in enumerate(system.mirrors)]
 

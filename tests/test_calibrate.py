@@ -257,7 +257,7 @@ def test_grid_and_radiometric_together_give_one_camera_block(grid_set, tmp_path)
 
 
 # ------------------------------------------------------------------ projectors (issue 12)
-TRUE_PROJECTOR = {"name": "left", "pixels": [400, 300], "focal_px": [1000.0, 1005.0], "center_px": [205.0, 148.0],
+TRUE_PROJECTOR = {"pixels": [400, 300], "focal_px": [1000.0, 1005.0], "principal_px": [205.0, 148.0],
                   "distortion": [0.06, -0.02], "gamma": 2.2,
                   "pose": {"center_mm": [10.0, -140.0, 170.0], "look": [-10.0, 140.0, -165.0], "up": [-1.0, 0.1, 0.0]}}
 
@@ -277,7 +277,7 @@ def test_cli_calibrates_a_projector_against_the_calibrated_camera(grid_set, tmp_
     from scipy.spatial.transform import Rotation
 
     from fluxcli.config import load_config
-    from fluxcli.scene import projector_from_config, projectors_from_config
+    from fluxcli.hardware.projector import projector_model
 
     cam, _, files, _ = grid_set
     cfg_path = _config(tmp_path, files)
@@ -293,11 +293,13 @@ def test_cli_calibrates_a_projector_against_the_calibrated_camera(grid_set, tmp_
     frames = sorted((tmp_path / "out" / "projector_frames" / "left").glob("*.tif"))
     assert len(frames) == 3 * 2 * (2 + 2 * 7 + 8)  # 400 / 4 = 100 cells: 7 Gray bits; 300: 75 cells, 7 bits
     use = tmp_path / "use.yaml"
-    use.write_text(yaml.safe_dump({"system": {"camera": str(tmp_path / "out" / "camera.yaml"),
-                                              "projectors": str(tmp_path / "out" / "camera.yaml")}}))
-    loaded = load_config(use)
-    (fit,) = projectors_from_config(loaded.model.system)
-    true = projector_from_config(load_config(cfg_path).model.calibrate.projectors[0].simulated.projector)
+    use.write_text(yaml.safe_dump({"system": {"camera": str(tmp_path / "out" / "camera.yaml")},
+                                   "rig": {"projectors": {"file": str(tmp_path / "out" / "camera.yaml"),
+                                                          "left": {"display": "window"}}}}))
+    loaded = load_config(use)  # the calibrated projector, with the lab's display key given beside the file
+    assert loaded.model.rig.projectors["left"].display == "window"
+    fit = projector_model(loaded.model.rig.projectors["left"])
+    true = projector_model(load_config(cfg_path).model.calibrate.projectors[0].simulated.projector)
     assert np.linalg.norm(fit.center_mm - true.center_mm) < 1.0
     assert np.degrees(Rotation.from_matrix(fit.rotation @ true.rotation.T).magnitude()) < 0.2
     assert fit.fx_px == pytest.approx(1000, rel=0.01) and fit.k1 == pytest.approx(0.06, abs=0.02)

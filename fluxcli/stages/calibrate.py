@@ -8,8 +8,9 @@ Writes ``<workdir>/calibration.h5`` (every fitted parameter with its 1-sigma unc
 per-image detections, residuals and blur, the radiometric maps) and
 ``<workdir>/camera.yaml``, whose top-level ``camera:`` block is a valid ``system.camera``
 (and ``mirrors:`` a valid ``system.mirrors`` when mirrors were refined, ``projectors:`` a
-valid ``system.projectors`` when ``calibrate.projectors`` is given).  Another config
-then uses it in one line: ``system: {camera: <workdir>/camera.yaml}``.
+valid ``rig.projectors`` mapping when ``calibrate.projectors`` is given).  Another config
+then uses it in one line: ``system: {camera: <workdir>/camera.yaml}`` (``rig: {projectors:
+<workdir>/camera.yaml}``).
 
 Projectors (``calibrate.projectors``): frames of a flat board at known heights while each
 projector shows column and row codes (files, or made by the simulated rig into
@@ -31,6 +32,7 @@ from .. import config as C
 from ..calibration.fit import CalibrationError, GeometricCalibration, calibrate_geometry
 from ..calibration.mirrors import MirrorFit, refine_mirrors
 from ..errors import UserError
+from ..hardware.projector import projector_model
 from ..imaging.imagefiles import read_image
 from ..pipeline import provenance
 from ..structured import calibrate as SC
@@ -252,7 +254,7 @@ def _r(x, nd=6):
 def camera_yaml(cam: C.Camera | None, geo: GeometricCalibration | None, sensor: dict | None,
                 mirrors: list[MirrorFit], system: C.System | None, projectors: list | None = None) -> str:
     """The YAML text: ``camera:`` valid as ``system.camera``, ``mirrors:`` valid as ``system.mirrors``,
-    ``projectors:`` valid as ``system.projectors``."""
+    ``projectors:`` valid as ``rig.projectors`` (name -> optics and pose)."""
     doc: dict = {}
     block: dict = {}
     if cam is not None:
@@ -291,10 +293,10 @@ def camera_yaml(cam: C.Camera | None, geo: GeometricCalibration | None, sensor: 
             out.append(d)
         doc["mirrors"] = out
     if projectors:
-        doc["projectors"] = [pf.block for pf in projectors]
+        doc["projectors"] = {pf.name: pf.block for pf in projectors}
     head = ("# Written by `fluxmap calibrate`. Use it in any config in one line:\n"
             "#   system: {camera: path/to/camera.yaml}" + ("   (and  mirrors: path/to/camera.yaml)" if mirrors else "")
-            + ("   (and  projectors: path/to/camera.yaml)" if projectors else "") + "\n")
+            + ("\n#   rig: {projectors: path/to/camera.yaml}   (the projectors; display keys beside file: {file: ..., NAME: {display: window}})" if projectors else "") + "\n")
     if geo is not None:
         s = geo.sigma
         head += (f"# 1-sigma: f {s['focal_length_mm']:.3g} mm, u {s['focus_distance_mm']:.3g} mm, aperture "
@@ -310,7 +312,7 @@ def camera_yaml(cam: C.Camera | None, geo: GeometricCalibration | None, sensor: 
 # ------------------------------------------------------------------ projectors
 @dataclass
 class ProjectorFit:
-    """One projector's calibration: the fit, the ``system.projectors`` block, and (simulated) the truth."""
+    """One projector's calibration: the fit, its ``rig.projectors`` block, and (simulated) the truth."""
 
     name: str
     result: "SC.ProjectorCalibrationResult"
@@ -352,9 +354,9 @@ def _projector_frame_paths(cfg, sec: C.Calibrate) -> dict[str, list[Path]]:
     return out
 
 
-def _projector_block(name: str, p) -> dict:
-    return {"name": name, "pixels": [int(p.width_px), int(p.height_px)], "focal_px": _r([p.fx_px, p.fy_px]),
-            "center_px": _r([p.cx_px, p.cy_px]), "distortion": _r([p.k1, p.k2], 8), "gamma": _r(p.gamma, 4),
+def _projector_block(p) -> dict:
+    return {"pixels": [int(p.width_px), int(p.height_px)], "focal_px": _r([p.fx_px, p.fy_px]),
+            "principal_px": _r([p.cx_px, p.cy_px]), "distortion": _r([p.k1, p.k2], 8), "gamma": _r(p.gamma, 4),
             "pose": {"center_mm": _r(p.center_mm), "look": _r(p.axis, 9), "up": _r(-p.down, 9)}}
 
 
@@ -380,7 +382,7 @@ def _simulated_frames(cfg, k: int, pc: C.ProjectorCalibration, ctx) -> list[tupl
     """Render the board at each height with the simulated rig; write the frames as 16-bit TIFF files."""
     from ..imaging.imagefiles import write_image
     from ..pipeline import emccd_model
-    from ..scene import camera_from_config, projector_from_config
+    from ..scene import camera_from_config
 
     sim = pc.simulated
     if sim.camera.lens is None or sim.camera.pose is None:
@@ -388,7 +390,7 @@ def _simulated_frames(cfg, k: int, pc: C.ProjectorCalibration, ctx) -> list[tupl
     name = _projector_name(pc, k)
     ctx.say(f"calibrate: projector {name}: rendering the board at {len(sim.heights_mm)} height(s) (simulated rig)")
     sensor = replace(emccd_model(sim.camera.sensor, sim.exposure_s), em_gain=sim.em_gain)
-    frames = SC.simulate_board_frames(camera_from_config(sim.camera), projector_from_config(sim.projector),
+    frames = SC.simulate_board_frames(camera_from_config(sim.camera), projector_model(sim.projector),
                                       sim.heights_mm, board_size_mm=sim.board_size_mm, albedo=sim.albedo,
                                       period_px=pc.patterns.period_px, n_steps=pc.patterns.n_steps, sensor=sensor,
                                       photons_white=sim.photons_white, ambient_photons=sim.ambient_photons,
@@ -456,7 +458,7 @@ def _projectors(cfg, sec: C.Calibrate, cam: C.Camera, geo: GeometricCalibration,
         except ValueError as e:
             raise UserError(f"calibrate.projectors[{k}] ({name}): {e}; check that the board is lit by the projector "
                             "in the frames and that min_contrast_fraction is not too high.") from None
-        fit = ProjectorFit(name, res, _projector_block(name, res.projector), bool(pc.gamma is None and gamma_meas),
+        fit = ProjectorFit(name, res, _projector_block(res.projector), bool(pc.gamma is None and gamma_meas),
                            heights, valid_frac)
         if pc.simulated is not None:
             fit.truth = _truth_errors(pc.simulated.projector, res.projector)
@@ -469,10 +471,8 @@ def _truth_errors(true_cfg: C.ProjectorModel, fitted) -> dict:
     """The simulated projector's block and how far the fit is from it (reported, never used by the fit)."""
     from scipy.spatial.transform import Rotation
 
-    from ..scene import projector_from_config
-
-    t = projector_from_config(true_cfg)
-    return {"block": _projector_block(true_cfg.name or "truth", t),
+    t = projector_model(true_cfg)
+    return {"block": _projector_block(t),
             "center_error_mm": float(np.linalg.norm(fitted.center_mm - t.center_mm)),
             "rotation_error_deg": float(np.degrees(Rotation.from_matrix(fitted.rotation @ t.rotation.T).magnitude())),
             "focal_error": float(fitted.fx_px / t.fx_px - 1), "gamma_error": float(fitted.gamma - t.gamma)}
