@@ -23,7 +23,8 @@ from scipy.spatial import cKDTree
 
 from ..surface.mesh import Surface
 
-__all__ = ["estimate_normals", "remove_outliers", "closed_surface", "distances_to_surface", "coverage"]
+__all__ = ["estimate_normals", "remove_outliers", "closed_surface", "distances_to_surface", "coverage",
+           "signed_volume_mm3", "capture_metrics"]
 
 
 def estimate_normals(points_mm: np.ndarray, view_dirs: np.ndarray, *, k: int = 12) -> np.ndarray:
@@ -175,3 +176,32 @@ def coverage(points_mm: np.ndarray, surface: Surface, *, radius_mm: float, sampl
     p = (1 - s)[:, None] * t[:, 0] + (s * (1 - r2))[:, None] * t[:, 1] + (s * r2)[:, None] * t[:, 2]
     d, _ = cKDTree(points_mm).query(p, distance_upper_bound=radius_mm)
     return float(np.mean(np.isfinite(d)))
+
+
+def signed_volume_mm3(surface: Surface) -> float:
+    """Enclosed volume (mm^3) of a closed, outward-wound triangle surface (divergence theorem)."""
+    t = surface.vertices_mm[surface.faces]
+    return float(np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6)
+
+
+def capture_metrics(points_mm: np.ndarray, distance_mm: np.ndarray, mesh: Surface, truth: Surface, *,
+                    coverage_radius_mm: float = 1.0) -> dict:
+    """How a structured-light capture compares with the true surface (simulated rig).
+
+    Returns a dict of plain numbers: ``points``; ``within_0.1mm``, ``within_0.2mm``,
+    ``within_0.4mm`` (fractions of points whose distance to the truth is below); their
+    ``median_distance_mm``; ``covered_fraction_1mm`` (fraction of the true area within
+    ``coverage_radius_mm`` of a point); the mesh's ``volume_mm3``, ``area_mm2``, the truth's,
+    and the relative ``volume_error`` and ``area_error``; ``mesh_closed``."""
+    d = np.asarray(distance_mm, float)
+    vol, vol_true = signed_volume_mm3(mesh), signed_volume_mm3(truth)
+    area, area_true = float(mesh.face_areas_mm2.sum()), float(truth.face_areas_mm2.sum())
+    out = {"points": int(len(d))}
+    for t in (0.1, 0.2, 0.4):
+        out[f"within_{t}mm"] = float(np.mean(d < t)) if len(d) else 0.0
+    out.update({"median_distance_mm": float(np.median(d)) if len(d) else float("nan"),
+                "covered_fraction_1mm": coverage(points_mm, truth, radius_mm=coverage_radius_mm),
+                "volume_mm3": vol, "volume_true_mm3": vol_true, "volume_error": vol / vol_true - 1,
+                "area_mm2": area, "area_true_mm2": area_true, "area_error": area / area_true - 1,
+                "mesh_closed": bool(mesh.is_closed)})
+    return out
