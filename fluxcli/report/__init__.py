@@ -576,6 +576,11 @@ def make_report(study: Study, out_dir: Path, *, title: str, geometry: Geometry, 
         summary.update(jsonable(add(page, save)))
     page.notes(study.notes)
     summary["notes"] = list(study.notes)
+    return _finish(out_dir, page, summary, figures, extra)
+
+
+def _finish(out_dir: Path, page, summary: dict, figures: list[str], extra: dict | None) -> tuple[Path, dict]:
+    """Write ``summary.json`` (with the figures' names and ``extra``) and ``index.html``."""
     summary["figures"] = figures
     if extra:
         summary.update(jsonable(extra))
@@ -620,10 +625,4 @@ def sections_report(out_dir: Path, title: str, sections: list, *, extra: dict | 
     summary: dict = {}
     for add in sections:
         summary.update(jsonable(add(page, save)))
-    summary["figures"] = figures
-    if extra:
-        summary.update(jsonable(extra))
-    _write_text(out_dir / "summary.json", json.dumps(summary, indent=1))
-    index = out_dir / "index.html"
-    _write_text(index, page.html(out_dir))
-    return index, summary
+    return _finish(out_dir, page, summary, figures, extra)
