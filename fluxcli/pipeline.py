@@ -358,6 +358,8 @@ def write_surface_artefact(path: Path, surface, *, points=None, decode: dict | N
             A.put(g, "projector", points.projector.astype(np.int16))
             if distance_to_truth_mm is not None:
                 A.put(g, "distance_to_truth_mm", np.asarray(distance_to_truth_mm, float))
+            if decode:  # the name of each value of points/view, in order
+                g.attrs["view_names"] = list(dict.fromkeys(view for view, _ in decode))
         if truth is not None:
             A.write_surface(f.create_group("truth"), truth)
         if metrics:

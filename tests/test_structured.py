@@ -372,5 +372,6 @@ def test_report_shows_the_captured_surface_over_the_truth(sphere_scan, tmp_path,
         direct, side = (f[f"decode/{v}/right/mask"][()].astype(bool) for v in ("direct", "side"))
     assert direct.sum() > 100 and side.sum() > 20 and not (direct & side).any()  # the right projector lights the mirror's side
     assert summary["decoded_pixels"]["right/direct"] == int(direct.sum())
+    assert f"direct: {int((merged.view == 0).sum())}, side: {int((merged.view == 1).sum())}" in html
     # the captured sphere's vertices lie on the truth (median well below a voxel)
     assert summary["vertex_distance_mm"]["median"] < 0.2

@@ -124,6 +124,7 @@ def add_surface_section(page, save: Callable, surface_h5: Path, *, plotly_loaded
         pts = f["points/positions_mm"][()] if "points/positions_mm" in f else None
         dist = f["points/distance_to_truth_mm"][()] if "points/distance_to_truth_mm" in f else None
         views_of_points = f["points/view"][()] if "points/view" in f else None
+        point_views = [str(v) for v in f["points"].attrs.get("view_names", [])] if "points" in f else []
         truth = _read_surface(f["truth"]) if "truth" in f else None
         decode, views, projectors = {}, [], []
         if "decode" in f:
@@ -134,15 +135,15 @@ def add_surface_section(page, save: Callable, surface_h5: Path, *, plotly_loaded
                         projectors.append(p)
                     g = f["decode"][v][p]
                     decode[(v, p)] = {"phase": g["phase"][()], "mask": g["mask"][()]}
-            views.sort(key=lambda v: (v != "direct", v))
+            views.sort(key=lambda v: point_views.index(v) if v in point_views else len(point_views))
     mesh = Surface(verts, faces, np.arange(len(faces)), len(faces))
     summary = {"faces": int(len(faces)), "area_mm2": float(mesh.face_areas_mm2.sum()), "closed": bool(mesh.is_closed)}
     summary.update(metrics)
     page.text(f"The closed surface `capture-surface` measured ({len(faces)} triangles, "
               f"{'closed' if mesh.is_closed else 'NOT closed'}), from "
               + (f"{len(pts)} triangulated points" if pts is not None else "its points")
-              + (" (" + ", ".join(f"{v}: {int((views_of_points == j).sum())}" for j, v in enumerate(views or ['direct']))
-                 + ")" if views_of_points is not None and views else "") + ".")
+              + (" (" + ", ".join(f"{v}: {int((views_of_points == j).sum())}" for j, v in enumerate(point_views))
+                 + ")" if views_of_points is not None and point_views else "") + ".")
     if metrics:
         rows = [[f"points within {t:g} mm of the true surface", f"{metrics.get(f'within_{t}mm', float('nan')):.1%}",
                  f">= {need:.0%}"] for t, need in DISTANCE_BARS]
