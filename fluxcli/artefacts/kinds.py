@@ -183,9 +183,12 @@ register(Kind("surface", 1, "fluxmap capture-surface (structured light)",
               "the subject's closed surface measured by structured light, in world coordinates", (
     *_SURFACE,
     Dataset("points/positions_mm", "mm", "triangulated points the surface was built from (n, 3)", required=False),
-    Dataset("points/view", "", "view each point was seen in: 0 direct, j through mirror j-1", required=False),
+    Dataset("points/view", "", "view each point was seen in: 0 direct, j through mirror j-1 (attribute view_names: their names)", required=False),
     Dataset("points/projector", "", "index of the projector that coded each point", required=False),
     Dataset("points/distance_to_truth_mm", "mm", "simulated rig: each point's distance to the true surface", required=False),
+    Dataset("truth/vertices", "mm", "simulated rig: the true surface the capture is measured against", required=False),
+    Dataset("metrics", "", "simulated rig: attributes points, within_0.1mm/0.2mm/0.4mm, median_distance_mm, "
+            "covered_fraction_1mm, volume/area (mm^3, mm^2) and their errors against the truth", required=False),
     Dataset("decode", "", "decode/<view>/<projector>/{phase (wrapped, rad), column_px (decoded projector column, "
             "px), mask (1: decoded and triangulated)} per camera pixel [row, col] of the pattern frames", required=False),
 )))

@@ -413,10 +413,10 @@ def _make_surface(cfg: C.LoadedConfig, ctx: RunContext, sf: C.CaptureSurface, sc
     """Decode the pattern frames of ``capture_path``, triangulate, mesh, write ``surface.h5``."""
     from ..acquisition import read_patterns
     from ..hardware.projector import projector_model
-    from ..pipeline import emccd_model, provenance, write_surface_artefact
+    from ..pipeline import decode_datasets, emccd_model, provenance, write_surface_artefact
     from ..scene import mirror_names, plane_mirrors
-    from ..structured.mesh import distances_to_surface
-    from ..structured.scan import decode_images, merge_points, points_from_frames, surface_from_points, views_of_pixels
+    from ..structured.mesh import capture_metrics, distances_to_surface
+    from ..structured.scan import merge_points, points_from_frames, surface_from_points
 
     m = cfg.model
     out = cfg.workdir / "surface.h5"
@@ -431,8 +431,7 @@ def _make_surface(cfg: C.LoadedConfig, ctx: RunContext, sf: C.CaptureSurface, sc
     mirrors = plane_mirrors(m.system)
     views = ["direct"] + mirror_names(m.system)
     photons = pc.photons(emccd_model(m.system.camera.sensor, pc.exposure_s))
-    view_of_pixel = views_of_pixels(camera, mirrors)
-    scans, decode = [], {}
+    scans = []
     with ctx.progress("decode", len(pc.projectors)) as tick:
         for name in pc.projectors:
             ps = _patterns(sf, m.rig.projectors[name])
@@ -440,8 +439,8 @@ def _make_surface(cfg: C.LoadedConfig, ctx: RunContext, sf: C.CaptureSurface, sc
                                       min_contrast=sf.min_contrast_photons,
                                       min_modulation_fraction=sf.min_modulation_fraction)
             scans.append(scan)
-            decode |= {(views[j], name): images for j, images in enumerate(decode_images(scan, view_of_pixel, len(views)))}
             tick()
+    decode = decode_datasets(scans, list(pc.projectors), views, camera, mirrors)
     h = pc.height_mm
     floor = (m.system.stage.top_z_mm + h) if m.system.stage is not None else None
     merged = merge_points(scans, floor_z_mm=-np.inf if floor is None else floor)
@@ -454,16 +453,19 @@ def _make_surface(cfg: C.LoadedConfig, ctx: RunContext, sf: C.CaptureSurface, sc
     mesh = surface_from_points(merged, floor_z_mm=floor, element_size_mm=sf.mesh.element_size_mm,
                                face_size_mm=sf.mesh.face_size_mm, voxel_mm=sf.mesh.voxel_mm,
                                centre_spacing_mm=sf.mesh.centre_spacing_mm)
-    distance = None
+    distance = truth = metrics = None
     if scene is not None:  # the simulated rig knows the truth
-        distance = distances_to_surface(merged.points_mm, scene.true_surface_at(h))
+        truth = scene.true_surface_at(h)
+        distance = distances_to_surface(merged.points_mm, truth)
+        metrics = capture_metrics(merged.points_mm, distance, mesh, truth)
+        truth = truth.transformed(np.eye(3), np.array([0.0, 0.0, -h]))
         ctx.say("capture-surface: points within 0.1 / 0.2 / 0.4 mm of the true surface: "
                 + " / ".join(f"{np.mean(distance < t):.1%}" for t in (0.1, 0.2, 0.4)))
     # at rest: as with the stage at height 0 (poses raise it by their height)
     shift = np.array([0.0, 0.0, -h])
     mesh = mesh.transformed(np.eye(3), shift)
     merged.points_mm = merged.points_mm + shift
-    write_surface_artefact(out, mesh, points=merged, decode=decode, distance_to_truth_mm=distance,
+    write_surface_artefact(out, mesh, points=merged, decode=decode, distance_to_truth_mm=distance, truth=truth, metrics=metrics,
                            config_sha256=cfg.sha256, inputs={"capture": A.file_sha256(capture_path)},
                            provenance=provenance(cfg), attrs={"inputs_digest": digest, "capture_height_mm": h})
     ctx.say(f"capture-surface: {out}: {len(mesh.faces)} faces, {mesh.n_elements} elements, "

@@ -78,8 +78,11 @@ class PatternRenderer:
         rr, cc = np.meshgrid(np.arange(ny * sub) // sub, np.arange(nx * sub) // sub, indexing="ij")
         pix = (rr * nx + cc).ravel()
         focal = focal.reshape(-1, 3)
-        disk = sunflower_disk(lens_samples)
-        self.n_samples = sub * sub * lens_samples
+        # lens points in +-pairs: their centroid is the lens centre (a sunflower set of a few points
+        # is off-centre by up to 0.16 R, which shifts every defocused image sideways by a z-dependent amount)
+        half = sunflower_disk(max((lens_samples + 1) // 2, 1))
+        disk = np.concatenate([half, -half]) if lens_samples > 1 else np.zeros((1, 2))
+        self.n_samples = sub * sub * len(disk)
         pix_all, u_all, v_all, w_all, view_all = [], [], [], [], []
         for k in range(len(mirrors) + 1):
             cam = camera if k == 0 else camera.mirrored(mirrors[k - 1][0])

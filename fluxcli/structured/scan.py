@@ -21,8 +21,7 @@ from .projector import Projector
 from .render import PatternRenderer
 from .triangulate import chief_rays, triangulate_columns
 
-__all__ = ["simulate_frames", "ScanPoints", "points_from_frames", "MergedPoints", "merge_points", "surface_from_points",
-           "views_of_pixels", "decode_images"]
+__all__ = ["simulate_frames", "ScanPoints", "points_from_frames", "MergedPoints", "merge_points", "surface_from_points"]
 
 
 def simulate_frames(renderer: PatternRenderer, patterns: PatternSet, *, photons_white: float, ambient_photons: float,
@@ -109,36 +108,10 @@ def merge_points(scans: list[ScanPoints], *, floor_z_mm: float, stage_margin_mm:
 
 
 def surface_from_points(pts: MergedPoints, *, floor_z_mm: float, element_size_mm: float = 4.0,
-                        face_size_mm: float = 1.0, voxel_mm: float = 1.0, centre_spacing_mm: float = 2.5) -> Surface:
+                        face_size_mm: float = 1.0, voxel_mm: float = 0.8, centre_spacing_mm: float = 2.5) -> Surface:
     """The closed surface through merged points (normals by local PCA, turned to the viewer;
     :func:`~fluxcli.structured.mesh.closed_surface` with the decoded rays carving free space)."""
     n = estimate_normals(pts.points_mm, pts.view_dirs)
     return closed_surface(pts.points_mm, n, floor_z_mm=floor_z_mm, voxel_mm=voxel_mm,
                           centre_spacing_mm=centre_spacing_mm, face_size_mm=face_size_mm,
                           element_size_mm=element_size_mm, free_rays=pts.free_rays)
-
-
-def views_of_pixels(camera: ThinLensCamera, mirrors: list[PlaneMirror]) -> np.ndarray:
-    """``[ny, nx]`` the view each camera pixel looks along: 0 direct, j through mirror j-1
-    (where its chief ray meets that mirror, as :func:`~.triangulate.chief_rays`)."""
-    origins, _, _ = chief_rays(camera, mirrors)
-    view = np.zeros(camera.ny * camera.nx, np.int64)
-    for j in range(1, len(mirrors) + 1):
-        view[np.isfinite(origins[j, :, 0])] = j
-    return view.reshape(camera.ny, camera.nx)
-
-
-def decode_images(scan: ScanPoints, view_of_pixel: np.ndarray, n_views: int) -> list[dict[str, np.ndarray]]:
-    """Per view (``n_views``, indexed as in ``view_of_pixel``), images ``[ny, nx]`` of a scan's decoding:
-    ``phase`` (wrapped, rad) and ``column_px`` (decoded projector column; nan where masked)
-    inside the view, ``mask`` (uint8, 1 where the pixel gave a point)."""
-    used = np.zeros(view_of_pixel.size, bool)
-    used[scan.pixel] = True
-    used = used.reshape(view_of_pixel.shape)
-    out = []
-    for j in range(n_views):
-        here = view_of_pixel == j
-        out.append({"phase": np.where(here, scan.decoded.wrapped_phase, np.nan),
-                    "column_px": np.where(here, scan.decoded.column_px, np.nan),
-                    "mask": (here & used).astype(np.uint8)})
-    return out
