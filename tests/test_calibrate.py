@@ -308,6 +308,18 @@ def test_cli_calibrates_a_projector_against_the_calibrated_camera(grid_set, tmp_
     rep = CliRunner().invoke(app, ["report", str(cfg_path), "-q", "--force"])
     assert rep.exit_code == 0, rep.output
     assert (tmp_path / "out" / "report" / "calibration_projector_left.png").is_file()
+    # a lab gives its frame files instead (here: the same files, by glob pattern): the same projector
+    folder = tmp_path / "out" / "projector_frames" / "left"
+    cfg["workdir"] = str(tmp_path / "lab")
+    cfg["calibrate"]["projectors"] = [{"name": "left", "pixels": [400, 300], "images": [
+        {"plane_z_mm": z, "columns": str(folder / f"z{z:+07.2f}_columns_*.tif"),
+         "rows": str(folder / f"z{z:+07.2f}_rows_*.tif")} for z in (-20.0, 0.0, 20.0)]}]
+    lab = tmp_path / "lab.yaml"
+    lab.write_text(yaml.safe_dump(cfg))
+    r = _run(lab)
+    assert r.exit_code == 0, r.output
+    again = yaml.safe_load((tmp_path / "lab" / "camera.yaml").read_text())["projectors"]["left"]
+    assert again == yaml.safe_load((tmp_path / "out" / "camera.yaml").read_text())["projectors"]["left"]
 
 
 def test_projector_frames_of_the_wrong_count_exit_2(grid_set, tmp_path):

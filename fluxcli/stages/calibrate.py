@@ -341,17 +341,28 @@ def _expand(cfg, spec, key: str) -> list[Path]:
 
 def _projector_frame_paths(cfg, sec: C.Calibrate) -> dict[str, list[Path]]:
     """Every projector frame file the config names (simulated frames are made later), by config key."""
+    from ..structured.patterns import column_patterns
+
     out = {}
     for k, pc in enumerate(sec.projectors):
         for i, im in enumerate(pc.images):
-            for which in ("columns", "rows"):
+            for which, cells in (("columns", pc.pixels[0]), ("rows", pc.pixels[1])):
                 key = f"calibrate.projectors[{k}].images[{i}].{which}"
                 paths = _expand(cfg, getattr(im, which), key)
                 for p in paths:
                     if not p.is_file():
                         raise UserError(f"{key}: frame file {p} does not exist.")
+                n = len(column_patterns(cells, 1, period_px=pc.patterns.period_px, n_steps=pc.patterns.n_steps).frames)
+                _check_count(paths, key, n)
                 out[key] = paths
     return out
+
+
+def _check_count(paths: list[Path], key: str, n_expected: int) -> None:
+    if len(paths) != n_expected:
+        raise UserError(f"{key}: {len(paths)} frame file(s) given, the pattern sequence has {n_expected} "
+                        "(white, black, each Gray bit and its inverse, the phase steps; check "
+                        "calibrate.projectors[].pixels and .patterns).")
 
 
 def _projector_block(p) -> dict:
@@ -361,10 +372,7 @@ def _projector_block(p) -> dict:
 
 
 def _read_frames(paths: list[Path], key: str, n_expected: int, shape) -> np.ndarray:
-    if len(paths) != n_expected:
-        raise UserError(f"{key}: {len(paths)} frame file(s) given, the pattern sequence has {n_expected} "
-                        "(white, black, each Gray bit and its inverse, the phase steps; check "
-                        "calibrate.projectors[].pixels and .patterns).")
+    _check_count(paths, key, n_expected)
     out = []
     for p in paths:
         try:
