@@ -21,7 +21,7 @@ SENSOR = EMCCDModel(quantum_efficiency=0.8, em_gain=100.0, read_noise_e=40.0, bi
 
 def flat_camera(rate=30.0, shape=(64, 64), seed=3, **kw):
     state = {"h": 0.0, "f": "open"}
-    cam = SimulatedEmccd(lambda h, f, **_: np.full(shape, rate * (2.0 if f == "580nm" else 1.0)),
+    cam = SimulatedEmccd(lambda h, f: np.full(shape, rate * (2.0 if f == "580nm" else 1.0)),
                          stage_height_mm=lambda: state["h"], filter_name=lambda: state["f"], sensor=SENSOR,
                          seed=seed, time_scale=0.0, **kw)
     return cam, state

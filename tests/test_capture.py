@@ -254,7 +254,7 @@ def test_counts_to_photons_subtracts_the_dark_level_without_bias():
     sensor = EMCCDModel(quantum_efficiency=0.7, em_gain=50.0, read_noise_e=30.0, bias_counts=321.0,
                         electrons_per_count=8.0, dark_current_e_per_s=2.0, cic_e_per_pixel=0.1, exposure_s=0.5)
     N = np.linspace(5.0, 40.0, 64 * 64).reshape(64, 64)  # photons per exposure
-    cam = SimulatedEmccd(lambda h, f, **_: N / 0.5, stage_height_mm=lambda: 0.0, filter_name=lambda: "open",
+    cam = SimulatedEmccd(lambda h, f: N / 0.5, stage_height_mm=lambda: 0.0, filter_name=lambda: "open",
                          sensor=sensor, seed=1, time_scale=0.0)
     darks = cam.sequence(6)
     cam.shutter_open = True

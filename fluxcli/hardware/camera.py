@@ -102,7 +102,9 @@ class SimulatedEmccd(Camera):
 
     Parameters
     ----------
-    render : callable ``(height_mm, filter_name, *, projectors, binning) -> ndarray [ny, nx]``
+    render : callable ``(height_mm, filter_name) -> ndarray [ny, nx]``, and with
+        ``projectors`` (or a binning finer than the native one) ``(height_mm, filter_name, *,
+        projectors, binning)``
         Expected photons per pixel per second reaching the sensor with the stage at
         ``height_mm`` (mm), filter ``filter_name`` in the beam, ``projectors`` (a dict
         projector name -> the pattern ``[height_px, width_px]`` it shows; only projectors
@@ -145,7 +147,7 @@ class SimulatedEmccd(Camera):
         self._render = render
         self._height = stage_height_mm
         self._filter = filter_name
-        self._projectors = projectors or dict
+        self._projectors = projectors
         self._sensor = sensor
         self._seed = int(seed)
         self._native_binning = int(native_binning)
@@ -225,8 +227,12 @@ class SimulatedEmccd(Camera):
     def _expected_photons(self, *, open_shutter: bool) -> np.ndarray:
         if not open_shutter and self._shape is not None:
             return np.zeros(self.shape)  # a dark frame: nothing to render
-        rate = np.asarray(self._render(float(self._height()), str(self._filter()), projectors=self._projectors(),
-                                       binning=self._binning), dtype=np.float64)
+        h, f = float(self._height()), str(self._filter())
+        if self._projectors is None and self._binning == self._native_binning:  # emission only
+            rate = np.asarray(self._render(h, f), dtype=np.float64)
+        else:
+            rate = np.asarray(self._render(h, f, projectors=self._projectors() if self._projectors else {},
+                                           binning=self._binning), dtype=np.float64)
         want = self.shape if self._shape is not None else None
         if rate.ndim != 2 or (want is not None and rate.shape != want):
             raise ValueError(f"render must return a 2-D image {want or '[ny, nx]'}, got shape {rate.shape}")
