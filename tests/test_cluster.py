@@ -109,3 +109,41 @@ def test_an_unreachable_scheduler_is_exit_2_naming_it(tmp_path, monkeypatch):
     assert r.exit_code == 2, r.output
     assert "tcp://127.0.0.1:9" in r.output and "Traceback" not in r.output
     assert not (tmp_path / "cache").exists() or not any((tmp_path / "cache").rglob("*.h5"))
+
+
+def test_ctrl_c_cancels_a_build_on_the_cluster(tmp_path, cluster):
+    """SIGINT to fluxmap while the cluster builds: exit 130 within seconds, no traceback,
+    and the tasks not yet finished are cancelled on the scheduler."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from distributed import Client
+
+    cfg = tiny_config(tmp_path)
+    cfg["subject"]["poses"] = {"heights_mm": [0, 1, 2, 3, 4, 5, 6, 7, 8, 9]}
+    cfg["transfer"]["lens"] = {"lens_samples_min": 2048, "lens_samples_max": 2048}  # seconds per pose
+    p = tmp_path / "cfg.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    proc = subprocess.Popen([sys.executable, "-m", "fluxcli.cli", "build-T", str(p), "--scheduler",
+                             cluster.scheduler_address], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=os.environ | {"COLUMNS": "120"})
+    with Client(cluster.scheduler_address, set_as_default=False) as client:
+        t_end = time.monotonic() + 60
+        while not any(client.processing().values()) and time.monotonic() < t_end:  # tasks reached the workers
+            time.sleep(0.1)
+        assert proc.poll() is None, proc.communicate()
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+        stopped_s = time.monotonic() - t0
+        assert proc.returncode == 130, err
+        assert "Traceback" not in err and "interrupted" in err
+        assert stopped_s < 10.0, f"took {stopped_s:.1f} s to stop"
+        t_end = time.monotonic() + 30  # what was queued is cancelled (what runs finishes on its own)
+        while client.run_on_scheduler(lambda dask_scheduler: len(dask_scheduler.tasks)) and time.monotonic() < t_end:
+            time.sleep(0.2)
+        assert client.run_on_scheduler(lambda dask_scheduler: len(dask_scheduler.tasks)) == 0
+    assert len(list((tmp_path / "cache").rglob("*.h5"))) < 10  # the queued poses were never built
