@@ -200,9 +200,9 @@ class PartialFiles(Checkpoint):
     read back by the next run of the same pose (same key: same inputs, same blocks) and
     removed when the pose's T file is written."""
 
-    def __init__(self, cache: Path, key: str, rays_per_block: int = CHECKPOINT_RAYS):
+    def __init__(self, cache: Path, key: str, rays_per_block: int | None = None):
         self.folder = Path(cache) / f"{key}.part"
-        self.rays_per_block = rays_per_block
+        self.rays_per_block = CHECKPOINT_RAYS if rays_per_block is None else rays_per_block
 
     def _path(self, view: int, block: list[int]) -> Path:
         return self.folder / f"view{view}-chunks{block[0]}-{block[-1]}.npz"

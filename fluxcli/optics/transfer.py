@@ -387,7 +387,7 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
             fn, handle, cam_arr, mir, ap_dist, ap_r2, eps, plan.P, plan.N, plan.G, plan.dA, plan.elem, plan.lo,
             plan.hi, plan.dc, plan.disk_r, plan.use_box, plan.n_lens, plan.pat_off, plan.disk_unit,
             plan.square_unit, plan.jitter, chunk[0], chunk[1], n_pix, cam.nx, cam.ny,
-            scratch.even, scratch.odd, scratch.mark, scratch.touched)
+            scratch.even, scratch.odd, scratch.mark, scratch.touched, _NO_RECORD)
 
     rays_of = [int(plan.n_lens[a:b].sum()) for a, b in plan.chunks]
     if checkpoint is not None and not 0 < checkpoint.rays_per_block < plan.rays:
@@ -411,7 +411,7 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
                 checkpoint.save(view_index, block, [results[i] for i in block])
     # chunks hold increasing, whole elements: their columns concatenate into CSC
     nnz_per_col = np.zeros(surface.n_elements, np.int64)
-    for elements, starts, _, _, col_err, _, _ in results:
+    for elements, starts, _, _, col_err, *_ in results:
         nnz_per_col[elements] = np.diff(starts)
         err[elements] = col_err
     indptr = np.concatenate([[0], np.cumsum(nnz_per_col)])
@@ -422,6 +422,9 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
     stats = {"rays": float(sum(r[5] for r in results)), "surface_samples": float(len(plan.P)),
              "rays_evaluated": float(plan.rays)}
     return T.tocsr(), err, stats
+
+
+_NO_RECORD = np.zeros((0, 7), np.float32)
 
 
 def _blocks(rays_of: list[int], rays_per_block: int) -> list[list[int]]:

@@ -26,7 +26,7 @@ from .embree_native import new_ray, segment_blocked
 def lens_columns(fn, scene, cam, mir, ap_dist, ap_r2, eps,
                  P, N, G, dA, elem, lo, hi, dc, disk_r, use_box, n_lens, pat_off,
                  disk_unit, square_unit, jitter, s0, s1, n_pix, nx, ny,
-                 acc_even, acc_odd, mark, touched):
+                 acc_even, acc_odd, mark, touched, record):
     """Columns of the elements whose samples are ``[s0, s1)`` (whole elements, sorted).
 
     Parameters
@@ -45,11 +45,14 @@ def lens_columns(fn, scene, cam, mir, ap_dist, ap_r2, eps,
     disk_unit, square_unit, jitter : the patterns (M, 2), concatenated per count.
     acc_even, acc_odd, mark, touched : per-thread scratch of n_pix (zero / False on entry,
         left so on exit).
+    record : float32 (R, 7), usually (0, 7): the first R segments cast are written here
+        (origin, unit direction, length) so that a benchmark can cast the very same rays
+        through embreex.
 
     Returns
     -------
     (elements (K,), column starts (K + 1,), pixel (nnz,), value (nnz,), column error (K,),
-    rays cast, rays evaluated)
+    rays cast, rays evaluated, segments recorded)
     """
     ray, rayu = new_ray()
     cx, cy, cz = cam[0], cam[1], cam[2]
@@ -76,6 +79,7 @@ def lens_columns(fn, scene, cam, mir, ap_dist, ap_r2, eps,
     nnz = 0
     k_el = 0
     cast = 0
+    n_rec = 0
     for s in range(s0, s1):
         px, py, pz = P[s, 0], P[s, 1], P[s, 2]
         nx_, ny_, nz_ = N[s, 0], N[s, 1], N[s, 2]
@@ -145,6 +149,9 @@ def lens_columns(fn, scene, cam, mir, ap_dist, ap_r2, eps,
             if not has_mirror:
                 length = math.sqrt(ux * ux + uy * uy + uz * uz)
                 cast += 1
+                if n_rec < len(record):
+                    _record(record, n_rec, Ox, Oy, Oz, ux / length, uy / length, uz / length, length)
+                    n_rec += 1
                 if segment_blocked(fn, scene, ray, rayu, Ox, Oy, Oz, ux / length, uy / length, uz / length,
                                    length):
                     continue
@@ -166,10 +173,17 @@ def lens_columns(fn, scene, cam, mir, ap_dist, ap_r2, eps,
                 l1 = math.sqrt(s1x * s1x + s1y * s1y + s1z * s1z)
                 s2x, s2y, s2z = Rx - Mx, Ry - My, Rz - Mz
                 l2 = math.sqrt(s2x * s2x + s2y * s2y + s2z * s2z)
-                cast += 2
+                e2x, e2y, e2z = s2x / l2, s2y / l2, s2z / l2
+                cast += 1
+                if n_rec < len(record):
+                    _record(record, n_rec, Ox, Oy, Oz, s1x / l1, s1y / l1, s1z / l1, l1 - eps)
+                    n_rec += 1
                 if segment_blocked(fn, scene, ray, rayu, Ox, Oy, Oz, s1x / l1, s1y / l1, s1z / l1, l1 - eps):
                     continue
-                e2x, e2y, e2z = s2x / l2, s2y / l2, s2z / l2
+                cast += 1
+                if n_rec < len(record):
+                    _record(record, n_rec, Mx + eps * e2x, My + eps * e2y, Mz + eps * e2z, e2x, e2y, e2z, l2 - eps)
+                    n_rec += 1
                 if segment_blocked(fn, scene, ray, rayu, Mx + eps * e2x, My + eps * e2y, Mz + eps * e2z,
                                    e2x, e2y, e2z, l2 - eps):
                     continue
@@ -198,4 +212,11 @@ def lens_columns(fn, scene, cam, mir, ap_dist, ap_r2, eps,
             k_el += 1
             starts[k_el] = nnz
             n_touched = 0
-    return elements, starts, out_pix[:nnz].copy(), out_val[:nnz].copy(), col_err, cast, n_rays
+    return elements, starts, out_pix[:nnz].copy(), out_val[:nnz].copy(), col_err, cast, n_rays, n_rec
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def _record(record, i, ox, oy, oz, dx, dy, dz, length):
+    record[i, 0], record[i, 1], record[i, 2] = ox, oy, oz
+    record[i, 3], record[i, 4], record[i, 5] = dx, dy, dz
+    record[i, 6] = max(length, 0.0)
