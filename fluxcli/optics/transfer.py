@@ -20,7 +20,6 @@ segments (surface -> lens, or surface -> mirror -> lens).
 
 from __future__ import annotations
 
-import contextlib
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -394,7 +393,8 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
         checkpoint = None  # a view smaller than one block is not worth files
     results: list = [None] * len(plan.chunks)
     done = 0
-    with ThreadPoolExecutor(threads) if threads > 1 else contextlib.nullcontext() as pool:
+    pool = ThreadPoolExecutor(threads) if threads > 1 else None
+    try:
         for block in _blocks(rays_of, checkpoint.rays_per_block if checkpoint else 0):
             saved = checkpoint.load(view_index, block) if checkpoint else None
             if saved is not None and len(saved) == len(block):
@@ -409,6 +409,9 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
                     progress(min(done / plan.rays, 1.0))
             if checkpoint and saved is None:
                 checkpoint.save(view_index, block, [results[i] for i in block])
+    finally:
+        if pool is not None:  # on Ctrl-C: drop the queued chunks, let the running ones end (milliseconds)
+            pool.shutdown(wait=True, cancel_futures=True)
     # chunks hold increasing, whole elements: their columns concatenate into CSC
     nnz_per_col = np.zeros(surface.n_elements, np.int64)
     for elements, starts, _, _, col_err, *_ in results:
