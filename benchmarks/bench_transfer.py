@@ -87,7 +87,7 @@ def record_rays(scene, views, sampling: LensSampling = LensSampling()) -> np.nda
     from fluxcli.surface.mesh import merge
 
     occ = OcclusionScene(*merge(scene.surface, *scene.occluders))
-    fn, handle = occ.native
+    nat = occ.native
     out = []
     for view in views:
         p = TR._lens_plan(scene.surface, view, sampling, 10**12)
@@ -95,7 +95,7 @@ def record_rays(scene, views, sampling: LensSampling = LensSampling()) -> np.nda
         n_pix = cam.nx * cam.ny
         rec = np.zeros((2 * p.rays, 7), np.float32)
         res = transfer_kernel.lens_columns(
-            fn, handle, np.array([*cam.center_mm, *cam.axis, *cam.right, *cam.down, cam.focus_distance_mm,
+            nat.occluded16, nat.scene, np.array([*cam.center_mm, *cam.axis, *cam.right, *cam.down, cam.focus_distance_mm,
                                   cam.focal_pixel_mm, cam.aperture_radius_mm**2, 0.0, 0.0]),
             np.array([1.0, *m.center_mm, *m.normal, *m.axis_u, *m.axis_v, *m.half_size_mm]) if m else np.zeros(15),
             np.array([a.distance_mm for a in cam.apertures], float), np.array([a.radius_mm**2 for a in cam.apertures]),

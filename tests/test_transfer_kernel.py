@@ -47,6 +47,15 @@ def test_native_occlusion_answers_exactly_as_embreex():
     ref = scene.blocked_embreex(origins, d, lengths)
     assert 0.2 < native.mean() < 0.8
     assert np.array_equal(native, ref)
+    # the T kernel's 16-ray packets, rays in an order as coherent as the kernel's (by origin)
+    # and as they come (incoherent)
+    from fluxcli.optics import embree_native
+
+    nat = scene.native
+    for order in (np.argsort(faces.tolist() + [len(cyl.faces)] * (n - n // 2), kind="stable"), np.arange(n)):
+        packets = np.zeros(n, bool)
+        embree_native.blocked_packets(nat.occluded16, nat.scene, origins[order], d[order], lengths[order], packets)
+        assert np.array_equal(packets, ref[order])
 
 
 def test_T_bytes_do_not_depend_on_threads_or_chunk_size():

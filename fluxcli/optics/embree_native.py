@@ -55,8 +55,9 @@ def _library() -> ctypes.CDLL:
 class NativeScene:
     """A committed Embree scene of ``faces`` over ``vertices_mm`` (float32, as embreex builds it).
 
-    ``handle`` = (address of rtcOccluded1, address of the scene): the two integers a numba
-    kernel needs.  The scene lives as long as this object.
+    ``scene``, ``occluded1``, ``occluded16``: the addresses of the scene and of the single-ray
+    and 16-ray-packet occlusion functions, the integers a numba kernel needs.  The scene lives
+    as long as this object.
     """
 
     def __init__(self, vertices_mm: np.ndarray, faces: np.ndarray):
@@ -78,7 +79,9 @@ class NativeScene:
         err = lib.rtcGetDeviceError(self._device)
         if err:
             raise RuntimeError(f"Embree could not build the occlusion scene (error {err})")
-        self.handle = (ctypes.cast(lib.rtcOccluded1, ctypes.c_void_p).value, int(self._scene))
+        self.scene = int(self._scene)
+        self.occluded1 = ctypes.cast(lib.rtcOccluded1, ctypes.c_void_p).value
+        self.occluded16 = ctypes.cast(lib.rtcOccluded16, ctypes.c_void_p).value
 
     def __del__(self):
         lib = getattr(self, "_lib", None)
@@ -103,6 +106,64 @@ def _occluded1(typingctx, fn_addr, scene_addr, ray):
         return context.get_dummy_value()
 
     return sig, codegen
+
+
+@intrinsic
+def occluded16(typingctx, fn_addr, scene_addr, valid, ray):
+    """Call ``rtcOccluded16(valid, scene, ray16, NULL)``: 16 rays in one traversal (a packet of
+    coherent rays, e.g. from one surface point to its lens samples, costs far less than 16
+    single rays; the answers are the same, tests/test_transfer_kernel.py)."""
+    sig = types.void(types.intp, types.intp, valid, ray)
+
+    def codegen(context, builder, signature, args):
+        fa, sc, v, r = args
+        i8p = ir.IntType(8).as_pointer()
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, i8p, i8p, i8p])
+        fn = builder.inttoptr(fa, fnty.as_pointer())
+        vd = context.make_array(signature.args[2])(context, builder, v).data
+        rd = context.make_array(signature.args[3])(context, builder, r).data
+        builder.call(fn, [builder.bitcast(vd, i8p), builder.inttoptr(sc, i8p), builder.bitcast(rd, i8p),
+                          ir.Constant(i8p, None)])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@nb.njit(nogil=True, cache=True)
+def new_packet() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A 64-byte-aligned RTCRay16 (structure of arrays, 12 fields x 16 rays) as float32 and
+    uint32 views, and its 64-byte-aligned valid mask (int32 x 16)."""
+    buf = np.empty(192 + 16, np.float32)
+    off = ((64 - buf.ctypes.data % 64) % 64) // 4
+    ray = buf[off:off + 192]
+    vbuf = np.empty(32, np.int32)
+    voff = ((64 - vbuf.ctypes.data % 64) % 64) // 4
+    return ray, ray.view(np.uint32), vbuf[voff:voff + 16]
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def packet_put(ray, rayu, j, ox, oy, oz, dx, dy, dz, length) -> None:
+    """Ray ``j`` of a packet: the segment origin + t * (dx, dy, dz), 0 <= t <= length (float32)."""
+    ray[j] = np.float32(ox)
+    ray[16 + j] = np.float32(oy)
+    ray[32 + j] = np.float32(oz)
+    ray[48 + j] = np.float32(0.0)
+    ray[64 + j] = np.float32(dx)
+    ray[80 + j] = np.float32(dy)
+    ray[96 + j] = np.float32(dz)
+    ray[112 + j] = np.float32(0.0)
+    ray[128 + j] = np.float32(max(length, 0.0))
+    rayu[144 + j] = np.uint32(0xFFFFFFFF)
+    rayu[160 + j] = np.uint32(0)
+    rayu[176 + j] = np.uint32(0)
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def packet_cast(fn16, scene, ray, valid, m) -> None:
+    """Cast the first ``m`` rays of a packet; afterwards ray j is blocked iff ``ray[128 + j] < 0``."""
+    for j in range(16):
+        valid[j] = -1 if j < m else 0
+    occluded16(fn16, scene, valid, ray)
 
 
 @nb.njit(nogil=True, cache=True)
@@ -141,3 +202,19 @@ def blocked_many(fn, scene, origins, directions, lengths, out) -> None:
     for i in range(len(lengths)):
         out[i] = segment_blocked(fn, scene, ray, rayu, origins[i, 0], origins[i, 1], origins[i, 2],
                                  directions[i, 0], directions[i, 1], directions[i, 2], lengths[i])
+
+
+@nb.njit(nogil=True, cache=True)
+def blocked_packets(fn16, scene, origins, directions, lengths, out) -> None:
+    """:func:`blocked_many` through 16-ray packets (what the T kernel uses)."""
+    pk, pku, valid = new_packet()
+    n = len(lengths)
+    for a in range(0, n, 16):
+        m = min(16, n - a)
+        for j in range(m):
+            i = a + j
+            packet_put(pk, pku, j, origins[i, 0], origins[i, 1], origins[i, 2], directions[i, 0], directions[i, 1],
+                       directions[i, 2], lengths[i])
+        packet_cast(fn16, scene, pk, valid, m)
+        for j in range(m):
+            out[a + j] = pk[128 + j] < 0

@@ -32,13 +32,14 @@ class OcclusionScene:
                          np.ascontiguousarray(faces, np.int32))
 
     @property
-    def native(self) -> tuple[int, int] | None:
-        """(rtcOccluded1 address, scene address) for compiled kernels; None for an empty scene."""
+    def native(self) -> embree_native.NativeScene | None:
+        """The scene for compiled kernels (addresses of the scene and of Embree's occlusion
+        functions); None for an empty scene."""
         if self._empty:
             return None
         if self._native is None:
             self._native = embree_native.NativeScene(self._vertices, self._faces)
-        return self._native.handle
+        return self._native
 
     def blocked(self, origins_mm: np.ndarray, directions: np.ndarray, lengths_mm: np.ndarray) -> np.ndarray:
         """True where the segment origin + t*direction, 0 < t < length, hits a triangle.
@@ -49,7 +50,8 @@ class OcclusionScene:
         out = np.zeros(n, bool)
         if self._empty or n == 0:
             return out
-        embree_native.blocked_many(*self.native, np.ascontiguousarray(origins_mm, np.float64),
+        nat = self.native
+        embree_native.blocked_many(nat.occluded1, nat.scene, np.ascontiguousarray(origins_mm, np.float64),
                                    np.ascontiguousarray(directions, np.float64),
                                    np.ascontiguousarray(lengths_mm, np.float64), out)
         return out

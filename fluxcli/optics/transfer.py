@@ -305,8 +305,12 @@ def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: in
     hi = np.minimum(np.max(ends, axis=0) + pad, dc + disk_r[:, None])
     focused = ~np.isfinite(ends).all(axis=(0, 2))  # k = 0: all rays meet at one focal point
     lo[focused], hi[focused] = (dc - disk_r[:, None])[focused], (dc + disk_r[:, None])[focused]
-    hits = np.all(hi > lo, axis=1) | focused
-    P, N, E, W, z, G, lo, hi, dc, disk_r, k = (x[hits] for x in (P, N, E, W, z, G, lo, hi, dc, disk_r, k))
+    hits = np.flatnonzero(np.all(hi > lo, axis=1) | focused)
+    # grouped by element (stable: the sampling order within an element is kept), so that each
+    # element's column is finished in one piece; one gather per array
+    keep = hits[np.argsort(E[hits], kind="stable")]
+    P, N, E, W, z, G, lo, hi, dc, disk_r, k = (np.ascontiguousarray(x[keep])
+                                               for x in (P, N, E, W, z, G, lo, hi, dc, disk_r, k))
     box_area = np.prod(hi - lo, axis=1)
     use_box = box_area < 0.6 * np.pi * disk_r**2
     # the blur the sampled region paints, in pixels: sample its area at the requested density
@@ -325,11 +329,6 @@ def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: in
     disk_unit = np.concatenate([sunflower_disk(int(n)) for n in counts]) if len(counts) else np.zeros((0, 2))
     square_unit = np.concatenate([square_points(int(n)) for n in counts]) if len(counts) else np.zeros((0, 2))
     jitter = np.concatenate([triangle_jitter(int(n)) for n in counts]) if len(counts) else np.zeros((0, 2))
-    # samples grouped by element (stable: the sampling order within an element is kept), so
-    # each element's column is finished in one piece; chunks of whole elements
-    order = np.argsort(E, kind="stable")
-    arrays = [P, N, G, dA, E, lo, hi, dc, disk_r, use_box, n_lens, pat_off]
-    P, N, G, dA, E, lo, hi, dc, disk_r, use_box, n_lens, pat_off = (np.ascontiguousarray(a[order]) for a in arrays)
     chunks = _element_chunks(E, n_lens, rays_per_batch)
     return _LensPlan(P, N, G, dA, E.astype(np.int64), lo, hi, dc, disk_r, use_box, n_lens, pat_off,
                      np.ascontiguousarray(disk_unit), np.ascontiguousarray(square_unit), np.ascontiguousarray(jitter),
@@ -368,7 +367,7 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
         if plan is not None and plan.chunks and scene.native is None:
             raise ValueError("nothing to cast against: the scene has no triangles")
         return sp.csr_matrix(shape), err, {"rays": 0.0, "surface_samples": 0.0, "rays_evaluated": 0.0}
-    fn, handle = scene.native
+    nat = scene.native
     cam_arr = np.array([*cam.center_mm, *cam.axis, *cam.right, *cam.down, cam.focus_distance_mm,
                         cam.focal_pixel_mm, cam.aperture_radius_mm**2, 0.0, 0.0])
     m = view.mirror
@@ -383,8 +382,8 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
             scratch.even, scratch.odd = np.zeros(n_pix), np.zeros(n_pix)
             scratch.mark, scratch.touched = np.zeros(n_pix, np.bool_), np.zeros(n_pix, np.int32)
         return transfer_kernel.lens_columns(
-            fn, handle, cam_arr, mir, ap_dist, ap_r2, eps, plan.P, plan.N, plan.G, plan.dA, plan.elem, plan.lo,
-            plan.hi, plan.dc, plan.disk_r, plan.use_box, plan.n_lens, plan.pat_off, plan.disk_unit,
+            nat.occluded16, nat.scene, cam_arr, mir, ap_dist, ap_r2, eps, plan.P, plan.N, plan.G, plan.dA,
+            plan.elem, plan.lo, plan.hi, plan.dc, plan.disk_r, plan.use_box, plan.n_lens, plan.pat_off, plan.disk_unit,
             plan.square_unit, plan.jitter, chunk[0], chunk[1], n_pix, cam.nx, cam.ny,
             scratch.even, scratch.odd, scratch.mark, scratch.touched, _NO_RECORD)
 

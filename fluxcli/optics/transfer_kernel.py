@@ -19,11 +19,11 @@ import math
 import numba as nb
 import numpy as np
 
-from .embree_native import new_ray, segment_blocked
+from .embree_native import new_packet, packet_cast, packet_put
 
 
 @nb.njit(nogil=True, cache=True)
-def lens_columns(fn, scene, cam, mir, ap_dist, ap_r2, eps,
+def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
                  P, N, G, dA, elem, lo, hi, dc, disk_r, use_box, n_lens, pat_off,
                  disk_unit, square_unit, jitter, s0, s1, n_pix, nx, ny,
                  acc_even, acc_odd, mark, touched, record):
@@ -31,7 +31,8 @@ def lens_columns(fn, scene, cam, mir, ap_dist, ap_r2, eps,
 
     Parameters
     ----------
-    fn, scene : Embree handle (:attr:`fluxcli.optics.raycast.OcclusionScene.native`).
+    fn16, scene : addresses of rtcOccluded16 and of the scene
+        (:attr:`fluxcli.optics.raycast.OcclusionScene.native`).
     cam : float64 (17,): centre (3), axis (3), right (3), down (3), u_mm, focal pixel mm,
         aperture radius^2 mm^2, 0, 0 (padding).
     mir : float64 (15,): 0 or 1 (a mirror view), centre (3), normal (3), axis_u (3),
@@ -54,7 +55,13 @@ def lens_columns(fn, scene, cam, mir, ap_dist, ap_r2, eps,
     (elements (K,), column starts (K + 1,), pixel (nnz,), value (nnz,), column error (K,),
     rays cast, rays evaluated, segments recorded)
     """
-    ray, rayu = new_ray()
+    pk, pku, valid = new_packet()
+    pk2, pku2, _ = new_packet()
+    seg2 = np.empty((16, 7), np.float64)  # mirror views: the mirror -> lens segment of each queued ray
+    q_pix = np.empty(16, np.int64)
+    q_w = np.empty(16, np.float64)
+    q_odd = np.empty(16, np.int64)
+    m = 0  # rays queued in the packet
     cx, cy, cz = cam[0], cam[1], cam[2]
     ax, ay, az = cam[3], cam[4], cam[5]
     rx, ry, rz = cam[6], cam[7], cam[8]
@@ -143,18 +150,16 @@ def lens_columns(fn, scene, cam, mir, ap_dist, ap_r2, eps,
                     break
             if not ok:
                 continue
-            # alpha: the segment(s) to the lens are clear
+            # alpha: the segment(s) to the lens are clear, cast 16 at a time (rays of one
+            # surface point are coherent: one packet traversal costs far less than 16 rays)
             Ox, Oy, Oz = qx + eps * nx_, qy + eps * ny_, qz + eps * nz_
             ux, uy, uz = Lx - Ox, Ly - Oy, Lz - Oz
             if not has_mirror:
                 length = math.sqrt(ux * ux + uy * uy + uz * uz)
-                cast += 1
+                packet_put(pk, pku, m, Ox, Oy, Oz, ux / length, uy / length, uz / length, length)
                 if n_rec < len(record):
                     _record(record, n_rec, Ox, Oy, Oz, ux / length, uy / length, uz / length, length)
                     n_rec += 1
-                if segment_blocked(fn, scene, ray, rayu, Ox, Oy, Oz, ux / length, uy / length, uz / length,
-                                   length):
-                    continue
             else:
                 mnx, mny, mnz = mir[4], mir[5], mir[6]
                 denom = ux * mnx + uy * mny + uz * mnz
@@ -174,27 +179,26 @@ def lens_columns(fn, scene, cam, mir, ap_dist, ap_r2, eps,
                 s2x, s2y, s2z = Rx - Mx, Ry - My, Rz - Mz
                 l2 = math.sqrt(s2x * s2x + s2y * s2y + s2z * s2z)
                 e2x, e2y, e2z = s2x / l2, s2y / l2, s2z / l2
-                cast += 1
+                # surface -> mirror now; mirror -> lens for those that pass (second packet)
+                packet_put(pk, pku, m, Ox, Oy, Oz, s1x / l1, s1y / l1, s1z / l1, l1 - eps)
                 if n_rec < len(record):
                     _record(record, n_rec, Ox, Oy, Oz, s1x / l1, s1y / l1, s1z / l1, l1 - eps)
                     n_rec += 1
-                if segment_blocked(fn, scene, ray, rayu, Ox, Oy, Oz, s1x / l1, s1y / l1, s1z / l1, l1 - eps):
-                    continue
-                cast += 1
-                if n_rec < len(record):
-                    _record(record, n_rec, Mx + eps * e2x, My + eps * e2y, Mz + eps * e2z, e2x, e2y, e2z, l2 - eps)
-                    n_rec += 1
-                if segment_blocked(fn, scene, ray, rayu, Mx + eps * e2x, My + eps * e2y, Mz + eps * e2z,
-                                   e2x, e2y, e2z, l2 - eps):
-                    continue
-            if not mark[pix]:
-                mark[pix] = True
-                touched[n_touched] = pix
-                n_touched += 1
-            if k % 2 == 0:
-                acc_even[pix] += w
-            else:
-                acc_odd[pix] += w
+                seg2[m, 0], seg2[m, 1], seg2[m, 2] = Mx + eps * e2x, My + eps * e2y, Mz + eps * e2z
+                seg2[m, 3], seg2[m, 4], seg2[m, 5], seg2[m, 6] = e2x, e2y, e2z, l2 - eps
+            q_pix[m] = pix
+            q_w[m] = w
+            q_odd[m] = k % 2
+            m += 1
+            if m == 16:
+                cast, n_touched, n_rec = _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, has_mirror, seg2, q_pix,
+                                                q_w, q_odd, acc_even, acc_odd, mark, touched, n_touched, cast,
+                                                record, n_rec)
+                m = 0
+        if m > 0:  # the surface point's last rays
+            cast, n_touched, n_rec = _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, has_mirror, seg2, q_pix, q_w,
+                                            q_odd, acc_even, acc_odd, mark, touched, n_touched, cast, record, n_rec)
+            m = 0
         if s + 1 == s1 or elem[s + 1] != elem[s]:  # the element's column is complete
             order = np.sort(touched[:n_touched])
             err = 0.0
@@ -220,3 +224,45 @@ def _record(record, i, ox, oy, oz, dx, dy, dz, length):
     record[i, 0], record[i, 1], record[i, 2] = ox, oy, oz
     record[i, 3], record[i, 4], record[i, 5] = dx, dy, dz
     record[i, 6] = max(length, 0.0)
+
+
+@nb.njit(nogil=True, cache=True)
+def _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, has_mirror, seg2, q_pix, q_w, q_odd, acc_even, acc_odd, mark,
+           touched, n_touched, cast, record, n_rec):
+    """Cast the ``m`` queued rays (for a mirror view: then the mirror -> lens segments of those
+    that reach the mirror) and add the visible ones, in queue order, into the column."""
+    packet_cast(fn16, scene, pk, valid, m)
+    cast += m
+    clear = np.empty(16, np.bool_)
+    for j in range(m):
+        clear[j] = not pk[128 + j] < 0
+    if has_mirror:
+        idx = np.empty(16, np.int64)
+        m2 = 0
+        for j in range(m):
+            if clear[j]:
+                packet_put(pk2, pku2, m2, seg2[j, 0], seg2[j, 1], seg2[j, 2], seg2[j, 3], seg2[j, 4], seg2[j, 5],
+                           seg2[j, 6])
+                if n_rec < len(record):
+                    _record(record, n_rec, seg2[j, 0], seg2[j, 1], seg2[j, 2], seg2[j, 3], seg2[j, 4], seg2[j, 5],
+                            seg2[j, 6])
+                    n_rec += 1
+                idx[m2] = j
+                m2 += 1
+        if m2 > 0:
+            packet_cast(fn16, scene, pk2, valid, m2)
+            cast += m2
+            for i in range(m2):
+                clear[idx[i]] = not pk2[128 + i] < 0
+    for j in range(m):
+        if clear[j]:
+            pix = q_pix[j]
+            if not mark[pix]:
+                mark[pix] = True
+                touched[n_touched] = pix
+                n_touched += 1
+            if q_odd[j]:
+                acc_odd[pix] += q_w[j]
+            else:
+                acc_even[pix] += q_w[j]
+    return cast, n_touched, n_rec
