@@ -264,12 +264,15 @@ def main() -> None:
     if a.big_child:
         _big_child()
         return
-    rows = run(a.repeats)
-    print(f"{'item':4} {'name':64} {'min':>11} {'median':>11} {'unit':7} {'target':9} met")
-    for r in rows:
-        print(f"{r['item']:4} {r['name'][:64]:64} {r['min']:11.4g} {r['median']:11.4g} {r['unit']:7} "
-              f"{r['target'] or '':9} {'' if r['met'] is None else ('yes' if r['met'] else 'NO')}")
-        print(f"     {r['note']}")
+    print(f"{'item':4} {'name':64} {'min':>11} {'median':>11} {'unit':7} {'target':9} met", flush=True)
+    rows = []
+    for item in (item1_and_2, item3):
+        got = item(a.repeats)
+        rows += got
+        for r in got:
+            print(f"{r['item']:4} {r['name'][:64]:64} {r['min']:11.4g} {r['median']:11.4g} {r['unit']:7} "
+                  f"{r['target'] or '':9} {'' if r['met'] is None else ('yes' if r['met'] else 'NO')}")
+            print(f"     {r['note']}", flush=True)
     for r in rows:
         if r.get("profile"):
             print(r["profile"])

@@ -10,8 +10,6 @@ import numpy as np
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
-from . import embree_native
-
 
 class OcclusionScene:
     """Everything that can block light, as one Embree scene.
@@ -32,12 +30,14 @@ class OcclusionScene:
                          np.ascontiguousarray(faces, np.int32))
 
     @property
-    def native(self) -> embree_native.NativeScene | None:
+    def native(self):
         """The scene for compiled kernels (addresses of the scene and of Embree's occlusion
         functions); None for an empty scene."""
         if self._empty:
             return None
         if self._native is None:
+            from . import embree_native  # numba: imported when occlusion is first asked for
+
             self._native = embree_native.NativeScene(self._vertices, self._faces)
         return self._native
 
@@ -50,6 +50,8 @@ class OcclusionScene:
         out = np.zeros(n, bool)
         if self._empty or n == 0:
             return out
+        from . import embree_native
+
         nat = self.native
         embree_native.blocked_many(nat.occluded1, nat.scene, np.ascontiguousarray(origins_mm, np.float64),
                                    np.ascontiguousarray(directions, np.float64),

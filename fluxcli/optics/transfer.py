@@ -30,7 +30,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..surface.mesh import Surface, merge
-from . import transfer_kernel
 from .camera import PlaneMirror, ThinLensCamera, sunflower_disk
 from .raycast import OcclusionScene
 
@@ -367,6 +366,8 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
         if plan is not None and plan.chunks and scene.native is None:
             raise ValueError("nothing to cast against: the scene has no triangles")
         return sp.csr_matrix(shape), err, {"rays": 0.0, "surface_samples": 0.0, "rays_evaluated": 0.0}
+    from . import transfer_kernel  # numba: imported when T is built, not by every command
+
     nat = scene.native
     cam_arr = np.array([*cam.center_mm, *cam.axis, *cam.right, *cam.down, cam.focus_distance_mm,
                         cam.focal_pixel_mm, cam.aperture_radius_mm**2, 0.0, 0.0])
