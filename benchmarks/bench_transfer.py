@@ -239,8 +239,19 @@ def _big_child() -> None:
     T = res.T
     print(json.dumps({"seconds": w, "cpu_seconds": c, "elements": scene.surface.n_elements, "nnz": int(T.nnz),
                       "bytes": int(T.data.nbytes + T.indices.nbytes + T.indptr.nbytes),
-                      "rays": sum(s["rays"] for s in res.stats.values()),
-                      "maxrss_kb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss}))
+                      "rays": sum(s["rays"] for s in res.stats.values()), "peak_bytes": _peak_rss_bytes()}))
+
+
+def _peak_rss_bytes() -> int:
+    """This process's resident peak.  VmHWM (Linux) starts afresh at exec; ru_maxrss does not
+    (a child forked from a big parent would report the parent's size)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
 
 def item3(repeats: int) -> list[dict]:
@@ -249,13 +260,13 @@ def item3(repeats: int) -> list[dict]:
         p = subprocess.run([sys.executable, __file__, "--big-child"], capture_output=True, text=True, check=True)
         out = json.loads(p.stdout.strip().splitlines()[-1])
         walls.append(out["seconds"])
-        peaks.append(out["maxrss_kb"] * 1024 / 1e9)
+        peaks.append(out["peak_bytes"] / 1e9)
     return [
         _row("3", "1024x1024 px (13 um), 3 views, 20 000 elements: wall time", "s", walls, f"<= {BIG_SECONDS}",
              min(walls) <= BIG_SECONDS, f"{out['rays'] / 1e6:.0f} M rays, {out['elements']} elements, CPU "
                                         f"{out['cpu_seconds']:.1f} s (last run); contended machine"),
         _row("3", "1024x1024 px, 20 000 elements: peak memory", "GB", peaks, f"<= {BIG_GB}", max(peaks) <= BIG_GB,
-             "resident peak of the child process doing only this build (ru_maxrss)"),
+             "resident peak (VmHWM) of a child process doing only this build"),
         _row("3", "1024x1024 px, 20 000 elements: T size", "MB", [out["bytes"] / 1e6], None, None,
              f"nnz {out['nnz']:,} (CSR data + indices + indptr in memory)"),
     ]
