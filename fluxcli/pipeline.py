@@ -204,16 +204,18 @@ class PartialFiles(Checkpoint):
         self.folder = Path(cache) / f"{key}.part"
         self.rays_per_block = CHECKPOINT_RAYS if rays_per_block is None else rays_per_block
 
-    def _path(self, view: int, block: list[int]) -> Path:
-        return self.folder / f"view{view}-chunks{block[0]}-{block[-1]}.npz"
+    def _path(self, view: int, spans: list[tuple[int, int]]) -> Path:
+        return self.folder / f"view{view}-samples{spans[0][0]}-{spans[-1][1]}-chunks{len(spans)}.npz"
 
-    def load(self, view: int, block: list[int]):
-        path = self._path(view, block)
+    def load(self, view: int, spans: list[tuple[int, int]]):
+        path = self._path(view, spans)
         if not path.is_file():
             return None
         try:
             with np.load(path) as z:
-                n = len(block)
+                if not np.array_equal(z["spans"], np.asarray(spans, np.int64).reshape(-1, 2)):
+                    return None  # made with another chunking (transfer.rays_per_batch): cast again
+                n = len(spans)
                 el_off, nz_off = z["el_off"], z["nz_off"]
                 return [(z["elements"][el_off[i]:el_off[i + 1]], z["starts"][el_off[i] + i:el_off[i + 1] + i + 1],
                          z["pix"][nz_off[i]:nz_off[i + 1]], z["val"][nz_off[i]:nz_off[i + 1]],
@@ -221,19 +223,19 @@ class PartialFiles(Checkpoint):
         except (OSError, ValueError, KeyError):
             return None  # a damaged partial file is recomputed
 
-    def save(self, view: int, block: list[int], results: list) -> None:
+    def save(self, view: int, spans: list[tuple[int, int]], results: list) -> None:
         from .artefacts.atomic import atomic_path
 
         self.folder.mkdir(parents=True, exist_ok=True)
         el_off = np.concatenate([[0], np.cumsum([len(r[0]) for r in results])])
         nz_off = np.concatenate([[0], np.cumsum([len(r[2]) for r in results])])
-        with atomic_path(self._path(view, block)) as tmp:
+        with atomic_path(self._path(view, spans)) as tmp:
             with open(tmp, "wb") as fh:
                 np.savez(fh, elements=np.concatenate([r[0] for r in results]),
                          starts=np.concatenate([r[1] for r in results]), pix=np.concatenate([r[2] for r in results]),
                          val=np.concatenate([r[3] for r in results]), err=np.concatenate([r[4] for r in results]),
                          cast=np.array([r[5] for r in results]), rays=np.array([r[6] for r in results]),
-                         el_off=el_off, nz_off=nz_off)
+                         el_off=el_off, nz_off=nz_off, spans=np.asarray(spans, np.int64).reshape(-1, 2))
 
     def remove(self) -> None:
         import shutil

@@ -112,13 +112,13 @@ class _MemoryCheckpoint(Checkpoint):
     def __init__(self, rays_per_block, stop_after=None):
         self.rays_per_block, self.saved, self.stop_after, self.loads = rays_per_block, {}, stop_after, 0
 
-    def load(self, view, block):
-        got = self.saved.get((view, tuple(block)))
+    def load(self, view, spans):
+        got = self.saved.get((view, tuple(spans)))
         self.loads += got is not None
         return got
 
-    def save(self, view, block, results):
-        self.saved[(view, tuple(block))] = results
+    def save(self, view, spans, results):
+        self.saved[(view, tuple(spans))] = results
         if self.stop_after is not None and len(self.saved) >= self.stop_after:
             raise KeyboardInterrupt  # the user pressed Ctrl-C right after this block
 
@@ -156,8 +156,8 @@ def test_partial_files_resume_a_pose_and_are_removed_when_it_is_written(tmp_path
     calls = {"n": 0}
     real_save = pipeline.PartialFiles.save
 
-    def save_then_die(self, view, block, results):
-        real_save(self, view, block, results)
+    def save_then_die(self, view, spans, results):
+        real_save(self, view, spans, results)
         calls["n"] += 1
         if calls["n"] == 2:
             raise KeyboardInterrupt
@@ -168,6 +168,15 @@ def test_partial_files_resume_a_pose_and_are_removed_when_it_is_written(tmp_path
     part = tmp_path / "abc.part"
     assert len(list(part.glob("*.npz"))) == 2 and not target.exists()
     monkeypatch.setattr(pipeline.PartialFiles, "save", real_save)
+    # a rerun with another chunking must not take blocks that hold other samples
+    other = tmp_path / "other.h5"
+    pipeline._build_and_store(scene, views, Transfer(rays_per_batch=1500), other, "x")
+    assert AT.load_T(other).data.tobytes() == AT.load_T(whole).data.tobytes()
+    import shutil
+
+    shutil.copytree(part, tmp_path / "other.part")
+    pipeline._build_and_store(scene, views, Transfer(rays_per_batch=1500), other, "x")
+    assert AT.load_T(other).data.tobytes() == AT.load_T(whole).data.tobytes() and not (tmp_path / "other.part").exists()
     loaded = []
     real_load = pipeline.PartialFiles.load
     monkeypatch.setattr(pipeline.PartialFiles, "load",

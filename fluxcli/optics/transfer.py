@@ -396,7 +396,8 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
     pool = ThreadPoolExecutor(threads) if threads > 1 else None
     try:
         for block in _blocks(rays_of, checkpoint.rays_per_block if checkpoint else 0):
-            saved = checkpoint.load(view_index, block) if checkpoint else None
+            spans = [plan.chunks[i] for i in block]  # sample ranges: what the block holds, whatever the chunking
+            saved = checkpoint.load(view_index, spans) if checkpoint else None
             if saved is not None and len(saved) == len(block):
                 finished = zip(block, saved)
             else:
@@ -408,7 +409,7 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
                 if progress:
                     progress(min(done / plan.rays, 1.0))
             if checkpoint and saved is None:
-                checkpoint.save(view_index, block, [results[i] for i in block])
+                checkpoint.save(view_index, spans, [results[i] for i in block])
     finally:
         if pool is not None:  # on Ctrl-C: drop the queued chunks, let the running ones end (milliseconds)
             pool.shutdown(wait=True, cancel_futures=True)
@@ -516,18 +517,18 @@ class Checkpoint:
     """Where a long single-pose build keeps finished blocks of chunks, so that an
     interrupted build resumes (the pipeline keeps them as atomic files beside the T cache).
 
-    ``load(view, block)`` returns the saved chunk results of that block or None;
-    ``save(view, block, results)`` stores them.  ``rays_per_block``: how much work a block
+    ``load(view, spans)`` returns the saved chunk results of the block whose chunks cover the
+    sample ranges ``spans`` [(s0, s1), ...], or None; ``save(view, spans, results)`` stores them.  ``rays_per_block``: how much work a block
     holds (0: no checkpoints).  Blocks depend only on the inputs, so a resumed build makes
     the same bytes as an uninterrupted one.
     """
 
     rays_per_block: int = 0
 
-    def load(self, view: int, block: list[int]):  # pragma: no cover - interface
+    def load(self, view: int, spans: list[tuple[int, int]]):  # pragma: no cover - interface
         return None
 
-    def save(self, view: int, block: list[int], results: list) -> None:  # pragma: no cover - interface
+    def save(self, view: int, spans: list[tuple[int, int]], results: list) -> None:  # pragma: no cover - interface
         pass
 
 
