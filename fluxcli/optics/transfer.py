@@ -392,7 +392,7 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
     if checkpoint is not None and not 0 < checkpoint.rays_per_block < plan.rays:
         checkpoint = None  # a view smaller than one block is not worth files
     results: list = [None] * len(plan.chunks)
-    done = 0
+    done = reported = 0
     pool = ThreadPoolExecutor(threads) if threads > 1 else None
     try:
         for block in _blocks(rays_of, checkpoint.rays_per_block if checkpoint else 0):
@@ -406,8 +406,9 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
             for i, r in finished:  # in chunk order, whatever thread finished first
                 results[i] = r
                 done += rays_of[i]
-                if progress:
-                    progress(min(done / plan.rays, 1.0))
+                if progress and (done - reported >= plan.rays / 100 or done >= plan.rays):
+                    progress(min(done / plan.rays, 1.0))  # at most ~100 reports a view (they may cross processes)
+                    reported = done
             if checkpoint and saved is None:
                 checkpoint.save(view_index, spans, [results[i] for i in block])
     finally:
