@@ -366,3 +366,68 @@ def check_collection(todo, results: dict, view_names: list[str], ctx) -> None:
             elif seen is not None and seen < SEEN_FRACTION:
                 ctx.warn(f"view {name} at pose {p.pose.label} sees {seen:.1%} of the subject's area (below "
                          f"{SEEN_FRACTION:.0%}): check its placement (system.camera.pose, system.mirrors).")
+
+
+# ------------------------------------------------------------------ the surface artefact
+_DECODE_UNITS = {"phase": "rad", "column_px": "projector px"}
+
+def decode_datasets(scans, projector_names: list[str], view_names: list[str], camera, mirrors) -> dict:
+    """``{(view, projector): {"phase", "column_px", "mask"}}`` for :func:`write_surface_artefact`: each
+    projector's decoding (:class:`fluxcli.structured.scan.ScanPoints`) split by the view each camera pixel
+    looks through (its chief ray: direct, or reflected in a mirror); mask 1 where a point was triangulated."""
+    from .structured.triangulate import chief_rays
+
+    origins, _, _ = chief_rays(camera, mirrors)
+    view_of_pixel = np.zeros(camera.ny * camera.nx, int)
+    for j in range(1, len(view_names)):
+        view_of_pixel[np.isfinite(origins[j, :, 0])] = j
+    out = {}
+    for name, scan in zip(projector_names, scans):
+        used = np.zeros(view_of_pixel.size, bool)
+        used[scan.pixel] = True
+        for j, v in enumerate(view_names):
+            here = view_of_pixel == j
+            out[(v, name)] = {"phase": np.where(here, scan.decoded.wrapped_phase.ravel(), np.nan).reshape(camera.ny, camera.nx),
+                              "column_px": np.where(here, scan.decoded.column_px.ravel(), np.nan).reshape(camera.ny, camera.nx),
+                              "mask": (here & used).astype(np.uint8).reshape(camera.ny, camera.nx)}
+    return out
+
+
+def write_surface_artefact(path: Path, surface, *, points=None, decode: dict | None = None,
+                           distance_to_truth_mm: np.ndarray | None = None, config_sha256: str = "",
+                           inputs: dict[str, str] | None = None, provenance: "A.Provenance | None" = None,
+                           attrs: dict | None = None, truth=None, metrics: dict | None = None) -> Path:
+    """Write ``surface`` (a :class:`~fluxcli.surface.mesh.Surface`) atomically as a ``surface``
+    artefact, which ``subject.surface: {artefact: PATH}`` reads.
+
+    ``points``: the merged points it was built from (:class:`fluxcli.structured.scan.MergedPoints`);
+    ``decode``: ``{(view, projector): {"phase": rad [ny, nx], "column_px": [ny, nx], "mask": bool
+    [ny, nx]}}`` written under ``/decode/<view>/<projector>/``; ``distance_to_truth_mm``: each
+    point's distance to the true surface (simulated rig only); ``attrs``: root attributes; ``truth``:
+    the true surface (simulated rig; ``/truth``, what the report draws the capture over); ``metrics``:
+    :func:`fluxcli.structured.mesh.capture_metrics` (``/metrics`` attributes)."""
+    with A.write_artefact(Path(path), "surface", config_sha256=config_sha256, inputs=inputs,
+                          provenance=provenance) as f:
+        for key, value in (attrs or {}).items():
+            f.attrs[key] = value
+        A.write_surface(f.create_group("surface"), surface)
+        if points is not None:
+            g = f.create_group("points")
+            A.put(g, "positions_mm", points.points_mm)
+            A.put(g, "view", points.view.astype(np.int16))
+            A.put(g, "projector", points.projector.astype(np.int16))
+            if distance_to_truth_mm is not None:
+                A.put(g, "distance_to_truth_mm", np.asarray(distance_to_truth_mm, float))
+            if decode:  # the name of each value of points/view, in order
+                g.attrs["view_names"] = list(dict.fromkeys(view for view, _ in decode))
+        if truth is not None:
+            A.write_surface(f.create_group("truth"), truth)
+        if metrics:
+            g = f.create_group("metrics")
+            for key, value in metrics.items():
+                g.attrs[key] = value
+        for (view, proj), arrays in (decode or {}).items():
+            g = f.require_group(f"decode/{view}/{proj}")
+            for name, data in arrays.items():
+                A.put(g, name, np.asarray(data), compression="gzip").attrs["unit"] = _DECODE_UNITS.get(name, "")
+    return Path(path)
