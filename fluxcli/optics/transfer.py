@@ -300,8 +300,8 @@ def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: in
     with np.errstate(divide="ignore", invalid="ignore"):
         ends = (np.stack([-half, half])[:, None, :] - sc[None, :, None] * lat[None]) / k[None, :, None]
         pad = (sc * grain / np.abs(k))[:, None]
-    lo = np.maximum(np.min(ends, axis=0) - pad, dc - disk_r[:, None])
-    hi = np.minimum(np.max(ends, axis=0) + pad, dc + disk_r[:, None])
+        lo = np.maximum(np.min(ends, axis=0) - pad, dc - disk_r[:, None])  # inf - inf where focused: replaced below
+        hi = np.minimum(np.max(ends, axis=0) + pad, dc + disk_r[:, None])
     focused = ~np.isfinite(ends).all(axis=(0, 2))  # k = 0: all rays meet at one focal point
     lo[focused], hi[focused] = (dc - disk_r[:, None])[focused], (dc + disk_r[:, None])[focused]
     hits = np.flatnonzero(np.all(hi > lo, axis=1) | focused)
