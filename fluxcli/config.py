@@ -283,7 +283,7 @@ class Transfer(Model):
     lens: LensSampling = Field(LensSampling(), description="Sampling of the lens estimator.")
     pairwise: PairwiseSampling = Field(PairwiseSampling(), description="Sampling of the pairwise estimator.")
     ray_offset_mm: float = Field(1e-3, gt=0, description="Rays start this far along the normal (self-hit guard).")
-    rays_per_batch: int = Field(100_000, ge=1000, description="Rays cast per Embree call (memory vs overhead).")
+    rays_per_batch: int = Field(100_000, ge=1000, description="Rays per chunk of whole elements, the unit of work of one thread (memory vs overhead); T does not depend on it.")
     cache_dir: Path | None = Field(None, description="Where cached T files live (default <workdir>/cache/T).")
 
 

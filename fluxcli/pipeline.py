@@ -18,8 +18,8 @@ from .artefacts import transfer as AT
 from .config import LoadedConfig, Sensor, Transfer
 from .errors import UserError
 from .imaging import noise as N
-from .optics.transfer import (ALGORITHM_VERSION, LensSampling, PairwiseSampling, View, build_transfer,
-                             surface_sample_count)
+from .optics.transfer import (ALGORITHM_VERSION, Checkpoint, LensSampling, PairwiseSampling, View,
+                             build_transfer, default_threads, surface_sample_count)
 from .scene import PlacedScene, Pose, SubjectPlacer, poses_from_config, views_from_config
 from .progress import run_tasks
 from .workers import pool_for
@@ -190,16 +190,72 @@ def plan(cfg: LoadedConfig, transfer: Transfer | None = None, unknowns: str = "e
     return views, placer, out
 
 
+# a view of a pose with more rays than this keeps its finished blocks of this many rays as
+# partial files beside the T cache entry, so that an interrupted build resumes within the pose
+CHECKPOINT_RAYS = 20_000_000
+
+
+class PartialFiles(Checkpoint):
+    """Finished blocks of one pose's build as atomic ``.npz`` files in ``<cache>/<key>.part/``;
+    read back by the next run of the same pose (same key: same inputs, same blocks) and
+    removed when the pose's T file is written."""
+
+    def __init__(self, cache: Path, key: str, rays_per_block: int | None = None):
+        self.folder = Path(cache) / f"{key}.part"
+        self.rays_per_block = CHECKPOINT_RAYS if rays_per_block is None else rays_per_block
+
+    def _path(self, view: int, spans: list[tuple[int, int]]) -> Path:
+        return self.folder / f"view{view}-samples{spans[0][0]}-{spans[-1][1]}-chunks{len(spans)}.npz"
+
+    def load(self, view: int, spans: list[tuple[int, int]]):
+        path = self._path(view, spans)
+        if not path.is_file():
+            return None
+        try:
+            with np.load(path) as z:
+                if not np.array_equal(z["spans"], np.asarray(spans, np.int64).reshape(-1, 2)):
+                    return None  # made with another chunking (transfer.rays_per_batch): cast again
+                n = len(spans)
+                el_off, nz_off = z["el_off"], z["nz_off"]
+                return [(z["elements"][el_off[i]:el_off[i + 1]], z["starts"][el_off[i] + i:el_off[i + 1] + i + 1],
+                         z["pix"][nz_off[i]:nz_off[i + 1]], z["val"][nz_off[i]:nz_off[i + 1]],
+                         z["err"][el_off[i]:el_off[i + 1]], int(z["cast"][i]), int(z["rays"][i])) for i in range(n)]
+        except (OSError, ValueError, KeyError):
+            return None  # a damaged partial file is recomputed
+
+    def save(self, view: int, spans: list[tuple[int, int]], results: list) -> None:
+        from .artefacts.atomic import atomic_path
+
+        self.folder.mkdir(parents=True, exist_ok=True)
+        el_off = np.concatenate([[0], np.cumsum([len(r[0]) for r in results])])
+        nz_off = np.concatenate([[0], np.cumsum([len(r[2]) for r in results])])
+        with atomic_path(self._path(view, spans)) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, elements=np.concatenate([r[0] for r in results]),
+                         starts=np.concatenate([r[1] for r in results]), pix=np.concatenate([r[2] for r in results]),
+                         val=np.concatenate([r[3] for r in results]), err=np.concatenate([r[4] for r in results]),
+                         cast=np.array([r[5] for r in results]), rays=np.array([r[6] for r in results]),
+                         el_off=el_off, nz_off=nz_off, spans=np.asarray(spans, np.int64).reshape(-1, 2))
+
+    def remove(self) -> None:
+        import shutil
+
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+
 def _build_and_store(scene: PlacedScene, views: list[View], tr: Transfer, target: Path, config_sha: str,
-                     prov: A.Provenance | None = None, progress=None) -> dict:
+                     prov: A.Provenance | None = None, threads: int | None = None, progress=None) -> dict:
     """Worker: compute T for one pose and write it atomically; returns a summary.
-    ``progress`` gets the fraction done after every batch of rays."""
+    ``progress`` gets the fraction done after every chunk of rays; ``threads`` cast rays
+    within the pose (the bytes do not depend on it)."""
     t0 = time.perf_counter()
+    partial = PartialFiles(Path(target).parent, Path(target).stem)
     res = build_transfer(
         scene.surface, views, scene.occluders, estimator=tr.estimator,
         lens_sampling=LensSampling(**tr.lens.model_dump()),
         pairwise_sampling=PairwiseSampling(**tr.pairwise.model_dump()),
         ray_offset_mm=tr.ray_offset_mm, rays_per_batch=tr.rays_per_batch, progress=progress,
+        threads=threads, checkpoint=partial,
     )
     seconds = time.perf_counter() - t0
     cam = res.views[0].camera
@@ -208,7 +264,9 @@ def _build_and_store(scene: PlacedScene, views: list[View], tr: Transfer, target
                weights=[v.weight for v in res.views], stats=[res.stats[v.name] for v in res.views],
                pixels=(cam.nx, cam.ny), surface=scene.surface, occluders=scene.occluders,
                height_mm=scene.pose.height_mm, rotation_deg=scene.pose.rotation_deg, estimator=tr.estimator,
-               seconds=seconds, config_sha256=config_sha, provenance=prov)
+               seconds=seconds, config_sha256=config_sha, provenance=prov, column_error=res.column_error,
+               column_error_per_view=res.column_error_per_view)
+    partial.remove()
     return summarise(res, scene) | {"seconds": seconds}
 
 
@@ -264,8 +322,10 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
     prov = provenance(cfg, placer.surface.digest())
     cluster = getattr(ctx, "client", None)  # --scheduler: a Dask cluster builds the poses
     # one bar over the poses, advanced after every batch of rays in every worker (with an ETA)
-    built = run_tasks(_build_and_store, [(s, views, tr, p.path, cfg.sha256, prov) for s, p in need], label=label,
-                      jobs=ctx.jobs, quiet=ctx.quiet, remote=cluster is not None,
+    # processes x threads <= cores locally; a cluster's workers bring their own threads
+    threads = None if cluster is not None else max(1, default_threads() // max(1, min(ctx.jobs, len(need))))
+    built = run_tasks(_build_and_store, [(s, views, tr, p.path, cfg.sha256, prov, threads) for s, p in need],
+                      label=label, jobs=ctx.jobs, quiet=ctx.quiet, remote=cluster is not None,
                       pool=pool_for(cluster, temp_dirs=(cache_dir(cfg),)))
     if cluster is not None:
         check_shared(cache_dir(cfg), [p.path for _, p in need])

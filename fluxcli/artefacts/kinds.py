@@ -66,7 +66,10 @@ register(Kind("transfer", 2, "fluxmap build-T", "transfer matrix T of one pose (
     Dataset("T/indices", "", "CSR column (element) indices"),
     Dataset("T/indptr", "", "CSR row pointers; row = pixel, flat index row * nx + col"),
     *_SURFACE,
-    Dataset("views", "", "per view k: its T (CSR), weight and sampling statistics"),
+    Dataset("views", "", "per view k: its T (CSR), weight, sampling statistics and column_error"),
+    Dataset("T/column_error", "dimensionless",
+            "estimated L1 error of each column of T (sum over pixels of |even - odd half-sample estimates|; "
+            "NaN: no estimate, e.g. pairwise)", required=False),
 )))
 
 register(Kind("transfer-index", 2, "fluxmap build-T", "which T-cache entry belongs to which pose", (

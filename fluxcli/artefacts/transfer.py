@@ -52,12 +52,18 @@ def efficiency(Tv: sp.csr_matrix, weight: float, areas_mm2: np.ndarray) -> float
 
 def write_T(path: Path, *, T: sp.csr_matrix, T_per_view: list, view_kinds: list[str], weights: list[float],
             stats: list[dict], pixels: tuple[int, int], surface, occluders, height_mm: float, rotation_deg: float,
-            estimator: str, seconds: float, config_sha256: str = "", provenance: Provenance | None = None) -> None:
-    """Write one pose's T file atomically."""
+            estimator: str, seconds: float, config_sha256: str = "", provenance: Provenance | None = None,
+            column_error=None, column_error_per_view=None) -> None:
+    """Write one pose's T file atomically.
+
+    ``column_error`` (n_elements,): the estimated L1 error of each column of T (same unit
+    as T); ``column_error_per_view``: the same per view (weight not applied)."""
     with write_artefact(path, "transfer", config_sha256=config_sha256, provenance=provenance) as f:
         write_csr(f.create_group("T"), T)
         f["T"].attrs["unit"] = "dimensionless (fraction of element power reaching the pixel)"
         f["T"].attrs["pixel_order"] = "row-major [row, col]; flat index row * nx + col"
+        if column_error is not None:
+            put(f, "T/column_error", np.asarray(column_error, float))
         write_surface(f.create_group("surface"), surface)
         occ = f.create_group("occluders")
         for k, o in enumerate(occluders):
@@ -69,6 +75,8 @@ def write_T(path: Path, *, T: sp.csr_matrix, T_per_view: list, view_kinds: list[
             g.attrs["kind"] = kind
             g.attrs["weight"] = w
             write_csr(g, Tv)
+            if column_error_per_view is not None:
+                put(g, "column_error", np.asarray(column_error_per_view[k], float))
             for name, val in st.items():
                 g.attrs[name] = val
         f.attrs["pose_height_mm"] = height_mm
@@ -81,6 +89,13 @@ def load_T(path: Path) -> sp.csr_matrix:
     """The combined T (CSR, pixels x elements) of one cached pose."""
     with open_artefact(path, "transfer") as f:
         return read_csr(f["T"])
+
+
+def load_column_error(path: Path) -> np.ndarray | None:
+    """The estimated L1 error of each column of T (same unit as T), or None for a file
+    written before the estimate existed (or by an estimator without one: all NaN)."""
+    with open_artefact(path, "transfer") as f:
+        return f["T/column_error"][()] if "T/column_error" in f else None
 
 
 def load_view(path: Path, k: int) -> sp.csr_matrix:

@@ -20,6 +20,9 @@ segments (surface -> lens, or surface -> mirror -> lens).
 
 from __future__ import annotations
 
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable, Iterator
 
@@ -67,6 +70,8 @@ class TransferResult:
     T_per_view: list[sp.csr_matrix]
     T: sp.csr_matrix
     stats: dict[str, dict[str, float]] = field(default_factory=dict)
+    column_error_per_view: list[np.ndarray] = field(default_factory=list)  # per view, L1 error estimate per column
+    column_error: np.ndarray | None = None  # of T: sum over views of weight x view's estimate
 
 
 # ------------------------------------------------------------------ surface sampling
@@ -244,11 +249,37 @@ def surface_sample_count(surface: Surface, views: list[View], estimator: str = "
     return most
 
 
-def _lens_pairs(surface: Surface, view: View, s: LensSampling, rays_per_batch: int) -> Iterator[tuple]:
+@dataclass
+class _LensPlan:
+    """Per surface sample (sorted by element) everything the compiled loop needs, and the
+    chunks of whole elements it is cast in."""
+
+    P: np.ndarray
+    N: np.ndarray
+    G: np.ndarray
+    dA: np.ndarray
+    elem: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    dc: np.ndarray
+    disk_r: np.ndarray
+    use_box: np.ndarray
+    n_lens: np.ndarray
+    pat_off: np.ndarray
+    disk_unit: np.ndarray
+    square_unit: np.ndarray
+    jitter: np.ndarray
+    chunks: list[tuple[int, int]]  # sample ranges [s0, s1), each whole elements
+    rays: int
+
+
+def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: int) -> _LensPlan | None:
+    """Surface samples, their lens-sampling regions and counts (vectorised over samples,
+    O(samples) work); the per-ray work is :func:`fluxcli.optics.transfer_kernel.lens_columns`."""
     cam = view.camera
     faces = _candidate_faces(surface, view)
     if len(faces) == 0:
-        return
+        return None
     n_sub = _lens_subdivisions(surface, faces, cam, s)
     P, N, E, W, G = sample_faces(surface, faces, n_sub)
     z = cam.axial(P)
@@ -258,7 +289,7 @@ def _lens_pairs(surface: Surface, view: View, s: LensSampling, rays_per_batch: i
     # Clip the sampling to the lens points whose rays land on the sensor: the focal-plane
     # hit is X = k L + (u/z) p (lateral, k = 1 - u/z), so the sensor's preimage on the lens
     # plane is a rectangle.  A line sensor or a point near the image edge then needs only
-    # a sliver of the lens.  Jitter (below) moves p by up to one sub-triangle: pad for it.
+    # a sliver of the lens.  Jitter moves p by up to one sub-triangle: pad for it.
     u, pf = cam.focus_distance_mm, cam.focal_pixel_mm
     sc = u / z
     k = 1 - sc
@@ -269,55 +300,153 @@ def _lens_pairs(surface: Surface, view: View, s: LensSampling, rays_per_batch: i
     with np.errstate(divide="ignore", invalid="ignore"):
         ends = (np.stack([-half, half])[:, None, :] - sc[None, :, None] * lat[None]) / k[None, :, None]
         pad = (sc * grain / np.abs(k))[:, None]
-    lo = np.maximum(np.min(ends, axis=0) - pad, dc - disk_r[:, None])
-    hi = np.minimum(np.max(ends, axis=0) + pad, dc + disk_r[:, None])
+        lo = np.maximum(np.min(ends, axis=0) - pad, dc - disk_r[:, None])  # inf - inf where focused: replaced below
+        hi = np.minimum(np.max(ends, axis=0) + pad, dc + disk_r[:, None])
     focused = ~np.isfinite(ends).all(axis=(0, 2))  # k = 0: all rays meet at one focal point
     lo[focused], hi[focused] = (dc - disk_r[:, None])[focused], (dc + disk_r[:, None])[focused]
-    hits = np.all(hi > lo, axis=1) | focused
-    P, N, E, W, z, G, lo, hi, dc, disk_r, k = (x[hits] for x in (P, N, E, W, z, G, lo, hi, dc, disk_r, k))
+    hits = np.flatnonzero(np.all(hi > lo, axis=1) | focused)
+    # grouped by element (stable: the sampling order within an element is kept), so that each
+    # element's column is finished in one piece; one gather per array
+    keep = hits[np.argsort(E[hits], kind="stable")]
+    P, N, E, W, z, G, lo, hi, dc, disk_r, k = (np.ascontiguousarray(x[keep])
+                                               for x in (P, N, E, W, z, G, lo, hi, dc, disk_r, k))
     box_area = np.prod(hi - lo, axis=1)
     use_box = box_area < 0.6 * np.pi * disk_r**2
     # the blur the sampled region paints, in pixels: sample its area at the requested density
     extent_px = np.where(use_box[:, None], (hi - lo), 2 * disk_r[:, None]) * np.abs(k)[:, None] / pf
     painted = np.prod(np.maximum(extent_px, 1.0), axis=1)
     want = np.clip(np.ceil(s.lens_samples_per_blur_pixel * painted), s.lens_samples_min, s.lens_samples_max)
-    # quantise to powers of two above the minimum, so samples batch together
+    # quantise to powers of two above the minimum, so that few patterns serve all samples
     level = np.ceil(np.log2(want / s.lens_samples_min)).astype(int)
-    n_lens = np.minimum(s.lens_samples_min * 2**level, s.lens_samples_max)
-    R2 = cam.aperture_radius_mm**2
-    basis = np.stack([cam.right, cam.down])  # (2, 3): lens-plane coordinates to world
-    yield int(np.sum(n_lens))  # first: the rays to come (for progress), then the batches
-    for n in np.unique(n_lens):
-        disk_unit = sunflower_disk(int(n))
-        square_unit = square_points(int(n))
-        # each ray leaves from its own point of the sample's sub-triangle: the lens samples
-        # then also integrate over the surface, which removes pixel aliasing (moire)
-        jit = triangle_jitter(int(n))
-        sel = np.flatnonzero(n_lens == n)
-        chunk = max(1, rays_per_batch // int(n))
-        for a in range(0, len(sel), chunk):
-            i = sel[a:a + chunk]
-            in_disk = dc[i, None, :] + disk_r[i, None, None] * disk_unit[None]
-            in_box = lo[i, None, :] + (hi - lo)[i, None, :] * square_unit[None]
-            box = use_box[i]
-            offs2 = np.where(box[:, None, None], in_box, in_disk)  # (S, n, 2)
-            within = np.where(box[:, None], ((in_box - dc[i, None, :]) ** 2).sum(axis=2) <= disk_r[i, None] ** 2, True)
-            offs = (offs2 @ basis).reshape(-1, 3)
-            L = cam.center_mm + offs
-            p = (P[i, None, :] + np.einsum("kc,scd->skd", jit, G[i])).reshape(-1, 3)
-            nn = np.repeat(N[i], n, axis=0)
-            zz = cam.axial(p)
-            d = L - p
-            r2 = np.einsum("ij,ij->i", d, d)
-            inv = 1 / np.sqrt(r2)
-            cos_s = np.einsum("ij,ij->i", nn, d) * inv
-            cos_l = -(d @ cam.axis) * inv
-            area = np.where(box, box_area[i], np.pi * disk_r[i] ** 2)
-            dA = np.repeat(area / n * W[i], n)
-            inside = (np.einsum("ij,ij->i", offs, offs) <= R2) & within.ravel()
-            w = np.where((cos_s > 0) & inside, cos_s * cos_l / (np.pi * r2), 0.0) * dA
-            pix = cam.pixel_index(cam.focal_plane_hit(p, L, zz))
-            yield p, nn, L, pix, w, np.repeat(E[i], n), zz, len(i), len(i) * int(n)
+    n_lens = np.minimum(s.lens_samples_min * 2**level, s.lens_samples_max).astype(np.int64)
+    area = np.where(use_box, box_area, np.pi * disk_r**2)
+    dA = area / n_lens * W
+    # one pattern per distinct count: lens disk (sunflower), box (R2) and surface jitter
+    counts = np.unique(n_lens)
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    pat_off = starts[np.searchsorted(counts, n_lens)]
+    disk_unit = np.concatenate([sunflower_disk(int(n)) for n in counts]) if len(counts) else np.zeros((0, 2))
+    square_unit = np.concatenate([square_points(int(n)) for n in counts]) if len(counts) else np.zeros((0, 2))
+    jitter = np.concatenate([triangle_jitter(int(n)) for n in counts]) if len(counts) else np.zeros((0, 2))
+    chunks = _element_chunks(E, n_lens, rays_per_batch)
+    return _LensPlan(P, N, G, dA, E.astype(np.int64), lo, hi, dc, disk_r, use_box, n_lens, pat_off,
+                     np.ascontiguousarray(disk_unit), np.ascontiguousarray(square_unit), np.ascontiguousarray(jitter),
+                     chunks, int(n_lens.sum()))
+
+
+def _element_chunks(elem: np.ndarray, rays: np.ndarray, rays_per_chunk: int) -> list[tuple[int, int]]:
+    """Split samples (sorted by element) into ranges of whole elements of about
+    ``rays_per_chunk`` rays each (an element with more rays is a chunk of its own)."""
+    if len(elem) == 0:
+        return []
+    bounds = np.flatnonzero(np.diff(elem)) + 1  # where a new element starts
+    el_start = np.concatenate([[0], bounds])
+    el_end = np.concatenate([bounds, [len(elem)]])
+    el_rays = np.add.reduceat(rays, el_start)
+    chunks, a, acc = [], 0, 0
+    for i in range(len(el_start)):
+        acc += int(el_rays[i])
+        if acc >= rays_per_chunk or i == len(el_start) - 1:
+            chunks.append((int(el_start[a]), int(el_end[i])))
+            a, acc = i + 1, 0
+    return chunks
+
+
+def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampling, eps: float,
+               rays_per_batch: int, threads: int, progress: Callable[[float], None] | None,
+               checkpoint: "Checkpoint | None", view_index: int) -> tuple[sp.csr_matrix, np.ndarray, dict]:
+    """One view's T by the lens estimator: chunks of whole elements cast on ``threads``
+    threads, columns placed by element (independent of which thread finished first)."""
+    cam = view.camera
+    n_pix = cam.nx * cam.ny
+    shape = (n_pix, surface.n_elements)
+    plan = _lens_plan(surface, view, s, rays_per_batch)
+    err = np.zeros(surface.n_elements)
+    if plan is None or not plan.chunks or scene.native is None:
+        if plan is not None and plan.chunks and scene.native is None:
+            raise ValueError("nothing to cast against: the scene has no triangles")
+        return sp.csr_matrix(shape), err, {"rays": 0.0, "surface_samples": 0.0, "rays_evaluated": 0.0}
+    from . import transfer_kernel  # numba: imported when T is built, not by every command
+
+    nat = scene.native
+    cam_arr = np.array([*cam.center_mm, *cam.axis, *cam.right, *cam.down, cam.focus_distance_mm,
+                        cam.focal_pixel_mm, cam.aperture_radius_mm**2, 0.0, 0.0])
+    m = view.mirror
+    mir = (np.array([1.0, *m.center_mm, *m.normal, *m.axis_u, *m.axis_v, *m.half_size_mm]) if m is not None
+           else np.zeros(15))
+    ap_dist = np.array([a.distance_mm for a in cam.apertures], float)
+    ap_r2 = np.array([a.radius_mm**2 for a in cam.apertures], float)
+    scratch = threading.local()
+
+    def run(chunk: tuple[int, int]):
+        if not hasattr(scratch, "even"):
+            scratch.even, scratch.odd = np.zeros(n_pix), np.zeros(n_pix)
+            scratch.mark, scratch.touched = np.zeros(n_pix, np.bool_), np.zeros(n_pix, np.int32)
+        return transfer_kernel.lens_columns(
+            nat.occluded16, nat.scene, cam_arr, mir, ap_dist, ap_r2, eps, plan.P, plan.N, plan.G, plan.dA,
+            plan.elem, plan.lo, plan.hi, plan.dc, plan.disk_r, plan.use_box, plan.n_lens, plan.pat_off, plan.disk_unit,
+            plan.square_unit, plan.jitter, chunk[0], chunk[1], n_pix, cam.nx, cam.ny,
+            scratch.even, scratch.odd, scratch.mark, scratch.touched, _NO_RECORD)
+
+    rays_of = [int(plan.n_lens[a:b].sum()) for a, b in plan.chunks]
+    if checkpoint is not None and not 0 < checkpoint.rays_per_block < plan.rays:
+        checkpoint = None  # a view smaller than one block is not worth files
+    results: list = [None] * len(plan.chunks)
+    done = reported = 0
+    pool = ThreadPoolExecutor(threads) if threads > 1 else None
+    try:
+        for block in _blocks(rays_of, checkpoint.rays_per_block if checkpoint else 0):
+            spans = [plan.chunks[i] for i in block]  # sample ranges: what the block holds, whatever the chunking
+            saved = checkpoint.load(view_index, spans) if checkpoint else None
+            if saved is not None and len(saved) == len(block):
+                finished = zip(block, saved)
+            else:
+                work = [plan.chunks[i] for i in block]
+                finished = zip(block, pool.map(run, work) if pool is not None else map(run, work))
+            for i, r in finished:  # in chunk order, whatever thread finished first
+                results[i] = r
+                done += rays_of[i]
+                if progress and (done - reported >= plan.rays / 100 or done >= plan.rays):
+                    progress(min(done / plan.rays, 1.0))  # at most ~100 reports a view (they may cross processes)
+                    reported = done
+            if checkpoint and saved is None:
+                checkpoint.save(view_index, spans, [results[i] for i in block])
+    finally:
+        if pool is not None:  # on Ctrl-C: drop the queued chunks, let the running ones end (milliseconds)
+            pool.shutdown(wait=True, cancel_futures=True)
+    # chunks hold increasing, whole elements: their columns concatenate into CSC
+    nnz_per_col = np.zeros(surface.n_elements, np.int64)
+    for elements, starts, _, _, col_err, *_ in results:
+        nnz_per_col[elements] = np.diff(starts)
+        err[elements] = col_err
+    indptr = np.concatenate([[0], np.cumsum(nnz_per_col)])
+    pix = np.concatenate([r[2] for r in results])
+    val = np.concatenate([r[3] for r in results])
+    T = sp.csc_matrix((val, pix, indptr), shape=shape)
+    T.eliminate_zeros()
+    stats = {"rays": float(sum(r[5] for r in results)), "surface_samples": float(len(plan.P)),
+             "rays_evaluated": float(plan.rays)}
+    return T.tocsr(), err, stats
+
+
+_NO_RECORD = np.zeros((0, 7), np.float32)
+
+
+def _blocks(rays_of: list[int], rays_per_block: int) -> list[list[int]]:
+    """Consecutive chunk indices grouped into checkpoint blocks of at least ``rays_per_block``
+    rays (one block of everything when 0)."""
+    if rays_per_block <= 0:
+        return [list(range(len(rays_of)))] if rays_of else []
+    out, cur, acc = [], [], 0
+    for i, r in enumerate(rays_of):
+        cur.append(i)
+        acc += r
+        if acc >= rays_per_block:
+            out.append(cur)
+            cur, acc = [], 0
+    if cur:
+        out.append(cur)
+    return out
 
 
 def _pairwise_pairs(surface: Surface, view: View, s: PairwiseSampling, rays_per_batch: int) -> Iterator[tuple]:
@@ -385,6 +514,33 @@ def _pairwise_pairs(surface: Surface, view: View, s: PairwiseSampling, rays_per_
         yield p, nn, L, pix, w, E[ii], zz, len(i), len(ii)
 
 
+class Checkpoint:
+    """Where a long single-pose build keeps finished blocks of chunks, so that an
+    interrupted build resumes (the pipeline keeps them as atomic files beside the T cache).
+
+    ``load(view, spans)`` returns the saved chunk results of the block whose chunks cover the
+    sample ranges ``spans`` [(s0, s1), ...], or None; ``save(view, spans, results)`` stores them.  ``rays_per_block``: how much work a block
+    holds (0: no checkpoints).  Blocks depend only on the inputs, so a resumed build makes
+    the same bytes as an uninterrupted one.
+    """
+
+    rays_per_block: int = 0
+
+    def load(self, view: int, spans: list[tuple[int, int]]):  # pragma: no cover - interface
+        return None
+
+    def save(self, view: int, spans: list[tuple[int, int]], results: list) -> None:  # pragma: no cover - interface
+        pass
+
+
+def default_threads() -> int:
+    """Threads one T build may use: the cores this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
 def build_transfer(
     surface: Surface,
     views: list[View],
@@ -396,6 +552,8 @@ def build_transfer(
     ray_offset_mm: float = 1e-3,
     rays_per_batch: int = 100_000,
     progress: Callable[[float], None] | None = None,
+    threads: int | None = None,
+    checkpoint: Checkpoint | None = None,
 ) -> TransferResult:
     """Compute T for ``surface`` seen by ``views``, with ``surface`` and ``occluders`` blocking.
 
@@ -404,50 +562,70 @@ def build_transfer(
     surface : the placed subject surface (its faces both emit and occlude).
     views : the direct view and one per mirror (see :func:`views_for`).
     occluders : other blocking geometry (stage plate, mirror plates).
-    progress : called with the fraction done (0..1) after every batch of rays, for a progress bar.
+    rays_per_batch : rays per chunk of whole elements (the unit of work of one thread).
+    progress : called with the fraction done (0..1) after every chunk of rays, for a progress bar.
+    threads : threads casting rays (default: the cores available); the result does not depend on it.
+    checkpoint : keeps finished blocks of a long build (lens estimator), see :class:`Checkpoint`.
 
     Returns
     -------
-    TransferResult with ``T`` of shape (nx * ny, n_elements), dimensionless.
+    TransferResult with ``T`` of shape (nx * ny, n_elements), dimensionless, and per column
+    an estimate of its L1 error (``column_error``, same unit as T; NaN for ``pairwise``).
     """
     if estimator not in ("lens", "pairwise"):
         raise ValueError(f"unknown estimator {estimator!r} (lens or pairwise)")
+    threads = threads or default_threads()
     v, f = merge(surface, *occluders)
     scene = OcclusionScene(v, f)
     n_pix = views[0].camera.nx * views[0].camera.ny
     shape = (n_pix, surface.n_elements)
-    per_view, stats = [], {}
+    per_view, errors, stats = [], [], {}
     for k, view in enumerate(views):
-        filt = _PairFilter(view, scene, ray_offset_mm)
-        T = sp.csr_matrix(shape)
-        n_samples = 0
-        gen = (_lens_pairs(surface, view, lens_sampling, rays_per_batch) if estimator == "lens"
-               else _pairwise_pairs(surface, view, pairwise_sampling, rays_per_batch))
-        pending = []
-        todo = next(gen, 0)  # the generators announce how many rays they will cast
-        done = 0
-        for P, N, L, pix, w, elem, zz, n_s, n_rays in gen:
-            n_samples += n_s
-            done += n_rays
-            if progress and todo:
-                progress((k + min(done / todo, 1.0)) / len(views))
-            pix, elem, w = filt(P, N, L, pix, w, elem, zz)
-            pending.append(sp.csr_matrix((w, (pix, elem)), shape=shape))
-            if len(pending) >= 8:
-                T = T + sum(pending[1:], pending[0])
-                pending = []
-        if pending:
-            T = T + sum(pending[1:], pending[0])
-        T.sum_duplicates()
-        T.eliminate_zeros()
-        per_view.append(T.tocsr())
-        stats[view.name] = {"rays": float(filt.rays_cast), "surface_samples": float(n_samples)}
-        if progress:
-            progress((k + 1) / len(views))
+        def sub(fraction, k=k):
+            if progress:
+                progress((k + fraction) / len(views))
+
+        if estimator == "lens":
+            T, err, st = _lens_view(surface, view, scene, lens_sampling, ray_offset_mm, rays_per_batch, threads,
+                                    sub, checkpoint, k)
+        else:
+            T, st = _pairwise_view(surface, view, scene, pairwise_sampling, ray_offset_mm, rays_per_batch, shape,
+                                   sub)
+            err = np.full(surface.n_elements, np.nan)
+        per_view.append(T)
+        errors.append(err)
+        stats[view.name] = st
+        sub(1.0)
     total = per_view[0] * views[0].weight
     for T, view in zip(per_view[1:], views[1:]):
         total = total + T * view.weight
-    return TransferResult(list(views), per_view, total.tocsr(), stats)
+    # the views' errors add at most (triangle inequality)
+    total_err = sum(e * view.weight for e, view in zip(errors, views))
+    return TransferResult(list(views), per_view, total.tocsr(), stats, errors, total_err)
+
+
+def _pairwise_view(surface: Surface, view: View, scene: OcclusionScene, s: PairwiseSampling, eps: float,
+                   rays_per_batch: int, shape: tuple[int, int], progress) -> tuple[sp.csr_matrix, dict]:
+    filt = _PairFilter(view, scene, eps)
+    gen = _pairwise_pairs(surface, view, s, rays_per_batch)
+    todo = next(gen, 0)  # the generator announces how many pairs it will evaluate
+    done, n_samples = 0, 0
+    parts = []
+    for P, N, L, pix, w, elem, zz, n_s, n_rays in gen:
+        n_samples += n_s
+        done += n_rays
+        pix, elem, w = filt(P, N, L, pix, w, elem, zz)
+        parts.append((pix, elem, w))
+        if todo:
+            progress(min(done / todo, 1.0))
+    # one COO -> CSR conversion (duplicates summed once, in a fixed order)
+    pix = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
+    elem = np.concatenate([p[1] for p in parts]) if parts else np.zeros(0, np.int64)
+    w = np.concatenate([p[2] for p in parts]) if parts else np.zeros(0)
+    T = sp.coo_matrix((w, (pix, elem)), shape=shape).tocsr()
+    T.sum_duplicates()
+    T.eliminate_zeros()
+    return T, {"rays": float(filt.rays_cast), "surface_samples": float(n_samples), "rays_evaluated": float(done)}
 
 
 def views_for(camera: ThinLensCamera, mirrors: list[tuple[str, PlaneMirror, float]]) -> list[View]:

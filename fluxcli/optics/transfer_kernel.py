@@ -1,0 +1,268 @@
+"""The compiled inner loop of the ``lens`` estimator: one pass per ray, T straight into columns.
+
+For a run of surface samples sorted by element, :func:`lens_columns` makes every ray
+(surface point x lens point), weighs it, maps it to its pixel, tests the extra apertures
+and the mirror window, casts it through Embree (GIL released) and adds its weight into
+the element's column; when the element ends its column is written out, pixels sorted.
+Nothing per ray is stored: memory is O(pixels) scratch per thread plus the output.
+
+Columns are summed in a fixed order (samples in order, lens samples in order), so the
+bytes do not depend on threads or timing.  Each ray also goes into one of two halves
+(even / odd lens sample); ``sum_pixels |half_even - half_odd|`` per column is the error
+estimate stored with T (:mod:`fluxcli.optics.transfer`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from .embree_native import new_packet, packet_cast, packet_put
+
+
+@nb.njit(nogil=True, cache=True)
+def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
+                 P, N, G, dA, elem, lo, hi, dc, disk_r, use_box, n_lens, pat_off,
+                 disk_unit, square_unit, jitter, s0, s1, n_pix, nx, ny,
+                 acc_even, acc_odd, mark, touched, record):
+    """Columns of the elements whose samples are ``[s0, s1)`` (whole elements, sorted).
+
+    Parameters
+    ----------
+    fn16, scene : addresses of rtcOccluded16 and of the scene
+        (:attr:`fluxcli.optics.raycast.OcclusionScene.native`).
+    cam : float64 (17,): centre (3), axis (3), right (3), down (3), u_mm, focal pixel mm,
+        aperture radius^2 mm^2, 0, 0 (padding).
+    mir : float64 (15,): 0 or 1 (a mirror view), centre (3), normal (3), axis_u (3),
+        axis_v (3), half sizes (2) mm.
+    ap_dist, ap_r2 : extra apertures: distance (mm) and radius^2 (mm^2).
+    P, N, G : sample points (S, 3) mm, normals (S, 3), sub-triangle edges (S, 2, 3) mm.
+    dA : lens-plane area per lens sample x element-area fraction (S,) mm^2.
+    elem : element of each sample (S,), non-decreasing over ``[s0, s1)``.
+    lo, hi, dc, disk_r, use_box : per-sample lens sampling region (lens-plane mm).
+    n_lens, pat_off : lens samples per surface sample, and where its pattern starts.
+    disk_unit, square_unit, jitter : the patterns (M, 2), concatenated per count.
+    acc_even, acc_odd, mark, touched : per-thread scratch of n_pix (zero / False on entry,
+        left so on exit).
+    record : float32 (R, 7), usually (0, 7): the first R segments cast are written here
+        (origin, unit direction, length) so that a benchmark can cast the very same rays
+        through embreex.
+
+    Returns
+    -------
+    (elements (K,), column starts (K + 1,), pixel (nnz,), value (nnz,), column error (K,),
+    rays cast, rays evaluated, segments recorded)
+    """
+    pk, pku, valid = new_packet()
+    pk2, pku2, _ = new_packet()
+    seg2 = np.empty((16, 7), np.float64)  # mirror views: the mirror -> lens segment of each queued ray
+    q_pix = np.empty(16, np.int64)
+    q_w = np.empty(16, np.float64)
+    q_odd = np.empty(16, np.int64)
+    m = 0  # rays queued in the packet
+    cx, cy, cz = cam[0], cam[1], cam[2]
+    ax, ay, az = cam[3], cam[4], cam[5]
+    rx, ry, rz = cam[6], cam[7], cam[8]
+    dx_, dy_, dz_ = cam[9], cam[10], cam[11]
+    u, pf, R2 = cam[12], cam[13], cam[14]
+    fx, fy, fz = cx + u * ax, cy + u * ay, cz + u * az  # focal-plane centre
+    has_mirror = mir[0] > 0
+    n_rays = 0
+    for s in range(s0, s1):
+        n_rays += n_lens[s]
+    cap = max(n_rays, 1)
+    out_pix = np.empty(cap, np.int32)
+    out_val = np.empty(cap, np.float64)
+    n_el = 1
+    for s in range(s0 + 1, s1):
+        if elem[s] != elem[s - 1]:
+            n_el += 1
+    elements = np.empty(n_el, np.int64)
+    starts = np.zeros(n_el + 1, np.int64)
+    col_err = np.zeros(n_el, np.float64)
+    n_touched = 0
+    nnz = 0
+    k_el = 0
+    cast = 0
+    n_rec = 0
+    for s in range(s0, s1):
+        px, py, pz = P[s, 0], P[s, 1], P[s, 2]
+        nx_, ny_, nz_ = N[s, 0], N[s, 1], N[s, 2]
+        n = n_lens[s]
+        base = pat_off[s]
+        r = disk_r[s]
+        for k in range(n):
+            # the lens point, in lens-plane coordinates (right, down) then in the world
+            if use_box[s]:
+                ox2 = lo[s, 0] + (hi[s, 0] - lo[s, 0]) * square_unit[base + k, 0]
+                oy2 = lo[s, 1] + (hi[s, 1] - lo[s, 1]) * square_unit[base + k, 1]
+                ex, ey = ox2 - dc[s, 0], oy2 - dc[s, 1]
+                if ex * ex + ey * ey > r * r:
+                    continue
+            else:
+                ox2 = dc[s, 0] + r * disk_unit[base + k, 0]
+                oy2 = dc[s, 1] + r * disk_unit[base + k, 1]
+            offx = ox2 * rx + oy2 * dx_
+            offy = ox2 * ry + oy2 * dy_
+            offz = ox2 * rz + oy2 * dz_
+            if offx * offx + offy * offy + offz * offz > R2:
+                continue
+            Lx, Ly, Lz = cx + offx, cy + offy, cz + offz
+            # the surface point: this ray's own point of the sample's sub-triangle
+            ja, jb = jitter[base + k, 0], jitter[base + k, 1]
+            qx = px + ja * G[s, 0, 0] + jb * G[s, 1, 0]
+            qy = py + ja * G[s, 0, 1] + jb * G[s, 1, 1]
+            qz = pz + ja * G[s, 0, 2] + jb * G[s, 1, 2]
+            vx, vy, vz = Lx - qx, Ly - qy, Lz - qz
+            r2 = vx * vx + vy * vy + vz * vz
+            inv = 1.0 / math.sqrt(r2)
+            cos_s = (nx_ * vx + ny_ * vy + nz_ * vz) * inv
+            if not cos_s > 0:
+                continue
+            cos_l = -(vx * ax + vy * ay + vz * az) * inv
+            w = cos_s * cos_l / (math.pi * r2) * dA[s]
+            if not w > 0:
+                continue
+            # the pixel: where the line meets the front focal plane
+            zz = (qx - cx) * ax + (qy - cy) * ay + (qz - cz) * az
+            t = u / zz
+            hx, hy, hz = Lx + t * (qx - Lx) - fx, Ly + t * (qy - Ly) - fy, Lz + t * (qz - Lz) - fz
+            col = (hx * rx + hy * ry + hz * rz) / pf + nx / 2
+            row = (hx * dx_ + hy * dy_ + hz * dz_) / pf + ny / 2
+            if not (col >= 0 and row >= 0 and col < nx and row < ny):
+                continue
+            pix = int(math.floor(row)) * nx + int(math.floor(col))
+            # beta: inside every extra aperture nearer the lens than the point
+            ok = True
+            for a in range(len(ap_dist)):
+                sa = ap_dist[a] / zz
+                if sa >= 1:
+                    continue
+                x0 = Lx + sa * (qx - Lx) - cx
+                x1 = Ly + sa * (qy - Ly) - cy
+                x2 = Lz + sa * (qz - Lz) - cz
+                along = x0 * ax + x1 * ay + x2 * az
+                q0, q1, q2 = x0 - along * ax, x1 - along * ay, x2 - along * az
+                if q0 * q0 + q1 * q1 + q2 * q2 > ap_r2[a]:
+                    ok = False
+                    break
+            if not ok:
+                continue
+            # alpha: the segment(s) to the lens are clear, cast 16 at a time (rays of one
+            # surface point are coherent: one packet traversal costs far less than 16 rays)
+            Ox, Oy, Oz = qx + eps * nx_, qy + eps * ny_, qz + eps * nz_
+            ux, uy, uz = Lx - Ox, Ly - Oy, Lz - Oz
+            if not has_mirror:
+                length = math.sqrt(ux * ux + uy * uy + uz * uz)
+                packet_put(pk, pku, m, Ox, Oy, Oz, ux / length, uy / length, uz / length, length)
+                if n_rec < len(record):
+                    _record(record, n_rec, Ox, Oy, Oz, ux / length, uy / length, uz / length, length)
+                    n_rec += 1
+            else:
+                mnx, mny, mnz = mir[4], mir[5], mir[6]
+                denom = ux * mnx + uy * mny + uz * mnz
+                tm = ((mir[1] - Ox) * mnx + (mir[2] - Oy) * mny + (mir[3] - Oz) * mnz) / denom
+                if not (tm > 0 and tm < 1):
+                    continue
+                Mx, My, Mz = Ox + tm * ux, Oy + tm * uy, Oz + tm * uz
+                m0, m1, m2 = Mx - mir[1], My - mir[2], Mz - mir[3]
+                if abs(m0 * mir[7] + m1 * mir[8] + m2 * mir[9]) > mir[13]:
+                    continue
+                if abs(m0 * mir[10] + m1 * mir[11] + m2 * mir[12]) > mir[14]:
+                    continue
+                dist = (Lx - mir[1]) * mnx + (Ly - mir[2]) * mny + (Lz - mir[3]) * mnz
+                Rx, Ry, Rz = Lx - 2 * dist * mnx, Ly - 2 * dist * mny, Lz - 2 * dist * mnz  # the real lens point
+                s1x, s1y, s1z = Mx - Ox, My - Oy, Mz - Oz
+                l1 = math.sqrt(s1x * s1x + s1y * s1y + s1z * s1z)
+                s2x, s2y, s2z = Rx - Mx, Ry - My, Rz - Mz
+                l2 = math.sqrt(s2x * s2x + s2y * s2y + s2z * s2z)
+                e2x, e2y, e2z = s2x / l2, s2y / l2, s2z / l2
+                # surface -> mirror now; mirror -> lens for those that pass (second packet)
+                packet_put(pk, pku, m, Ox, Oy, Oz, s1x / l1, s1y / l1, s1z / l1, l1 - eps)
+                if n_rec < len(record):
+                    _record(record, n_rec, Ox, Oy, Oz, s1x / l1, s1y / l1, s1z / l1, l1 - eps)
+                    n_rec += 1
+                seg2[m, 0], seg2[m, 1], seg2[m, 2] = Mx + eps * e2x, My + eps * e2y, Mz + eps * e2z
+                seg2[m, 3], seg2[m, 4], seg2[m, 5], seg2[m, 6] = e2x, e2y, e2z, l2 - eps
+            q_pix[m] = pix
+            q_w[m] = w
+            q_odd[m] = k % 2
+            m += 1
+            if m == 16:
+                cast, n_touched, n_rec = _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, has_mirror, seg2, q_pix,
+                                                q_w, q_odd, acc_even, acc_odd, mark, touched, n_touched, cast,
+                                                record, n_rec)
+                m = 0
+        if m > 0:  # the surface point's last rays
+            cast, n_touched, n_rec = _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, has_mirror, seg2, q_pix, q_w,
+                                            q_odd, acc_even, acc_odd, mark, touched, n_touched, cast, record, n_rec)
+            m = 0
+        if s + 1 == s1 or elem[s + 1] != elem[s]:  # the element's column is complete
+            order = np.sort(touched[:n_touched])
+            err = 0.0
+            for i in range(n_touched):
+                q = order[i]
+                out_pix[nnz] = q
+                out_val[nnz] = acc_even[q] + acc_odd[q]
+                err += abs(acc_even[q] - acc_odd[q])
+                nnz += 1
+                acc_even[q] = 0.0
+                acc_odd[q] = 0.0
+                mark[q] = False
+            elements[k_el] = elem[s]
+            col_err[k_el] = err
+            k_el += 1
+            starts[k_el] = nnz
+            n_touched = 0
+    return elements, starts, out_pix[:nnz].copy(), out_val[:nnz].copy(), col_err, cast, n_rays, n_rec
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def _record(record, i, ox, oy, oz, dx, dy, dz, length):
+    record[i, 0], record[i, 1], record[i, 2] = ox, oy, oz
+    record[i, 3], record[i, 4], record[i, 5] = dx, dy, dz
+    record[i, 6] = max(length, 0.0)
+
+
+@nb.njit(nogil=True, cache=True)
+def _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, has_mirror, seg2, q_pix, q_w, q_odd, acc_even, acc_odd, mark,
+           touched, n_touched, cast, record, n_rec):
+    """Cast the ``m`` queued rays (for a mirror view: then the mirror -> lens segments of those
+    that reach the mirror) and add the visible ones, in queue order, into the column."""
+    packet_cast(fn16, scene, pk, valid, m)
+    cast += m
+    clear = np.empty(16, np.bool_)
+    for j in range(m):
+        clear[j] = not pk[128 + j] < 0
+    if has_mirror:
+        idx = np.empty(16, np.int64)
+        m2 = 0
+        for j in range(m):
+            if clear[j]:
+                packet_put(pk2, pku2, m2, seg2[j, 0], seg2[j, 1], seg2[j, 2], seg2[j, 3], seg2[j, 4], seg2[j, 5],
+                           seg2[j, 6])
+                if n_rec < len(record):
+                    _record(record, n_rec, seg2[j, 0], seg2[j, 1], seg2[j, 2], seg2[j, 3], seg2[j, 4], seg2[j, 5],
+                            seg2[j, 6])
+                    n_rec += 1
+                idx[m2] = j
+                m2 += 1
+        if m2 > 0:
+            packet_cast(fn16, scene, pk2, valid, m2)
+            cast += m2
+            for i in range(m2):
+                clear[idx[i]] = not pk2[128 + i] < 0
+    for j in range(m):
+        if clear[j]:
+            pix = q_pix[j]
+            if not mark[pix]:
+                mark[pix] = True
+                touched[n_touched] = pix
+                n_touched += 1
+            if q_odd[j]:
+                acc_odd[pix] += q_w[j]
+            else:
+                acc_even[pix] += q_w[j]
+    return cast, n_touched, n_rec
