@@ -30,9 +30,15 @@ def _watch_parent(parent: int) -> None:
         time.sleep(0.25)
 
 
+_SPAWN_BLOCKED = {signal.SIGINT, signal.SIGTERM}
+
+
 def _init_worker(parent: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    # the parent forked us with these blocked (see worker_pool): a Ctrl-C that reached the process
+    # group between the fork and here is now pending and ignored, never a KeyboardInterrupt traceback
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, _SPAWN_BLOCKED)
     if sys.platform.startswith("linux"):
         with contextlib.suppress(Exception):
             libc = ctypes.CDLL(None, use_errno=True)
@@ -60,6 +66,13 @@ def worker_pool(jobs: int, temp_dirs: tuple = ()) -> Iterator[ProcessPoolExecuto
     SIGTERM, an error) queued work is cancelled, running workers are killed, and the
     temporary files they were writing in ``temp_dirs`` are removed."""
     ex = ProcessPoolExecutor(max_workers=jobs, initializer=_init_worker, initargs=(os.getpid(),))
+    # Start the workers now with SIGINT/SIGTERM blocked: they inherit the mask and unblock only once
+    # they ignore Ctrl-C.  Here a signal is merely delayed until the mask is restored below.
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, _SPAWN_BLOCKED)
+    try:
+        ex.submit(int)  # a no-op; with the fork start method this forks every worker
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
     try:
         yield ex
     except BaseException:
