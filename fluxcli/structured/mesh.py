@@ -18,6 +18,8 @@ straight down: +14 % volume on the lying cylinder.)
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -113,7 +115,9 @@ def closed_surface(points_mm: np.ndarray, normals: np.ndarray, *, floor_z_mm: fl
                        np.maximum(sdf, 0.5 * voxel_mm), sdf)
     grid["sdf"] = sdf
     m = grid.contour([0.0], scalars="sdf", method="marching_cubes").triangulate().clean()
-    m = m.connectivity("largest").extract_surface(algorithm="dataset_surface").triangulate()
+    with warnings.catch_warnings():  # connectivity's RegionId arrays go stale in extract_surface; dropped below
+        warnings.simplefilter("ignore", getattr(pv, "InvalidMeshWarning", Warning))
+        m = m.connectivity("largest").extract_surface(algorithm="dataset_surface").triangulate()
     m = pv.PolyData(np.asarray(m.points), m.faces).clean()  # the triangles alone (no stray lines, no stale arrays)
     m = m.smooth_taubin(n_iter=20, pass_band=0.1)
     target_faces = max(int(2 * m.area / (np.sqrt(3) / 4 * face_size_mm**2) / 2), 8)
