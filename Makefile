@@ -1,7 +1,8 @@
 # fluxmap: reproducible set-up, tests, benchmarks and experiments.
 #   make demo   create .venv, install, run the demo pipeline, print where its output is
 #   make check-report   open the demo's report in headless Chromium: screenshot, console, 3-D view
-#   make demo-rig   the simulated rig: capture-surface -> build-T -> reconstruct -> report
+#   make demo-rig   the simulated rig: capture-surface (structured light + emission) -> build-T on the
+#                   captured surface -> reconstruct -> report; the same frames on the true surface beside
 #   make structured-light   structured-light surface capture on the simulated rig, against the truth
 #   make test   create .venv if needed, install with test extras, run the test suite
 #   make bench  speed ratios measured in one run (slow checks included)
@@ -14,7 +15,7 @@ PY      = $(VENV)/bin/python
 FLUXMAP = $(VENV)/bin/fluxmap
 JOBS   ?= 2
 
-.PHONY: all demo demo-rig structured-light demo-rig-captured check-report config-reference accuracy test bench samples figures clean help
+.PHONY: all demo demo-rig structured-light demo-rig-truemesh check-report config-reference accuracy test bench samples figures clean help
 all: test
 
 $(VENV)/.installed: pyproject.toml
@@ -45,12 +46,13 @@ check-report: $(VENV)/.installed
 accuracy: $(VENV)/.installed
 	$(PY) benchmarks/accuracy.py
 
-demo-rig: $(VENV)/.installed
+demo-rig: $(VENV)/.installed  # issue 12: build-T and reconstruct on the surface capture-surface measured
 	$(FLUXMAP) capture-surface configs/demo-rig.yaml --resume
 	$(FLUXMAP) build-T configs/demo-rig.yaml --jobs $(JOBS)
 	$(FLUXMAP) reconstruct configs/demo-rig.yaml --jobs $(JOBS)
 	$(FLUXMAP) report configs/demo-rig.yaml
-	$(PY) pipelines/rig_totals.py runs/demo-rig/reconstruction.h5
+	$(MAKE) --no-print-directory demo-rig-truemesh
+	$(PY) pipelines/rig_totals.py runs/demo-rig/reconstruction.h5 --against runs/demo-rig-truemesh/reconstruction.h5
 	@echo "demo-rig report: $(CURDIR)/runs/demo-rig/report/index.html"
 
 test: $(VENV)/.installed
@@ -59,14 +61,13 @@ test: $(VENV)/.installed
 structured-light: $(VENV)/.installed  # issue 12: simulated structured-light capture measured against the truth
 	$(PY) pipelines/structured_light.py runs/structured-light
 
-demo-rig-captured: $(VENV)/.installed  # demo-rig's frames reconstructed on the captured mesh (after demo-rig, structured-light)
-	$(FLUXMAP) build-T configs/demo-rig-captured.yaml --jobs $(JOBS)
-	$(FLUXMAP) reconstruct configs/demo-rig-captured.yaml --jobs $(JOBS)
-	$(PY) pipelines/rig_totals.py runs/demo-rig-captured/reconstruction.h5 runs/demo-rig/reconstruction.h5
+demo-rig-truemesh: $(VENV)/.installed  # demo-rig's frames reconstructed on the TRUE surface (after demo-rig's capture)
+	$(FLUXMAP) build-T configs/demo-rig-truemesh.yaml --jobs $(JOBS)
+	$(FLUXMAP) reconstruct configs/demo-rig-truemesh.yaml --jobs $(JOBS)
 
 bench: $(VENV)/.installed
 	$(PY) -m pytest -q -m slow --benchmark-disable || test $$? -eq 5  # 5: no slow checks collected
-	$(PY) benchmarks/bench_transfer.py
+	$(PY) benchmarks/run.py  # one table + runs/bench/bench.json (benchmarks/bench_*.py)
 
 samples: $(VENV)/.installed
 	$(PY) data-samples/make_samples.py

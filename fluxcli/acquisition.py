@@ -1,8 +1,11 @@
-"""Crash-safe acquisition of emission images: the plan, ``capture.h5``, the frame loop, the reader.
+"""Crash-safe acquisition: the plan, ``capture.h5``, the frame loop, the readers.
 
-The plan (:class:`Plan`) lists every frame: first the dark frames (shutter closed) of each
-exposure time, then for each stage height, each filter, each exposure, ``repeats`` frames.  Frame ``k`` of the plan has slot
-``k`` in ``capture.h5``:
+The plan (:class:`Plan`) lists every frame: first, with ``capture.surface``, the
+structured-light pattern frames (:class:`SurfacePlan`: for each projector each pattern of
+the Gray-code + phase-shift sequence, the other projectors black), then the dark frames
+(shutter closed) of each exposure time, then for each stage height, each filter, each
+exposure, ``repeats`` emission frames.  Emission frame ``k`` of the plan has slot ``k`` in
+``capture.h5``, pattern frame ``k`` slot ``k`` of ``/patterns``:
 
 ``/frames/counts``           uint16 ``[n_frames, ny, nx]`` ADC counts, row 0 first
 ``/frames/<metadata>``       per frame, read back from the devices after the exposure:
@@ -12,6 +15,13 @@ exposure time, then for each stage height, each filter, each exposure, ``repeats
 ``/frames/committed``        uint8 ``[n_frames]``: 1 once the frame and its metadata are durable
 ``/plan/...``                what each slot is meant to hold (dark, height_mm, filter, repeat)
 ``/truth/<filter>/power``    (simulated camera only) photons per element per second
+``/patterns/counts``         uint16 ``[n_pattern_frames, ny', nx']`` (at ``capture.surface.binning``)
+``/patterns/<metadata>``     as for ``/frames``, read back per pattern frame, and ``committed``
+``/patterns/{projector, pattern_index, label, gray_bit, inverse, phase_step, phase_shift_rad}``
+                             what each slot shows: projector name, position in the sequence,
+                             ``white``/``black``/``grayB``/``grayB-inverse``/``phaseK``, the
+                             Gray-code bit shown (-1: none), 1 for an inverse frame, the phase
+                             step (-1: none) and its shift 2 pi K / n_steps (nan: none)
 
 Why it survives a kill at any instant: the skeleton is written in full (every dataset
 contiguous and allocated, zero-filled) under a temporary name and renamed into place, so
@@ -37,7 +47,8 @@ from . import artefacts as A
 from .errors import UserError
 from .imaging import noise as N
 
-__all__ = ["Frame", "Plan", "CaptureFile", "RigDevices", "acquire", "read_capture", "CaptureImages", "Interrupted"]
+__all__ = ["Frame", "PatternFrame", "SurfacePlan", "Plan", "CaptureFile", "RigDevices", "acquire", "read_capture",
+           "CaptureImages", "Interrupted", "PatternCapture", "read_patterns"]
 
 KIND = "capture"
 _META = {  # per-frame metadata read back from the devices (units: artefacts.kinds "capture")
@@ -67,6 +78,39 @@ class Frame:
 
 
 @dataclass(frozen=True)
+class PatternFrame:
+    index: int  # slot in /patterns
+    projector: str
+    pattern: int  # position in the pattern sequence
+    name: str  # white, black, grayB, grayB-inverse, phaseK
+
+    @property
+    def label(self) -> str:
+        return f"projector {self.projector}, pattern {self.pattern + 1} ({self.name})"
+
+
+@dataclass(frozen=True)
+class SurfacePlan:
+    """The structured-light part of a plan: every projector shows every pattern, one frame each."""
+
+    projectors: tuple[str, ...]
+    patterns: tuple[str, ...]  # names of the sequence, in order (the same for every projector)
+    height_mm: float
+    filter: str
+    exposure_s: float
+    em_gain: float
+    binning: int
+    shape: tuple[int, int]  # (ny, nx) of a pattern frame
+    n_gray: int
+    n_steps: int
+    content: str  # digest of the pattern images and the projectors' models
+
+    def frames(self) -> list[PatternFrame]:
+        return [PatternFrame(k * len(self.patterns) + i, p, i, name)
+                for k, p in enumerate(self.projectors) for i, name in enumerate(self.patterns)]
+
+
+@dataclass(frozen=True)
 class Plan:
     """What to acquire.  Two runs may share a file only when their plans are equal."""
 
@@ -81,6 +125,7 @@ class Plan:
     filter_positions: tuple[tuple[str, int], ...] = ()  # (name, wheel position) of each planned filter
     camera: str = "simulated"  # backend
     scene: str = ""  # digest of what a simulated camera renders ("" for a real camera)
+    surface: SurfacePlan | None = None  # structured-light pattern frames, taken first
 
     def frames(self) -> list[Frame]:
         out: list[Frame] = []
@@ -103,8 +148,22 @@ class Plan:
         names = {"scene": "the simulated scene (system, subject, simulate, rig.camera)", "shape": "frame shape",
                  "exposures_s": "capture.exposure_s", "filter_positions": "rig.filter_wheel.filters",
                  "camera": "rig.camera.backend"}
-        return [f"{names.get(k, 'capture.' + k)}: file has {other.get(k)!r}, config has {mine[k]!r}"
-                for k in mine if other.get(k) != mine[k]]
+        out = []
+        for k in mine:
+            theirs = other.get(k)
+            if theirs == mine[k]:
+                continue
+            if k == "surface" and isinstance(theirs, dict) and isinstance(mine[k], dict):
+                sub = {"content": "the patterns or rig.projectors", "shape": "pattern frame shape",
+                       "patterns": "the pattern sequence"}
+                out += [f"{sub.get(j, 'capture.surface.' + j)}: file has {theirs.get(j)!r}, config has {v!r}"
+                        for j, v in mine[k].items() if theirs.get(j) != v]
+            elif k == "surface":
+                out.append(f"capture.surface: the file was captured {'without' if theirs is None else 'with'} "
+                           f"structured-light frames, the config asks {'without' if mine[k] is None else 'with'} them")
+            else:
+                out.append(f"{names.get(k, 'capture.' + k)}: file has {theirs!r}, config has {mine[k]!r}")
+        return out
 
 
 @dataclass
@@ -115,6 +174,9 @@ class RigDevices:
     wheel: object  # .move_to(pos) -> int, .position -> int
     camera: object  # fluxcli.hardware.camera.Camera
     filter_positions: dict[str, int] = field(default_factory=dict)
+    displays: dict = field(default_factory=dict)  # projector name -> PatternDisplay (.show(image))
+    pattern_image: Callable[[str, int], np.ndarray] | None = None  # (projector, pattern index) -> image
+    panels: dict = field(default_factory=dict)  # projector name -> (height_px, width_px)
 
     def filter_name(self, position: int) -> str:
         for name, p in self.filter_positions.items():
@@ -136,6 +198,8 @@ class CaptureFile:
         self._f = f
         self.plan = plan
         self.committed = f["frames/committed"][()].astype(bool)
+        self.pattern_committed = (f["patterns/committed"][()].astype(bool) if "patterns" in f
+                                  else np.zeros(0, bool))
 
     # ------------------------------------------------------------ create / open
     @classmethod
@@ -165,6 +229,8 @@ class CaptureFile:
             for name, dtype in _META.items():
                 A.put(f, f"frames/{name}", np.zeros(n, dtype))
             A.put(f, "frames/committed", np.zeros(n, np.uint8))
+            if plan.surface is not None:
+                _create_patterns(f, plan.surface)
             if truth:
                 t = f.create_group("truth")
                 t.attrs["unit"] = truth_unit
@@ -189,24 +255,111 @@ class CaptureFile:
         return cls._open(path, plan)
 
     # ------------------------------------------------------------ frames
-    def write_frame(self, index: int, counts: np.ndarray, meta: dict) -> None:
-        """Store frame ``index`` durably, then mark it committed (last)."""
-        if counts.shape != self.plan.shape:
-            raise ValueError(f"frame {index} is {counts.shape}, the plan's frames are {self.plan.shape}")
-        g = self._f["frames"]
+    def write_frame(self, index: int, counts: np.ndarray, meta: dict, *, pattern: bool = False) -> None:
+        """Store frame ``index`` (of ``/patterns`` when ``pattern``) durably, then mark it committed (last)."""
+        shape = self.plan.surface.shape if pattern else self.plan.shape
+        if counts.shape != tuple(shape):
+            raise ValueError(f"frame {index} is {counts.shape}, the plan's frames are {tuple(shape)}")
+        g = self._f["patterns" if pattern else "frames"]
         g["counts"][index] = counts
         for name in _META:
             g[name][index] = meta[name]
         _fsync(self._f)
         g["committed"][index] = 1
         _fsync(self._f)
-        self.committed[index] = True
+        (self.pattern_committed if pattern else self.committed)[index] = True
+
+    @property
+    def n_committed(self) -> int:
+        return int(self.committed.sum() + self.pattern_committed.sum())
 
     def close(self) -> None:
         self._f.close()
 
 
+def _create_patterns(f: h5py.File, sp: SurfacePlan) -> None:
+    """The /patterns skeleton: zero-filled, contiguous (a frame later changes no metadata)."""
+    frames = sp.frames()
+    n, (ny, nx) = len(frames), sp.shape
+    g = f.create_group("patterns")
+    for key in ("n_gray", "n_steps", "binning", "height_mm", "exposure_s", "em_gain"):
+        g.attrs[key] = getattr(sp, key)
+    g.attrs["filter"] = sp.filter
+    A.put(g, "projector", np.array([fr.projector.encode() for fr in frames], "S32"))
+    A.put(g, "pattern_index", np.array([fr.pattern for fr in frames], np.int32))
+    A.put(g, "label", np.array([fr.name.encode() for fr in frames], "S32"))
+    bit = [sp.n_gray - 1 - int(fr.name[4:].split("-")[0]) if fr.name.startswith("gray") else -1 for fr in frames]
+    A.put(g, "gray_bit", np.array(bit, np.int32))
+    A.put(g, "inverse", np.array([fr.name.endswith("-inverse") for fr in frames], np.uint8))
+    step = [int(fr.name[5:]) if fr.name.startswith("phase") else -1 for fr in frames]
+    A.put(g, "phase_step", np.array(step, np.int32))
+    A.put(g, "phase_shift_rad", np.array([2 * np.pi * k / sp.n_steps if k >= 0 else np.nan for k in step]))
+    A.put(g, "counts", np.zeros((n, ny, nx), np.uint16))
+    for name, dtype in _META.items():
+        A.put(g, name, np.zeros(n, dtype))
+    A.put(g, "committed", np.zeros(n, np.uint8))
+
+
 # ------------------------------------------------------------------ the frame loop
+def _settle(rig: "RigDevices", cam, *, filter: str, height_mm: float, on_step, tolerance_mm: float) -> None:
+    pos = rig.filter_positions[filter]
+    if rig.wheel.position != pos:
+        on_step(f"filter -> {filter}")
+        rig.wheel.move_to(pos)
+    if abs(rig.stage.position_mm() - height_mm) > tolerance_mm:
+        on_step(f"stage -> {height_mm:g} mm")
+        rig.stage.move_to_mm(height_mm)
+
+
+def _meta(rig: "RigDevices", cam) -> dict:
+    position = int(rig.wheel.position)
+    return {"time_unix": time.time(), "stage_height_mm": float(rig.stage.position_mm()), "filter_position": position,
+            "filter_name": rig.filter_name(position).encode()[:32], "exposure_s": float(cam.exposure_s),
+            "em_gain": float(cam.em_gain), "temperature_c": float(cam.temperature_c),
+            "shutter_open": int(bool(cam.shutter_open))}
+
+
+def _show(rig: "RigDevices", shown: dict, projector: str | None, pattern: int | None) -> None:
+    """Projector ``projector`` shows pattern ``pattern``, every other one black (``shown``
+    remembers what each shows, so a display is only redrawn when its image changes)."""
+    for name, display in rig.displays.items():
+        want = pattern if name == projector else None
+        if name not in shown or shown[name] != want:
+            display.show(np.zeros(rig.panels[name]) if want is None else rig.pattern_image(name, want))
+            shown[name] = want
+
+
+def _acquire_patterns(plan: Plan, out: "CaptureFile", rig: "RigDevices", cam, *, stop_requested, on_step, on_frame,
+                      tolerance_mm: float) -> int:
+    sp = plan.surface
+    todo = [fr for fr in sp.frames() if not out.pattern_committed[fr.index]]
+    if not todo:
+        return 0
+    emission_binning = cam.binning
+    n_emission = len(plan.frames())
+    shown: dict = {}
+    for fr in todo:
+        if stop_requested():
+            raise Interrupted(fr.label)
+        _settle(rig, cam, filter=sp.filter, height_mm=sp.height_mm, on_step=on_step, tolerance_mm=tolerance_mm)
+        if cam.binning != sp.binning:
+            cam.binning = sp.binning
+        if cam.em_gain != sp.em_gain:
+            cam.em_gain = sp.em_gain
+        if cam.exposure_s != sp.exposure_s:
+            cam.exposure_s = sp.exposure_s
+        _show(rig, shown, fr.projector, fr.pattern)
+        cam.shutter_open = True
+        on_step(fr.label)
+        cam.set_frame_index(n_emission + fr.index)  # the noise of pattern frame k: slot n_emission + k
+        counts = cam.snap()
+        out.write_frame(fr.index, np.asarray(counts), _meta(rig, cam), pattern=True)
+        on_frame(fr)
+    _show(rig, shown, None, None)
+    cam.binning = emission_binning
+    return len(todo)
+
+
 def acquire(plan: Plan, out: CaptureFile, rig: RigDevices, *, stop_requested: Callable[[], bool] = lambda: False,
             on_step: Callable[[str], None] = lambda s: None, on_frame: Callable[[Frame], None] = lambda fr: None,
             height_tolerance_mm: float = 1e-3) -> int:
@@ -218,11 +371,14 @@ def acquire(plan: Plan, out: CaptureFile, rig: RigDevices, *, stop_requested: Ca
     cam = rig.camera
     taken = 0
     todo = [fr for fr in plan.frames() if not out.committed[fr.index]]
-    if not todo:
+    if not todo and (plan.surface is None or out.pattern_committed.all()):
         return 0
     try:
         on_step("camera settings")
         cam.cooler_on = True
+        if plan.surface is not None:
+            taken += _acquire_patterns(plan, out, rig, cam, stop_requested=stop_requested, on_step=on_step,
+                                       on_frame=on_frame, tolerance_mm=height_tolerance_mm)
         cam.em_gain = plan.em_gain
         for fr in todo:
             if stop_requested():
@@ -230,26 +386,15 @@ def acquire(plan: Plan, out: CaptureFile, rig: RigDevices, *, stop_requested: Ca
             if fr.dark:
                 cam.shutter_open = False
             else:
-                pos = rig.filter_positions[fr.filter]
-                if rig.wheel.position != pos:
-                    on_step(f"filter -> {fr.filter}")
-                    rig.wheel.move_to(pos)
-                if abs(rig.stage.position_mm() - fr.height_mm) > height_tolerance_mm:
-                    on_step(f"stage -> {fr.height_mm:g} mm")
-                    rig.stage.move_to_mm(fr.height_mm)
+                _settle(rig, cam, filter=fr.filter, height_mm=fr.height_mm, on_step=on_step,
+                        tolerance_mm=height_tolerance_mm)
                 cam.shutter_open = True
             if cam.exposure_s != fr.exposure_s:
                 cam.exposure_s = fr.exposure_s
             on_step(fr.label)
             cam.set_frame_index(fr.index)
             counts = cam.snap()
-            t = time.time()
-            position = int(rig.wheel.position)
-            meta = {"time_unix": t, "stage_height_mm": float(rig.stage.position_mm()), "filter_position": position,
-                    "filter_name": rig.filter_name(position).encode()[:32], "exposure_s": float(cam.exposure_s),
-                    "em_gain": float(cam.em_gain), "temperature_c": float(cam.temperature_c),
-                    "shutter_open": int(bool(cam.shutter_open))}
-            out.write_frame(fr.index, np.asarray(counts), meta)
+            out.write_frame(fr.index, np.asarray(counts), _meta(rig, cam))
             taken += 1
             on_frame(fr)
     except BaseException:
@@ -262,7 +407,8 @@ def acquire(plan: Plan, out: CaptureFile, rig: RigDevices, *, stop_requested: Ca
 def _make_safe(rig: RigDevices, report: bool = True) -> None:
     """Shutter closed and stage stopped, each tried even when the other fails."""
     errors = []
-    for action in (rig.camera.make_safe, rig.stage.stop):
+    blank = [lambda d=d, n=n: d.show(np.zeros(rig.panels[n])) for n, d in rig.displays.items()]
+    for action in (rig.camera.make_safe, rig.stage.stop, *blank):
         try:
             action()
         except Exception as e:  # keep going: the other device must still be made safe
@@ -367,3 +513,50 @@ def _one_of(path: Path, key: str, value, choices: list):
     if value not in choices:
         raise UserError(f"reconstruct.images.{key}: {value!r} is not in capture {path} (it holds {choices}).")
     return value
+
+
+# ------------------------------------------------------------------ reading the pattern frames back
+@dataclass
+class PatternCapture:
+    """The structured-light frames of a capture, per projector in sequence order."""
+
+    projectors: list[str]
+    counts: dict[str, np.ndarray]  # projector -> uint16 [n_patterns, ny, nx]
+    exposure_s: float  # read back
+    em_gain: float  # read back
+    height_mm: float  # stage height read back (mean over the frames)
+    binning: int
+    n_gray: int
+    n_steps: int
+    path: Path | None = None
+
+    def photons(self, sensor: "N.EMCCDModel") -> dict[str, np.ndarray]:
+        """Photons per pixel per exposure of every frame (the sensor's bias, dark and CIC
+        removed at the gain and exposure read back; :func:`fluxcli.imaging.noise.counts_to_photons`)."""
+        model = replace(sensor, em_gain=self.em_gain, exposure_s=self.exposure_s)
+        return {p: N.counts_to_photons(c, model) for p, c in self.counts.items()}
+
+
+def read_patterns(path: Path) -> PatternCapture:
+    """The pattern frames of a capture; UserError when it has none or they are incomplete."""
+    path = Path(path)
+    with A.open_artefact(path, KIND) as f:
+        if "patterns" not in f:
+            raise UserError(f"capture {path} holds no structured-light pattern frames (capture.surface was not set "
+                            "when it was taken); capture them with 'fluxmap capture-surface CONFIG --force'.")
+        g = f["patterns"]
+        committed = g["committed"][()].astype(bool)
+        if not committed.all():
+            raise UserError(f"capture {path} is incomplete: {committed.sum()} of {committed.size} pattern frames; "
+                            "finish it with 'fluxmap capture-surface CONFIG --resume'.")
+        proj = np.char.decode(g["projector"][()])
+        order = g["pattern_index"][()]
+        counts = g["counts"][()]
+        names = list(dict.fromkeys(proj.tolist()))
+        by = {p: counts[np.flatnonzero(proj == p)[np.argsort(order[proj == p])]] for p in names}
+        gains, exps = np.unique(g["em_gain"][()]), np.unique(g["exposure_s"][()])
+        if len(gains) != 1 or len(exps) != 1:
+            raise UserError(f"capture {path}: its pattern frames were read out at EM gains {gains.tolist()} and "
+                            f"exposures {exps.tolist()} s; one of each is expected.")
+        return PatternCapture(names, by, float(exps[0]), float(gains[0]), float(g["stage_height_mm"][()].mean()),
+                              int(g.attrs["binning"]), int(g.attrs["n_gray"]), int(g.attrs["n_steps"]), path)

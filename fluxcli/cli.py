@@ -32,6 +32,9 @@ SetOpt = typer.Option(None, "--set", metavar="KEY=VALUE", help="Override a confi
 ForceOpt = typer.Option(False, "--force", help="Recompute even when an up-to-date artefact exists.")
 JobsOpt = typer.Option(1, "--jobs", "-j", min=1, help="Worker processes.")
 QuietOpt = typer.Option(False, "--quiet", "-q", help="Print nothing but errors.")
+SchedulerOpt = typer.Option(None, "--scheduler", envvar="FLUXMAP_SCHEDULER", metavar="ADDRESS",
+                            help="Send the run's independent tasks (T per pose, sweep cells) to the Dask scheduler "
+                                 "at ADDRESS (e.g. tcp://host:8786); without it they run here (--jobs).")
 
 
 def _version(value: bool) -> None:
@@ -134,16 +137,24 @@ def _bug() -> None:
 
 
 def _run(name: str, stage: Callable, config: Path, overrides: Optional[List[str]], force: bool, jobs: int,
-         quiet: bool) -> None:
+         quiet: bool, scheduler: Optional[str] = None) -> None:
     def body() -> None:
+        import contextlib
+
         from .config import load_config, require
         from .stages.context import RunContext
 
         cfg = load_config(config, overrides or [])
         if not getattr(stage, "not_built", False):
             require(cfg, name, STAGE_REQUIRES.get(name, ()))
-        ctx = RunContext(force=force, jobs=jobs, quiet=quiet, overrides=tuple(overrides or ()))
-        out = stage(cfg, ctx)
+        with contextlib.ExitStack() as stack:
+            client = None
+            if scheduler:  # reach the cluster before any work (an unreachable address is exit 2)
+                from .cluster import connect
+
+                client = stack.enter_context(connect(scheduler))
+            ctx = RunContext(force=force, jobs=jobs, quiet=quiet, overrides=tuple(overrides or ()), client=client)
+            out = stage(cfg, ctx)
         if not quiet and out is not None:
             typer.echo(f"output: {out}")
 
@@ -158,35 +169,42 @@ def _not_built(name: str, issue: str) -> Callable:
     return stage
 
 
-def _stage_command(name: str, module: str | None, doc: str) -> None:
-    """Register ``fluxmap <name> CONFIG`` running ``fluxcli.stages.<module>.run`` (one lifecycle for all)."""
+def _stage_command(name: str, module: str | None, doc: str, cluster: bool = False) -> None:
+    """Register ``fluxmap <name> CONFIG`` running ``fluxcli.stages.<module>.run`` (one lifecycle for all);
+    ``cluster``: the stage takes ``--scheduler`` (its tasks can run on a Dask cluster)."""
+
+    def stage_of():
+        if module is None:
+            return _not_built(name, "not built yet")
+        import importlib
+
+        return importlib.import_module(f".stages.{module}", __package__).run
 
     def command(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, force: bool = ForceOpt,
                 jobs: int = JobsOpt, quiet: bool = QuietOpt) -> None:
-        if module is None:
-            stage = _not_built(name, "not built yet")
-        else:
-            import importlib
+        _run(name, stage_of(), config, set_, force, jobs, quiet)
 
-            stage = importlib.import_module(f".stages.{module}", __package__).run
-        _run(name, stage, config, set_, force, jobs, quiet)
+    def cluster_command(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, force: bool = ForceOpt,
+                        jobs: int = JobsOpt, quiet: bool = QuietOpt, scheduler: Optional[str] = SchedulerOpt) -> None:
+        _run(name, stage_of(), config, set_, force, jobs, quiet, scheduler)
 
-    command.__doc__ = doc
-    app.command(name)(command)
+    chosen = cluster_command if cluster else command
+    chosen.__doc__ = doc
+    app.command(name)(chosen)
 
 
 _stage_command("build-T", "build_t", """Compute the transfer matrix T of each pose (cached by content).
 
     $ fluxmap build-T configs/paper-3d.yaml --jobs 2
-    """)
+    """, cluster=True)
 _stage_command("simulate", "simulate", """Make ground-truth surface fluxes and realistic camera images.
 
     $ fluxmap simulate configs/paper-2d.yaml
-    """)
+    """, cluster=True)
 _stage_command("reconstruct", "reconstruct", """Invert images into surface flux (photons per element).
 
     $ fluxmap reconstruct configs/paper-2d.yaml --jobs 2
-    """)
+    """, cluster=True)
 _stage_command("report", "report", """Figures, summary.json and a self-contained HTML page, from the artefacts.
 
     $ fluxmap report configs/paper-3d.yaml

@@ -128,6 +128,45 @@ class Stage(Model):
     center_xy_mm: tuple[float, float] = Field((0.0, 0.0), description="Plate centre in x, y (mm).")
 
 
+class ProjectorPose(Model):
+    center_mm: Vec3 = Field(description="World position of the projector's centre of projection (mm).")
+    look: Vec3 = Field(description="Projection axis, from the projector into the scene.")
+    up: Vec3 = Field(description="World direction of the panel's row 0 (top of the projected image).")
+
+    @model_validator(mode="after")
+    def _check(self) -> "ProjectorPose":
+        look, up = _unit(self.look, "look"), _unit(self.up, "up")
+        if abs(sum(a * b for a, b in zip(look, up))) > 0.999:
+            raise ValueError("up must not be parallel to look")
+        return self
+
+
+class ProjectorModel(Model):
+    """A structured-light projector's optics: pinhole with radial distortion (fluxcli.structured.projector);
+    what ``calibrate`` writes into camera.yaml's ``projectors:`` mapping."""
+
+    pixels: tuple[int, int] = Field(description="Panel resolution [width, height] (projector pixels).")
+    focal_px: tuple[float, float] = Field(description="Focal lengths [fx, fy] (projector pixels).")
+    principal_px: tuple[float, float] | None = Field(None, description="Principal point [cx, cy] (projector pixels; default the panel centre).")
+    distortion: tuple[float, float] = Field((0.0, 0.0), description="Radial distortion [k1, k2] (Brown's model, dimensionless).")
+    gamma: float = Field(1.0, gt=0, description="Panel response: emitted radiance = value ** gamma.")
+    pose: ProjectorPose = Field(description="Where the projector is and where it points.")
+
+    @field_validator("pixels")
+    @classmethod
+    def _pixels(cls, v: tuple[int, int]) -> tuple[int, int]:
+        if min(v) < 2:
+            raise ValueError("pixels must be two integers [width, height], each 2 or more")
+        return v
+
+    @field_validator("focal_px")
+    @classmethod
+    def _focal(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if min(v) <= 0:
+            raise ValueError("focal_px must be two positive numbers [fx, fy]")
+        return v
+
+
 class System(Model):
     camera: Camera = Field(description="The camera: sensor, lens, pose, apertures (or a camera.yaml path from calibrate).")
     mirrors: tuple[Mirror, ...] = Field((), description="Plane mirrors; each adds a view.")
@@ -305,6 +344,9 @@ class DiffusionFlux(Model):
     mesh_edge_mm: float = Field(1.5, gt=0, description="Target tetrahedron edge length (mm).")
     mesh_dir: Path | None = Field(None, description="Folder of tetrahedral meshes shipped with the config "
                                   "(fTetWild is not deterministic; a shipped mesh makes a fresh clone byte-reproducible).")
+    solver: Literal["auto", "direct", "amg"] = Field("auto", description="FEM solver: direct (sparse LU), amg "
+                                                     "(multigrid-preconditioned CG to a 1e-10 relative residual), or auto "
+                                                     "(amg above 100 000 nodes).")
 
     @model_validator(mode="after")
     def _check(self) -> "DiffusionFlux":
@@ -517,11 +559,61 @@ class CalibrationImage(Model):
     plane_z_mm: float = Field(description="World z of the grid plane in this image (mm); the world frame is the grid's.")
 
 
+# --------------------------------------------------------------------------- calibrate: projectors
+class ProjectorPatternSettings(Model):
+    period_px: int = Field(16, ge=4, multiple_of=4, description="Fringe period of the phase-shift frames (projector pixels; a multiple of 4).")
+    n_steps: int = Field(8, ge=3, description="Phase steps per code.")
+
+
+class ProjectorFrames(Model):
+    plane_z_mm: float = Field(description="World z of the flat board (the grid's plane) in these frames (mm).")
+    columns: tuple[Path, ...] | str = Field(description="Camera frames while the column code was shown, in the pattern order (white, black, Gray bits and inverses, phase steps): a list of files or one glob pattern (sorted).")
+    rows: tuple[Path, ...] | str = Field(description="The same for the row code (the column code turned by 90 degrees).")
+
+
+class SimulatedProjectorFrames(Model):
+    """Frames made by the simulated rig (the demo and tests): a flat matte board at each height."""
+
+    camera: Camera = Field(description="The true camera that renders the frames (or the path of a YAML file with a camera: block).")
+    projector: ProjectorModel = Field(description="The true projector (the fit never sees it; its error is reported).")
+    heights_mm: tuple[float, ...] = Field(min_length=2, description="Board heights (mm).")
+    board_size_mm: tuple[float, float] = Field((160.0, 160.0), description="Board extent along x and y, centred on the axis (mm).")
+    albedo: float = Field(0.8, gt=0, le=1, description="Board reflectance.")
+    photons_white: float = Field(3000.0, gt=0, description="Photons per pixel (99th percentile) under the white frame.")
+    ambient_photons: float = Field(20.0, ge=0, description="Stray light per pixel per frame (photons).")
+    em_gain: float = Field(10.0, ge=1, description="EM gain of the frames (camera.sensor gives the rest of the EMCCD).")
+    exposure_s: float = Field(0.1, gt=0, description="Exposure of each frame (s; dark current).")
+    lens_samples: int = Field(4, ge=1, description="Lens samples per sub-pixel (camera blur).")
+    seed: int = Field(0, ge=0, description="Noise seed.")
+
+
+class ProjectorCalibration(Model):
+    name: str | None = Field(None, description="Name (default projector0, ...): its key in camera.yaml's projectors mapping (rig.projectors).")
+    pixels: tuple[int, int] = Field(description="Panel resolution [width, height] (pixels).")
+    patterns: ProjectorPatternSettings = Field(ProjectorPatternSettings(), description="The Gray code + phase-shift sequence that was shown.")
+    images: tuple[ProjectorFrames, ...] = Field((), description="Frames of the board at two or more known heights.")
+    simulated: SimulatedProjectorFrames | None = Field(None, description="Instead of images: frames made by the simulated rig (written to <workdir>/projector_frames/).")
+    min_contrast_fraction: float = Field(0.1, gt=0, lt=1, description="Shadow mask: white - black above this fraction of its 99th percentile.")
+    half_window_px: int = Field(6, ge=2, description="Local homography window: (2 h + 1)^2 camera pixels around each grid point.")
+    gamma: float | None = Field(None, gt=0, description="The panel's gamma if known; none: measured from the phase frames' mean.")
+
+    @model_validator(mode="after")
+    def _check(self) -> "ProjectorCalibration":
+        if (len(self.images) == 0) == (self.simulated is None):
+            raise ValueError("give either images (frames of the board at two or more heights) or simulated")
+        if self.simulated is None and len({im.plane_z_mm for im in self.images}) < 2:
+            raise ValueError("give frames at two or more distinct heights (one plane cannot fix a projector)")
+        if self.simulated is not None and tuple(self.simulated.projector.pixels) != tuple(self.pixels):
+            raise ValueError("simulated.projector.pixels must equal pixels")
+        return self
+
+
 class Calibrate(Model):
     grid: CalibrationGrid | None = Field(None, description="The target: world point (i, j) at ((i-(nx-1)/2) pitch, (j-(ny-1)/2) pitch, plane_z_mm).")
     images: tuple[CalibrationImage, ...] = Field((), description="The grid at five or more known heights through and around focus.")
     refine_mirrors: bool = Field(True, description="Refine the planes of system.mirrors from the grid seen in each mirror.")
     radiometric: Radiometric | None = Field(None, description="Bias, dark, flat and photon-transfer frames: the sensor block.")
+    projectors: tuple[ProjectorCalibration, ...] = Field((), description="Structured-light projectors to calibrate against the calibrated camera (needs grid and images); written to camera.yaml's projectors mapping.")
 
     @model_validator(mode="after")
     def _check(self) -> "Calibrate":
@@ -529,6 +621,8 @@ class Calibrate(Model):
             raise ValueError("give both grid and images (geometric calibration), or neither")
         if self.grid is None and self.radiometric is None:
             raise ValueError("give grid and images (geometric), radiometric, or both")
+        if self.projectors and self.grid is None:
+            raise ValueError("projectors are calibrated against the camera the grid images give: add grid and images")
         return self
 
 
@@ -593,6 +687,19 @@ class RigCamera(Model):
     em_gain_range: tuple[float, float] = Field((1.0, 1200.0), description="EM gains the camera accepts [low, high] (unverified: x4-x1200 for the ImagEM).")
     device_index: int = Field(0, ge=0, description="dcam: which DCAM camera (0 = first).")
     shutter_property: str | None = Field(None, description="dcam: name of the DCAM property that closes a shutter for dark frames (unverified; none: darks refused).")
+    true_surface: Union[Phantom, MeshSurface] | None = Field(None, description="Simulated camera: the subject's true surface it renders (emission and projected patterns), when subject.surface is the one capture-surface measures (default subject.surface).")
+    subject_albedo: float = Field(0.8, gt=0, le=1, description="Simulated camera: Lambertian reflectance of the subject under the projectors.")
+    stage_albedo: float = Field(0.5, ge=0, le=1, description="Simulated camera: Lambertian reflectance of the stage top under the projectors.")
+
+
+class RigProjector(ProjectorModel):
+    """A projector showing structured-light patterns: its pinhole-plus-radial-distortion model
+    (ProjectorModel's keys, e.g. from calibrate's camera.yaml) and its display."""
+
+    display: Literal["simulated", "window"] = Field("simulated", description="simulated (an image sink the simulated camera renders) or window (a full-screen window on a monitor: the lab; needs pyglet).")
+    screen: int = Field(1, ge=0, description="window: which monitor the projector is (0 = primary).")
+    settle_s: float = Field(0.1, ge=0, description="window: wait after a pattern is shown before the camera exposes (s).")
+    intensity_photons_per_s_per_sr: float = Field(1e12, gt=0, description="Simulated projector: photons per second per steradian on its axis at full white, as the camera sees them through the pattern frames' filter.")
 
 
 class Rig(Model):
@@ -600,11 +707,39 @@ class Rig(Model):
     filter_wheel: RigFilterWheel | None = Field(None, description="The FW102C filter wheel.")
     stage: RigStage | None = Field(None, description="The L490MZ lab jack (APT).")
     camera: RigCamera | None = Field(None, description="The EMCCD.")
+    projectors: dict[str, RigProjector] = Field(default_factory=dict, description="Structured-light projectors by name (capture.surface); or a camera.yaml path (its projectors mapping, from calibrate), or {file: PATH, <name>: {overrides}}.")
 
 
 # --------------------------------------------------------------------------- capture (acquisition)
+class SurfacePatterns(Model):
+    period_px: int = Field(16, ge=4, multiple_of=4, description="Fringe period of the phase-shift patterns (projector pixels, a multiple of 4).")
+    n_steps: int = Field(8, ge=3, description="Phase steps (8 leaves a gamma-2.2 phase error below 1e-3 period).")
+
+
+class SurfaceMesh(Model):
+    element_size_mm: float = Field(4.0, gt=0, description="Target size of an element of the captured surface (mm).")
+    face_size_mm: float = Field(1.0, gt=0, description="Target edge length of its triangles (mm).")
+    voxel_mm: float = Field(0.8, gt=0, description="Grid step the implicit surface is contoured on (mm).")
+    centre_spacing_mm: float = Field(2.5, gt=0, description="Points are thinned to one per cube of this side as RBF centres (mm).")
+
+
+class CaptureSurface(Model):
+    """Structured light: each projector shows the Gray-code + phase-shift sequence, one camera frame per pattern."""
+
+    projectors: tuple[str, ...] | None = Field(None, description="Projectors (keys of rig.projectors), in this order (default: all).")
+    height_mm: float = Field(0.0, description="Stage height of the pattern frames (mm); the surface is stored at rest (as at height 0).")
+    filter: str = Field("open", description="Filter in the beam for the pattern frames (a key of rig.filter_wheel.filters).")
+    exposure_s: float = Field(0.01, gt=0, description="Exposure of a pattern frame (s).")
+    em_gain: float = Field(10.0, ge=1, description="EM gain of the pattern frames.")
+    binning: int | None = Field(None, ge=1, description="Camera binning of the pattern frames (default rig.camera.binning); must divide rig.camera.binning (finer frames: more points).")
+    patterns: SurfacePatterns = Field(SurfacePatterns(), description="The pattern sequence.")
+    min_contrast_photons: float = Field(200.0, gt=0, description="A pixel is lit when white - black exceeds this (photons): the shadow mask.")
+    min_modulation_fraction: float = Field(0.25, gt=0, lt=1, description="The fringes' amplitude must reach this fraction of (white - black)/2: the low-modulation mask.")
+    mesh: SurfaceMesh = Field(SurfaceMesh(), description="From points to the closed surface.")
+
+
 class Capture(Model):
-    """The acquisition plan of ``fluxmap capture-surface``: darks first, then per height, per filter, repeats."""
+    """The acquisition plan of ``fluxmap capture-surface``: pattern frames (``surface``) first, then darks, then per height, per filter, repeats."""
 
     heights_mm: tuple[float, ...] = Field(min_length=1, description="Stage heights to image at (mm), in this order.")
     filters: tuple[str, ...] = Field(("open",), min_length=1, description="Filter names (keys of rig.filter_wheel.filters), in this order.")
@@ -613,6 +748,7 @@ class Capture(Model):
     repeats: int = Field(1, ge=1, description="Frames per height and filter.")
     darks: int = Field(4, ge=0, description="Dark frames (shutter closed, same exposure and gain), taken first.")
     seed: int = Field(0, ge=0, description="Simulated camera: frame k's noise comes from the seed (seed, k).")
+    surface: CaptureSurface | None = Field(None, description="Structured-light pattern frames, decoded into <workdir>/surface.h5.")
 
     @field_validator("heights_mm", "filters")
     @classmethod
@@ -671,6 +807,12 @@ class LoadedConfig:
     def workdir(self) -> Path:
         w = self.model.workdir or Path("runs") / self.path.stem
         return self.resolve(w)
+
+    @property
+    def captured_surface_path(self) -> Path | None:
+        """``<workdir>/surface.h5`` when ``capture.surface`` makes it, else None."""
+        cap = self.model.capture
+        return self.workdir / "surface.h5" if cap is not None and cap.surface is not None else None
 
     @property
     def sha256(self) -> str:
@@ -830,6 +972,28 @@ def _mirrors_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
                                          "calibrate writes it beside camera.yaml")
 
 
+def _projectors_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
+    """``rig.projectors: calib/camera.yaml`` takes the file's top-level ``projectors:`` mapping (what
+    calibrate writes); ``rig.projectors: {file: calib/camera.yaml, left: {display: window}}`` too, with
+    the keys beside ``file`` merged into the file's entries.  ``calibrate.projectors[k].simulated.camera:
+    truth.yaml`` takes that file's ``camera:`` block."""
+    rig = raw.get("rig")
+    projs = rig.get("projectors") if isinstance(rig, dict) else None
+    if isinstance(projs, str) or (isinstance(projs, dict) and "file" in projs):
+        ref, overrides = (projs, {}) if isinstance(projs, str) else (projs["file"], {k: v for k, v in projs.items() if k != "file"})
+        if not isinstance(ref, str) or not ref:
+            raise UserError(f"config {path}: 'rig.projectors.file' must be the path of a YAML file (calibrate's camera.yaml).")
+        loaded = _block_from_file(ref, "projectors", dict, "rig.projectors", base_dir, path,
+                                  "calibrate writes it beside camera.yaml when calibrate.projectors is given")
+        rig["projectors"] = _merge(loaded, overrides)
+    cal = raw.get("calibrate")
+    for k, pc in enumerate((cal.get("projectors") or []) if isinstance(cal, dict) else []):
+        sim = pc.get("simulated") if isinstance(pc, dict) else None
+        if isinstance(sim, dict) and isinstance(sim.get("camera"), str):
+            sim["camera"] = _block_from_file(sim["camera"], "camera", dict, f"calibrate.projectors[{k}].simulated.camera",
+                                             base_dir, path, "give the true camera's YAML file or the block inline")
+
+
 def _merge(base: dict, over: dict) -> dict:
     out = dict(base)
     for k, v in over.items():
@@ -866,6 +1030,7 @@ def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -
         raise UserError(f"config file {path} must hold a mapping of keys (workdir, system, subject, ...).")
     _camera_from_file(raw, path.resolve().parent, path)
     _mirrors_from_file(raw, path.resolve().parent, path)
+    _projectors_from_file(raw, path.resolve().parent, path)
     for item in overrides:
         _apply_override(raw, item)
     try:
@@ -877,6 +1042,8 @@ def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -
     for attr in ("mesh", "artefact"):
         p = getattr(surf, attr, None)
         if p is not None and not loaded.resolve(p).is_file():
+            if attr == "artefact" and loaded.resolve(p) == loaded.captured_surface_path:
+                continue  # this config's capture-surface makes it; stages that need it say so
             raise UserError(f"config {path}: 'subject.surface.{attr}': file {loaded.resolve(p)} does not exist.")
     return loaded
 

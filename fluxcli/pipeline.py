@@ -22,7 +22,7 @@ from .optics.transfer import (ALGORITHM_VERSION, LensSampling, PairwiseSampling,
                              surface_sample_count)
 from .scene import PlacedScene, Pose, SubjectPlacer, poses_from_config, views_from_config
 from .progress import run_tasks
-from .workers import worker_pool
+from .workers import pool_for
 
 # build-T refuses a pose whose views collect nothing, and warns when a view collects less than
 # WEAK_VIEW_FRACTION of what the best view does, or sees less than SEEN_FRACTION of the subject's area
@@ -262,13 +262,26 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
                 ctx.warn(f"the cached T of pose {p.pose.label} is unreadable and is rebuilt: {why}")
         need.append((s, p))
     prov = provenance(cfg, placer.surface.digest())
+    cluster = getattr(ctx, "client", None)  # --scheduler: a Dask cluster builds the poses
     # one bar over the poses, advanced after every batch of rays in every worker (with an ETA)
     built = run_tasks(_build_and_store, [(s, views, tr, p.path, cfg.sha256, prov) for s, p in need], label=label,
-                      jobs=ctx.jobs, quiet=ctx.quiet,
-                      pool=lambda n: worker_pool(n, temp_dirs=(cache_dir(cfg),)))
+                      jobs=ctx.jobs, quiet=ctx.quiet, remote=cluster is not None,
+                      pool=pool_for(cluster, temp_dirs=(cache_dir(cfg),)))
+    if cluster is not None:
+        check_shared(cache_dir(cfg), [p.path for _, p in need])
     results |= {p.key: r | {"cached": False} for (_, p), r in zip(need, built)}
     check_collection(todo, results, names, ctx)
     return views, placer, todo, results
+
+
+def check_shared(folder: Path, written: list[Path]) -> None:
+    """After a cluster built files: each must be visible here (the workers wrote them under
+    the same absolute path, so the folder must be shared by every worker and this machine)."""
+    missing = [p for p in written if not Path(p).is_file()]
+    if missing:
+        raise UserError(f"transfer.cache_dir: the Dask workers wrote {len(missing)} T file(s) such as {missing[0]}, "
+                        f"which this machine does not see: with --scheduler the T cache ({folder}) and the workdir "
+                        "must be a folder every worker and this machine share under the same path.")
 
 
 def ensure_pose_T(cfg: LoadedConfig, pose: Pose, transfer: Transfer | None = None,
@@ -306,3 +319,68 @@ def check_collection(todo, results: dict, view_names: list[str], ctx) -> None:
             elif seen is not None and seen < SEEN_FRACTION:
                 ctx.warn(f"view {name} at pose {p.pose.label} sees {seen:.1%} of the subject's area (below "
                          f"{SEEN_FRACTION:.0%}): check its placement (system.camera.pose, system.mirrors).")
+
+
+# ------------------------------------------------------------------ the surface artefact
+_DECODE_UNITS = {"phase": "rad", "column_px": "projector px"}
+
+def decode_datasets(scans, projector_names: list[str], view_names: list[str], camera, mirrors) -> dict:
+    """``{(view, projector): {"phase", "column_px", "mask"}}`` for :func:`write_surface_artefact`: each
+    projector's decoding (:class:`fluxcli.structured.scan.ScanPoints`) split by the view each camera pixel
+    looks through (its chief ray: direct, or reflected in a mirror); mask 1 where a point was triangulated."""
+    from .structured.triangulate import chief_rays
+
+    origins, _, _ = chief_rays(camera, mirrors)
+    view_of_pixel = np.zeros(camera.ny * camera.nx, int)
+    for j in range(1, len(view_names)):
+        view_of_pixel[np.isfinite(origins[j, :, 0])] = j
+    out = {}
+    for name, scan in zip(projector_names, scans):
+        used = np.zeros(view_of_pixel.size, bool)
+        used[scan.pixel] = True
+        for j, v in enumerate(view_names):
+            here = view_of_pixel == j
+            out[(v, name)] = {"phase": np.where(here, scan.decoded.wrapped_phase.ravel(), np.nan).reshape(camera.ny, camera.nx),
+                              "column_px": np.where(here, scan.decoded.column_px.ravel(), np.nan).reshape(camera.ny, camera.nx),
+                              "mask": (here & used).astype(np.uint8).reshape(camera.ny, camera.nx)}
+    return out
+
+
+def write_surface_artefact(path: Path, surface, *, points=None, decode: dict | None = None,
+                           distance_to_truth_mm: np.ndarray | None = None, config_sha256: str = "",
+                           inputs: dict[str, str] | None = None, provenance: "A.Provenance | None" = None,
+                           attrs: dict | None = None, truth=None, metrics: dict | None = None) -> Path:
+    """Write ``surface`` (a :class:`~fluxcli.surface.mesh.Surface`) atomically as a ``surface``
+    artefact, which ``subject.surface: {artefact: PATH}`` reads.
+
+    ``points``: the merged points it was built from (:class:`fluxcli.structured.scan.MergedPoints`);
+    ``decode``: ``{(view, projector): {"phase": rad [ny, nx], "column_px": [ny, nx], "mask": bool
+    [ny, nx]}}`` written under ``/decode/<view>/<projector>/``; ``distance_to_truth_mm``: each
+    point's distance to the true surface (simulated rig only); ``attrs``: root attributes; ``truth``:
+    the true surface (simulated rig; ``/truth``, what the report draws the capture over); ``metrics``:
+    :func:`fluxcli.structured.mesh.capture_metrics` (``/metrics`` attributes)."""
+    with A.write_artefact(Path(path), "surface", config_sha256=config_sha256, inputs=inputs,
+                          provenance=provenance) as f:
+        for key, value in (attrs or {}).items():
+            f.attrs[key] = value
+        A.write_surface(f.create_group("surface"), surface)
+        if points is not None:
+            g = f.create_group("points")
+            A.put(g, "positions_mm", points.points_mm)
+            A.put(g, "view", points.view.astype(np.int16))
+            A.put(g, "projector", points.projector.astype(np.int16))
+            if distance_to_truth_mm is not None:
+                A.put(g, "distance_to_truth_mm", np.asarray(distance_to_truth_mm, float))
+            if decode:  # the name of each value of points/view, in order
+                g.attrs["view_names"] = list(dict.fromkeys(view for view, _ in decode))
+        if truth is not None:
+            A.write_surface(f.create_group("truth"), truth)
+        if metrics:
+            g = f.create_group("metrics")
+            for key, value in metrics.items():
+                g.attrs[key] = value
+        for (view, proj), arrays in (decode or {}).items():
+            g = f.require_group(f"decode/{view}/{proj}")
+            for name, data in arrays.items():
+                A.put(g, name, np.asarray(data), compression="gzip").attrs["unit"] = _DECODE_UNITS.get(name, "")
+    return Path(path)

@@ -43,7 +43,8 @@ def _bar(label: str, n_tasks: int, quiet: bool) -> Iterator[Callable[[float], No
 
 
 def run_tasks(fn: Callable, arglists: Sequence[tuple], *, label: str, jobs: int = 1, quiet: bool = False,
-              pool: Callable[[int], contextlib.AbstractContextManager] | None = None, poll_s: float = 0.2) -> list:
+              pool: Callable[[int], contextlib.AbstractContextManager] | None = None, poll_s: float = 0.2,
+              remote: bool = False) -> list:
     """Run ``fn(*args, progress=cb)`` for every ``args``; results in the order given.
 
     Parameters
@@ -51,7 +52,10 @@ def run_tasks(fn: Callable, arglists: Sequence[tuple], *, label: str, jobs: int 
     fn : picklable callable taking ``progress`` (called with the fraction 0..1 done).
     arglists : the positional arguments of each task.
     jobs : worker processes (1: run here).
-    pool : ``pool(n_workers)`` -> context manager yielding an executor (default ProcessPoolExecutor).
+    pool : ``pool(n_workers)`` -> context manager yielding an executor (default ProcessPoolExecutor);
+        local workers send their fractions through a manager queue.
+    remote : ``pool`` is a cluster (:mod:`fluxcli.cluster`): every task goes to it even with one
+        job or one task, and its executor's ``progress_queue()`` carries the fractions.
     """
     n = len(arglists)
     frac = [0.0] * n
@@ -61,29 +65,55 @@ def run_tasks(fn: Callable, arglists: Sequence[tuple], *, label: str, jobs: int 
             frac[task] = max(frac[task], min(max(f, 0.0), 1.0))
             show(sum(frac) * SCALE, sum(x >= 1.0 for x in frac))
 
-        if jobs <= 1 or n <= 1:
+        if n == 0 or (not remote and (jobs <= 1 or n <= 1)):
             for i, args in enumerate(arglists):
                 out[i] = fn(*args, progress=partial(note, i))
                 note(i, 1.0)
             return out
-        import os
-        from multiprocessing.managers import SyncManager
-
-        from .workers import _init_worker
-
         make_pool = pool or (lambda k: ProcessPoolExecutor(max_workers=k))
-        manager = SyncManager()
-        manager.start(_init_worker, (os.getpid(),))  # the queue's server dies with this process, like the workers
-        with manager, make_pool(min(jobs, n)) as ex:
-            q = manager.Queue()
-            futs = {ex.submit(fn, *args, progress=partial(_put, q, i)): i for i, args in enumerate(arglists)}
+        with contextlib.ExitStack() as stack:
+            if remote:  # a cluster carries the fractions itself
+                ex = stack.enter_context(make_pool(n))
+                q = stack.enter_context(ex.progress_queue())
+            else:  # the manager outlives the pool: on Ctrl-C the workers are killed first
+                q = stack.enter_context(_manager_queue())
+                ex = stack.enter_context(make_pool(min(jobs, n)))
+            futs = {ex.submit(fn, *args, progress=q.sender(i)): i for i, args in enumerate(arglists)}
             pending = set(futs)
             while pending:
                 finished, pending = wait(pending, timeout=poll_s, return_when=FIRST_COMPLETED)
-                with contextlib.suppress(_queue.Empty):
-                    while True:
-                        note(*q.get_nowait())
+                for task, f in q.drain():
+                    note(task, f)
                 for fut in finished:
                     out[futs[fut]] = fut.result()
                     note(futs[fut], 1.0)
     return out
+
+
+class _ManagerQueue:
+    """Fractions from local worker processes through a multiprocessing manager queue."""
+
+    def __init__(self, q):
+        self.q = q
+
+    def sender(self, task: int) -> Callable[[float], None]:
+        return partial(_put, self.q, task)
+
+    def drain(self) -> Iterator[tuple[int, float]]:
+        with contextlib.suppress(_queue.Empty):
+            while True:
+                yield self.q.get_nowait()
+
+
+@contextlib.contextmanager
+def _manager_queue() -> Iterator[_ManagerQueue]:
+    """A queue served by a manager process that dies with this one, like the workers."""
+    import os
+    from multiprocessing.managers import SyncManager
+
+    from .workers import _init_worker
+
+    manager = SyncManager()
+    manager.start(_init_worker, (os.getpid(),))
+    with manager:
+        yield _ManagerQueue(manager.Queue())

@@ -113,6 +113,9 @@ class SubjectPlacer:
             import h5py
 
             path = cfg.resolve(s.artefact)
+            if not path.is_file():
+                raise UserError(f"subject.surface.artefact: {path} does not exist; it is made by "
+                                f"'fluxmap capture-surface' (capture.surface), run that first.")
             try:
                 with h5py.File(path, "r") as f:
                     surf = read_surface(f["surface"])

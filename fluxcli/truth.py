@@ -187,7 +187,7 @@ def _diffusion_truth(flux: C.DiffusionFlux, surface: Surface, mesh_cache: Path, 
             fine if fine is not None else surface, mua_per_mm=opt.mua_per_mm, musp_per_mm=opt.musp_per_mm, refractive_index=opt.refractive_index,
             positions_mm=pos, radii_mm=np.array([s.radius_mm for s in flux.sources]),
             powers_photons=np.array([s.power_photons for s in flux.sources]), edge_length_mm=flux.mesh_edge_mm,
-            mesh=mesh)
+            mesh=mesh, solver=flux.solver)
     except ValueError as e:
         raise UserError(f"simulate.flux: {e}") from None
     info.pop("nodes_mm"), info.pop("tets")

@@ -254,3 +254,82 @@ def test_grid_and_radiometric_together_give_one_camera_block(grid_set, tmp_path)
     cam = Camera.model_validate(yaml.safe_load((tmp_path / "out" / "camera.yaml").read_text())["camera"])
     assert cam.lens is not None and cam.pose is not None and cam.apertures
     assert abs(cam.sensor.electrons_per_count / 6.0 - 1) < 0.1
+
+
+# ------------------------------------------------------------------ projectors (issue 12)
+TRUE_PROJECTOR = {"pixels": [400, 300], "focal_px": [1000.0, 1005.0], "principal_px": [205.0, 148.0],
+                  "distortion": [0.06, -0.02], "gamma": 2.2,
+                  "pose": {"center_mm": [10.0, -140.0, 170.0], "look": [-10.0, 140.0, -165.0], "up": [-1.0, 0.1, 0.0]}}
+
+
+def _camera_block(cam) -> dict:
+    return {"pixels": [cam.nx, cam.ny], "pixel_pitch_mm": cam.pixel_pitch_mm,
+            "lens": {"focal_length_mm": cam.focal_length_mm, "focus_distance_mm": cam.focus_distance_mm,
+                     "aperture_diameter_mm": 2 * cam.aperture_radius_mm},
+            "pose": {"lens_center_mm": cam.center_mm.tolist(), "look": cam.axis.tolist(), "up": (-cam.down).tolist()}}
+
+
+def test_cli_calibrates_a_projector_against_the_calibrated_camera(grid_set, tmp_path):
+    """`fluxmap calibrate` with a projector block: the simulated rig renders a flat board at three
+    heights under the column and row codes (EMCCD noise) into frame files; the fit reads only those
+    files and the camera it calibrated from the grid images (with its own error), never the truth.
+    Issue 12: the projector's pose within 1 mm and 0.2 deg; its gamma (2.2) from the phase frames."""
+    from scipy.spatial.transform import Rotation
+
+    from fluxcli.config import load_config
+    from fluxcli.hardware.projector import projector_model
+
+    cam, _, files, _ = grid_set
+    cfg_path = _config(tmp_path, files)
+    cfg = yaml.safe_load(cfg_path.read_text())
+    truth_file = tmp_path / "truth.yaml"  # the true camera, given as a file (the loader's one pattern)
+    truth_file.write_text(yaml.safe_dump({"camera": _camera_block(cam)}))
+    cfg["calibrate"]["projectors"] = [{"name": "left", "pixels": [400, 300],
+                                       "simulated": {"camera": str(truth_file), "projector": TRUE_PROJECTOR,
+                                                     "heights_mm": [-20.0, 0.0, 20.0], "lens_samples": 3}}]
+    cfg_path.write_text(yaml.safe_dump(cfg))
+    r = _run(cfg_path)
+    assert r.exit_code == 0, r.output
+    frames = sorted((tmp_path / "out" / "projector_frames" / "left").glob("*.tif"))
+    assert len(frames) == 3 * 2 * (2 + 2 * 7 + 8)  # 400 / 4 = 100 cells: 7 Gray bits; 300: 75 cells, 7 bits
+    use = tmp_path / "use.yaml"
+    use.write_text(yaml.safe_dump({"system": {"camera": str(tmp_path / "out" / "camera.yaml")},
+                                   "rig": {"projectors": {"file": str(tmp_path / "out" / "camera.yaml"),
+                                                          "left": {"display": "window"}}}}))
+    loaded = load_config(use)  # the calibrated projector, with the lab's display key given beside the file
+    assert loaded.model.rig.projectors["left"].display == "window"
+    fit = projector_model(loaded.model.rig.projectors["left"])
+    true = projector_model(load_config(cfg_path).model.calibrate.projectors[0].simulated.projector)
+    assert np.linalg.norm(fit.center_mm - true.center_mm) < 1.0
+    assert np.degrees(Rotation.from_matrix(fit.rotation @ true.rotation.T).magnitude()) < 0.2
+    assert fit.fx_px == pytest.approx(1000, rel=0.01) and fit.k1 == pytest.approx(0.06, abs=0.02)
+    assert fit.gamma == pytest.approx(2.2, abs=0.1)
+    # the report of a calibrate-only workdir shows each projector's residuals
+    rep = CliRunner().invoke(app, ["report", str(cfg_path), "-q", "--force"])
+    assert rep.exit_code == 0, rep.output
+    assert (tmp_path / "out" / "report" / "calibration_projector_left.png").is_file()
+    # a lab gives its frame files instead (here: the same files, by glob pattern): the same projector
+    folder = tmp_path / "out" / "projector_frames" / "left"
+    cfg["workdir"] = str(tmp_path / "lab")
+    cfg["calibrate"]["projectors"] = [{"name": "left", "pixels": [400, 300], "images": [
+        {"plane_z_mm": z, "columns": str(folder / f"z{z:+07.2f}_columns_*.tif"),
+         "rows": str(folder / f"z{z:+07.2f}_rows_*.tif")} for z in (-20.0, 0.0, 20.0)]}]
+    lab = tmp_path / "lab.yaml"
+    lab.write_text(yaml.safe_dump(cfg))
+    r = _run(lab)
+    assert r.exit_code == 0, r.output
+    again = yaml.safe_load((tmp_path / "lab" / "camera.yaml").read_text())["projectors"]["left"]
+    assert again == yaml.safe_load((tmp_path / "out" / "camera.yaml").read_text())["projectors"]["left"]
+
+
+def test_projector_frames_of_the_wrong_count_exit_2(grid_set, tmp_path):
+    _, _, files, _ = grid_set
+    cfg_path = _config(tmp_path, files)
+    cfg = yaml.safe_load(cfg_path.read_text())
+    cfg["calibrate"]["projectors"] = [{"pixels": [400, 300], "images": [
+        {"plane_z_mm": z, "columns": [str(f) for f in files[:3]], "rows": [str(f) for f in files[:3]]}
+        for z in (0.0, 10.0)]}]
+    cfg_path.write_text(yaml.safe_dump(cfg))
+    r = _run(cfg_path)
+    assert r.exit_code == 2, r.output
+    assert "Traceback" not in r.output and "calibrate.projectors[0].images[0].columns" in r.output

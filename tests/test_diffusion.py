@@ -246,3 +246,78 @@ def test_exitance_to_elements_conserves_power(fine_solution):
     np.testing.assert_allclose(power2[:, 1], 2 * power, rtol=1e-12)
     with pytest.raises(ValueError, match="no faces"):
         exitance_to_elements(bv, bf, J_nodes, sv, sf, element, 33)
+
+
+# ------------------------------------------------------------------ the iterative solver (AMG + CG)
+def test_structured_cylinder_mesh_is_conforming_and_fills_the_cylinder():
+    from fluxcli.diffusion.mesh import cylinder_tetmesh
+
+    nodes, tets = cylinder_tetmesh(6.0, 10.0, 1.5)
+    again = cylinder_tetmesh(6.0, 10.0, 1.5)
+    assert np.array_equal(nodes, again[0]) and np.array_equal(tets, again[1])  # deterministic
+    vol = tet_volumes_mm3(nodes, tets)
+    assert vol.min() > 0
+    # the inscribed polygons lose a little of the disk: between 97 % and 100 % of pi r^2 L
+    assert 0.97 < vol.sum() / (np.pi * 6.0**2 * 10.0) <= 1.0
+    bf = boundary_faces(tets)
+    check_closed(nodes, bf)
+    p = nodes[np.unique(bf)]
+    # a face inside the cylinder left unshared (prisms disagreeing on a diagonal) would show up here
+    on_side = np.isclose(np.hypot(p[:, 0], p[:, 1]), 6.0, atol=1e-9)
+    on_cap = np.isclose(np.abs(p[:, 2]), 5.0)
+    assert np.all(on_side | on_cap)
+
+
+def test_amg_agrees_with_direct_within_the_bound_its_residual_gives():
+    """‖φ_amg − φ_direct‖ ≤ ‖b − Kφ_amg‖ / λ_min(K) for the SPD system matrix K (plus the
+    direct solver's round-off); and the difference falls with the solver tolerance."""
+    import scipy.sparse.linalg as spla
+
+    from fluxcli.diffusion.mesh import cylinder_tetmesh
+
+    nodes, tets = cylinder_tetmesh(8.0, 20.0, 1.2)
+    kw = dict(mua_per_mm=0.02, musp_per_mm=1.7, refractive_index=1.56)
+    direct = DiffusionModel(nodes, tets, solver="direct", **kw)
+    b = direct.point_source_rhs([[1.0, -2.0, 6.0], [0.0, 0.0, -3.0]], [1.0, 2.0])
+    phi_d = direct.solve(b)
+    lam_min = spla.eigsh(direct.system_matrix, k=1, sigma=0, which="LM", return_eigenvectors=False)[0]
+    diffs = {}
+    for rtol in (1e-6, 1e-11):
+        amg = DiffusionModel(nodes, tets, solver="amg", rtol=rtol, **kw)
+        assert amg.solver == "amg"
+        phi_a = amg.solve(b)
+        for j in range(b.shape[1]):
+            r = np.linalg.norm(b[:, j] - amg.system_matrix @ phi_a[:, j])
+            assert r <= rtol * np.linalg.norm(b[:, j]) * (1 + 1e-6)  # the stopping rule held
+            err = np.linalg.norm(phi_a[:, j] - phi_d[:, j])
+            assert err <= r / lam_min + 1e-12 * np.linalg.norm(phi_d[:, j])
+        diffs[rtol] = np.linalg.norm(phi_a - phi_d) / np.linalg.norm(phi_d)
+    assert diffs[1e-11] < 1e-3 * diffs[1e-6]
+
+
+def test_amg_matches_the_sphere_closed_form_and_conserves_power_to_its_residual(sphere_meshes):
+    nodes, tets = sphere_meshes[1.2]
+    rtol = 1e-10
+    model = DiffusionModel(nodes, tets, mua_per_mm=MUA, musp_per_mm=MUSP, refractive_index=N_INDEX,
+                           solver="amg", rtol=rtol)
+    b = model.point_source_rhs([[0.0, 0.0, 0.0]], 1.0)
+    fluence = model.solve(b)[:, 0]
+    J_exact, total_exact = sphere_exitance_closed_form(RADIUS_MM, MUA, MUSP, N_INDEX, 1.0)
+    assert model.total_exitance_photons_s(fluence) == pytest.approx(total_exact, rel=0.02)
+    assert model.exitance_at_boundary_nodes(fluence).mean() == pytest.approx(J_exact, rel=0.02)
+    # v = 1 in the weak form: source - absorbed - exitance = 1'(b - K phi), at most sqrt(n) |r|
+    imbalance = 1.0 - model.total_exitance_photons_s(fluence) - model.absorbed_power_photons_s(fluence)
+    assert abs(imbalance) <= np.sqrt(len(nodes)) * model.residuals[-1] * np.linalg.norm(b)
+
+
+def test_auto_solver_switches_to_amg_above_the_size(monkeypatch):
+    from fluxcli.diffusion import fem
+    from fluxcli.diffusion.mesh import cylinder_tetmesh
+
+    nodes, tets = cylinder_tetmesh(4.0, 8.0, 2.0)
+    kw = dict(mua_per_mm=0.02, musp_per_mm=1.7, refractive_index=1.4)
+    assert DiffusionModel(nodes, tets, **kw).solver == "direct"
+    monkeypatch.setattr(fem, "AMG_ABOVE_NODES", len(nodes) - 1)
+    assert DiffusionModel(nodes, tets, **kw).solver == "amg"
+    with pytest.raises(ValueError, match="solver"):
+        DiffusionModel(nodes, tets, solver="cholmod", **kw)

@@ -59,4 +59,5 @@ def test_every_shipped_config_is_valid(cfg):
     path = ROOT / "configs" / cfg
     raw = yaml.safe_load(path.read_text())
     C._camera_from_file(raw, path.parent, path)
+    C._projectors_from_file(raw, path.parent, path)
     C.Config.model_validate(raw)

@@ -163,6 +163,19 @@ register(Kind("capture", 1, "fluxmap capture-surface", "emission images acquired
     Dataset("plan/exposure_s", "s", "planned exposure time of each frame"),
     Dataset("truth", "photons per element per second (subject at rest)",
             "simulated camera only: truth/<filter>/power, what reaches the camera through each filter", required=False),
+    # structured-light pattern frames (capture.surface), taken before the emission frames
+    Dataset("patterns/counts", "ADC counts", "counts[pattern frame, row, col] at capture.surface.binning", required=False),
+    Dataset("patterns/committed", "", "1 once pattern frame k and its metadata are durable", required=False),
+    Dataset("patterns/projector", "", "projector showing the pattern (rig.projectors key)", required=False),
+    Dataset("patterns/pattern_index", "", "position of the pattern in the sequence", required=False),
+    Dataset("patterns/label", "", "white, black, grayB, grayB-inverse or phaseK", required=False),
+    Dataset("patterns/gray_bit", "", "Gray-code bit shown (0 least significant), -1: not a code frame", required=False),
+    Dataset("patterns/inverse", "", "1 for the inverse of a code frame", required=False),
+    Dataset("patterns/phase_step", "", "phase-shift step K, -1: not a fringe frame", required=False),
+    Dataset("patterns/phase_shift_rad", "rad", "the fringe's shift 2 pi K / n_steps (nan: not a fringe frame)", required=False),
+    Dataset("patterns/stage_height_mm", "mm", "stage height read back", required=False),
+    Dataset("patterns/exposure_s", "s", "exposure read back", required=False),
+    Dataset("patterns/em_gain", "", "EM gain read back", required=False),
 )))
 
 # --- structured-light surface (issue 12): what `subject.surface: {artefact: ...}` reads
@@ -170,6 +183,12 @@ register(Kind("surface", 1, "fluxmap capture-surface (structured light)",
               "the subject's closed surface measured by structured light, in world coordinates", (
     *_SURFACE,
     Dataset("points/positions_mm", "mm", "triangulated points the surface was built from (n, 3)", required=False),
-    Dataset("points/view", "", "view each point was seen in: 0 direct, j through mirror j-1", required=False),
+    Dataset("points/view", "", "view each point was seen in: 0 direct, j through mirror j-1 (attribute view_names: their names)", required=False),
     Dataset("points/projector", "", "index of the projector that coded each point", required=False),
+    Dataset("points/distance_to_truth_mm", "mm", "simulated rig: each point's distance to the true surface", required=False),
+    Dataset("truth/vertices", "mm", "simulated rig: the true surface the capture is measured against", required=False),
+    Dataset("metrics", "", "simulated rig: attributes points, within_0.1mm/0.2mm/0.4mm, median_distance_mm, "
+            "covered_fraction_1mm, volume/area (mm^3, mm^2) and their errors against the truth", required=False),
+    Dataset("decode", "", "decode/<view>/<projector>/{phase (wrapped, rad), column_px (decoded projector column, "
+            "px), mask (1: decoded and triangulated)} per camera pixel [row, col] of the pattern frames", required=False),
 )))

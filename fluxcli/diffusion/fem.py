@@ -23,7 +23,13 @@ from scipy.spatial import cKDTree
 
 from .mesh import boundary_faces, tet_volumes_mm3
 
-__all__ = ["nirfast_A", "DiffusionModel", "ball_quadrature"]
+__all__ = ["nirfast_A", "DiffusionModel", "ball_quadrature", "AMG_ABOVE_NODES", "SOLVERS"]
+
+SOLVERS = ("auto", "direct", "amg")
+# Above this many nodes ``solver="auto"`` uses algebraic multigrid + CG instead of SuperLU:
+# the sparse LU's fill-in of a 3-D mesh grows roughly as n^(4/3)..n^(3/2) (minutes and many GB
+# beyond ~10^5 nodes), the AMG-preconditioned CG's time and memory as n.
+AMG_ABOVE_NODES = 100_000
 
 
 def nirfast_A(refractive_index):
@@ -97,6 +103,14 @@ class DiffusionModel:
         Reduced scattering coefficient μs′ > 0 in mm⁻¹.
     refractive_index : float
         Refractive index n ≥ 1 of the subject (outside is air, n = 1).
+    solver : {"auto", "direct", "amg"}
+        ``direct``: sparse LU (SuperLU), exact to round-off, factorised once for any number
+        of sources. ``amg``: conjugate gradients preconditioned by smoothed-aggregation
+        algebraic multigrid (pyamg), iterated until the residual ‖b − Kφ‖ ≤ ``rtol``·‖b‖
+        per source; time and memory grow linearly with the mesh. ``auto``: ``amg`` above
+        :data:`AMG_ABOVE_NODES` nodes, else ``direct``.
+    rtol : float
+        Relative residual at which ``amg`` stops (ignored by ``direct``).
 
     Attributes
     ----------
@@ -108,9 +122,13 @@ class DiffusionModel:
         Outward boundary triangles, indexing ``nodes_mm``.
     boundary_nodes : ndarray of int64, shape (n_boundary_nodes,)
         Nodes on the boundary; exitance arrays are indexed like this.
+    solver : str
+        The solver that runs: ``direct`` or ``amg`` (``auto`` resolved).
+    residuals : list of float
+        Relative residual ‖b − Kφ‖/‖b‖ of every source solved so far (``amg``; empty for ``direct``).
     """
 
-    def __init__(self, nodes_mm, tets, *, mua_per_mm, musp_per_mm, refractive_index):
+    def __init__(self, nodes_mm, tets, *, mua_per_mm, musp_per_mm, refractive_index, solver="auto", rtol=1e-10):
         nodes_mm = np.ascontiguousarray(nodes_mm, dtype=np.float64)
         tets = np.asarray(tets)
         if nodes_mm.ndim != 2 or nodes_mm.shape[1] != 3:
@@ -129,6 +147,13 @@ class DiffusionModel:
             raise ValueError(
                 f"reduced scattering coefficient musp_per_mm must be > 0, got min {musp.min()}."
             )
+        if solver not in SOLVERS:
+            raise ValueError(f"solver must be one of {', '.join(SOLVERS)}, got {solver!r}.")
+        if not (np.isfinite(rtol) and 0 < rtol < 1):
+            raise ValueError(f"solver tolerance rtol must lie in (0, 1), got {rtol}.")
+        self.solver = solver if solver != "auto" else ("amg" if len(nodes_mm) > AMG_ABOVE_NODES else "direct")
+        self.rtol = float(rtol)
+        self.residuals: list[float] = []
         self.A = nirfast_A(refractive_index)
         self.refractive_index = float(refractive_index)
         self.nodes_mm = nodes_mm
@@ -151,6 +176,7 @@ class DiffusionModel:
             self._stiffness_plus_absorption + self._boundary_mass / (2.0 * self.A)
         ).tocsc()
         self._lu = None
+        self._amg = None
         self._centroid_tree = None
 
     # ------------------------------------------------------------------ assembly
@@ -344,6 +370,8 @@ class DiffusionModel:
         rhs = np.asarray(rhs, dtype=np.float64)
         if rhs.shape[0] != len(self.nodes_mm):
             raise ValueError(f"rhs must have {len(self.nodes_mm)} rows, got {rhs.shape[0]}.")
+        if self.solver == "amg":
+            return self._solve_amg(rhs)
         if self._lu is None:
             # The matrix is symmetric positive definite: a symmetric ordering without
             # off-diagonal pivoting is exact and ~20x faster than SuperLU's defaults.
@@ -354,6 +382,33 @@ class DiffusionModel:
                 options=dict(SymmetricMode=True),
             )
         return self._lu.solve(rhs)
+
+    def _solve_amg(self, rhs):
+        """CG preconditioned by one smoothed-aggregation V-cycle, per right-hand side."""
+        if self._amg is None:
+            import pyamg
+
+            K = self.system_matrix.tocsr()
+            # the matrix is symmetric positive definite; its near-null space is the constants
+            self._amg = (K, pyamg.smoothed_aggregation_solver(K, symmetry="symmetric", max_coarse=500)
+                         .aspreconditioner(cycle="V"))
+        K, M = self._amg
+        cols = rhs.reshape(len(rhs), -1)
+        out = np.zeros_like(cols)
+        for j in range(cols.shape[1]):
+            b = cols[:, j]
+            nb = float(np.linalg.norm(b))
+            if nb == 0:
+                self.residuals.append(0.0)
+                continue
+            x, info = spla.cg(K, b, rtol=self.rtol, atol=0.0, maxiter=2000, M=M)
+            res = float(np.linalg.norm(b - K @ x)) / nb
+            if info != 0 or res > 10 * self.rtol:
+                raise ValueError(f"the AMG-preconditioned CG did not converge (relative residual {res:.2e}, "
+                                 f"asked for {self.rtol:.0e}); use the direct solver.")
+            self.residuals.append(res)
+            out[:, j] = x
+        return out.reshape(rhs.shape)
 
     def exitance_at_boundary_nodes(self, fluence):
         """Exitance J = φ/(2A) at ``boundary_nodes`` in photons s⁻¹ mm⁻².

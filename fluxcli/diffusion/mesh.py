@@ -9,7 +9,7 @@ import numpy as np
 
 from ..surface.mesh import edge_face_counts
 
-__all__ = ["check_closed", "tetrahedralize", "boundary_faces", "tet_volumes_mm3"]
+__all__ = ["check_closed", "tetrahedralize", "cylinder_tetmesh", "boundary_faces", "tet_volumes_mm3"]
 
 # Outward faces of a positively oriented tetrahedron (a, b, c, d).
 _TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
@@ -141,6 +141,56 @@ def tetrahedralize(vertices_mm, faces, *, edge_length_mm):
     return nodes_mm, tets
 
 
+def cylinder_tetmesh(radius_mm, length_mm, edge_length_mm):
+    """A deterministic tetrahedral mesh of a solid cylinder (axis z, centred at the origin).
+
+    Concentric rings of points (about ``edge_length_mm`` apart) fill the disk, which is
+    triangulated (Delaunay) and extruded in layers; each triangular prism splits into three
+    tetrahedra, the diagonal of every side quad running from its lower-numbered bottom
+    node to the other's top node, so that neighbouring prisms agree on shared faces.
+    Unlike :func:`tetrahedralize` the same arguments always give the same mesh (benchmarks
+    and solver comparisons at any size, without fTetWild).
+
+    Parameters
+    ----------
+    radius_mm, length_mm : float
+        Cylinder radius and length in mm.
+    edge_length_mm : float
+        Target edge length in mm; about π r² L / h³ nodes result.
+
+    Returns
+    -------
+    nodes_mm : ndarray of float64, shape (n_nodes, 3)
+    tets : ndarray of int64, shape (n_tets, 4)
+        Positively oriented tetrahedra.
+    """
+    from scipy.spatial import Delaunay
+
+    r, length, h = float(radius_mm), float(length_mm), float(edge_length_mm)
+    if not all(np.isfinite(x) and x > 0 for x in (r, length, h)):
+        raise ValueError("radius_mm, length_mm and edge_length_mm must be positive.")
+    n_rings = max(1, int(round(r / h)))
+    disk = [np.zeros((1, 2))]
+    for k in range(1, n_rings + 1):
+        rk = r * k / n_rings
+        m = max(6, int(round(2 * np.pi * rk / h)))
+        t = 2 * np.pi * (np.arange(m) + 0.5 * (k % 2)) / m
+        disk.append(np.column_stack([rk * np.cos(t), rk * np.sin(t)]))
+    disk = np.concatenate(disk)
+    tri = np.sort(Delaunay(disk).simplices.astype(np.int64), axis=1)
+    n2 = len(disk)
+    nz = max(1, int(round(length / h)))
+    z = np.linspace(-length / 2, length / 2, nz + 1)
+    nodes = np.column_stack([np.tile(disk, (nz + 1, 1)), np.repeat(z, n2)])
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]  # a < b < c
+    one = np.stack([np.stack([a, b, c, c + n2], 1), np.stack([a, b, b + n2, c + n2], 1),
+                    np.stack([a, a + n2, b + n2, c + n2], 1)], 1).reshape(-1, 4)
+    tets = (one[None] + (np.arange(nz) * n2)[:, None, None]).reshape(-1, 4)
+    flip = tet_volumes_mm3(nodes, tets) < 0
+    tets[flip] = tets[flip][:, [0, 2, 1, 3]]
+    return nodes, tets
+
+
 def boundary_faces(tets):
     """Boundary triangles of a tetrahedral mesh, oriented outward.
 
@@ -158,5 +208,10 @@ def boundary_faces(tets):
     tets = np.asarray(tets, dtype=np.int64)
     all_faces = tets[:, _TET_FACES].reshape(-1, 3)
     keys = np.sort(all_faces, axis=1)
-    _, first, counts = np.unique(keys, axis=0, return_index=True, return_counts=True)
+    n = int(keys.max()) + 1 if len(keys) else 1
+    if n < 2**21:  # one int64 per face: a 1-D unique, ~5x faster than unique(axis=0) on large meshes
+        keys = (keys[:, 0] * n + keys[:, 1]) * n + keys[:, 2]
+        _, first, counts = np.unique(keys, return_index=True, return_counts=True)
+    else:
+        _, first, counts = np.unique(keys, axis=0, return_index=True, return_counts=True)
     return all_faces[np.sort(first[counts == 1])]

@@ -23,6 +23,7 @@ def element_power_from_sources(
     powers_photons: np.ndarray,
     edge_length_mm: float,
     mesh: tuple[np.ndarray, np.ndarray] | None = None,
+    solver: str = "auto",
 ) -> tuple[np.ndarray, dict]:
     """Solve the diffusion FEM in the closed ``surface`` and integrate the exitance over
     its elements.
@@ -37,6 +38,7 @@ def element_power_from_sources(
     edge_length_mm : target tetrahedron edge.
     mesh : (nodes_mm, tets) to reuse instead of meshing again (fTetWild is not
         deterministic, so a cached mesh is what makes a simulation reproducible).
+    solver : "auto", "direct" or "amg" (:class:`fluxcli.diffusion.fem.DiffusionModel`).
 
     Returns
     -------
@@ -50,7 +52,7 @@ def element_power_from_sources(
     nodes, tets = mesh
     t1 = time.perf_counter()
     model = DiffusionModel(nodes, tets, mua_per_mm=mua_per_mm, musp_per_mm=musp_per_mm,
-                           refractive_index=refractive_index)
+                           refractive_index=refractive_index, solver=solver)
     positions_mm = np.atleast_2d(np.asarray(positions_mm, float))
     radii_mm = np.asarray(radii_mm, float)
     powers = np.asarray(powers_photons, float)
@@ -80,5 +82,6 @@ def element_power_from_sources(
         "absorbed_photons": float(model.absorbed_power_photons_s(phi)),
         "exitance_outside_elements_photons": float(power[n_el:].sum()),
         "boundary_A": float(model.A),
+        "solver": model.solver,
     }
     return np.asarray(power[:n_el], float), info

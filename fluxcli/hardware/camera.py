@@ -5,10 +5,12 @@ temperature and cooler, a shutter for dark frames, ``snap()`` and ``sequence(n)`
 frame a ``uint16`` array ``[ny, nx]`` (row 0 first, as the camera reads out).
 
 :class:`SimulatedEmccd` renders what the real camera would see.  It is given a
-``render(height_mm, filter_name)`` function (expected photons per pixel per second, from
-fluxmap's forward model) and two read-outs of the rig's *physical* state (the stage height
-and the filter in the beam), so an image follows where the stage actually is, not where it
-was told to go.  The photons then go through the EMCCD chain of
+``render(height_mm, filter_name, projectors=..., binning=...)`` function (expected photons
+per pixel per second, from fluxmap's forward model for the emission and the ray-cast
+structured-light renderer for what the projectors shine) and read-outs of the rig's
+*physical* state (the stage height, the filter in the beam, the pattern each projector
+shows), so an image follows where the stage actually is and what is projected, not what
+was asked for.  The photons then go through the EMCCD chain of
 :mod:`fluxcli.imaging.noise`, seeded by (seed, frame index): the same plan and seed give
 the same bytes, frame by frame, however often the run was interrupted and resumed.
 
@@ -100,13 +102,19 @@ class SimulatedEmccd(Camera):
 
     Parameters
     ----------
-    render : callable ``(height_mm, filter_name) -> ndarray [ny, nx]``
+    render : callable ``(height_mm, filter_name) -> ndarray [ny, nx]``, and with
+        ``projectors`` (or a binning finer than the native one) ``(height_mm, filter_name, *,
+        projectors, binning)``
         Expected photons per pixel per second reaching the sensor with the stage at
-        ``height_mm`` (mm) and filter ``filter_name`` in the beam, at ``native_binning``.
+        ``height_mm`` (mm), filter ``filter_name`` in the beam, ``projectors`` (a dict
+        projector name -> the pattern ``[height_px, width_px]`` it shows; only projectors
+        showing something other than black) and the camera at ``binning``.
     stage_height_mm : callable ``() -> float``
         The stage's physical height (mm) right now (the simulator's state, or a read-back).
     filter_name : callable ``() -> str``
         The filter physically in the beam right now.
+    projectors : callable ``() -> dict``, optional
+        What the projectors show right now (name -> pattern; black ones left out).
     sensor : fluxcli.imaging.noise.EMCCDModel
         The detector: QE, read noise, bias, electrons per count, CIC, bit depth, and the
         dark current ``dark_current_e_per_s`` that holds at ``setpoint_c``.
@@ -114,8 +122,9 @@ class SimulatedEmccd(Camera):
     seed : int
         Frame ``k`` draws its noise from ``numpy.random.default_rng([seed, k])``.
     native_binning : int
-        The binning at which ``render`` delivers its images; the only one the simulator
-        accepts (it cannot render finer than its model, and coarser is not needed).
+        The binning of ``shape`` (system.camera's pixel grid).  Finer binnings that divide
+        it are accepted (``render`` is asked for that binning: structured light at full
+        resolution); coarser ones are refused (not needed).
     setpoint_c, ambient_c : float
         Sensor temperature with the cooler on / off (deg C).  The cool-down is not
         modelled: the simulated sensor is at its set point as soon as the cooler is on.
@@ -131,12 +140,14 @@ class SimulatedEmccd(Camera):
 
     def __init__(self, render: Callable[[float, str], np.ndarray], *, stage_height_mm: Callable[[], float],
                  filter_name: Callable[[], str], sensor: N.EMCCDModel, seed: int = 0, native_binning: int = 1,
+                 projectors: Callable[[], dict] | None = None,
                  setpoint_c: float = -65.0, ambient_c: float = 20.0, dark_doubling_c: float = 6.3,
                  em_gain_range: tuple[float, float] = (1.0, 1200.0), time_scale: float = 1.0,
                  shape: tuple[int, int] | None = None):
         self._render = render
         self._height = stage_height_mm
         self._filter = filter_name
+        self._projectors = projectors
         self._sensor = sensor
         self._seed = int(seed)
         self._native_binning = int(native_binning)
@@ -183,9 +194,9 @@ class SimulatedEmccd(Camera):
 
     @binning.setter
     def binning(self, value: int) -> None:
-        if int(value) != self._native_binning:
-            raise self._error(f"the simulated camera renders system.camera's pixel grid, i.e. binning "
-                              f"{self._native_binning}; binning {value} was asked for")
+        if int(value) < 1 or self._native_binning % int(value):
+            raise self._error(f"the simulated camera renders system.camera's pixel grid (binning "
+                              f"{self._native_binning}) or finer grids dividing it; binning {value} was asked for")
         self._binning = int(value)
 
     @property
@@ -195,8 +206,13 @@ class SimulatedEmccd(Camera):
     @property
     def shape(self) -> tuple[int, int]:
         if self._shape is None:
-            self._shape = tuple(np.shape(self._expected_photons(open_shutter=False)))  # type: ignore[assignment]
-        return self._shape  # type: ignore[return-value]
+            b, self._binning = self._binning, self._native_binning
+            try:
+                self._shape = tuple(np.shape(self._expected_photons(open_shutter=False)))  # type: ignore[assignment]
+            finally:
+                self._binning = b
+        k = self._native_binning // self._binning
+        return (self._shape[0] * k, self._shape[1] * k)  # type: ignore[index]
 
     def set_frame_index(self, index: int) -> None:
         self._next_frame = int(index)
@@ -209,9 +225,17 @@ class SimulatedEmccd(Camera):
         return replace(self._sensor, em_gain=self._em_gain, exposure_s=self._exposure_s, dark_current_e_per_s=dark)
 
     def _expected_photons(self, *, open_shutter: bool) -> np.ndarray:
-        rate = np.asarray(self._render(float(self._height()), str(self._filter())), dtype=np.float64)
-        if rate.ndim != 2 or (self._shape is not None and rate.shape != self._shape):
-            raise ValueError(f"render must return a 2-D image {self._shape or '[ny, nx]'}, got shape {rate.shape}")
+        if not open_shutter and self._shape is not None:
+            return np.zeros(self.shape)  # a dark frame: nothing to render
+        h, f = float(self._height()), str(self._filter())
+        if self._projectors is None and self._binning == self._native_binning:  # emission only
+            rate = np.asarray(self._render(h, f), dtype=np.float64)
+        else:
+            rate = np.asarray(self._render(h, f, projectors=self._projectors() if self._projectors else {},
+                                           binning=self._binning), dtype=np.float64)
+        want = self.shape if self._shape is not None else None
+        if rate.ndim != 2 or (want is not None and rate.shape != want):
+            raise ValueError(f"render must return a 2-D image {want or '[ny, nx]'}, got shape {rate.shape}")
         return rate * self._exposure_s if open_shutter else np.zeros_like(rate)
 
     def snap(self) -> np.ndarray:

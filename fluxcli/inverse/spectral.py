@@ -117,8 +117,8 @@ class Spectrum:
         else:
             M = (AV * fos) @ self.V.T
             TW = self.T if self.weights is None else sp.csr_array(sp.diags_array(self.weights) @ self.T)
-            C = (TW.T @ sp.csr_array(sp.diags_array(sigma2) @ TW)).toarray()
-            var = np.einsum("ij,jk,ik->i", M, C, M)
+            C = TW.T @ sp.csr_array(sp.diags_array(sigma2) @ TW)  # sparse (elements that share pixels), symmetric
+            var = np.einsum("ij,ji->i", M, C @ M.T)  # diag(M C Mᵀ): sparse x dense, not a 3-operand O(n³) einsum
         return np.sqrt(np.maximum(var, 0.0))
 
 

@@ -576,6 +576,11 @@ def make_report(study: Study, out_dir: Path, *, title: str, geometry: Geometry, 
         summary.update(jsonable(add(page, save)))
     page.notes(study.notes)
     summary["notes"] = list(study.notes)
+    return _finish(out_dir, page, summary, figures, extra)
+
+
+def _finish(out_dir: Path, page, summary: dict, figures: list[str], extra: dict | None) -> tuple[Path, dict]:
+    """Write ``summary.json`` (with the figures' names and ``extra``) and ``index.html``."""
     summary["figures"] = figures
     if extra:
         summary.update(jsonable(extra))
@@ -598,3 +603,26 @@ def _totals(st: Study) -> dict[str, np.ndarray]:
 def _write_text(path: Path, text: str) -> None:
     """Atomic: the file appears complete or not at all (the one atomic writer)."""
     A.write_text(path, text)
+
+
+def sections_report(out_dir: Path, title: str, sections: list, *, extra: dict | None = None) -> tuple[Path, dict]:
+    """A page of sections alone (no reconstruction yet: a calibrate-only or capture-only workdir,
+    or ``make structured-light``'s surfaces).  Each section is ``add(page, save) -> numbers``;
+    writes ``index.html``, the figures and ``summary.json`` into ``out_dir``."""
+    from . import figures as F
+    from .page import Page
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    figures: list[str] = []
+
+    def save(fig, name: str) -> Path:
+        F.save(fig, out_dir / name)
+        figures.append(name)
+        return out_dir / name
+
+    page = Page(title)
+    summary: dict = {}
+    for add in sections:
+        summary.update(jsonable(add(page, save)))
+    return _finish(out_dir, page, summary, figures, extra)

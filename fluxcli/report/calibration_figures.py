@@ -2,7 +2,8 @@
 
 Figures: the detected points over each image with their residual vectors (magnified), all
 residual vectors in the image plane, and sharpness and blur against height with the fits;
-the photon-transfer curve and sensor maps when radiometric results are present.
+the photon-transfer curve and sensor maps when radiometric results are present; per
+projector, its reprojection residuals over the panel and per height.
 """
 
 from __future__ import annotations
@@ -104,6 +105,70 @@ def focus_figure(axial_mm: list[np.ndarray], blur_px: list[np.ndarray], heights_
     return fig
 
 
+def projector_residuals_figure(name: str, uv_px: np.ndarray, residual_px: np.ndarray, plane: np.ndarray,
+                               heights_mm: list[float], panel_px: tuple[int, int]) -> Figure:
+    """A projector's reprojection residuals (measured - model, projector pixels): vectors over the
+    panel and their scatter, coloured by board height."""
+    fig = Figure(figsize=(9, 4), layout="constrained")
+    cmap = __import__("matplotlib").colormaps["viridis"]
+    ax = fig.add_subplot(1, 2, 1)
+    r = np.linalg.norm(residual_px, axis=1)
+    scale = max(float(np.percentile(r, 95)), 1e-4) if len(r) else 1.0
+    arrow = 0.04 * max(panel_px)
+    for k, h in enumerate(heights_mm):
+        m = plane == k
+        ax.quiver(uv_px[m, 0], uv_px[m, 1], residual_px[m, 0], -residual_px[m, 1], color=cmap(k / max(len(heights_mm) - 1, 1)),
+                  angles="xy", scale_units="xy", scale=scale / arrow, width=0.003)
+    ax.set_xlim(0, panel_px[0])
+    ax.set_ylim(panel_px[1], 0)
+    ax.set_aspect("equal")
+    ax.set_xlabel("panel column u (px)")
+    ax.set_ylabel("panel row v (px)")
+    ax.set_title(f"{name}: residual vectors (arrow of {arrow:.0f} px = {scale:.3f} px)", fontsize=9)
+    ax2 = fig.add_subplot(1, 2, 2)
+    for k, h in enumerate(heights_mm):
+        m = plane == k
+        rms = float(np.sqrt(np.mean(np.sum(residual_px[m] ** 2, axis=1)))) if m.any() else float("nan")
+        ax2.plot(residual_px[m, 0], residual_px[m, 1], ".", ms=2, color=cmap(k / max(len(heights_mm) - 1, 1)),
+                 label=f"z={h:g} mm: {int(m.sum())} points, RMS {rms:.3f} px")
+    ax2.set_aspect("equal")
+    ax2.axhline(0, color="0.7", lw=0.5)
+    ax2.axvline(0, color="0.7", lw=0.5)
+    ax2.set_xlabel("u residual (projector px)")
+    ax2.set_ylabel("v residual (projector px)")
+    ax2.legend(fontsize=7, markerscale=3)
+    return fig
+
+
+def _projector_section(page, save: Callable, g) -> dict:
+    out = {}
+    rows = []
+    for k in sorted(g, key=int):
+        h = g[k]
+        name = str(h.attrs["name"])
+        block = json.loads(h.attrs["block"])
+        heights = [float(x) for x in h.attrs["heights_mm"]]
+        truth = json.loads(h.attrs["truth"]) if "truth" in h.attrs else None
+        out[name] = {"rms_px": float(h.attrs["rms_px"]), "points": int(len(h["uv_px"])), "rejected": int(h.attrs["rejected"]),
+                     "gamma": block["gamma"], "gamma_measured": bool(h.attrs["gamma_measured"]),
+                     "center_mm": block["pose"]["center_mm"], "focal_px": block["focal_px"],
+                     "valid_fraction": [float(x) for x in h.attrs["valid_fraction"]]}
+        if truth is not None:
+            out[name]["against_truth"] = {k2: v for k2, v in truth.items() if k2 != "block"}
+        err = (f"{truth['center_error_mm']:.3f} mm / {truth['rotation_error_deg']:.3f} deg" if truth is not None else "-")
+        rows.append([name, f"{len(h['uv_px'])} ({int(h.attrs['rejected'])} rejected)", f"{float(h.attrs['rms_px']):.3f}",
+                     f"{block['focal_px'][0]:.1f}, {block['focal_px'][1]:.1f}", f"{block['distortion'][0]:.4f}, {block['distortion'][1]:.4f}",
+                     f"{block['gamma']:.3f}" + (" (measured)" if h.attrs["gamma_measured"] else ""), err])
+        fig = projector_residuals_figure(name, h["uv_px"][()], h["residual_px"][()], h["plane"][()], heights,
+                                         tuple(block["pixels"]))
+        page.figure(save(fig, f"calibration_projector_{name}.png"),
+                    f"Projector {name}: reprojection residuals of the board points (measured by local homographies "
+                    "around each grid point - fitted model), per height.")
+    page.table(["projector", "board points", "RMS (px)", "f (px)", "k1, k2", "gamma", "pose error vs simulated truth"],
+               rows, caption="Projectors fitted against the calibrated camera (camera.yaml's projectors list).")
+    return out
+
+
 def add_calibration_section(page, save: Callable, calibration_h5: Path) -> dict:
     """Append the calibration section to a report page; returns the numbers it shows (for summary.json)."""
     summary: dict = {}
@@ -164,4 +229,6 @@ def add_calibration_section(page, save: Callable, calibration_h5: Path) -> dict:
             if maps:
                 page.figure(save(sensor_maps_figure(maps), "calibration_sensor_maps.png"), "Sensor maps.")
             summary["radiometric"] = {k: val(k) for k in ("electrons_per_count", "em_gain", "read_noise_e", "bias_counts")}
+        if "projectors" in f:
+            summary["projectors"] = _projector_section(page, save, f["projectors"])
     return summary

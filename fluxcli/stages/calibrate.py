@@ -7,13 +7,21 @@ $ fluxmap calibrate configs/calibrate.yaml
 Writes ``<workdir>/calibration.h5`` (every fitted parameter with its 1-sigma uncertainty,
 per-image detections, residuals and blur, the radiometric maps) and
 ``<workdir>/camera.yaml``, whose top-level ``camera:`` block is a valid ``system.camera``
-(and ``mirrors:`` a valid ``system.mirrors`` when mirrors were refined).  Another config
-then uses it in one line: ``system: {camera: <workdir>/camera.yaml}``.
+(and ``mirrors:`` a valid ``system.mirrors`` when mirrors were refined, ``projectors:`` a
+valid ``rig.projectors`` mapping when ``calibrate.projectors`` is given).  Another config
+then uses it in one line: ``system: {camera: <workdir>/camera.yaml}`` (``rig: {projectors:
+<workdir>/camera.yaml}``).
+
+Projectors (``calibrate.projectors``): frames of a flat board at known heights while each
+projector shows column and row codes (files, or made by the simulated rig into
+``<workdir>/projector_frames/``), decoded, and fitted against the camera this run
+calibrated (Moreno & Taubin's local homographies: :mod:`fluxcli.structured.calibrate`).
 """
 
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -24,8 +32,10 @@ from .. import config as C
 from ..calibration.fit import CalibrationError, GeometricCalibration, calibrate_geometry
 from ..calibration.mirrors import MirrorFit, refine_mirrors
 from ..errors import UserError
+from ..hardware.projector import projector_model
 from ..imaging.imagefiles import read_image
 from ..pipeline import provenance
+from ..structured import calibrate as SC
 from ._radiometric import run_radiometric, section_files, write_radiometric
 from .context import RunContext
 
@@ -42,9 +52,13 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         if not p.is_file():
             raise UserError(f"calibrate.images[{k}].file: image file {p} does not exist.")
     rad_paths = [cfg.resolve(p) for p in section_files(sec.radiometric)] if sec.radiometric is not None else []
+    frame_paths = _projector_frame_paths(cfg, sec)
     prov = provenance(cfg)
     for k, p in enumerate(image_paths):
         prov.add_file(f"calibrate.images[{k}]", p)
+    for key, paths in frame_paths.items():
+        for k, p in enumerate(paths):
+            prov.add_file(f"{key}[{k}]", p)
     for k, p in enumerate(rad_paths):
         if p.is_file():
             prov.add_file(f"calibrate.radiometric[{k}]", p)
@@ -65,12 +79,13 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         geo, images = _geometric(cfg, sec, cam, image_paths, ctx)
         if system.mirrors and sec.refine_mirrors:
             mirrors = _mirrors(cfg, sec, system, geo, images, ctx)
+    projectors = _projectors(cfg, sec, cam, geo, frame_paths, ctx) if sec.projectors else []
     rad = None
     if sec.radiometric is not None:
         shape = (cam.pixels[1], cam.pixels[0]) if cam is not None else None
         rad = run_radiometric(sec.radiometric, cfg.resolve, ctx, expected_shape=shape)
 
-    text = camera_yaml(cam, geo, rad.sensor_block() if rad is not None else None, mirrors, system)
+    text = camera_yaml(cam, geo, rad.sensor_block() if rad is not None else None, mirrors, system, projectors)
     if geo is not None and not (np.isfinite(geo.aperture_diameter_mm) and geo.aperture_diameter_mm > 0) and (
             cam.lens is None):
         ctx.say("calibrate: warning: the aperture was not measured (a checkerboard gives no per-dot blur); "
@@ -84,6 +99,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
             _write_mirrors(f.create_group("mirrors"), mirrors)
         if rad is not None:
             write_radiometric(f.create_group("radiometric"), rad)
+        if projectors:
+            _write_projectors(f.create_group("projectors"), projectors)
     A.write_text(yaml_out, text)
     ctx.say(f"calibrate: camera written to {yaml_out} (use it as  system: {{camera: {yaml_out}}})")
     return out
@@ -235,8 +252,9 @@ def _r(x, nd=6):
 
 
 def camera_yaml(cam: C.Camera | None, geo: GeometricCalibration | None, sensor: dict | None,
-                mirrors: list[MirrorFit], system: C.System | None) -> str:
-    """The YAML text: ``camera:`` valid as ``system.camera``, ``mirrors:`` valid as ``system.mirrors``."""
+                mirrors: list[MirrorFit], system: C.System | None, projectors: list | None = None) -> str:
+    """The YAML text: ``camera:`` valid as ``system.camera``, ``mirrors:`` valid as ``system.mirrors``,
+    ``projectors:`` valid as ``rig.projectors`` (name -> optics and pose)."""
     doc: dict = {}
     block: dict = {}
     if cam is not None:
@@ -274,13 +292,228 @@ def camera_yaml(cam: C.Camera | None, geo: GeometricCalibration | None, sensor: 
             d["axis"] = _r(fit.axis, 9)
             out.append(d)
         doc["mirrors"] = out
+    if projectors:
+        doc["projectors"] = {pf.name: pf.block for pf in projectors}
     head = ("# Written by `fluxmap calibrate`. Use it in any config in one line:\n"
             "#   system: {camera: path/to/camera.yaml}" + ("   (and  mirrors: path/to/camera.yaml)" if mirrors else "")
-            + "\n")
+            + ("\n#   rig: {projectors: path/to/camera.yaml}   (the projectors; display keys beside file: {file: ..., NAME: {display: window}})" if projectors else "") + "\n")
     if geo is not None:
         s = geo.sigma
         head += (f"# 1-sigma: f {s['focal_length_mm']:.3g} mm, u {s['focus_distance_mm']:.3g} mm, aperture "
                  f"{s['aperture_diameter_mm']:.3g} mm, lens centre ({s['lens_center_x_mm']:.3g}, "
                  f"{s['lens_center_y_mm']:.3g}, {s['lens_center_z_mm']:.3g}) mm, look {s['look_deg']:.3g} deg; "
                  f"RMS reprojection {geo.rms_px:.3f} px\n")
+    for pf in projectors or []:
+        head += (f"# projector {pf.name}: {len(pf.result.points_mm)} board points, RMS reprojection "
+                 f"{pf.result.rms_px:.3f} projector px; gamma {'measured' if pf.gamma_measured else 'given'}\n")
     return head + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)
+
+
+# ------------------------------------------------------------------ projectors
+@dataclass
+class ProjectorFit:
+    """One projector's calibration: the fit, its ``rig.projectors`` block, and (simulated) the truth."""
+
+    name: str
+    result: "SC.ProjectorCalibrationResult"
+    block: dict
+    gamma_measured: bool
+    heights_mm: list[float]
+    valid_fraction: list[float]
+    truth: dict | None = None  # simulated: the true projector's block and the fit's errors
+
+
+def _projector_name(pc: C.ProjectorCalibration, k: int) -> str:
+    return pc.name or f"projector{k}"
+
+
+def _expand(cfg, spec, key: str) -> list[Path]:
+    if isinstance(spec, str):
+        import glob
+
+        pattern = cfg.resolve(Path(spec))
+        files = sorted(Path(f) for f in glob.glob(str(pattern)))
+        if not files:
+            raise UserError(f"{key}: the pattern {pattern} matches no file.")
+        return files
+    return [cfg.resolve(p) for p in spec]
+
+
+def _projector_frame_paths(cfg, sec: C.Calibrate) -> dict[str, list[Path]]:
+    """Every projector frame file the config names (simulated frames are made later), by config key."""
+    from ..structured.patterns import column_patterns
+
+    out = {}
+    for k, pc in enumerate(sec.projectors):
+        for i, im in enumerate(pc.images):
+            for which, cells in (("columns", pc.pixels[0]), ("rows", pc.pixels[1])):
+                key = f"calibrate.projectors[{k}].images[{i}].{which}"
+                paths = _expand(cfg, getattr(im, which), key)
+                for p in paths:
+                    if not p.is_file():
+                        raise UserError(f"{key}: frame file {p} does not exist.")
+                n = len(column_patterns(cells, 1, period_px=pc.patterns.period_px, n_steps=pc.patterns.n_steps).frames)
+                _check_count(paths, key, n)
+                out[key] = paths
+    return out
+
+
+def _check_count(paths: list[Path], key: str, n_expected: int) -> None:
+    if len(paths) != n_expected:
+        raise UserError(f"{key}: {len(paths)} frame file(s) given, the pattern sequence has {n_expected} "
+                        "(white, black, each Gray bit and its inverse, the phase steps; check "
+                        "calibrate.projectors[].pixels and .patterns).")
+
+
+def _projector_block(p) -> dict:
+    return {"pixels": [int(p.width_px), int(p.height_px)], "focal_px": _r([p.fx_px, p.fy_px]),
+            "principal_px": _r([p.cx_px, p.cy_px]), "distortion": _r([p.k1, p.k2], 8), "gamma": _r(p.gamma, 4),
+            "pose": {"center_mm": _r(p.center_mm), "look": _r(p.axis, 9), "up": _r(-p.down, 9)}}
+
+
+def _read_frames(paths: list[Path], key: str, n_expected: int, shape) -> np.ndarray:
+    _check_count(paths, key, n_expected)
+    out = []
+    for p in paths:
+        try:
+            img, _ = read_image(p)
+        except (ValueError, OSError) as e:
+            raise UserError(f"{key}: {e}") from None
+        if img.shape != shape:
+            raise UserError(f"{key}: {p} is {img.shape[1]} x {img.shape[0]} pixels but system.camera.pixels is "
+                            f"[{shape[1]}, {shape[0]}].")
+        out.append(np.asarray(img, float))
+    return np.stack(out)
+
+
+def _simulated_frames(cfg, k: int, pc: C.ProjectorCalibration, ctx) -> list[tuple[float, list[Path], list[Path]]]:
+    """Render the board at each height with the simulated rig; write the frames as 16-bit TIFF files."""
+    from ..imaging.imagefiles import write_image
+    from ..pipeline import emccd_model
+    from ..scene import camera_from_config
+
+    sim = pc.simulated
+    if sim.camera.lens is None or sim.camera.pose is None:
+        raise UserError(f"calibrate.projectors[{k}].simulated.camera: the true camera needs lens and pose.")
+    name = _projector_name(pc, k)
+    ctx.say(f"calibrate: projector {name}: rendering the board at {len(sim.heights_mm)} height(s) (simulated rig)")
+    sensor = replace(emccd_model(sim.camera.sensor, sim.exposure_s), em_gain=sim.em_gain)
+    frames = SC.simulate_board_frames(camera_from_config(sim.camera), projector_model(sim.projector),
+                                      sim.heights_mm, board_size_mm=sim.board_size_mm, albedo=sim.albedo,
+                                      period_px=pc.patterns.period_px, n_steps=pc.patterns.n_steps, sensor=sensor,
+                                      photons_white=sim.photons_white, ambient_photons=sim.ambient_photons,
+                                      lens_samples=sim.lens_samples, seed=sim.seed)
+    folder = cfg.workdir / "projector_frames" / name
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    for z, (cols, rows) in zip(sim.heights_mm, frames):
+        paths = []
+        for which, stack in (("columns", cols), ("rows", rows)):
+            ps = [folder / f"z{z:+07.2f}_{which}_{i:03d}.tif" for i in range(len(stack))]
+            for pth, im in zip(ps, stack):
+                write_image(pth, im)
+            paths.append(ps)
+        out.append((float(z), paths[0], paths[1]))
+    return out
+
+
+def _projectors(cfg, sec: C.Calibrate, cam: C.Camera, geo: GeometricCalibration, frame_paths, ctx) -> list[ProjectorFit]:
+    from ..calibration.geometry import grid_points_mm
+    from ..structured.patterns import column_patterns, decode
+
+    ny, nx = cam.pixels[1], cam.pixels[0]
+    g = sec.grid
+    ii, jj = np.meshgrid(np.arange(g.shape[0]), np.arange(g.shape[1]), indexing="ij")
+    ij = np.c_[ii.ravel(), jj.ravel()]
+    fits = []
+    for k, pc in enumerate(sec.projectors):
+        name = _projector_name(pc, k)
+        w, h = pc.pixels
+        cols = column_patterns(w, h, period_px=pc.patterns.period_px, n_steps=pc.patterns.n_steps)
+        rows = SC.row_patterns(w, h, period_px=pc.patterns.period_px, n_steps=pc.patterns.n_steps)
+        if pc.simulated is not None:
+            sets = _simulated_frames(cfg, k, pc, ctx)
+        else:
+            sets = [(im.plane_z_mm, frame_paths[f"calibrate.projectors[{k}].images[{i}].columns"],
+                     frame_paths[f"calibrate.projectors[{k}].images[{i}].rows"]) for i, im in enumerate(pc.images)]
+        planes, gammas, valid_frac, heights = [], [], [], []
+        for i, (z, cpaths, rpaths) in enumerate(sets):
+            key = f"calibrate.projectors[{k}].images[{i}]" if pc.simulated is None else \
+                f"calibrate.projectors[{k}].simulated (z={z:g} mm)"
+            decoded = []
+            for which, pats, paths in (("columns", cols, cpaths), ("rows", rows, rpaths)):
+                f = _read_frames(paths, f"{key}.{which}", len(pats.frames), (ny, nx))
+                contrast = f[0] - f[1]
+                lit = contrast[contrast > 0]
+                level = pc.min_contrast_fraction * (np.percentile(lit, 99) if len(lit) else 0.0)
+                dec = decode(f, pats, min_contrast=level, width_px=w if which == "columns" else h)
+                decoded.append(dec)
+                if which == "columns" and pc.gamma is None:
+                    ph = f[2 + 2 * pats.n_gray:]
+                    gammas.append(SC.gamma_from_phase_frames(f[0], f[1], ph, dec.valid))
+            X = grid_points_mm(ij, g.pitch_mm, tuple(g.shape), z)
+            xy = geo.camera.project(X) + 0.5  # pixel centres at integers -> pixel (r, c) spans [c, c+1)
+            inside = (xy[:, 0] >= 0) & (xy[:, 0] < nx) & (xy[:, 1] >= 0) & (xy[:, 1] < ny)
+            planes.append((X[inside], xy[inside], decoded[0].column_px, decoded[1].column_px))
+            valid_frac.append(float(np.mean(decoded[0].valid & decoded[1].valid)))
+            heights.append(float(z))
+        gamma_meas = [x for x in gammas if np.isfinite(x)]
+        gamma = float(pc.gamma) if pc.gamma is not None else (float(np.median(gamma_meas)) if gamma_meas else 1.0)
+        if pc.gamma is None and not gamma_meas:
+            ctx.say(f"calibrate: warning: projector {name}: gamma could not be measured (too few decoded pixels); 1 assumed")
+        try:
+            res = SC.calibrate_projector(planes, width_px=w, height_px=h, gamma=gamma, half_window=pc.half_window_px)
+        except ValueError as e:
+            raise UserError(f"calibrate.projectors[{k}] ({name}): {e}; check that the board is lit by the projector "
+                            "in the frames and that min_contrast_fraction is not too high.") from None
+        fit = ProjectorFit(name, res, _projector_block(res.projector), bool(pc.gamma is None and gamma_meas),
+                           heights, valid_frac)
+        if pc.simulated is not None:
+            fit.truth = _truth_errors(pc.simulated.projector, res.projector)
+        fits.append(fit)
+        _projector_summary(fit, ctx)
+    return fits
+
+
+def _truth_errors(true_cfg: C.ProjectorModel, fitted) -> dict:
+    """The simulated projector's block and how far the fit is from it (reported, never used by the fit)."""
+    from scipy.spatial.transform import Rotation
+
+    t = projector_model(true_cfg)
+    return {"block": _projector_block(t),
+            "center_error_mm": float(np.linalg.norm(fitted.center_mm - t.center_mm)),
+            "rotation_error_deg": float(np.degrees(Rotation.from_matrix(fitted.rotation @ t.rotation.T).magnitude())),
+            "focal_error": float(fitted.fx_px / t.fx_px - 1), "gamma_error": float(fitted.gamma - t.gamma)}
+
+
+def _projector_summary(fit: ProjectorFit, ctx) -> None:
+    p, r = fit.result.projector, fit.result
+    ctx.say(f"calibrate: projector {fit.name}: {len(r.points_mm)} board points on {len(fit.heights_mm)} heights "
+            f"({r.rejected} rejected), RMS {r.rms_px:.3f} px; f ({p.fx_px:.1f}, {p.fy_px:.1f}) px, c ({p.cx_px:.1f}, "
+            f"{p.cy_px:.1f}) px, k ({p.k1:.4f}, {p.k2:.4f}), gamma {p.gamma:.3f}"
+            f"{' (measured)' if fit.gamma_measured else ''}, centre {np.round(p.center_mm, 2).tolist()} mm")
+    if fit.truth is not None:
+        t = fit.truth
+        ctx.say(f"calibrate: projector {fit.name} against the simulated truth: centre {t['center_error_mm']:.3f} mm, "
+                f"rotation {t['rotation_error_deg']:.3f} deg, fx {t['focal_error']:+.2%}, gamma {t['gamma_error']:+.3f}")
+    if r.rms_px > 0.5:
+        ctx.say(f"calibrate: warning: projector {fit.name}: RMS reprojection {r.rms_px:.2f} projector px > 0.5")
+
+
+def _write_projectors(g, fits: list[ProjectorFit]) -> None:
+    for k, fit in enumerate(fits):
+        h = g.create_group(str(k))
+        r = fit.result
+        h.attrs["name"] = fit.name
+        h.attrs["block"] = json.dumps(fit.block)
+        h.attrs["rms_px"] = r.rms_px
+        h.attrs["rejected"] = r.rejected
+        h.attrs["gamma_measured"] = fit.gamma_measured
+        h.attrs["heights_mm"] = np.asarray(fit.heights_mm, float)
+        h.attrs["valid_fraction"] = np.asarray(fit.valid_fraction, float)
+        for name, arr, unit in (("points_mm", r.points_mm, "mm, world"), ("uv_px", r.uv_px, "projector px, measured"),
+                                ("residual_px", r.residual_px, "projector px, measured - model"),
+                                ("plane", r.plane, "index into heights_mm")):
+            h.create_dataset(name, data=arr).attrs["unit"] = unit
+        if fit.truth is not None:
+            h.attrs["truth"] = json.dumps(fit.truth)

@@ -1,4 +1,5 @@
-"""``fluxmap capture-surface CONFIG [--resume]``: acquire the emission images of ``capture:``.
+"""``fluxmap capture-surface CONFIG [--resume]``: acquire ``capture:``: the subject's surface
+by structured light (``capture.surface``) and its emission images.
 
 Examples
 --------
@@ -13,7 +14,17 @@ through the forward model (``simulate.flux``, T at the stage's physical height, 
 in the beam) with EMCCD noise; ``dcam`` drives the real camera.  Frames go to
 ``<workdir>/capture.h5`` as they arrive (see :mod:`fluxcli.acquisition`).  Ctrl-C stops at
 a frame boundary with the shutter closed and the stage stopped (exit 130); a device fault
-exits 2 naming the device.  (Structured-light surface capture is a later issue.)
+exits 2 naming the device.
+
+Structured light (``capture.surface``): first, each projector of ``rig.projectors`` shows
+the Gray-code + phase-shift sequence (the others black) while the camera takes one frame
+per pattern into ``capture.h5`` (``/patterns``, same crash safety and ``--resume``).  The
+simulated camera renders the shown pattern on the true surface
+(:class:`fluxcli.structured.render.PatternRenderer`: camera blur, mirror views, shadows)
+with EMCCD noise; a ``window`` display shows it full screen on the projector in the lab.
+Once every frame is in, the frames are decoded, triangulated (all views and projectors),
+meshed and written to ``<workdir>/surface.h5`` (at rest: as at stage height 0), which
+``subject.surface: {artefact: ...}`` reads.
 """
 
 from __future__ import annotations
@@ -51,11 +62,21 @@ class SimulatedScene:
         # what the simulated camera looks at: the geometry, and what the subject emits
         C.require(cfg, "capture-surface with rig.camera.backend: simulated",
                   ("system", "system.camera.lens", "system.camera.pose", "subject", "simulate"))
+        cc = cfg.model.rig.camera or C.RigCamera()
+        if cc.true_surface is not None:  # the truth differs from subject.surface (e.g. the captured one)
+            m = cfg.model
+            cfg = C.LoadedConfig(m.model_copy(update={"subject": m.subject.model_copy(
+                update={"surface": cc.true_surface})}), cfg.path, cfg.raw)
+        elif isinstance(cfg.model.subject.surface, C.ArtefactSurface):
+            raise UserError("rig.camera.true_surface: subject.surface is a captured surface artefact; the simulated "
+                            "camera needs the true surface to render (a phantom or a mesh file).")
         self.cfg = cfg
-        self.light = dict((cfg.model.rig.camera or C.RigCamera()).filters)
+        self.camera_settings = cc
+        self.light = dict(cc.filters)
         self._placer = None
         self._rates: dict[str, np.ndarray] = {}
         self._images: dict[tuple[float, str], np.ndarray] = {}
+        self._pattern_renderers: dict[tuple[float, int, str], tuple] = {}
         for name, spec in self.light.items():
             self._flux_for(name, spec)  # refuse bad wavelengths before any device moves
 
@@ -64,7 +85,8 @@ class SimulatedScene:
         m = self.cfg.model
         return A.inputs_digest(system=m.system.model_dump(mode="json"), subject=m.subject.model_dump(mode="json"),
                                simulate=m.simulate.model_dump(mode="json"),
-                               camera=(m.rig.camera or C.RigCamera()).model_dump(mode="json"))
+                               camera=self.camera_settings.model_dump(mode="json"),
+                               projectors={k: v.model_dump(mode="json") for k, v in m.rig.projectors.items()})
 
     def _flux_for(self, name: str, spec):
         flux = self.cfg.model.simulate.flux
@@ -105,7 +127,55 @@ class SimulatedScene:
             self._rates[name] = power * transmission / m.simulate.noise.exposure_s
         return self._rates[name]
 
-    def render(self, height_mm: float, name: str) -> np.ndarray:
+    def render(self, height_mm: float, name: str, *, projectors: dict | None = None, binning: int | None = None
+               ) -> np.ndarray:
+        """Photons/s per pixel: what the projectors shine (when any shows a pattern), else
+        the subject's emission through filter ``name`` (at the camera's native binning).  The
+        emission is left out of pattern frames (any binning finer than the native one): it is
+        orders of magnitude fainter than the projected light."""
+        native = self.camera_settings.binning
+        binning = native if binning is None else int(binning)
+        if projectors:
+            return sum(self.pattern_photons_per_s(height_mm, binning, p, img) for p, img in projectors.items())
+        if binning != native:  # a pattern frame with every projector black (the emission is left out there too)
+            k = native // binning
+            nx, ny = self.cfg.model.system.camera.pixels
+            return np.zeros((ny * k, nx * k))
+        return self.emission(height_mm, name)
+
+    def pattern_renderer(self, height_mm: float, binning: int, projector: str):
+        """The traced scene (subject and stage at ``height_mm``, camera at ``binning``) for one
+        projector, and the photons/s per pixel per unit of rendered radiance (étendue x intensity)."""
+        key = (round(float(height_mm), 4), int(binning), projector)
+        if key not in self._pattern_renderers:
+            from ..hardware.projector import projector_model
+            from ..scene import Pose, plane_mirrors
+            from ..structured.render import PatternRenderer, pixel_etendue_mm2_sr
+
+            m = self.cfg.model
+            camera = camera_at_binning(m.system.camera, self.camera_settings.binning // int(binning))
+            lit = [(self.true_surface_at(key[0]), self.camera_settings.subject_albedo)]
+            if m.system.stage is not None:  # the stage top (the first occluder) is lit too
+                lit.append((self.placer.occluders(Pose(key[0], 0.0), m.system)[0], self.camera_settings.stage_albedo))
+            mirrors = [(pm, mm.reflectance) for pm, mm in zip(plane_mirrors(m.system), m.system.mirrors)]
+            spec = m.rig.projectors[projector]
+            renderer = PatternRenderer(camera, mirrors, lit, [], projector_model(spec))
+            scale = pixel_etendue_mm2_sr(camera) * spec.intensity_photons_per_s_per_sr
+            self._pattern_renderers[key] = (renderer, scale)
+        return self._pattern_renderers[key]
+
+    def pattern_photons_per_s(self, height_mm: float, binning: int, projector: str, pattern: np.ndarray) -> np.ndarray:
+        renderer, scale = self.pattern_renderer(height_mm, binning, projector)
+        return renderer.render(pattern) * scale
+
+    def true_surface_at(self, height_mm: float):
+        """The true subject placed with the stage at ``height_mm``."""
+        from ..scene import Pose
+
+        rot = (self.cfg.model.subject.poses or C.Poses()).rotations_deg[0]
+        return self.placer.place(Pose(float(height_mm), float(rot)))
+
+    def emission(self, height_mm: float, name: str) -> np.ndarray:
         # 0.1 um is far below any depth of field: the stage's microstep rounding (~7 nm)
         # then reuses the T of the planned height instead of building another
         key = (round(float(height_mm), 4), name)
@@ -119,6 +189,15 @@ class SimulatedScene:
             nx, ny = self.cfg.model.system.camera.pixels
             self._images[key] = (T @ self.power_rate(name)).reshape(ny, nx)
         return self._images[key]
+
+
+def camera_at_binning(camera: C.Camera, k: int):
+    """The thin-lens camera of ``system.camera`` with its pixels split ``k x k`` (a binning k
+    times finer than the one system.camera describes)."""
+    from ..scene import camera_from_config
+
+    return camera_from_config(camera.model_copy(update={"pixels": (camera.pixels[0] * k, camera.pixels[1] * k),
+                                                        "pixel_pitch_mm": camera.pixel_pitch_mm / k}))
 
 
 # ------------------------------------------------------------------ devices
@@ -139,10 +218,67 @@ def _check(cfg: C.LoadedConfig) -> tuple[C.Capture, C.Rig]:
     out = [h for h in cap.heights_mm if not lo <= h <= hi]
     if out:
         raise UserError(f"capture.heights_mm: {out} mm outside the stage's travel rig.stage.travel_mm [{lo}, {hi}].")
+    if cap.surface is not None:
+        _check_surface(cap.surface, rig)
     return cap, rig
 
 
-def _camera(cfg: C.LoadedConfig, cap: C.Capture, rig: C.Rig, sims: dict, wheel, stage, scene):
+def _check_surface(sf: C.CaptureSurface, rig: C.Rig) -> None:
+    names = list(sf.projectors) if sf.projectors is not None else list(rig.projectors)
+    if not names:
+        raise UserError("capture.surface: no projector; list them in rig.projectors (and optionally "
+                        "capture.surface.projectors).")
+    unknown = [p for p in names if p not in rig.projectors]
+    if unknown:
+        raise UserError(f"capture.surface.projectors: {unknown} not in rig.projectors ({sorted(rig.projectors)}).")
+    if sf.filter not in rig.filter_wheel.filters:
+        raise UserError(f"capture.surface.filter: {sf.filter!r} not in rig.filter_wheel.filters "
+                        f"({sorted(rig.filter_wheel.filters)}).")
+    lo, hi = rig.stage.travel_mm
+    if not lo <= sf.height_mm <= hi:
+        raise UserError(f"capture.surface.height_mm: {sf.height_mm} mm outside rig.stage.travel_mm [{lo}, {hi}].")
+    cc = rig.camera or C.RigCamera()
+    if sf.binning is not None and cc.binning % sf.binning:
+        raise UserError(f"capture.surface.binning: {sf.binning} must divide rig.camera.binning ({cc.binning}): "
+                        "system.camera describes the frames at rig.camera.binning, pattern frames are as fine or finer.")
+    want = "simulated" if cc.backend == "simulated" else "window"
+    wrong = [p for p in names if rig.projectors[p].display != want]
+    if wrong:
+        raise UserError(f"rig.projectors.{wrong[0]}.display: the {cc.backend} camera needs '{want}' displays "
+                        "(the simulated camera sees only simulated projectors; a real camera sees a real one).")
+    gray = {p: _patterns(sf, rig.projectors[p]).n_gray for p in names}
+    if len(set(gray.values())) > 1:
+        raise UserError(f"rig.projectors: the panels' widths give Gray codes of different lengths {gray}; "
+                        "capture.surface needs projectors of the same width.")
+
+
+def _patterns(sf: C.CaptureSurface, spec: C.RigProjector):
+    from ..structured.patterns import column_patterns
+
+    return column_patterns(spec.pixels[0], spec.pixels[1], period_px=sf.patterns.period_px,
+                           n_steps=sf.patterns.n_steps)
+
+
+def _surface_plan(cfg: C.LoadedConfig, sf: C.CaptureSurface, rig: C.Rig, camera) -> "SurfacePlan":
+    from ..acquisition import SurfacePlan
+
+    names = tuple(sf.projectors) if sf.projectors is not None else tuple(rig.projectors)
+    cc = rig.camera or C.RigCamera()
+    binning = sf.binning or cc.binning
+    native = camera.binning
+    camera.binning = binning  # the camera says the frame shape at that binning
+    shape = tuple(camera.shape)
+    camera.binning = native
+    ps = _patterns(sf, rig.projectors[names[0]])
+    content = A.inputs_digest(patterns=sf.patterns.model_dump(mode="json"),
+                              projectors={p: rig.projectors[p].model_dump(mode="json") for p in names})
+    return SurfacePlan(projectors=names, patterns=tuple(ps.labels), height_mm=float(sf.height_mm), filter=sf.filter,
+                       exposure_s=float(sf.exposure_s), em_gain=float(sf.em_gain), binning=int(binning),
+                       shape=(int(shape[0]), int(shape[1])), n_gray=ps.n_gray, n_steps=ps.n_steps, content=content)
+
+
+def _camera(cfg: C.LoadedConfig, cap: C.Capture, rig: C.Rig, sims: dict, wheel, stage, scene,
+            displays: dict | None = None):
     from ..pipeline import emccd_model
 
     cc = rig.camera or C.RigCamera()
@@ -158,7 +294,11 @@ def _camera(cfg: C.LoadedConfig, cap: C.Capture, rig: C.Rig, sims: dict, wheel, 
     # the physical state: the simulator's when it runs here, else the driver's read-back
     height = (lambda: sims["stage"].position_mm) if "stage" in sims else stage.position_mm
     pos = (lambda: sims["filter_wheel"].position) if "filter_wheel" in sims else (lambda: wheel.position)
+    def shown():  # what the simulated projectors show right now (black ones left out)
+        return {n: d.current for n, d in (displays or {}).items() if d.current.any()}
+
     return SimulatedEmccd(scene.render, stage_height_mm=height, filter_name=lambda: positions.get(pos(), f"position {pos()}"),
+                          projectors=shown,
                           sensor=emccd_model(cfg.model.system.camera.sensor, cap.exposures_s[0]), seed=cap.seed,
                           native_binning=cc.binning, setpoint_c=cc.setpoint_c, ambient_c=cc.ambient_c,
                           dark_doubling_c=cc.dark_doubling_c, em_gain_range=tuple(cc.em_gain_range),
@@ -186,12 +326,21 @@ def _stop_on_signals(ctx: RunContext):
 
 # ------------------------------------------------------------------ the stage
 def run(cfg: C.LoadedConfig, ctx: RunContext, resume: bool = False) -> Path:
-    from ..hardware.rig import open_devices, start_simulators
-    from ..pipeline import provenance
-
     cap, rig = _check(cfg)
     cc = rig.camera or C.RigCamera()
     scene = SimulatedScene(cfg) if cc.backend == "simulated" else None  # config checked before any file is touched
+    out = _acquire_plan(cfg, ctx, cap, rig, scene, resume)
+    if cap.surface is not None:
+        _make_surface(cfg, ctx, cap.surface, scene, out)
+    return out
+
+
+def _acquire_plan(cfg: C.LoadedConfig, ctx: RunContext, cap: C.Capture, rig: C.Rig, scene, resume: bool) -> Path:
+    from ..hardware.projector import open_display
+    from ..hardware.rig import open_devices, start_simulators
+    from ..pipeline import provenance
+
+    cc = rig.camera or C.RigCamera()
     out = cfg.workdir / "capture.h5"
     A.clean_stale_temps(out.parent)  # e.g. a capture.h5 whose creation was killed
     if out.exists() and not resume:
@@ -204,12 +353,20 @@ def run(cfg: C.LoadedConfig, ctx: RunContext, resume: bool = False) -> Path:
         wheel, stage = open_devices(rig, {n: s.url for n, s in sims.items()})
         stack.callback(wheel.close)
         stack.callback(stage.close)
-        camera = _camera(cfg, cap, rig, sims, wheel, stage, scene)
+        sf = cap.surface
+        names = (tuple(sf.projectors) if sf.projectors is not None else tuple(rig.projectors)) if sf else ()
+        displays = {}
+        for name in names:
+            displays[name] = open_display(name, rig.projectors[name])
+            stack.callback(displays[name].close)
+        camera = _camera(cfg, cap, rig, sims, wheel, stage, scene, displays)
         stack.callback(camera.close)
         plan = Plan(heights_mm=tuple(cap.heights_mm), filters=tuple(cap.filters), exposures_s=cap.exposures_s,
                     em_gain=cap.em_gain, repeats=cap.repeats, darks=cap.darks, seed=cap.seed,
                     shape=tuple(camera.shape), camera=cc.backend, scene=scene.digest if scene else "",
-                    filter_positions=tuple((f, rig.filter_wheel.filters[f]) for f in cap.filters))
+                    filter_positions=tuple((f, rig.filter_wheel.filters[f]) for f in dict.fromkeys(
+                        cap.filters + ((sf.filter,) if sf else ()))),
+                    surface=_surface_plan(cfg, sf, rig, camera) if sf else None)
         if out.exists():
             capfile = CaptureFile.resume(out, plan)
         else:
@@ -221,24 +378,96 @@ def run(cfg: C.LoadedConfig, ctx: RunContext, resume: bool = False) -> Path:
                                          truth_unit="photons per element per second (subject at rest)",
                                          pause_s=float(os.environ.get(CREATE_PAUSE_ENV, "0") or 0))
         stack.callback(capfile.close)
-        total, done = len(plan.frames()), int(capfile.committed.sum())
+        total = len(plan.frames()) + len(capfile.pattern_committed)
+        done = capfile.n_committed
         if done == total:
             ctx.say(f"capture-surface: {out} already holds all {total} frames")
             return out
-        if scene is not None:  # T and truth ready before the devices move (the frames then flow)
+        if scene is not None:  # T, truth and traced scenes ready before the devices move (the frames then flow)
+            if sf is not None and not capfile.pattern_committed.all():
+                for name in names:
+                    scene.pattern_renderer(plan.surface.height_mm, plan.surface.binning, name)
             for h, name in dict.fromkeys((fr.height_mm, fr.filter) for fr in plan.frames()
                                          if not fr.dark and not capfile.committed[fr.index]):
                 scene.render(h, name)
+        pattern_sets = {p: _patterns(sf, rig.projectors[p]) for p in names}
+        devices = RigDevices(stage, wheel, camera, dict(rig.filter_wheel.filters), displays=displays,
+                             pattern_image=lambda p, k: pattern_sets[p].frames[k],
+                             panels={p: tuple(reversed(rig.projectors[p].pixels)) for p in names})
         try:  # from here Ctrl-C waits for the frame under way (before, it stops at once)
             with _stop_on_signals(ctx) as stop_requested:
                 ctx.say(f"capture-surface: {total - done} of {total} frames to take"
                         + (f" ({done} already in {out.name})" if done else ""))
                 with ctx.progress_steps("capture", total, done) as update:
-                    acquire(plan, capfile, RigDevices(stage, wheel, camera, dict(rig.filter_wheel.filters)),
-                            stop_requested=stop_requested, on_step=update,
+                    acquire(plan, capfile, devices, stop_requested=stop_requested, on_step=update,
                             on_frame=lambda fr: update(fr.label, advance=True))
         except Interrupted as e:
             ctx.say(f"capture-surface: stopped before frame '{e}'; shutter closed, stage stopped; "
-                    f"{int(capfile.committed.sum())} of {total} frames are in {out} (--resume continues).")
+                    f"{capfile.n_committed} of {total} frames are in {out} (--resume continues).")
             raise KeyboardInterrupt from None
+    return out
+
+
+# ------------------------------------------------------------------ from pattern frames to surface.h5
+def _make_surface(cfg: C.LoadedConfig, ctx: RunContext, sf: C.CaptureSurface, scene, capture_path: Path) -> Path:
+    """Decode the pattern frames of ``capture_path``, triangulate, mesh, write ``surface.h5``."""
+    from ..acquisition import read_patterns
+    from ..hardware.projector import projector_model
+    from ..pipeline import decode_datasets, emccd_model, provenance, write_surface_artefact
+    from ..scene import mirror_names, plane_mirrors
+    from ..structured.mesh import capture_metrics, distances_to_surface
+    from ..structured.scan import merge_points, points_from_frames, surface_from_points
+
+    m = cfg.model
+    out = cfg.workdir / "surface.h5"
+    digest = A.inputs_digest(capture=A.file_sha256(capture_path), surface=sf.model_dump(mode="json"),
+                             system=m.system.model_dump(mode="json"),
+                             projectors={k: v.model_dump(mode="json") for k, v in m.rig.projectors.items()})
+    if not ctx.force and A.is_up_to_date(out, "surface", digest):
+        ctx.say(f"capture-surface: {out} is up to date")
+        return out
+    pc = read_patterns(capture_path)
+    camera = camera_at_binning(m.system.camera, (m.rig.camera or C.RigCamera()).binning // pc.binning)
+    mirrors = plane_mirrors(m.system)
+    views = ["direct"] + mirror_names(m.system)
+    photons = pc.photons(emccd_model(m.system.camera.sensor, pc.exposure_s))
+    scans = []
+    with ctx.progress("decode", len(pc.projectors)) as tick:
+        for name in pc.projectors:
+            ps = _patterns(sf, m.rig.projectors[name])
+            scan = points_from_frames(photons[name], ps, camera, mirrors, projector_model(m.rig.projectors[name]),
+                                      min_contrast=sf.min_contrast_photons,
+                                      min_modulation_fraction=sf.min_modulation_fraction)
+            scans.append(scan)
+            tick()
+    decode = decode_datasets(scans, list(pc.projectors), views, camera, mirrors)
+    h = pc.height_mm
+    floor = (m.system.stage.top_z_mm + h) if m.system.stage is not None else None
+    merged = merge_points(scans, floor_z_mm=-np.inf if floor is None else floor)
+    if len(merged.points_mm) < 50:
+        raise UserError(f"capture-surface: only {len(merged.points_mm)} points were decoded from the pattern frames "
+                        f"of {capture_path}; is the subject lit (rig.projectors) and the shadow mask "
+                        f"(capture.surface.min_contrast_photons = {sf.min_contrast_photons:g}) right?")
+    ctx.say(f"capture-surface: {len(merged.points_mm)} points "
+            f"({', '.join(f'{v} {int((merged.view == j).sum())}' for j, v in enumerate(views))}); meshing ...")
+    mesh = surface_from_points(merged, floor_z_mm=floor, element_size_mm=sf.mesh.element_size_mm,
+                               face_size_mm=sf.mesh.face_size_mm, voxel_mm=sf.mesh.voxel_mm,
+                               centre_spacing_mm=sf.mesh.centre_spacing_mm)
+    distance = truth = metrics = None
+    if scene is not None:  # the simulated rig knows the truth
+        truth = scene.true_surface_at(h)
+        distance = distances_to_surface(merged.points_mm, truth)
+        metrics = capture_metrics(merged.points_mm, distance, mesh, truth)
+        truth = truth.transformed(np.eye(3), np.array([0.0, 0.0, -h]))
+        ctx.say("capture-surface: points within 0.1 / 0.2 / 0.4 mm of the true surface: "
+                + " / ".join(f"{np.mean(distance < t):.1%}" for t in (0.1, 0.2, 0.4)))
+    # at rest: as with the stage at height 0 (poses raise it by their height)
+    shift = np.array([0.0, 0.0, -h])
+    mesh = mesh.transformed(np.eye(3), shift)
+    merged.points_mm = merged.points_mm + shift
+    write_surface_artefact(out, mesh, points=merged, decode=decode, distance_to_truth_mm=distance, truth=truth, metrics=metrics,
+                           config_sha256=cfg.sha256, inputs={"capture": A.file_sha256(capture_path)},
+                           provenance=provenance(cfg), attrs={"inputs_digest": digest, "capture_height_mm": h})
+    ctx.say(f"capture-surface: {out}: {len(mesh.faces)} faces, {mesh.n_elements} elements, "
+            f"area {mesh.face_areas_mm2.sum():.0f} mm^2")
     return out

@@ -18,6 +18,7 @@ class RunContext:
     jobs: int = 1
     quiet: bool = False
     overrides: tuple[str, ...] = ()
+    client: object = None  # --scheduler: a distributed.Client (fluxcli.cluster); None runs locally
     warned: set = field(default_factory=set)  # shared by copies (dataclasses.replace), so a warning shows once
     console: Console = field(default_factory=lambda: Console(highlight=False, soft_wrap=True,
                                                               width=None if sys.stdout.isatty() else 160))

@@ -32,7 +32,7 @@ from ..imaging.imagefiles import read_image, sample_type
 from ..artefacts.transfer import load_T, load_view
 from ..inverse import backprojection, error_l1, reconstruct as solve, total_ratio
 from ..pipeline import check_folders, check_memory, emccd_model, ensure_T, geometry_of, plan, provenance
-from ..workers import worker_pool
+from ..workers import blas_threads, pool_for
 from ..imaging.sensor_maps import counts_to_photons_with_maps
 from ._radiometric import read_radiometric_maps
 from .context import RunContext
@@ -265,8 +265,9 @@ def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSe
     (mm²) are what the exitance prior of ``smooth`` needs; with ``parent`` the unknowns are
     sub-elements, summed back into ``n_elements`` elements (an element counts as observed
     when any of its parts is, its class is its best part's; sigma is not propagated: NaN)."""
-    res, keep = _solve(T, a, valid, m, noise, adjacency, areas,
-                       groups=None if parent is None else (parent, n_elements))
+    with blas_threads(1):  # dense ~10^3 solves: BLAS threads cost more than they give (workers.blas_threads)
+        res, keep = _solve(T, a, valid, m, noise, adjacency, areas,
+                           groups=None if parent is None else (parent, n_elements))
     if parent is None:
         return res, keep
     obs = res.observed
@@ -636,8 +637,8 @@ def _sweep(cfg: C.LoadedConfig, ctx: RunContext, g, grids: dict, todo) -> None:
     args = [(str(path), per_pose(k), k, li, reps, methods, noise, sensor)
             for li, k in cells]
     with ctx.progress("sweep", total=len(cells)) as advance:
-        if ctx.jobs > 1:
-            with worker_pool(ctx.jobs) as ex:
+        if ctx.jobs > 1 or ctx.client is not None:  # local processes, or the cells on a Dask cluster
+            with pool_for(ctx.client)(ctx.jobs) as ex:
                 for (li, k), e in zip(cells, ex.map(_sweep_cell, *zip(*args))):
                     err[:, li, k] = e
                     advance()

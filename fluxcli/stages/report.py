@@ -37,8 +37,9 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     rs = cfg.model.report
     rec = cfg.workdir / "reconstruction.h5"
     cal = cfg.workdir / "calibration.h5"
-    if cal.is_file() and not rec.is_file():
-        return _calibration_only(cfg, cal, ctx)
+    surf = _surface_artefact(cfg)
+    if not rec.is_file() and (cal.is_file() or surf is not None):
+        return _sections_only(cfg, cal if cal.is_file() else None, surf, ctx)
     C.require(cfg, "report", _GEOMETRY)
     if not rec.is_file():
         raise UserError(f"report: {rec} does not exist; run 'fluxmap reconstruct {cfg.path}' first "
@@ -51,6 +52,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         inputs["calibration.h5"] = A.file_sha256(cal)
     if sim.is_file():
         inputs["simulation.h5"] = A.file_sha256(sim)
+    if surf is not None:
+        inputs["surface.h5"] = A.file_sha256(surf)
     settings = rs.model_dump(mode="json") | {"config_sha256": cfg.sha256}
     index = out_dir / "index.html"
     if not ctx.force and index.is_file() and _previous(out_dir).get("provenance") == {"inputs": inputs, "settings": settings}:
@@ -77,7 +80,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     index, summary = R.make_report(study, out_dir, title=rs.title or cfg.path.stem, geometry=geometry,
                                    slice_axial_mm=rs.slice_axial_mm, surface_views=rs.surface_views,
                                    extra={"provenance": {"inputs": inputs, "settings": settings}},
-                                   sections=[_calibration_section(cal)] if cal.is_file() else None,
+                                   sections=([_calibration_section(cal)] if cal.is_file() else [])
+                                   + ([_surface_section(surf, plotly_loaded=True)] if surf is not None else []),
                                    record=record_of(cfg, inputs), rig=rig_of(cfg), exposure_s=reconstruction_exposure_s(cfg))
     for note in summary["notes"]:
         ctx.say(f"note: {note}")
@@ -126,29 +130,41 @@ def _calibration_section(cal: Path):
     return add
 
 
-def _calibration_only(cfg: C.LoadedConfig, cal: Path, ctx: RunContext) -> Path:
-    """A calibrate-only workdir: the report is the calibration section alone."""
-    from ..report import _write_text, jsonable
-    from ..report import figures as F
-    from ..report.calibration_figures import add_calibration_section
-    from ..report.page import Page
+def _surface_artefact(cfg: C.LoadedConfig) -> Path | None:
+    """The structured-light surface this run measured (capture-surface's ``surface.h5``), or the one
+    ``subject.surface.artefact`` names; None when there is none."""
+    candidates = [cfg.captured_surface_path, cfg.workdir / "surface.h5"]
+    s = cfg.model.subject.surface if cfg.model.subject is not None else None
+    if getattr(s, "artefact", None) is not None:
+        candidates.append(cfg.resolve(s.artefact))
+    return next((p for p in candidates if p is not None and p.is_file()), None)
 
-    with A.open_artefact(cal, "calibration"):
-        pass
+
+def _surface_section(surf: Path, *, plotly_loaded: bool):
+    from ..report.surface_figures import add_surface_section
+
+    def add(page, save):
+        return {"surface": add_surface_section(page, save, surf, plotly_loaded=plotly_loaded)}
+    return add
+
+
+def _sections_only(cfg: C.LoadedConfig, cal: Path | None, surf: Path | None, ctx: RunContext) -> Path:
+    """No reconstruction yet (a calibrate-only or capture-surface-only workdir): the calibration
+    and surface sections alone."""
+    inputs = {}
+    if cal is not None:
+        with A.open_artefact(cal, "calibration"):
+            pass
+        inputs["calibration.h5"] = A.file_sha256(cal)
+    if surf is not None:
+        with A.open_artefact(surf, "surface"):
+            pass
+        inputs["surface.h5"] = A.file_sha256(surf)
     out_dir = cfg.workdir / "report"
-    out_dir.mkdir(parents=True, exist_ok=True)
-    figures: list[str] = []
-
-    def save(fig, name):
-        F.save(fig, out_dir / name)
-        figures.append(name)
-        return out_dir / name
-
-    page = Page(cfg.model.report.title or cfg.path.stem)
-    summary = {"calibration": add_calibration_section(page, save, cal), "figures": figures,
-               "provenance": {"inputs": {"calibration.h5": A.file_sha256(cal)}}}
-    _write_text(out_dir / "summary.json", json.dumps(jsonable(summary), indent=1))
-    index = out_dir / "index.html"
-    _write_text(index, page.html(out_dir))
-    ctx.say(f"report: calibration, {len(figures)} figure(s); open {index}")
+    check_writable(out_dir, "workdir")
+    sections = ([_calibration_section(cal)] if cal is not None else []) + (
+        [_surface_section(surf, plotly_loaded=False)] if surf is not None else [])
+    index, summary = R.sections_report(out_dir, cfg.model.report.title or cfg.path.stem, sections,
+                                       extra={"provenance": {"inputs": inputs}})
+    ctx.say(f"report: {' and '.join(k.split('.')[0] for k in inputs)}, {len(summary['figures'])} figure(s); open {index}")
     return index

@@ -18,14 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import artefacts as A
+from ..pipeline import write_surface_artefact  # noqa: F401 (re-exported for pipelines/)
 from ..imaging import noise as N
 from ..optics.camera import PlaneMirror, ThinLensCamera
-from ..structured.mesh import closed_surface, estimate_normals, remove_outliers
 from ..structured.patterns import PatternSet, column_patterns
 from ..structured.projector import Projector
 from ..structured.render import PatternRenderer
-from ..structured.scan import ScanPoints, points_from_frames, simulate_frames
+from ..structured.scan import MergedPoints, ScanPoints, merge_points, points_from_frames, simulate_frames, surface_from_points  # noqa: F401 (re-exported for pipelines/)
 from ..surface.mesh import Surface, box
 
 
@@ -101,51 +100,3 @@ def simulate_scan(rig: ScanRig, true_surface: Surface, *, albedo: float = 0.8, s
         scans.append(points_from_frames(N.counts_to_photons(counts, rig.sensor), rig.patterns, rig.camera,
                                         plain_mirrors, proj, min_contrast=rig.min_contrast))
     return SimulatedScan(frames, scans)
-
-
-@dataclass
-class MergedPoints:
-    points_mm: np.ndarray
-    view_dirs: np.ndarray
-    view: np.ndarray
-    projector: np.ndarray
-    n_removed_stage: int
-    n_removed_outliers: int
-    free_rays: tuple[np.ndarray, np.ndarray] | None = None  # every kept or stage point, and its view direction
-
-
-def merge_points(scans: list[ScanPoints], *, floor_z_mm: float, stage_margin_mm: float = 1.0) -> MergedPoints:
-    """All projectors' points in world coordinates; the stage's points (within
-    ``stage_margin_mm`` of its top) and statistical outliers removed."""
-    P = np.concatenate([s.points_mm for s in scans])
-    V = np.concatenate([s.view_dirs for s in scans])
-    view = np.concatenate([s.view for s in scans])
-    proj = np.concatenate([np.full(len(s.points_mm), k) for k, s in enumerate(scans)])
-    on = P[:, 2] > floor_z_mm + stage_margin_mm
-    keep = remove_outliers(P[on], max_plane_distance_mm=0.5)
-    idx = np.flatnonzero(on)[keep]
-    seen = np.ones(len(P), bool)
-    seen[np.flatnonzero(on)[~keep]] = False  # an outlier must not carve
-    return MergedPoints(P[idx], V[idx], view[idx], proj[idx], int((~on).sum()), int((~keep).sum()),
-                        (P[seen], V[seen]))
-
-
-def surface_from_points(pts: MergedPoints, *, floor_z_mm: float, element_size_mm: float = 4.0,
-                        face_size_mm: float = 1.0) -> Surface:
-    n = estimate_normals(pts.points_mm, pts.view_dirs)
-    return closed_surface(pts.points_mm, n, floor_z_mm=floor_z_mm, voxel_mm=1.0, centre_spacing_mm=2.5,
-                          face_size_mm=face_size_mm, element_size_mm=element_size_mm, free_rays=pts.free_rays)
-
-
-def write_surface_artefact(path: Path, surface: Surface, *, points: MergedPoints | None = None,
-                           config_sha256: str = "", provenance: "A.Provenance | None" = None) -> Path:
-    """Write ``surface`` (and the points it came from) atomically as a ``surface`` artefact,
-    which ``subject.surface: {artefact: PATH}`` reads."""
-    with A.write_artefact(Path(path), "surface", config_sha256=config_sha256, provenance=provenance) as f:
-        A.write_surface(f.create_group("surface"), surface)
-        if points is not None:
-            g = f.create_group("points")
-            A.put(g, "positions_mm", points.points_mm)
-            A.put(g, "view", points.view.astype(np.int16))
-            A.put(g, "projector", points.projector.astype(np.int16))
-    return Path(path)

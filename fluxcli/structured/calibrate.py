@@ -7,10 +7,22 @@ fitted to the decoded pixels of a small window and applied to the grid point's s
 image position: the grid point's projector coordinates.  Grid points are known in world
 coordinates (the grid's frame, plane heights), so the projector follows by resection: a
 direct linear transform, then a least-squares fit of intrinsics, radial distortion and
-pose.
+pose (:func:`calibrate_projector`: points whose residual is far beyond the rest are dropped
+and the fit repeated).
+
+The panel's gamma (:func:`gamma_from_phase_frames`): the mean of the N phase-shift frames,
+relative to white and black, is ``<cos^(2 gamma)>`` = Gamma(gamma + 1/2) / (sqrt(pi) Gamma(gamma + 1)),
+0.5 for a linear panel; camera blur and ambient light leave it unchanged (the mean is a
+constant fraction of white at every panel pixel; ambient cancels in the differences).
+
+:func:`simulate_board_frames` is the simulated rig's side (a flat matte board at known
+heights rendered by :class:`~.render.PatternRenderer` with EMCCD noise); the fit never
+sees the projector it was made with.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -19,7 +31,8 @@ from scipy.spatial.transform import Rotation
 from .patterns import PatternSet, column_patterns
 from .projector import Projector
 
-__all__ = ["row_patterns", "projector_coordinates_at", "fit_projector"]
+__all__ = ["row_patterns", "projector_coordinates_at", "fit_projector", "gamma_from_phase_frames",
+           "ProjectorCalibrationResult", "calibrate_projector", "simulate_board_frames"]
 
 
 def row_patterns(width_px: int, height_px: int, **kw) -> PatternSet:
@@ -117,3 +130,119 @@ def fit_projector(points_mm: np.ndarray, uv_px: np.ndarray, *, width_px: int, he
     fit = least_squares(resid, p0, x_scale="jac", method="lm")
     res = resid(fit.x)
     return make(fit.x), np.c_[res[:len(X)], res[len(X):]]
+
+
+def _mean_fraction(gamma: float) -> float:
+    from scipy.special import gammaln
+
+    return float(np.exp(gammaln(gamma + 0.5) - gammaln(gamma + 1.0)) / np.sqrt(np.pi))
+
+
+def gamma_from_phase_frames(white: np.ndarray, black: np.ndarray, phase_frames: np.ndarray, mask: np.ndarray) -> float:
+    """The panel's gamma from the mean of N phase-shift frames (see the module docstring).
+
+    Parameters
+    ----------
+    white, black : ``[ny, nx]`` camera frames under the full-white and black patterns.
+    phase_frames : ``[N, ny, nx]`` frames under the sinusoids ``0.5 + 0.5 cos(...)`` (not
+        pre-compensated).
+    mask : ``[ny, nx]`` bool, the pixels to use (lit, decoded).
+
+    Returns the gamma (dimensionless) whose mean fraction matches the median over ``mask``;
+    nan when fewer than 100 pixels.
+    """
+    from scipy.optimize import brentq
+
+    if mask.sum() < 100:
+        return float("nan")
+    frac = (np.asarray(phase_frames, float).mean(0) - black) / np.maximum(white - black, 1e-12)
+    m = float(np.median(frac[mask]))
+    if not _mean_fraction(5.0) < m < _mean_fraction(0.2):
+        return float("nan")
+    return float(brentq(lambda g: _mean_fraction(g) - m, 0.2, 5.0))
+
+
+@dataclass(frozen=True)
+class ProjectorCalibrationResult:
+    """A fitted projector and what it rests on.
+
+    ``points_mm (n, 3)`` world points used, ``uv_px (n, 2)`` their measured projector
+    coordinates, ``residual_px (n, 2)`` measured - model, ``plane (n,)`` index of the height
+    each came from, ``rejected`` how many points were dropped as outliers, ``rms_px``."""
+
+    projector: Projector
+    points_mm: np.ndarray
+    uv_px: np.ndarray
+    residual_px: np.ndarray
+    plane: np.ndarray
+    rejected: int
+
+    @property
+    def rms_px(self) -> float:
+        return float(np.sqrt(np.mean(np.sum(self.residual_px**2, axis=1)))) if len(self.residual_px) else float("nan")
+
+
+def calibrate_projector(planes: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]], *, width_px: int,
+                        height_px: int, gamma: float = 1.0, half_window: int = 6,
+                        reject_sigma: float = 5.0) -> ProjectorCalibrationResult:
+    """Fit a projector from a flat board at several heights.
+
+    Parameters
+    ----------
+    planes : per height ``(points_mm (n, 3), image_xy (n, 2), column_px [ny, nx], row_px [ny, nx])``:
+        world points on the board, where the (calibrated) camera sees them (continuous
+        (col, row), pixel (r, c) spanning [c, c+1) x [r, r+1)), and the decoded projector
+        column and row per camera pixel (nan where masked).
+    width_px, height_px : the panel.
+    gamma : stored in the result (measure it with :func:`gamma_from_phase_frames`).
+    half_window : local homography window half-size (camera pixels).
+    reject_sigma : points whose residual exceeds this many robust sigmas are dropped, once.
+
+    Raises ``ValueError`` when fewer than 12 points on at least two heights are decoded.
+    """
+    X_all, uv_all, k_all = [], [], []
+    for k, (X, xy, col, row) in enumerate(planes):
+        uv, ok = projector_coordinates_at(xy, col, row, half_window=half_window)
+        X_all.append(np.asarray(X, float)[ok]); uv_all.append(uv[ok]); k_all.append(np.full(int(ok.sum()), k))
+    X, uv, plane = np.concatenate(X_all), np.concatenate(uv_all), np.concatenate(k_all)
+    if len(X) < 12 or len(np.unique(plane)) < 2:
+        raise ValueError(f"only {len(X)} board point(s) on {len(np.unique(plane))} height(s) have decoded projector "
+                         "coordinates around them; at least 12 on two heights are needed")
+    proj, res = fit_projector(X, uv, width_px=width_px, height_px=height_px, gamma=gamma)
+    r = np.hypot(res[:, 0], res[:, 1])
+    limit = reject_sigma * 1.4826 * max(np.median(r), 1e-6)
+    keep = r <= limit
+    rejected = int((~keep).sum())
+    if rejected and keep.sum() >= 12:
+        X, uv, plane = X[keep], uv[keep], plane[keep]
+        proj, res = fit_projector(X, uv, width_px=width_px, height_px=height_px, gamma=gamma)
+    return ProjectorCalibrationResult(proj, X, uv, res, plane, rejected)
+
+
+def simulate_board_frames(camera, projector: Projector, heights_mm, *, board_size_mm=(160.0, 160.0),
+                          albedo: float = 0.8, period_px: int = 16, n_steps: int = 8, sensor=None,
+                          photons_white: float = 3000.0, ambient_photons: float = 20.0, lens_samples: int = 4,
+                          seed: int = 0) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The simulated rig's camera frames of a flat matte board (top at each height, mm) while
+    ``projector`` shows the column code, then the row code.  Returns per height
+    ``(column_counts [n, ny, nx], row_counts [m, ny, nx])`` (uint16, through ``sensor``, an
+    EMCCD model)."""
+    from ..surface.mesh import box
+    from .patterns import column_patterns
+    from .render import PatternRenderer
+    from .scan import simulate_frames
+
+    cols = column_patterns(projector.width_px, projector.height_px, period_px=period_px, n_steps=n_steps)
+    rows = row_patterns(projector.width_px, projector.height_px, period_px=period_px, n_steps=n_steps)
+    hx, hy = board_size_mm[0] / 2, board_size_mm[1] / 2
+    out = []
+    for k, z in enumerate(heights_mm):
+        board = box([-hx, -hy, z - 3.0], [hx, hy, z])
+        r = PatternRenderer(camera, [], [(board, albedo)], [], projector, lens_samples=lens_samples, sub=1)
+        pair = []
+        for j, pats in enumerate((cols, rows)):
+            counts, _ = simulate_frames(r, pats, photons_white=photons_white, ambient_photons=ambient_photons,
+                                        sensor=sensor, rng=np.random.default_rng([seed, k, j]))
+            pair.append(counts)
+        out.append((pair[0], pair[1]))
+    return out

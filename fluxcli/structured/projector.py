@@ -9,9 +9,9 @@ intrinsics ``u = fx x_d + cx``, ``v = fy y_d + cy`` (Brown's radial model, as Op
 
 Showing a pattern: :class:`PatternDisplay` is the interface; :class:`ImageSink` (the
 simulator) keeps the image it was shown.  In a lab the same interface is a full-screen,
-borderless window on the projector's display (e.g. a ``pyglet``/Qt window placed on the
-second monitor, vsync on, the image drawn 1:1 without scaling, then a wait of a few
-frames before the camera exposes) — not built here.
+borderless window on the projector's display (vsync on, the image drawn 1:1 without
+scaling, then a wait of a few frames before the camera exposes):
+:class:`fluxcli.hardware.projector.WindowDisplay`.
 """
 
 from __future__ import annotations
@@ -138,6 +138,9 @@ class PatternDisplay(ABC):
     @abstractmethod
     def show(self, pattern: np.ndarray) -> None:
         """Show ``pattern`` (``[height_px, width_px]`` floats in [0, 1]) until the next call."""
+
+    def close(self) -> None:
+        """Release the display."""
 
 
 class ImageSink(PatternDisplay):

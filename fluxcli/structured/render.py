@@ -24,7 +24,7 @@ from ..optics.raycast import OcclusionScene
 from ..surface.mesh import Surface, merge
 from .projector import Projector
 
-__all__ = ["PatternRenderer", "view_label"]
+__all__ = ["PatternRenderer", "view_label", "pixel_etendue_mm2_sr"]
 
 _EPS_MM = 1e-3
 
@@ -78,8 +78,11 @@ class PatternRenderer:
         rr, cc = np.meshgrid(np.arange(ny * sub) // sub, np.arange(nx * sub) // sub, indexing="ij")
         pix = (rr * nx + cc).ravel()
         focal = focal.reshape(-1, 3)
-        disk = sunflower_disk(lens_samples)
-        self.n_samples = sub * sub * lens_samples
+        # lens points in +-pairs: their centroid is the lens centre (a sunflower set of a few points
+        # is off-centre by up to 0.16 R, which shifts every defocused image sideways by a z-dependent amount)
+        half = sunflower_disk(max((lens_samples + 1) // 2, 1))
+        disk = np.concatenate([half, -half]) if lens_samples > 1 else np.zeros((1, 2))
+        self.n_samples = sub * sub * len(disk)
         pix_all, u_all, v_all, w_all, view_all = [], [], [], [], []
         for k in range(len(mirrors) + 1):
             cam = camera if k == 0 else camera.mirrored(mirrors[k - 1][0])
@@ -153,3 +156,15 @@ def focal_of(cam: ThinLensCamera, real: ThinLensCamera, focal_real: np.ndarray) 
     rel = focal_real - real.center_mm
     a, r, d = rel @ real.axis, rel @ real.right, rel @ real.down
     return cam.center_mm + a[:, None] * cam.axis + r[:, None] * cam.right + d[:, None] * cam.down
+
+
+def pixel_etendue_mm2_sr(camera: ThinLensCamera) -> np.ndarray:
+    """Etendue of each camera pixel ``[ny, nx]`` (mm^2 sr): its focal-plane footprint times the
+    lens's solid angle seen from there, ``G = A_f pi R^2 cos^4(theta) / u^2`` (theta off the
+    axis, u the focus distance; small lens).  A Lambertian surface of radiance L (what
+    :meth:`PatternRenderer.render` returns, per mm^2 per sr) in focus puts ``L G`` into the
+    pixel: the lens form of the forward model (cos theta_s cos theta_l dA_l dS / r^2) for a
+    small lens.  Extra apertures (mechanical vignetting) are not counted."""
+    rel = camera.pixel_centres_focal(1) - camera.center_mm
+    cos = (rel @ camera.axis) / np.linalg.norm(rel, axis=-1)
+    return camera.focal_pixel_mm**2 * camera.lens_area_mm2 * cos**4 / camera.focus_distance_mm**2

@@ -14,12 +14,14 @@ import numpy as np
 
 from ..imaging import noise as N
 from ..optics.camera import PlaneMirror, ThinLensCamera
+from ..surface.mesh import Surface
+from .mesh import closed_surface, estimate_normals, remove_outliers
 from .patterns import Decoded, PatternSet, decode
 from .projector import Projector
 from .render import PatternRenderer
 from .triangulate import chief_rays, triangulate_columns
 
-__all__ = ["simulate_frames", "ScanPoints", "points_from_frames"]
+__all__ = ["simulate_frames", "ScanPoints", "points_from_frames", "MergedPoints", "merge_points", "surface_from_points"]
 
 
 def simulate_frames(renderer: PatternRenderer, patterns: PatternSet, *, photons_white: float, ambient_photons: float,
@@ -76,3 +78,40 @@ def points_from_frames(photons: np.ndarray, patterns: PatternSet, camera: ThinLe
         view[todo[ok]] = j
     ok = np.isfinite(P[:, 0])
     return ScanPoints(P[ok], V[ok], pix[ok], view[ok], dec)
+
+
+@dataclass
+class MergedPoints:
+    points_mm: np.ndarray
+    view_dirs: np.ndarray
+    view: np.ndarray
+    projector: np.ndarray
+    n_removed_stage: int
+    n_removed_outliers: int
+    free_rays: tuple[np.ndarray, np.ndarray] | None = None  # every kept or stage point, and its view direction
+
+
+def merge_points(scans: list[ScanPoints], *, floor_z_mm: float, stage_margin_mm: float = 1.0) -> MergedPoints:
+    """All projectors' points in world coordinates; the stage's points (within
+    ``stage_margin_mm`` of its top) and statistical outliers removed."""
+    P = np.concatenate([s.points_mm for s in scans])
+    V = np.concatenate([s.view_dirs for s in scans])
+    view = np.concatenate([s.view for s in scans])
+    proj = np.concatenate([np.full(len(s.points_mm), k) for k, s in enumerate(scans)])
+    on = P[:, 2] > floor_z_mm + stage_margin_mm
+    keep = remove_outliers(P[on], max_plane_distance_mm=0.5)
+    idx = np.flatnonzero(on)[keep]
+    seen = np.ones(len(P), bool)
+    seen[np.flatnonzero(on)[~keep]] = False  # an outlier must not carve
+    return MergedPoints(P[idx], V[idx], view[idx], proj[idx], int((~on).sum()), int((~keep).sum()),
+                        (P[seen], V[seen]))
+
+
+def surface_from_points(pts: MergedPoints, *, floor_z_mm: float, element_size_mm: float = 4.0,
+                        face_size_mm: float = 1.0, voxel_mm: float = 0.8, centre_spacing_mm: float = 2.5) -> Surface:
+    """The closed surface through merged points (normals by local PCA, turned to the viewer;
+    :func:`~fluxcli.structured.mesh.closed_surface` with the decoded rays carving free space)."""
+    n = estimate_normals(pts.points_mm, pts.view_dirs)
+    return closed_surface(pts.points_mm, n, floor_z_mm=floor_z_mm, voxel_mm=voxel_mm,
+                          centre_spacing_mm=centre_spacing_mm, face_size_mm=face_size_mm,
+                          element_size_mm=element_size_mm, free_rays=pts.free_rays)
