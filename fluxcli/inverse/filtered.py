@@ -93,7 +93,7 @@ def filtered_solve(T_obs, a, *, prior=None, k: int = 10, tol: float | None = Non
     choice = None
     warn: list[str] = []
     for p in range(n_pass):
-        spec = S.Spectrum(T_obs, a, weights, prior)
+        spec = S.Spectrum(T_obs, a, weights, prior, noise_weighted=weights is not None)
         lam_p = lam
         if lam is None:
             eff_rule = rule

@@ -697,7 +697,8 @@ def _run_smooth(P, lam, rule, opts):
 
     if P.adjacency is None:
         raise ValueError("method 'smooth' needs the element adjacency (adjacency=...).")
-    opts = {"gamma": 1.4} | opts
+    # gamma 1: with weights 1/σ² of the noise model the rule is UPRE, unbiased as it stands
+    opts = {"gamma": 1.0} | opts
     R = exitance_prior(P.adjacency, P.mask, P.areas)
     return _filtered(P, prior=R, k=c.check_positive_int(opts.get("n_iter", 10), "n_iter"), tol=None, lam=lam,
                      rule=rule, opts=opts, weighted=True, free_level=True)

@@ -10,8 +10,9 @@ more than a blurred one, so its error depends on focus.  Here:
   body varies smoothly from element to element;
 - k solves of (TᵀT + λ̃L) δ = Tᵀr act, before clipping, as the spectral filter
   f(s) = 1 − (λ̃/(s + λ̃))^k in the generalised eigenbasis of (TᵀT, L), which makes
-  GCV cheap: GCV(λ) = m‖r_λ‖² / (m − γ Σ f)², with γ = 1.4 (modified GCV, which avoids
-  GCV's occasional under-smoothing);
+  λ-selection cheap: with weights 1/σ² of the noise model the noise level is known and λ
+  minimises the unbiased predictive risk ‖W^½r_λ‖² + 2Σf − m (UPRE, GCV's known-variance
+  form; GCV proper, m‖r_λ‖² / (m − Σ f)², would take model error for noise and over-smooth);
 - the same k clipped solves as the paper then give the non-negative estimate.
 """
 
@@ -67,10 +68,10 @@ def exitance_prior(adjacency, mask: np.ndarray, areas=None, ridge: float = 1e-3)
     return d[:, None] * L * d[None, :]
 
 
-def smooth_iterated(T, a, *, adjacency, lam: float | None = None, n_iter: int = 10, gamma: float = 1.4,
+def smooth_iterated(T, a, *, adjacency, lam: float | None = None, n_iter: int = 10, gamma: float = 1.0,
                     lambdas=None, sigma2=None, rel_threshold: float = c.DEFAULT_REL_THRESHOLD,
                     areas=None, variance=None, rule: str = "gcv") -> dict:
-    """Non-negative iterated Tikhonov with a smoothness prior on exitance; λ by modified GCV
+    """Non-negative iterated Tikhonov with a smoothness prior on exitance; λ by GCV (UPRE once weighted)
     (on the filter factors of the ``n_iter`` solves) if not given.
 
     Parameters
@@ -80,7 +81,7 @@ def smooth_iterated(T, a, *, adjacency, lam: float | None = None, n_iter: int = 
     adjacency : (n_elements, n_elements) sparse or dense; nonzero where two elements touch.
     lam : relative λ (λ̃ = lam · max diag(TᵀWT)); None chooses it.
     n_iter : k, the number of clipped solves (the paper used 5–10).
-    gamma : the modified-GCV factor (1 is plain GCV).
+    gamma : the weight of the degrees of freedom in GCV / UPRE (1: the unbiased rule).
     lambdas : the relative grid searched (default 10^-9 … 10^3, widened at an edge pick).
     sigma2 : (n_pixels,) fixed noise variance in photons², used for ``sigma`` only (the
         fit stays unweighted).

@@ -45,12 +45,16 @@ class Spectrum:
     a : (m,) photons.
     weights : (m,) 1/photons², or None for ``W = I``.
     prior : (n_obs, n_obs) symmetric positive definite, or None for the identity.
+    noise_weighted : bool
+        The weights are ``1/σ²`` of a known noise model (each weighted residual has unit
+        variance): GCV then uses the known variance instead of estimating it (UPRE).
     """
 
-    def __init__(self, T_obs, a, weights=None, prior=None):
+    def __init__(self, T_obs, a, weights=None, prior=None, noise_weighted=False):
         self.T = T_obs
         self.a = a
         self.weights = weights
+        self.noise_weighted = bool(noise_weighted and weights is not None)
         G, g = c.normal_equations(T_obs, a, weights)
         self.G, self.g = G, g
         self.scale = c.lam_scale(G)
@@ -147,7 +151,13 @@ def choose(spec: Spectrum, rule: str = "gcv", *, k: int = 1, lambdas=None, gamma
     ----------
     spec : Spectrum
     rule : {"gcv", "lcurve", "discrepancy"}
-        GCV: minimise ``m‖W^½r‖² / (m − γΣf)²``; L-curve: maximise the curvature of
+        GCV: minimise ``m‖W^½r‖² / (m − γΣf)²``, which estimates the noise level from the
+        residual itself; on a spectrum weighted by a *known* noise model
+        (``spec.noise_weighted``: unit variance per weighted pixel) its known-variance form,
+        the unbiased predictive risk (UPRE, Mallows' C_p) ``‖W^½r‖² + 2γΣf − m``, is used:
+        GCV's estimate ``‖W^½r‖²/m`` also counts model error (a surface finer than the
+        elements, real optics) as noise and then over-smooths in proportion to χ²/pixel
+        (an independent renderer's images: λ ~10x too large). L-curve: maximise the curvature of
         ``(log‖W^½r‖, log‖b‖)`` along ``log λ``; discrepancy: ``‖W^½r‖² = τ × E‖W^½ε‖²``.
     k : int
         Solves of the iterated scheme (its filter factors are used).
@@ -214,12 +224,17 @@ def _pick(spec, rule, k, grid, gamma, tau, noise_total) -> Choice:  # also regul
     if rule == "gcv":
         def gcv(log_lam):
             r, _, tr = spec.curves(np.exp(log_lam) * spec.scale, k)
+            if spec.noise_weighted:  # UPRE: the noise variance is known (1 per weighted pixel)
+                return r + 2 * gamma * tr - m
             d = m - gamma * tr
             return np.where(d > 0, m * r / np.where(d > 0, d, 1.0) ** 2, np.inf)
 
-        d = m - gamma * dof
-        crit = np.full(grid.size, np.inf)
-        crit[d > 0] = m * rho[d > 0] / d[d > 0] ** 2  # no degrees of freedom left: not a candidate
+        if spec.noise_weighted:
+            crit = rho + 2 * gamma * dof - m
+        else:
+            d = m - gamma * dof
+            crit = np.full(grid.size, np.inf)
+            crit[d > 0] = m * rho[d > 0] / d[d > 0] ** 2  # no degrees of freedom left: not a candidate
         i = int(np.argmin(crit))
         lam, at_edge = grid[i], i in (0, n - 1)
         if not at_edge:

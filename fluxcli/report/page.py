@@ -48,7 +48,7 @@ def _method(name, settings: dict) -> str:
         return f"mlem: {settings.get('n_iter')} iterations"
     if name == "smooth":
         lam = settings.get("lambda", settings.get("lam"))
-        return f"smooth: lambda {'auto (modified GCV)' if lam == 'auto' else lam}, {settings.get('max_iter')} iterations"
+        return f"smooth: lambda {'auto (UPRE: GCV with the known noise)' if lam == 'auto' else lam}, {settings.get('max_iter')} iterations"
     return str(name)
 
 

@@ -370,7 +370,7 @@ def describe(m: C.MethodSettings) -> str:
 
 def _describe(m: C.MethodSettings) -> str:
     if m.method == "smooth":
-        lam = ("auto/modified GCV" if m.lambda_rule == "gcv" else f"auto/{m.lambda_rule}") if m.lam == "auto" else f"{m.lam:g}"
+        lam = ("auto/UPRE" if m.lambda_rule == "gcv" else f"auto/{m.lambda_rule}") if m.lam == "auto" else f"{m.lam:g}"
         return f"smooth(lambda={lam}, {m.max_iter} it)"
     if m.method in REGULARISED:
         lam = f"auto/{m.lambda_rule}" if m.lam == "auto" else f"{m.lam:g}"
