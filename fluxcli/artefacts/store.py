@@ -132,7 +132,9 @@ def write_artefact(path: Path, kind: str, *, config_sha256: str = "", inputs: di
                    provenance: Provenance | None = None) -> Iterator[h5py.File]:
     """Open a new HDF5 artefact for writing; it appears at ``path`` only when complete."""
     with atomic_path(path) as tmp:
-        with h5py.File(tmp, "w") as f:
+        # no chunk cache: each chunk goes to the file when its dataset is written, so the layout
+        # (and the bytes) do not depend on when Python happens to close a dataset object
+        with h5py.File(tmp, "w", rdcc_nbytes=0) as f:
             f.attrs["fluxmap_version"] = __version__
             f.attrs["kind"] = kind
             f.attrs["schema_version"] = SCHEMA_VERSIONS[kind]
