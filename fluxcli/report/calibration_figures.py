@@ -42,34 +42,42 @@ def detections_figure(images: list[np.ndarray], xy_px: list[np.ndarray], residua
     return fig
 
 
-def residuals_figure(xy_px: list[np.ndarray], residual_px: list[np.ndarray], heights_mm: list[float],
-                     shape_px: tuple[int, int]) -> Figure:
-    """Residual vectors (measured - model) over the sensor, and their scatter, per height."""
+def _residual_panels(points_px: list[np.ndarray], residual_px: list[np.ndarray], labels: list[str],
+                     extent_px: tuple[int, int], arrow_px: float, names: tuple[str, str, str]) -> Figure:
+    """Residual vectors (measured - model) over an image of ``extent_px`` (columns, rows) and
+    their scatter, one colour per group (board height).  ``names``: the column and row axis
+    names and the unit of the residuals."""
     fig = Figure(figsize=(9, 4), layout="constrained")
-    ax = fig.add_subplot(1, 2, 1)
+    ax, ax2 = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
     cmap = __import__("matplotlib").colormaps["viridis"]
     all_r = np.concatenate(residual_px) if residual_px else np.zeros((0, 2))
-    scale = max(float(np.percentile(np.linalg.norm(all_r, axis=1), 95)), 1e-3) if len(all_r) else 1.0
-    for k, (q, r) in enumerate(zip(xy_px, residual_px)):
-        c = cmap(k / max(len(xy_px) - 1, 1))
+    scale = max(float(np.percentile(np.linalg.norm(all_r, axis=1), 95)), 1e-4) if len(all_r) else 1.0
+    col, row, unit = names
+    for k, (q, r, label) in enumerate(zip(points_px, residual_px, labels)):
+        c = cmap(k / max(len(points_px) - 1, 1))
         ax.quiver(q[:, 0], q[:, 1], r[:, 0], -r[:, 1], color=c, angles="xy", scale_units="xy",
-                  scale=scale / 12, width=0.003)
-    ax.set_xlim(0, shape_px[1])
-    ax.set_ylim(shape_px[0], 0)
+                  scale=scale / arrow_px, width=0.003)
+        ax2.plot(r[:, 0], r[:, 1], ".", ms=2, color=c, label=label)
+    ax.set_xlim(0, extent_px[0])
+    ax.set_ylim(extent_px[1], 0)
     ax.set_aspect("equal")
-    ax.set_xlabel("column (px)")
-    ax.set_ylabel("row (px)")
-    ax.set_title(f"residual vectors (arrow of 12 px = {scale:.3f} px)", fontsize=9)
-    ax2 = fig.add_subplot(1, 2, 2)
-    for k, r in enumerate(residual_px):
-        ax2.plot(r[:, 0], r[:, 1], ".", ms=2, color=cmap(k / max(len(xy_px) - 1, 1)), label=f"z={heights_mm[k]:g} mm")
+    ax.set_xlabel(f"{col} ({unit})")
+    ax.set_ylabel(f"{row} ({unit})")
+    ax.set_title(f"residual vectors (arrow of {arrow_px:.0f} {unit} = {scale:.3f} {unit})", fontsize=9)
     ax2.set_aspect("equal")
     ax2.axhline(0, color="0.7", lw=0.5)
     ax2.axvline(0, color="0.7", lw=0.5)
-    ax2.set_xlabel("column residual (px)")
-    ax2.set_ylabel("row residual (px)")
+    ax2.set_xlabel(f"{col} residual ({unit})")
+    ax2.set_ylabel(f"{row} residual ({unit})")
     ax2.legend(fontsize=7, markerscale=3)
     return fig
+
+
+def residuals_figure(xy_px: list[np.ndarray], residual_px: list[np.ndarray], heights_mm: list[float],
+                     shape_px: tuple[int, int]) -> Figure:
+    """Residual vectors (measured - model) over the sensor, and their scatter, per height."""
+    return _residual_panels(xy_px, residual_px, [f"z={h:g} mm" for h in heights_mm], (shape_px[1], shape_px[0]),
+                            12.0, ("column", "row", "px"))
 
 
 def focus_figure(axial_mm: list[np.ndarray], blur_px: list[np.ndarray], heights_mm: list[float], *,
@@ -109,34 +117,13 @@ def projector_residuals_figure(name: str, uv_px: np.ndarray, residual_px: np.nda
                                heights_mm: list[float], panel_px: tuple[int, int]) -> Figure:
     """A projector's reprojection residuals (measured - model, projector pixels): vectors over the
     panel and their scatter, coloured by board height."""
-    fig = Figure(figsize=(9, 4), layout="constrained")
-    cmap = __import__("matplotlib").colormaps["viridis"]
-    ax = fig.add_subplot(1, 2, 1)
-    r = np.linalg.norm(residual_px, axis=1)
-    scale = max(float(np.percentile(r, 95)), 1e-4) if len(r) else 1.0
-    arrow = 0.04 * max(panel_px)
-    for k, h in enumerate(heights_mm):
-        m = plane == k
-        ax.quiver(uv_px[m, 0], uv_px[m, 1], residual_px[m, 0], -residual_px[m, 1], color=cmap(k / max(len(heights_mm) - 1, 1)),
-                  angles="xy", scale_units="xy", scale=scale / arrow, width=0.003)
-    ax.set_xlim(0, panel_px[0])
-    ax.set_ylim(panel_px[1], 0)
-    ax.set_aspect("equal")
-    ax.set_xlabel("panel column u (px)")
-    ax.set_ylabel("panel row v (px)")
-    ax.set_title(f"{name}: residual vectors (arrow of {arrow:.0f} px = {scale:.3f} px)", fontsize=9)
-    ax2 = fig.add_subplot(1, 2, 2)
-    for k, h in enumerate(heights_mm):
-        m = plane == k
-        rms = float(np.sqrt(np.mean(np.sum(residual_px[m] ** 2, axis=1)))) if m.any() else float("nan")
-        ax2.plot(residual_px[m, 0], residual_px[m, 1], ".", ms=2, color=cmap(k / max(len(heights_mm) - 1, 1)),
-                 label=f"z={h:g} mm: {int(m.sum())} points, RMS {rms:.3f} px")
-    ax2.set_aspect("equal")
-    ax2.axhline(0, color="0.7", lw=0.5)
-    ax2.axvline(0, color="0.7", lw=0.5)
-    ax2.set_xlabel("u residual (projector px)")
-    ax2.set_ylabel("v residual (projector px)")
-    ax2.legend(fontsize=7, markerscale=3)
+    groups = [plane == k for k in range(len(heights_mm))]
+    labels = [f"z={h:g} mm: {int(m.sum())} points, RMS "
+              f"{float(np.sqrt(np.mean(np.sum(residual_px[m] ** 2, axis=1)))) if m.any() else float('nan'):.3f} px"
+              for h, m in zip(heights_mm, groups)]
+    fig = _residual_panels([uv_px[m] for m in groups], [residual_px[m] for m in groups], labels, tuple(panel_px),
+                           0.04 * max(panel_px), ("panel column u", "panel row v", "px"))
+    fig.suptitle(f"projector {name}: reprojection residuals (projector pixels)", fontsize=9)
     return fig
 
 
