@@ -367,11 +367,9 @@ def test_saturated_levels_are_left_out_and_one_gain_on_level_still_gives_the_rat
 
 
 def test_the_sample_frames_are_what_the_script_makes(tmp_path):
-    import importlib.util
+    from repo_scripts import load_script
 
-    spec = importlib.util.spec_from_file_location("make_radiometric", SAMPLE_DIR.parent / "make_radiometric.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_script("data-samples/calibration/make_radiometric.py")
     section = module.make_set(tmp_path, module.TRUTH)
     assert C.Radiometric.model_validate(section) == _sample_section().model_copy(update={"directory": None})
     for name in ("bias_0.tif", "ptc_on_2_1.tif", "dark_120s_1.tif", "truth_flat_map.tif"):

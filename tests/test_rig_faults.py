@@ -47,6 +47,14 @@ def where():
 SOCKET = "socket://127.0.0.1:0"
 
 
+def _fails_naming_the_device(run, device: str, said: str) -> None:
+    """``run()`` raises a DeviceError whose message starts by naming the device and says ``said``."""
+    with pytest.raises(DeviceError) as err:
+        run()
+    msg = str(err.value)
+    assert msg.startswith(device) and said in msg, msg
+
+
 def wheel_case(where, fault, action):
     sim = FW102CSimulator(time_scale=TS)
     sim.start(where)
@@ -108,10 +116,7 @@ def test_wheel_recovers(where, fault):
     ({"kind": "no_reply", "on": "pos?", "count": 0}, "no prompt within 0.3 s after 'pos?' (2 attempts)"),
 ], ids=lambda v: v["kind"] if isinstance(v, dict) else "")
 def test_wheel_fails_clearly(where, fault, said):
-    with pytest.raises(DeviceError) as err:
-        wheel_case(where, fault, wheel_move)
-    msg = str(err.value)
-    assert msg.startswith("filter wheel (FW102C) on ") and said in msg
+    _fails_naming_the_device(lambda: wheel_case(where, fault, wheel_move), "filter wheel (FW102C) on ", said)
 
 
 @pytest.mark.parametrize("fault", [{"kind": "drop", "on": "pos?"}, {"kind": "drop", "on": "pos="},
@@ -170,10 +175,7 @@ def test_stage_recovers_from_a_drop_at_connect():
     ({"kind": "no_reply", "on": "MOT_REQ_STATUSBITS", "count": 0}, "no reply to MOT_REQ_STATUSBITS within 0.3 s"),
 ], ids=lambda v: v["kind"] if isinstance(v, dict) else "")
 def test_stage_fails_clearly(where, fault, said):
-    with pytest.raises(DeviceError) as err:
-        jack_case(where, fault, jack_move)
-    msg = str(err.value)
-    assert msg.startswith("stage (APT lab jack) on ") and said in msg
+    _fails_naming_the_device(lambda: jack_case(where, fault, jack_move), "stage (APT lab jack) on ", said)
 
 
 def test_stalled_stage_is_stopped():

@@ -272,12 +272,9 @@ def test_surface_artefact_is_what_subject_surface_artefact_reads(sphere_scan, tm
 def test_paper_like_rig_meets_issue_12_targets(tmp_path):
     """The full check (make structured-light does the same and writes figures): cylinder and mouse,
     every target of issue 12 (points within 0.1/0.2/0.4 mm, closed mesh, volume and area within 2 %)."""
-    import importlib.util
-    from pathlib import Path
+    from repo_scripts import load_script
 
-    spec = importlib.util.spec_from_file_location("sl", Path(__file__).parents[1] / "pipelines" / "structured_light.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_script("pipelines/structured_light.py")
     results = mod.run(str(tmp_path))
     assert mod.misses(results["cylinder"]) == []
     assert mod.misses(results["mouse"]) == []
