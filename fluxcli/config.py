@@ -401,7 +401,7 @@ class MethodSettings(Model):
     max_iter: int = Field(10, ge=1, description="paper: at most this many solves; smooth: this many.")
     tol: float = Field(0.01, gt=0, description="paper: stop when the fit improves by less than this fraction.")
     n_iter: int = Field(500, ge=1, description="mlem: EM iterations.")
-    unknowns: Literal["auto", "elements", "sub_elements"] = Field(
+    unknowns: Literal["auto", "elements", "sub_elements", "vertices"] = Field(
         "elements", description="Solve per element, or per sub-element (phantom strips, else faces) summed per element; "
                                 "auto: sub-elements for smooth when there are at most 4000 of them.")
 
@@ -457,7 +457,7 @@ class Reconstruct(Model):
     max_iter: int = Field(10, ge=1, description="paper: at most this many solves; smooth: this many.")
     tol: float = Field(0.01, gt=0, description="paper: stop when the fit improves by less than this fraction.")
     n_iter: int = Field(500, ge=1, description="mlem: EM iterations.")
-    unknowns: Literal["auto", "elements", "sub_elements"] = Field(
+    unknowns: Literal["auto", "elements", "sub_elements", "vertices"] = Field(
         "auto", description="auto (default): smooth solves per sub-element (faces, or strips) summed per element when "
                             "the camera resolves an element (>= 12 pixels) and there are at most 4000; elements or "
                             "sub_elements to choose.")
