@@ -54,6 +54,8 @@ BLOB = {"kind": "gaussian", "width_mm": 6.0, "peak_photons": 1e6}
 
 METHODS = {
     "smooth (default)": [],
+    # the default before issue 8's last two cases: exitance constant per face (sub-elements)
+    "smooth on faces": ["--set", "reconstruct.unknowns=sub_elements"],
     "paper auto": ["--set", "reconstruct.method=paper", "--set", "reconstruct.lambda=auto"],
     "paper lambda=10": ["--set", "reconstruct.method=paper", "--set", "reconstruct.lambda=10"],
     "mlem 200 it": ["--set", "reconstruct.method=mlem", "--set", "reconstruct.n_iter=200"],
