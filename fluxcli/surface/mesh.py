@@ -157,7 +157,7 @@ class Surface:
         fine_eof[ok] = np.arange(int(ok.sum()))
         return Surface(v, f, fine_eof, int(ok.sum())), eof[ok].astype(np.int64)
 
-    def vertex_basis(self) -> "VertexBasis":
+    def vertex_basis(self, levels: int = 1) -> "VertexBasis":
         """Exitance linear within each face and continuous across edges: one unknown per
         vertex of the element faces (the hat function φ_v, 1 at v, 0 at the other vertices).
 
@@ -178,12 +178,12 @@ class Surface:
         """
         import scipy.sparse as sp
 
-        fine, parent = self.refined(1)
+        fine, parent = self.refined(levels)
         ok = self.element_of_face >= 0
         used, local = np.unique(self.faces[ok], return_inverse=True)
         local = local.reshape(-1, 3)
-        # coarse face of each fine element: refined() lists the 4 children of face i at t*F + i
-        fine_ok = np.tile(ok, 4)
+        # coarse face of each fine element: refined() lists the children of face i at t*F + i
+        fine_ok = np.tile(ok, 4 ** int(levels))
         coarse = np.flatnonzero(fine_ok) % len(self.faces)  # index into all faces
         rank = np.cumsum(ok) - 1  # index into the element faces
         tri = self.vertices_mm[self.faces[coarse]]  # (n_fine, 3, 3)
