@@ -298,7 +298,9 @@ def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSe
     ``noise`` is the images' noise model; ``adjacency`` (unknowns touching) and ``areas``
     (mm²) are what the exitance prior of ``smooth`` needs; with ``parent`` the unknowns are
     sub-elements, summed back into ``n_elements`` elements (an element counts as observed
-    when any of its parts is, its class is its best part's; sigma is not propagated: NaN)."""
+    when any of its parts is, its class is its best part's; sigma is not propagated: NaN);
+    with an :class:`ElementMap` they are vertices shared out to the elements, which are
+    classified on their own T."""
     with blas_threads(1):  # dense ~10^3 solves: BLAS threads cost more than they give (workers.blas_threads)
         groups = parent.to_elements if isinstance(parent, ElementMap) else (
             None if parent is None else (parent, n_elements))
@@ -306,7 +308,7 @@ def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSe
     if parent is None:
         return res, keep
     if isinstance(parent, ElementMap):
-        return _on_elements(res, keep, parent, m), keep
+        return _on_elements(res, keep, parent), keep
     obs = res.observed
     power = np.bincount(parent, weights=np.where(obs, res.power, 0.0), minlength=n_elements)
     observed = np.bincount(parent, weights=obs.astype(float), minlength=n_elements) > 0
@@ -317,7 +319,7 @@ def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSe
                    sigma=np.where(observed, sigma, np.nan), observation=cls), keep
 
 
-def _on_elements(res, keep, emap: ElementMap, m: C.MethodSettings):
+def _on_elements(res, keep, emap: ElementMap):
     """A solve on vertex unknowns as element powers; the elements are classified on their
     own T (sensitivity, neighbours, σ of the element sums), as a solve per element would."""
     from ..inverse.methods import POOR_SHARE_TEXT, observation_classes, poor_share_warning

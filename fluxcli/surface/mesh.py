@@ -168,9 +168,13 @@ class Surface:
 
         The unknown of vertex v is its lumped power ``u_v = J_v A_v`` (photons), with
         ``A_v = ∫φ_v dS`` and ``J_v`` the exitance at v (photons mm⁻²). T is built per face
-        of :meth:`refined` (one level): a fine face's power is ``∫_f J dS = S_f Σ_v φ_v(c_f)
+        of :meth:`refined` (``levels`` times): a fine face's power is ``∫_f J dS = S_f Σ_v φ_v(c_f)
         J_v`` exactly (φ_v is linear on the fine face; c_f its centroid), and the only
         approximation is that T spreads it uniformly over that quarter of a face.
+
+        Parameters
+        ----------
+        levels : int, how often the faces T is built on are split into 4 (1: quarters).
 
         Returns
         -------
@@ -188,13 +192,15 @@ class Surface:
         rank = np.cumsum(ok) - 1  # index into the element faces
         tri = self.vertices_mm[self.faces[coarse]]  # (n_fine, 3, 3)
         c = fine.face_vertices_mm[fine.element_of_face >= 0].mean(axis=1)
-        bary = _barycentric(tri, c)
         n_fine, n_v = len(c), len(used)
         S_f = fine.face_areas_mm2[fine.element_of_face >= 0]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            bary = np.where(S_f[:, None] > 0, _barycentric(tri, c), 1.0 / 3.0)  # degenerate faces carry no area
         W = sp.csr_array((np.ravel(S_f[:, None] * bary), (np.repeat(np.arange(n_fine), 3),
                                                            local[rank[coarse]].ravel())), shape=(n_fine, n_v))
         A_v = np.asarray(W.sum(axis=0)).ravel()  # ∫φ_v dS
-        to_fine = sp.csr_array(W @ sp.diags_array(1.0 / A_v))
+        inv = np.divide(1.0, A_v, out=np.zeros_like(A_v), where=A_v > 0)  # a vertex of degenerate faces only: no light
+        to_fine = sp.csr_array(W @ sp.diags_array(inv))
         P = sp.csr_array((np.ones(n_fine), (parent, np.arange(n_fine))), shape=(self.n_elements, n_fine))
         e = np.sort(local[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
         adj = sp.csr_array((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_v, n_v))
