@@ -403,8 +403,8 @@ class MethodSettings(Model):
     n_iter: int = Field(500, ge=1, description="mlem: EM iterations.")
     unknowns: Literal["auto", "elements", "sub_elements", "vertices"] = Field(
         "elements", description="Solve per element; per sub-element (phantom strips, else faces) summed per element; or "
-                                "per vertex (exitance linear within faces) shared out to the elements; auto: vertices "
-                                "for smooth when the camera resolves an element and there are at most 4000.")
+                                "per vertex (exitance linear within faces) shared out to the elements; auto: as "
+                                "reconstruct.unknowns.")
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True, allow_inf_nan=False)
 
@@ -460,9 +460,10 @@ class Reconstruct(Model):
     n_iter: int = Field(500, ge=1, description="mlem: EM iterations.")
     unknowns: Literal["auto", "elements", "sub_elements", "vertices"] = Field(
         "auto", description="auto (default): smooth solves for the exitance at the vertices (linear within each face, "
-                            "continuous; T from the once-refined surface), shared out to the elements, when the camera "
-                            "resolves an element (>= 12 pixels) and there are at most 4000 vertices; else per element. "
-                            "elements, sub_elements (phantom strips, else faces) or vertices to choose.")
+                            "continuous; T from the once-refined surface), shared out to the elements, when there are at "
+                            "most 4000 vertices and at most 1.25 per element or the camera resolves an element (>= 12 "
+                            "pixels); else per element. elements, sub_elements (phantom strips, else faces) or vertices "
+                            "to choose.")
     images: ImageFiles | CaptureSource | None = Field(None, description="Images from files, or from a capture, instead of simulation.h5.")
     level: int = Field(0, ge=0, description="Which signal level of the simulation to reconstruct.")
     repeat: int = Field(0, ge=0, description="Which noise repeat of the simulation to reconstruct.")

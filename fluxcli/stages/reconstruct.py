@@ -373,6 +373,7 @@ def _solve(T, a, valid, m, noise, adjacency, areas, groups=None):
 
 MAX_AUTO_SUB_ELEMENTS = 4000
 MIN_PIXELS_PER_ELEMENT = 12.0
+VERTICES_PER_ELEMENT = 1.25  # up to this many vertices per element the vertex basis adds no unknowns worth a gate
 
 
 def pixels_per_element(camera: C.Camera, surface) -> float:
@@ -386,22 +387,26 @@ def pixels_per_element(camera: C.Camera, surface) -> float:
 def resolve_unknowns(m: C.MethodSettings, surface, camera: C.Camera | None = None) -> C.MethodSettings:
     """``unknowns: auto``: ``smooth`` solves for the exitance at the vertices (linear within
     each face, continuous across edges; :meth:`Surface.vertex_basis`) and shares it out to
-    the elements when the camera resolves an element (≥ MIN_PIXELS_PER_ELEMENT pixels) and
-    there are at most MAX_AUTO_SUB_ELEMENTS vertices; the rest solve per element.
+    the elements, when there are at most MAX_AUTO_SUB_ELEMENTS vertices and either about as
+    many vertices as elements (≤ VERTICES_PER_ELEMENT times: the basis adds no freedom) or a
+    camera that resolves an element (≥ MIN_PIXELS_PER_ELEMENT pixels); the rest solve per
+    element.
 
-    Light varies within an element, and where the camera resolves that a model constant per
-    element (or per face) cannot fit the data even without noise: honest simulations of a
-    2 x 2-quad cylinder at 21 pixels per element, noiseless, λ → 0, give χ²/pixel (at SNR 30)
-    3.7 per element and 2.8 per face with the source at the limb (2.2 % / 2.8 % error), and
-    1.7 / 1.2 with the source behind (8 % / 13 % error, totals over well-observed elements
-    0.96 / 0.93), against 0.06 / 0.04 (0.3 % / 0.6 %, 1.000 / 1.002) for exitance linear in
-    each face, with fewer unknowns (312 vertices, 576 faces). Where the camera does not
-    resolve an element (the demo, ~5 pixels per element) finer unknowns only add freedom
-    the data cannot pin down."""
+    Light varies within an element, and where it varies steeply a model constant per element
+    (or per face) cannot fit the data even without noise: honest simulations of a cylinder
+    at 21 pixels per element, noiseless, λ → 0, give χ²/pixel (at SNR 30) 3.7 per element and
+    2.8 per face with the source at the limb (2.2 % / 2.8 % error), and 1.7 / 1.2 with the
+    source behind (8 % / 13 % error, totals over well-observed elements 0.96 / 0.93), against
+    0.06 / 0.04 (0.3 % / 0.6 %, 1.000 / 1.002) for exitance linear in each face, with fewer
+    unknowns (312 vertices, 576 faces). At ~6 pixels per element (paper-3d, heights: 1650
+    vertices, 1600 elements) it still helps: 2.82 → 1.38 % and 3.14 → 2.50 % error, χ²/pixel
+    2.2–2.9 → 0.7–1.0. Where vertices would be many more unknowns than elements and the camera
+    does not resolve an element, the data could not pin them down."""
     if m.unknowns != "auto":
         return m
-    fine = m.method == "smooth" and n_vertices(surface) <= MAX_AUTO_SUB_ELEMENTS
-    if fine and camera is not None:
+    nv = n_vertices(surface)
+    fine = m.method == "smooth" and nv <= MAX_AUTO_SUB_ELEMENTS
+    if fine and camera is not None and nv > VERTICES_PER_ELEMENT * surface.n_elements:
         fine = pixels_per_element(camera, surface) >= MIN_PIXELS_PER_ELEMENT
     return m.model_copy(update={"unknowns": "vertices" if fine else "elements"})
 
@@ -450,6 +455,10 @@ def _describe(m: C.MethodSettings) -> str:
     return f"{m.method}({m.n_iter} it)" if m.method == "mlem" else m.method
 
 
+# what `unknowns: auto` and the solvers do; a reconstruction made by an older version is redone
+SOLVER_VERSION = "2026-11 vertex basis"
+
+
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     rc = cfg.model.reconstruct
     check_folders(cfg)
@@ -458,7 +467,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     sources = _image_sources(cfg)
     digest = A.inputs_digest(system=m_.system.model_dump(mode="json"), subject=m_.subject.model_dump(mode="json"),
                              transfer=m_.transfer.model_dump(mode="json"),
-                             reconstruct=rc.model_dump(mode="json", by_alias=True), images=sources)
+                             reconstruct=rc.model_dump(mode="json", by_alias=True), images=sources,
+                             solver=SOLVER_VERSION)
     if not ctx.force and A.is_up_to_date(out, "reconstruction", digest):
         ctx.say(f"reconstruct: {out} is up to date (--force to redo)")
         with A.open_artefact(out, "reconstruction") as f:
