@@ -373,7 +373,8 @@ def _solve(T, a, valid, m, noise, adjacency, areas, groups=None):
 
 MAX_AUTO_SUB_ELEMENTS = 4000
 MIN_PIXELS_PER_ELEMENT = 12.0
-VERTICES_PER_ELEMENT = 1.25  # up to this many vertices per element the vertex basis adds no unknowns worth a gate
+VERTICES_PER_ELEMENT = 1.25  # up to this many vertices per element the vertex basis adds no unknowns
+MIN_PIXELS_FOR_A_GRADIENT = 4.0  # 2 x 2 pixels per element: a gradient across it is imaged
 
 
 def pixels_per_element(camera: C.Camera, surface) -> float:
@@ -387,10 +388,11 @@ def pixels_per_element(camera: C.Camera, surface) -> float:
 def resolve_unknowns(m: C.MethodSettings, surface, camera: C.Camera | None = None) -> C.MethodSettings:
     """``unknowns: auto``: ``smooth`` solves for the exitance at the vertices (linear within
     each face, continuous across edges; :meth:`Surface.vertex_basis`) and shares it out to
-    the elements, when there are at most MAX_AUTO_SUB_ELEMENTS vertices and either about as
-    many vertices as elements (≤ VERTICES_PER_ELEMENT times: the basis adds no freedom) or a
-    camera that resolves an element (≥ MIN_PIXELS_PER_ELEMENT pixels); the rest solve per
-    element.
+    the elements, when there are at most MAX_AUTO_SUB_ELEMENTS vertices and the camera
+    resolves an element: ≥ MIN_PIXELS_PER_ELEMENT pixels, or ≥ MIN_PIXELS_FOR_A_GRADIENT
+    (2 x 2: a gradient across an element is imaged) where there are about as many vertices
+    as elements (≤ VERTICES_PER_ELEMENT per element: the basis adds no unknowns). The rest
+    solve per element.
 
     Light varies within an element, and where it varies steeply a model constant per element
     (or per face) cannot fit the data even without noise: honest simulations of a cylinder
@@ -398,16 +400,18 @@ def resolve_unknowns(m: C.MethodSettings, surface, camera: C.Camera | None = Non
     2.8 per face with the source at the limb (2.2 % / 2.8 % error), and 1.7 / 1.2 with the
     source behind (8 % / 13 % error, totals over well-observed elements 0.96 / 0.93), against
     0.06 / 0.04 (0.3 % / 0.6 %, 1.000 / 1.002) for exitance linear in each face, with fewer
-    unknowns (312 vertices, 576 faces). At ~6 pixels per element (paper-3d, heights: 1650
-    vertices, 1600 elements) it still helps: 2.82 → 1.38 % and 3.14 → 2.50 % error, χ²/pixel
-    2.2–2.9 → 0.7–1.0. Where vertices would be many more unknowns than elements and the camera
-    does not resolve an element, the data could not pin them down."""
+    unknowns (312 vertices, 576 faces). At 5–6 pixels per element (paper-3d, heights: 1650
+    vertices for 1600 elements; the demo) it still helps: 2.82 → 1.38 %, 3.14 → 2.50 %,
+    4.8 → 2.7 % error, χ²/pixel 1.3–2.9 → 0.7–1.0. Where an element covers less than a pixel
+    (0.6 pixels, tests/test_capture.py's scene) the shape within it is not imaged and the
+    basis only changes how neighbours are coupled: the total went 1.038 → 1.067 there."""
     if m.unknowns != "auto":
         return m
     nv = n_vertices(surface)
     fine = m.method == "smooth" and nv <= MAX_AUTO_SUB_ELEMENTS
-    if fine and camera is not None and nv > VERTICES_PER_ELEMENT * surface.n_elements:
-        fine = pixels_per_element(camera, surface) >= MIN_PIXELS_PER_ELEMENT
+    if fine and camera is not None:
+        need = MIN_PIXELS_FOR_A_GRADIENT if nv <= VERTICES_PER_ELEMENT * surface.n_elements else MIN_PIXELS_PER_ELEMENT
+        fine = pixels_per_element(camera, surface) >= need
     return m.model_copy(update={"unknowns": "vertices" if fine else "elements"})
 
 
