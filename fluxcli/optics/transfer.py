@@ -30,6 +30,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..surface.mesh import Surface, merge
+from . import visibility
 from .camera import PlaneMirror, ThinLensCamera, sunflower_disk
 from .raycast import OcclusionScene
 
@@ -91,21 +92,23 @@ def subtriangle_barycentrics(n: int) -> tuple[np.ndarray, np.ndarray]:
     return np.column_stack([1 - ab.sum(axis=1), ab]), np.array(sign)
 
 
-def sample_faces(surface: Surface, face_ids: np.ndarray, n_sub: np.ndarray):
+def sample_faces(surface: Surface, face_ids: np.ndarray, n_sub: np.ndarray, return_faces: bool = False):
     """Sub-triangle centroid samples of the given faces.
 
     Returns points (S, 3) mm, normals (S, 3), element index (S,), the fraction of the
     element's area each sample stands for (S,), and the two edge vectors of each sample's
     sub-triangle (S, 2, 3), signed so that ``p + (a - 1/3) e0 + (b - 1/3) e1`` with
-    ``a, b >= 0, a + b <= 1`` covers exactly that sub-triangle.
+    ``a, b >= 0, a + b <= 1`` covers exactly that sub-triangle; with ``return_faces`` also
+    the face of each sample (S,).
     """
     tri = surface.face_vertices_mm
     normals = surface.face_normals
     areas = surface.face_areas_mm2
     el_area = surface.element_areas_mm2
-    out_p, out_n, out_e, out_w, out_edges = [], [], [], [], []
+    out_p, out_n, out_e, out_w, out_edges, out_f = [], [], [], [], [], []
     for n in np.unique(n_sub):
         f = face_ids[n_sub == n]
+        out_f.append(np.repeat(f, n * n))
         bary, sign = subtriangle_barycentrics(int(n))
         p = np.einsum("kc,fcd->fkd", bary, tri[f]).reshape(-1, 3)
         k = len(bary)
@@ -118,9 +121,11 @@ def sample_faces(surface: Surface, face_ids: np.ndarray, n_sub: np.ndarray):
         out_edges.append((edges[:, None] * sign[None, :, None, None]).reshape(-1, 2, 3))
     if not out_p:
         z = np.zeros((0, 3))
-        return z, z, np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 2, 3))
-    return (np.concatenate(out_p), np.concatenate(out_n), np.concatenate(out_e), np.concatenate(out_w),
-            np.concatenate(out_edges))
+        out = z, z, np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 2, 3))
+        return (*out, np.zeros(0, np.int64)) if return_faces else out
+    out = (np.concatenate(out_p), np.concatenate(out_n), np.concatenate(out_e), np.concatenate(out_w),
+           np.concatenate(out_edges))
+    return (*out, np.concatenate(out_f)) if return_faces else out
 
 
 def square_points(n: int) -> np.ndarray:
@@ -271,20 +276,24 @@ class _LensPlan:
     jitter: np.ndarray
     chunks: list[tuple[int, int]]  # sample ranges [s0, s1), each whole elements
     rays: int
+    clear: np.ndarray  # (S,) uint8: which of the sample's segments are known clear (visibility.clear_faces)
 
 
-def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: int) -> _LensPlan | None:
+def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: int,
+               tree: "visibility.OccluderTree | None" = None, ray_offset_mm: float = 1e-3) -> _LensPlan | None:
     """Surface samples, their lens-sampling regions and counts (vectorised over samples,
-    O(samples) work); the per-ray work is :func:`fluxcli.optics.transfer_kernel.lens_columns`."""
+    O(samples) work); the per-ray work is :func:`fluxcli.optics.transfer_kernel.lens_columns`.
+    With ``tree`` (the occluders), the faces whose every segment is clear are found
+    (:func:`fluxcli.optics.visibility.clear_faces`) and their rays are not cast."""
     cam = view.camera
     faces = _candidate_faces(surface, view)
     if len(faces) == 0:
         return None
     n_sub = _lens_subdivisions(surface, faces, cam, s)
-    P, N, E, W, G = sample_faces(surface, faces, n_sub)
+    P, N, E, W, G, F = sample_faces(surface, faces, n_sub, return_faces=True)
     z = cam.axial(P)
     front = (z > 0) & (np.einsum("ij,ij->i", N, cam.center_mm - P) > -cam.aperture_radius_mm)
-    P, N, E, W, z, G = P[front], N[front], E[front], W[front], z[front], G[front]
+    P, N, E, W, z, G, F = P[front], N[front], E[front], W[front], z[front], G[front], F[front]
     disk_c, disk_r = _sampling_disks(cam, P, z)
     # Clip the sampling to the lens points whose rays land on the sensor: the focal-plane
     # hit is X = k L + (u/z) p (lateral, k = 1 - u/z), so the sensor's preimage on the lens
@@ -308,8 +317,8 @@ def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: in
     # grouped by element (stable: the sampling order within an element is kept), so that each
     # element's column is finished in one piece; one gather per array
     keep = hits[np.argsort(E[hits], kind="stable")]
-    P, N, E, W, z, G, lo, hi, dc, disk_r, k = (np.ascontiguousarray(x[keep])
-                                               for x in (P, N, E, W, z, G, lo, hi, dc, disk_r, k))
+    P, N, E, W, z, G, F, lo, hi, dc, disk_r, k = (np.ascontiguousarray(x[keep])
+                                                  for x in (P, N, E, W, z, G, F, lo, hi, dc, disk_r, k))
     box_area = np.prod(hi - lo, axis=1)
     use_box = box_area < 0.6 * np.pi * disk_r**2
     # the blur the sampled region paints, in pixels: sample its area at the requested density
@@ -329,9 +338,15 @@ def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: in
     square_unit = np.concatenate([square_points(int(n)) for n in counts]) if len(counts) else np.zeros((0, 2))
     jitter = np.concatenate([triangle_jitter(int(n)) for n in counts]) if len(counts) else np.zeros((0, 2))
     chunks = _element_chunks(E, n_lens, rays_per_batch)
+    clear = np.zeros(len(P), np.uint8)
+    if tree is not None and len(P):
+        used, at = np.unique(F, return_inverse=True)
+        flags = visibility.clear_faces(tree, surface.face_vertices_mm[used], surface.face_normals[used],
+                                       cam.center_mm, cam.aperture_radius_mm, ray_offset_mm, view.mirror)
+        clear = np.ascontiguousarray(flags[at])
     return _LensPlan(P, N, G, dA, E.astype(np.int64), lo, hi, dc, disk_r, use_box, n_lens, pat_off,
                      np.ascontiguousarray(disk_unit), np.ascontiguousarray(square_unit), np.ascontiguousarray(jitter),
-                     chunks, int(n_lens.sum()))
+                     chunks, int(n_lens.sum()), clear)
 
 
 def _element_chunks(elem: np.ndarray, rays: np.ndarray, rays_per_chunk: int) -> list[tuple[int, int]]:
@@ -354,13 +369,14 @@ def _element_chunks(elem: np.ndarray, rays: np.ndarray, rays_per_chunk: int) -> 
 
 def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampling, eps: float,
                rays_per_batch: int, threads: int, progress: Callable[[float], None] | None,
-               checkpoint: "Checkpoint | None", view_index: int) -> tuple[sp.csr_matrix, np.ndarray, dict]:
+               checkpoint: "Checkpoint | None", view_index: int,
+               tree: "visibility.OccluderTree | None" = None) -> tuple[sp.csr_matrix, np.ndarray, dict]:
     """One view's T by the lens estimator: chunks of whole elements cast on ``threads``
     threads, columns placed by element (independent of which thread finished first)."""
     cam = view.camera
     n_pix = cam.nx * cam.ny
     shape = (n_pix, surface.n_elements)
-    plan = _lens_plan(surface, view, s, rays_per_batch)
+    plan = _lens_plan(surface, view, s, rays_per_batch, tree, eps)
     err = np.zeros(surface.n_elements)
     if plan is None or not plan.chunks or scene.native is None:
         if plan is not None and plan.chunks and scene.native is None:
@@ -386,7 +402,8 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
             nat.occluded16, nat.scene, cam_arr, mir, ap_dist, ap_r2, eps, plan.P, plan.N, plan.G, plan.dA,
             plan.elem, plan.lo, plan.hi, plan.dc, plan.disk_r, plan.use_box, plan.n_lens, plan.pat_off, plan.disk_unit,
             plan.square_unit, plan.jitter, chunk[0], chunk[1], n_pix, cam.nx, cam.ny,
-            scratch.even, scratch.odd, scratch.mark, scratch.touched, _NO_RECORD)
+            scratch.even, scratch.odd, scratch.mark, scratch.touched, _NO_RECORD, plan.clear,
+            tree.margin_mm if tree is not None else visibility.MARGIN_MM)
 
     rays_of = [int(plan.n_lens[a:b].sum()) for a, b in plan.chunks]
     if checkpoint is not None and not 0 < checkpoint.rays_per_block < plan.rays:
@@ -554,6 +571,7 @@ def build_transfer(
     progress: Callable[[float], None] | None = None,
     threads: int | None = None,
     checkpoint: Checkpoint | None = None,
+    skip_clear: bool = True,
 ) -> TransferResult:
     """Compute T for ``surface`` seen by ``views``, with ``surface`` and ``occluders`` blocking.
 
@@ -566,6 +584,8 @@ def build_transfer(
     progress : called with the fraction done (0..1) after every chunk of rays, for a progress bar.
     threads : threads casting rays (default: the cores available); the result does not depend on it.
     checkpoint : keeps finished blocks of a long build (lens estimator), see :class:`Checkpoint`.
+    skip_clear : lens estimator: do not cast the rays of faces whose every segment to the lens
+        is provably clear (:mod:`fluxcli.optics.visibility`); T is the same to the bit either way.
 
     Returns
     -------
@@ -577,6 +597,9 @@ def build_transfer(
     threads = threads or default_threads()
     v, f = merge(surface, *occluders)
     scene = OcclusionScene(v, f)
+    tree = None
+    if estimator == "lens" and skip_clear and len(f):
+        tree = visibility.occluder_tree(v, f, _piece_mm(surface, v))
     n_pix = views[0].camera.nx * views[0].camera.ny
     shape = (n_pix, surface.n_elements)
     per_view, errors, stats = [], [], {}
@@ -587,7 +610,7 @@ def build_transfer(
 
         if estimator == "lens":
             T, err, st = _lens_view(surface, view, scene, lens_sampling, ray_offset_mm, rays_per_batch, threads,
-                                    sub, checkpoint, k)
+                                    sub, checkpoint, k, tree)
         else:
             T, st = _pairwise_view(surface, view, scene, pairwise_sampling, ray_offset_mm, rays_per_batch, shape,
                                    sub)
@@ -602,6 +625,15 @@ def build_transfer(
     # the views' errors add at most (triangle inequality)
     total_err = sum(e * view.weight for e, view in zip(errors, views))
     return TransferResult(list(views), per_view, total.tocsr(), stats, errors, total_err)
+
+
+def _piece_mm(surface: Surface, vertices_mm: np.ndarray) -> float:
+    """Occluders are cut into pieces about the size of the subject's faces (a ball around a
+    whole stage plate would touch every lens cone), but no finer than 1/64 of the scene."""
+    tri = surface.face_vertices_mm
+    edge = float(np.median(np.linalg.norm(tri[:, 1] - tri[:, 0], axis=1))) if len(tri) else 1.0
+    extent = float(np.ptp(vertices_mm, axis=0).max()) if len(vertices_mm) else 1.0
+    return max(2 * edge, extent / 64)
 
 
 def _pairwise_view(surface: Surface, view: View, scene: OcclusionScene, s: PairwiseSampling, eps: float,

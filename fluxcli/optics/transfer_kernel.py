@@ -21,12 +21,14 @@ import numpy as np
 
 from .embree_native import new_packet, packet_cast, packet_put
 
+_QUEUE = 64  # rays queued before a flush (known-clear ones need no packet slot)
+
 
 @nb.njit(nogil=True, cache=True)
 def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
                  P, N, G, dA, elem, lo, hi, dc, disk_r, use_box, n_lens, pat_off,
                  disk_unit, square_unit, jitter, s0, s1, n_pix, nx, ny,
-                 acc_even, acc_odd, mark, touched, record):
+                 acc_even, acc_odd, mark, touched, record, clear, margin):
     """Columns of the elements whose samples are ``[s0, s1)`` (whole elements, sorted).
 
     Parameters
@@ -49,6 +51,11 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
     record : float32 (R, 7), usually (0, 7): the first R segments cast are written here
         (origin, unit direction, length) so that a benchmark can cast the very same rays
         through embreex.
+    clear : uint8 (S,): bit 1 when every surface -> lens (surface -> mirror) segment of the
+        sample is known clear, bit 2 when every mirror -> lens segment is
+        (:func:`fluxcli.optics.visibility.clear_faces`); those segments are not cast.
+    margin : mm; a mirror segment is taken as known clear only when it ends at least
+        2 x ``margin`` in front of the mirror plane (its offset is not lost to rounding).
 
     Returns
     -------
@@ -57,11 +64,14 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
     """
     pk, pku, valid = new_packet()
     pk2, pku2, _ = new_packet()
-    seg2 = np.empty((16, 7), np.float64)  # mirror views: the mirror -> lens segment of each queued ray
-    q_pix = np.empty(16, np.int64)
-    q_w = np.empty(16, np.float64)
-    q_odd = np.empty(16, np.int64)
-    m = 0  # rays queued in the packet
+    seg2 = np.empty((_QUEUE, 7), np.float64)  # mirror views: the mirror -> lens segment of each queued ray
+    q_pix = np.empty(_QUEUE, np.int64)
+    q_w = np.empty(_QUEUE, np.float64)
+    q_odd = np.empty(_QUEUE, np.int64)
+    q_slot = np.empty(_QUEUE, np.int64)  # the ray's slot in the packet, -1 when known clear
+    q_need2 = np.empty(_QUEUE, np.bool_)  # mirror views: the mirror -> lens segment must be cast
+    m = 0  # rays queued
+    n_slot = 0  # of them, in the packet
     cx, cy, cz = cam[0], cam[1], cam[2]
     ax, ay, az = cam[3], cam[4], cam[5]
     rx, ry, rz = cam[6], cam[7], cam[8]
@@ -93,6 +103,8 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
         n = n_lens[s]
         base = pat_off[s]
         r = disk_r[s]
+        clear1 = (clear[s] & 1) != 0
+        clear2 = (clear[s] & 2) != 0
         for k in range(n):
             # the lens point, in lens-plane coordinates (right, down) then in the world
             if use_box[s]:
@@ -155,11 +167,16 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
             Ox, Oy, Oz = qx + eps * nx_, qy + eps * ny_, qz + eps * nz_
             ux, uy, uz = Lx - Ox, Ly - Oy, Lz - Oz
             if not has_mirror:
-                length = math.sqrt(ux * ux + uy * uy + uz * uz)
-                packet_put(pk, pku, m, Ox, Oy, Oz, ux / length, uy / length, uz / length, length)
-                if n_rec < len(record):
-                    _record(record, n_rec, Ox, Oy, Oz, ux / length, uy / length, uz / length, length)
-                    n_rec += 1
+                if clear1:
+                    q_slot[m] = -1
+                else:
+                    length = math.sqrt(ux * ux + uy * uy + uz * uz)
+                    packet_put(pk, pku, n_slot, Ox, Oy, Oz, ux / length, uy / length, uz / length, length)
+                    if n_rec < len(record):
+                        _record(record, n_rec, Ox, Oy, Oz, ux / length, uy / length, uz / length, length)
+                        n_rec += 1
+                    q_slot[m] = n_slot
+                    n_slot += 1
             else:
                 mnx, mny, mnz = mir[4], mir[5], mir[6]
                 denom = ux * mnx + uy * mny + uz * mnz
@@ -179,26 +196,38 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
                 s2x, s2y, s2z = Rx - Mx, Ry - My, Rz - Mz
                 l2 = math.sqrt(s2x * s2x + s2y * s2y + s2z * s2z)
                 e2x, e2y, e2z = s2x / l2, s2y / l2, s2z / l2
+                # both segments end ``eps`` from the mirror along the ray: known clear only when
+                # that is well in front of the plane
+                far = eps * abs(denom) >= 2 * margin * math.sqrt(ux * ux + uy * uy + uz * uz)
                 # surface -> mirror now; mirror -> lens for those that pass (second packet)
-                packet_put(pk, pku, m, Ox, Oy, Oz, s1x / l1, s1y / l1, s1z / l1, l1 - eps)
-                if n_rec < len(record):
-                    _record(record, n_rec, Ox, Oy, Oz, s1x / l1, s1y / l1, s1z / l1, l1 - eps)
-                    n_rec += 1
+                if clear1 and far:
+                    q_slot[m] = -1
+                else:
+                    packet_put(pk, pku, n_slot, Ox, Oy, Oz, s1x / l1, s1y / l1, s1z / l1, l1 - eps)
+                    if n_rec < len(record):
+                        _record(record, n_rec, Ox, Oy, Oz, s1x / l1, s1y / l1, s1z / l1, l1 - eps)
+                        n_rec += 1
+                    q_slot[m] = n_slot
+                    n_slot += 1
+                q_need2[m] = not (clear2 and far)
                 seg2[m, 0], seg2[m, 1], seg2[m, 2] = Mx + eps * e2x, My + eps * e2y, Mz + eps * e2z
                 seg2[m, 3], seg2[m, 4], seg2[m, 5], seg2[m, 6] = e2x, e2y, e2z, l2 - eps
             q_pix[m] = pix
             q_w[m] = w
             q_odd[m] = k % 2
             m += 1
-            if m == 16:
-                cast, n_touched, n_rec = _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, has_mirror, seg2, q_pix,
-                                                q_w, q_odd, acc_even, acc_odd, mark, touched, n_touched, cast,
-                                                record, n_rec)
+            if n_slot == 16 or m == _QUEUE:
+                cast, n_touched, n_rec = _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, n_slot, has_mirror, seg2,
+                                                q_pix, q_w, q_odd, q_slot, q_need2, acc_even, acc_odd, mark, touched,
+                                                n_touched, cast, record, n_rec)
                 m = 0
+                n_slot = 0
         if m > 0:  # the surface point's last rays
-            cast, n_touched, n_rec = _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, has_mirror, seg2, q_pix, q_w,
-                                            q_odd, acc_even, acc_odd, mark, touched, n_touched, cast, record, n_rec)
+            cast, n_touched, n_rec = _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, n_slot, has_mirror, seg2,
+                                            q_pix, q_w, q_odd, q_slot, q_need2, acc_even, acc_odd, mark, touched,
+                                            n_touched, cast, record, n_rec)
             m = 0
+            n_slot = 0
         if s + 1 == s1 or elem[s + 1] != elem[s]:  # the element's column is complete
             order = np.sort(touched[:n_touched])
             err = 0.0
@@ -227,20 +256,22 @@ def _record(record, i, ox, oy, oz, dx, dy, dz, length):
 
 
 @nb.njit(nogil=True, cache=True)
-def _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, has_mirror, seg2, q_pix, q_w, q_odd, acc_even, acc_odd, mark,
-           touched, n_touched, cast, record, n_rec):
-    """Cast the ``m`` queued rays (for a mirror view: then the mirror -> lens segments of those
-    that reach the mirror) and add the visible ones, in queue order, into the column."""
-    packet_cast(fn16, scene, pk, valid, m)
-    cast += m
-    clear = np.empty(16, np.bool_)
+def _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, n_slot, has_mirror, seg2, q_pix, q_w, q_odd, q_slot, q_need2,
+           acc_even, acc_odd, mark, touched, n_touched, cast, record, n_rec):
+    """Cast the ``n_slot`` packed rays of the ``m`` queued ones (the others are known clear; for
+    a mirror view then the mirror -> lens segments of those that reach the mirror and are not
+    known clear, 16 at a time) and add the visible ones, in queue order, into the column."""
+    if n_slot > 0:
+        packet_cast(fn16, scene, pk, valid, n_slot)
+        cast += n_slot
+    clear = np.empty(_QUEUE, np.bool_)
     for j in range(m):
-        clear[j] = not pk[128 + j] < 0
+        clear[j] = q_slot[j] < 0 or not pk[128 + q_slot[j]] < 0
     if has_mirror:
         idx = np.empty(16, np.int64)
         m2 = 0
         for j in range(m):
-            if clear[j]:
+            if clear[j] and q_need2[j]:
                 packet_put(pk2, pku2, m2, seg2[j, 0], seg2[j, 1], seg2[j, 2], seg2[j, 3], seg2[j, 4], seg2[j, 5],
                            seg2[j, 6])
                 if n_rec < len(record):
@@ -249,6 +280,12 @@ def _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, has_mirror, seg2, q_pix, q
                     n_rec += 1
                 idx[m2] = j
                 m2 += 1
+                if m2 == 16:
+                    packet_cast(fn16, scene, pk2, valid, m2)
+                    cast += m2
+                    for i in range(m2):
+                        clear[idx[i]] = not pk2[128 + i] < 0
+                    m2 = 0
         if m2 > 0:
             packet_cast(fn16, scene, pk2, valid, m2)
             cast += m2
