@@ -34,7 +34,7 @@ from . import visibility
 from .camera import PlaneMirror, ThinLensCamera, sunflower_disk
 from .raycast import OcclusionScene
 
-ALGORITHM_VERSION = "transfer-2"  # bump whenever the numbers an estimator gives change
+ALGORITHM_VERSION = "transfer-3"  # bump whenever the numbers an estimator gives change
 
 
 @dataclass(frozen=True)
@@ -55,6 +55,7 @@ class LensSampling:
     lens_samples_min: int = 32
     lens_samples_max: int = 2048
     lens_samples_per_blur_pixel: float = 4.0
+    target_column_error: float = 0.0  # adaptive rounds until the column's estimate <= this x its sum (0: off)
 
 
 @dataclass(frozen=True)
@@ -144,6 +145,32 @@ def triangle_jitter(n: int) -> np.ndarray:
     # decorrelate from the lens spiral, which is ordered by radius
     order = (np.arange(n) * 7919) % n if n % 7919 else np.arange(n)
     return np.column_stack([a, b])[order] - 1 / 3
+
+
+def lens_pattern(n: int, n_cap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The lens and surface points of a sample with ``n`` lens samples, and of its adaptive
+    rounds up to ``n_cap``: lens points on the unit disk, in the unit square and surface
+    offsets in the unit triangle, each (N, 2) with N = n 2^p <= max(n, n_cap).
+
+    Points ``[0, n)`` are round 0 (Vogel's spiral, the R2 square and the folded R2 jitter of
+    n points); round p >= 1 adds points ``[n 2^(p-1), n 2^p)``: a spiral of n 2^(p-1) points
+    turned by an irrational angle and its own jitter, so that every round is by itself an
+    evenly spread set and the rounds so far, weighted equally per ray, are one estimate.
+    The square points are one R2 sequence (any prefix is evenly spread)."""
+    total = n
+    while 2 * total <= n_cap:
+        total *= 2
+    disks, jits = [sunflower_disk(n)], [triangle_jitter(n)]
+    m, rnd = n, 1
+    while sum(len(d) for d in disks) < total:
+        turn = 2 * np.pi * ((rnd * 0.7548776662466927) % 1.0)
+        c, s_ = np.cos(turn), np.sin(turn)
+        d = sunflower_disk(m)
+        disks.append(d @ np.array([[c, s_], [-s_, c]]))
+        j = triangle_jitter(m)
+        jits.append(j[::-1] if rnd % 2 else j)
+        m, rnd = sum(len(d) for d in disks), rnd + 1
+    return np.concatenate(disks), square_points(total), np.concatenate(jits)
 
 
 def _candidate_faces(surface: Surface, view: View) -> np.ndarray:
@@ -277,10 +304,12 @@ class _LensPlan:
     chunks: list[tuple[int, int]]  # sample ranges [s0, s1), each whole elements
     rays: int
     clear: np.ndarray  # (S,) uint8: which of the sample's segments are known clear (visibility.clear_faces)
+    spin: np.ndarray  # (S, 4): per sample the turn (cos, sin) of its disk pattern and the shift of its square one
 
 
 def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: int,
-               tree: "visibility.OccluderTree | None" = None, ray_offset_mm: float = 1e-3) -> _LensPlan | None:
+               tree: "visibility.OccluderTree | None" = None, ray_offset_mm: float = 1e-3,
+               turn_patterns: bool = True) -> _LensPlan | None:
     """Surface samples, their lens-sampling regions and counts (vectorised over samples,
     O(samples) work); the per-ray work is :func:`fluxcli.optics.transfer_kernel.lens_columns`.
     With ``tree`` (the occluders), the faces whose every segment is clear are found
@@ -330,13 +359,13 @@ def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: in
     n_lens = np.minimum(s.lens_samples_min * 2**level, s.lens_samples_max).astype(np.int64)
     area = np.where(use_box, box_area, np.pi * disk_r**2)
     dA = area / n_lens * W
-    # one pattern per distinct count: lens disk (sunflower), box (R2) and surface jitter
+    # one pattern per distinct count, with its adaptive rounds: lens disk, box and surface jitter
     counts = np.unique(n_lens)
-    starts = np.concatenate([[0], np.cumsum(counts)])
+    pats = [lens_pattern(int(n), s.lens_samples_max if s.target_column_error > 0 else int(n)) for n in counts]
+    starts = np.concatenate([[0], np.cumsum([len(p[0]) for p in pats])]).astype(np.int64)
     pat_off = starts[np.searchsorted(counts, n_lens)]
-    disk_unit = np.concatenate([sunflower_disk(int(n)) for n in counts]) if len(counts) else np.zeros((0, 2))
-    square_unit = np.concatenate([square_points(int(n)) for n in counts]) if len(counts) else np.zeros((0, 2))
-    jitter = np.concatenate([triangle_jitter(int(n)) for n in counts]) if len(counts) else np.zeros((0, 2))
+    disk_unit, square_unit, jitter = ((np.concatenate([p[i] for p in pats]) if pats else np.zeros((0, 2)))
+                                      for i in range(3))
     chunks = _element_chunks(E, n_lens, rays_per_batch)
     clear = np.zeros(len(P), np.uint8)
     if tree is not None and len(P):
@@ -346,7 +375,23 @@ def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: in
         clear = np.ascontiguousarray(flags[at])
     return _LensPlan(P, N, G, dA, E.astype(np.int64), lo, hi, dc, disk_r, use_box, n_lens, pat_off,
                      np.ascontiguousarray(disk_unit), np.ascontiguousarray(square_unit), np.ascontiguousarray(jitter),
-                     chunks, int(n_lens.sum()), clear)
+                     chunks, int(n_lens.sum()), clear, _spins(E, turn_patterns))
+
+
+def _spins(elem: np.ndarray, turn: bool = True) -> np.ndarray:
+    """Per sample (sorted by element) a turn of the disk pattern and a shift of the square
+    pattern, from the sample's rank within its element (R2 sequence: the turns of an
+    element's samples are evenly spread): (S, 4) cos, sin, shift_x, shift_y.  With the
+    same points for every sample (``turn=False``, transfer-2) an element's lens error does
+    not average out over its surface samples: at 1024 x 1024 pixels the blurred mirror
+    views kept ~2 % L1 however many surface samples they had."""
+    if len(elem) == 0 or not turn:
+        return np.column_stack([np.ones(len(elem)), np.zeros((len(elem), 3))])
+    first = np.concatenate([[0], np.flatnonzero(np.diff(elem)) + 1])
+    rank = np.arange(len(elem)) - np.repeat(first, np.diff(np.concatenate([first, [len(elem)]])))
+    turn = 2 * np.pi * ((rank * 0.6180339887498949) % 1.0)
+    return np.ascontiguousarray(np.column_stack([np.cos(turn), np.sin(turn), (rank * 0.7548776662466927) % 1.0,
+                                                 (rank * 0.5698402909980532) % 1.0]))
 
 
 def _element_chunks(elem: np.ndarray, rays: np.ndarray, rays_per_chunk: int) -> list[tuple[int, int]]:
@@ -370,13 +415,14 @@ def _element_chunks(elem: np.ndarray, rays: np.ndarray, rays_per_chunk: int) -> 
 def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampling, eps: float,
                rays_per_batch: int, threads: int, progress: Callable[[float], None] | None,
                checkpoint: "Checkpoint | None", view_index: int,
-               tree: "visibility.OccluderTree | None" = None) -> tuple[sp.csr_matrix, np.ndarray, dict]:
+               tree: "visibility.OccluderTree | None" = None,
+               turn_patterns: bool = True) -> tuple[sp.csr_matrix, np.ndarray, dict]:
     """One view's T by the lens estimator: chunks of whole elements cast on ``threads``
     threads, columns placed by element (independent of which thread finished first)."""
     cam = view.camera
     n_pix = cam.nx * cam.ny
     shape = (n_pix, surface.n_elements)
-    plan = _lens_plan(surface, view, s, rays_per_batch, tree, eps)
+    plan = _lens_plan(surface, view, s, rays_per_batch, tree, eps, turn_patterns)
     err = np.zeros(surface.n_elements)
     if plan is None or not plan.chunks or scene.native is None:
         if plan is not None and plan.chunks and scene.native is None:
@@ -403,7 +449,8 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
             plan.elem, plan.lo, plan.hi, plan.dc, plan.disk_r, plan.use_box, plan.n_lens, plan.pat_off, plan.disk_unit,
             plan.square_unit, plan.jitter, chunk[0], chunk[1], n_pix, cam.nx, cam.ny,
             scratch.even, scratch.odd, scratch.mark, scratch.touched, _NO_RECORD, plan.clear,
-            tree.margin_mm if tree is not None else visibility.MARGIN_MM)
+            tree.margin_mm if tree is not None else visibility.MARGIN_MM, s.target_column_error, s.lens_samples_max,
+            plan.spin)
 
     rays_of = [int(plan.n_lens[a:b].sum()) for a, b in plan.chunks]
     if checkpoint is not None and not 0 < checkpoint.rays_per_block < plan.rays:
@@ -442,7 +489,7 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
     T = sp.csc_matrix((val, pix, indptr), shape=shape)
     T.eliminate_zeros()
     stats = {"rays": float(sum(r[5] for r in results)), "surface_samples": float(len(plan.P)),
-             "rays_evaluated": float(plan.rays)}
+             "rays_evaluated": float(sum(r[6] for r in results))}
     return T.tocsr(), err, stats
 
 
@@ -572,6 +619,7 @@ def build_transfer(
     threads: int | None = None,
     checkpoint: Checkpoint | None = None,
     skip_clear: bool = True,
+    turn_patterns: bool = True,
 ) -> TransferResult:
     """Compute T for ``surface`` seen by ``views``, with ``surface`` and ``occluders`` blocking.
 
@@ -586,6 +634,9 @@ def build_transfer(
     checkpoint : keeps finished blocks of a long build (lens estimator), see :class:`Checkpoint`.
     skip_clear : lens estimator: do not cast the rays of faces whose every segment to the lens
         is provably clear (:mod:`fluxcli.optics.visibility`); T is the same to the bit either way.
+    turn_patterns : lens estimator: turn each surface sample's lens pattern by its own angle
+        (False: the same lens points for every sample, as transfer-2 did; for the benchmark's
+        before/after figures).
 
     Returns
     -------
@@ -610,7 +661,7 @@ def build_transfer(
 
         if estimator == "lens":
             T, err, st = _lens_view(surface, view, scene, lens_sampling, ray_offset_mm, rays_per_batch, threads,
-                                    sub, checkpoint, k, tree)
+                                    sub, checkpoint, k, tree, turn_patterns)
         else:
             T, st = _pairwise_view(surface, view, scene, pairwise_sampling, ray_offset_mm, rays_per_batch, shape,
                                    sub)
