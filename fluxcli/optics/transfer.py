@@ -305,6 +305,9 @@ class _LensPlan:
     rays: int
     clear: np.ndarray  # (S,) uint8: which of the sample's segments are known clear (visibility.clear_faces)
     spin: np.ndarray  # (S, 4): per sample the turn (cos, sin) of its disk pattern and the shift of its square one
+    margin_mm: float  # a mirror segment is known clear only this far (x2) in front of the mirror
+    target: float  # adaptive rounds: the column error target (0: one round)
+    n_cap: int  # adaptive rounds: lens samples per surface sample, at most
 
 
 def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: int,
@@ -375,7 +378,9 @@ def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: in
         clear = np.ascontiguousarray(flags[at])
     return _LensPlan(P, N, G, dA, E.astype(np.int64), lo, hi, dc, disk_r, use_box, n_lens, pat_off,
                      np.ascontiguousarray(disk_unit), np.ascontiguousarray(square_unit), np.ascontiguousarray(jitter),
-                     chunks, int(n_lens.sum()), clear, _spins(E, turn_patterns))
+                     chunks, int(n_lens.sum()), clear, _spins(E, turn_patterns),
+                     tree.margin_mm if tree is not None else visibility.MARGIN_MM, float(s.target_column_error),
+                     int(s.lens_samples_max))
 
 
 def _spins(elem: np.ndarray, turn: bool = True) -> np.ndarray:
@@ -428,30 +433,7 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
         if plan is not None and plan.chunks and scene.native is None:
             raise ValueError("nothing to cast against: the scene has no triangles")
         return sp.csr_matrix(shape), err, {"rays": 0.0, "surface_samples": 0.0, "rays_evaluated": 0.0}
-    from . import transfer_kernel  # numba: imported when T is built, not by every command
-
-    nat = scene.native
-    cam_arr = np.array([*cam.center_mm, *cam.axis, *cam.right, *cam.down, cam.focus_distance_mm,
-                        cam.focal_pixel_mm, cam.aperture_radius_mm**2, 0.0, 0.0])
-    m = view.mirror
-    mir = (np.array([1.0, *m.center_mm, *m.normal, *m.axis_u, *m.axis_v, *m.half_size_mm]) if m is not None
-           else np.zeros(15))
-    ap_dist = np.array([a.distance_mm for a in cam.apertures], float)
-    ap_r2 = np.array([a.radius_mm**2 for a in cam.apertures], float)
-    scratch = threading.local()
-
-    def run(chunk: tuple[int, int]):
-        if not hasattr(scratch, "even"):
-            scratch.even, scratch.odd = np.zeros(n_pix), np.zeros(n_pix)
-            scratch.mark, scratch.touched = np.zeros(n_pix, np.bool_), np.zeros(n_pix, np.int32)
-        return transfer_kernel.lens_columns(
-            nat.occluded16, nat.scene, cam_arr, mir, ap_dist, ap_r2, eps, plan.P, plan.N, plan.G, plan.dA,
-            plan.elem, plan.lo, plan.hi, plan.dc, plan.disk_r, plan.use_box, plan.n_lens, plan.pat_off, plan.disk_unit,
-            plan.square_unit, plan.jitter, chunk[0], chunk[1], n_pix, cam.nx, cam.ny,
-            scratch.even, scratch.odd, scratch.mark, scratch.touched, _NO_RECORD, plan.clear,
-            tree.margin_mm if tree is not None else visibility.MARGIN_MM, s.target_column_error, s.lens_samples_max,
-            plan.spin)
-
+    run = _lens_runner(view, scene, plan, eps)
     rays_of = [int(plan.n_lens[a:b].sum()) for a, b in plan.chunks]
     if checkpoint is not None and not 0 < checkpoint.rays_per_block < plan.rays:
         checkpoint = None  # a view smaller than one block is not worth files
@@ -494,6 +476,37 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
 
 
 _NO_RECORD = np.zeros((0, 7), np.float32)
+
+
+def _lens_runner(view: View, scene: OcclusionScene, plan: _LensPlan, eps: float) -> Callable[[tuple[int, int]], tuple]:
+    """``run(chunk)``: cast one chunk ``(s0, s1)`` of ``plan`` (any thread: scratch per thread);
+    its result is (elements, column starts, pixels, values, column errors, rays cast, rays, -)."""
+    from . import transfer_kernel  # numba: imported when T is built, not by every command
+
+    cam = view.camera
+    n_pix = cam.nx * cam.ny
+    nat = scene.native
+    cam_arr = np.array([*cam.center_mm, *cam.axis, *cam.right, *cam.down, cam.focus_distance_mm,
+                        cam.focal_pixel_mm, cam.aperture_radius_mm**2, 0.0, 0.0])
+    m = view.mirror
+    mir = (np.array([1.0, *m.center_mm, *m.normal, *m.axis_u, *m.axis_v, *m.half_size_mm]) if m is not None
+           else np.zeros(15))
+    ap_dist = np.array([a.distance_mm for a in cam.apertures], float)
+    ap_r2 = np.array([a.radius_mm**2 for a in cam.apertures], float)
+    scratch = threading.local()
+
+    def run(chunk: tuple[int, int]):
+        if not hasattr(scratch, "even"):
+            scratch.even, scratch.odd = np.zeros(n_pix), np.zeros(n_pix)
+            scratch.mark, scratch.touched = np.zeros(n_pix, np.bool_), np.zeros(n_pix, np.int32)
+        return transfer_kernel.lens_columns(
+            nat.occluded16, nat.scene, cam_arr, mir, ap_dist, ap_r2, eps, plan.P, plan.N, plan.G, plan.dA,
+            plan.elem, plan.lo, plan.hi, plan.dc, plan.disk_r, plan.use_box, plan.n_lens, plan.pat_off, plan.disk_unit,
+            plan.square_unit, plan.jitter, chunk[0], chunk[1], n_pix, cam.nx, cam.ny,
+            scratch.even, scratch.odd, scratch.mark, scratch.touched, _NO_RECORD, plan.clear, plan.margin_mm,
+            plan.target, plan.n_cap, plan.spin)
+
+    return run
 
 
 def _blocks(rays_of: list[int], rays_per_block: int) -> list[list[int]]:
