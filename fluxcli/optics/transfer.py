@@ -311,12 +311,13 @@ class _LensPlan:
 
 
 def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: int,
-               tree: "visibility.OccluderTree | None" = None, ray_offset_mm: float = 1e-3,
+               tree: "visibility.LazyTree | None" = None, ray_offset_mm: float = 1e-3,
                turn_patterns: bool = True) -> _LensPlan | None:
     """Surface samples, their lens-sampling regions and counts (vectorised over samples,
     O(samples) work); the per-ray work is :func:`fluxcli.optics.transfer_kernel.lens_columns`.
     With ``tree`` (the occluders), the faces whose every segment is clear are found
-    (:func:`fluxcli.optics.visibility.clear_faces`) and their rays are not cast."""
+    (:func:`fluxcli.optics.visibility.clear_faces`) and their rays are not cast, when the view
+    has enough rays per face to repay the test."""
     cam = view.camera
     faces = _candidate_faces(surface, view)
     if len(faces) == 0:
@@ -371,15 +372,18 @@ def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: in
                                       for i in range(3))
     chunks = _element_chunks(E, n_lens, rays_per_batch)
     clear = np.zeros(len(P), np.uint8)
-    if tree is not None and len(P):
+    margin = visibility.MARGIN_MM
+    if tree is not None and len(P) and n_lens.sum() >= visibility.MIN_RAYS_PER_FACE * len(faces):
         used, at = np.unique(F, return_inverse=True)
-        flags = visibility.clear_faces(tree, surface.face_vertices_mm[used], surface.face_normals[used],
+        occ = tree.get()
+        margin = occ.margin_mm
+        flags = visibility.clear_faces(occ, surface.face_vertices_mm[used], surface.face_normals[used],
                                        cam.center_mm, cam.aperture_radius_mm, ray_offset_mm, view.mirror)
         clear = np.ascontiguousarray(flags[at])
     return _LensPlan(P, N, G, dA, E.astype(np.int64), lo, hi, dc, disk_r, use_box, n_lens, pat_off,
                      np.ascontiguousarray(disk_unit), np.ascontiguousarray(square_unit), np.ascontiguousarray(jitter),
                      chunks, int(n_lens.sum()), clear, _spins(E, turn_patterns),
-                     tree.margin_mm if tree is not None else visibility.MARGIN_MM, float(s.target_column_error),
+                     margin, float(s.target_column_error),
                      int(s.lens_samples_max))
 
 
@@ -420,7 +424,7 @@ def _element_chunks(elem: np.ndarray, rays: np.ndarray, rays_per_chunk: int) -> 
 def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampling, eps: float,
                rays_per_batch: int, threads: int, progress: Callable[[float], None] | None,
                checkpoint: "Checkpoint | None", view_index: int,
-               tree: "visibility.OccluderTree | None" = None,
+               tree: "visibility.LazyTree | None" = None,
                turn_patterns: bool = True) -> tuple[sp.csr_matrix, np.ndarray, dict]:
     """One view's T by the lens estimator: chunks of whole elements cast on ``threads``
     threads, columns placed by element (independent of which thread finished first)."""
@@ -663,7 +667,7 @@ def build_transfer(
     scene = OcclusionScene(v, f)
     tree = None
     if estimator == "lens" and skip_clear and len(f):
-        tree = visibility.occluder_tree(v, f, _piece_mm(surface, v))
+        tree = visibility.LazyTree(v, f, _piece_mm(surface, v))
     n_pix = views[0].camera.nx * views[0].camera.ny
     shape = (n_pix, surface.n_elements)
     per_view, errors, stats = [], [], {}

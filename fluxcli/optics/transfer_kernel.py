@@ -9,7 +9,9 @@ Nothing per ray is stored: memory is O(pixels) scratch per thread plus the outpu
 Columns are summed in a fixed order (samples in order, lens samples in order), so the
 bytes do not depend on threads or timing.  Each ray also goes into one of two halves
 (even / odd lens sample); ``sum_pixels |half_even - half_odd|`` per column is the error
-estimate stored with T (:mod:`fluxcli.optics.transfer`).
+estimate stored with T (:mod:`fluxcli.optics.transfer`).  Segments known to be clear
+(:mod:`fluxcli.optics.visibility`) are not cast but added in the same order; with an error
+target an element is cast in doubling rounds until its estimate meets it.
 """
 
 from __future__ import annotations

@@ -51,6 +51,24 @@ class OccluderTree:
     margin_mm: float
 
 
+# Testing a face's cone costs about as much as casting a few hundred rays in packets: views
+# with fewer rays per face than this are cast without the test.
+MIN_RAYS_PER_FACE = 256
+
+
+class LazyTree:
+    """The :class:`OccluderTree` of a scene, built when first asked for (a build whose views all
+    have too few rays per face for the test never builds it)."""
+
+    def __init__(self, vertices_mm: np.ndarray, faces: np.ndarray, piece_mm: float):
+        self._args, self._tree = (vertices_mm, faces, piece_mm), None
+
+    def get(self) -> OccluderTree:
+        if self._tree is None:
+            self._tree = occluder_tree(*self._args)
+        return self._tree
+
+
 def occluder_tree(vertices_mm: np.ndarray, faces: np.ndarray, piece_mm: float) -> OccluderTree:
     """The hierarchy of every triangle of the scene (subject and other occluders)."""
     v = np.ascontiguousarray(vertices_mm, np.float64)
