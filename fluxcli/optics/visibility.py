@@ -51,6 +51,8 @@ class OccluderTree:
     margin_mm: float
 
 
+MAX_PIECES = 4_000_000  # the hierarchy holds at most ~this many pieces (~0.4 GB)
+
 # Testing a face's cone costs about as much as casting a few hundred rays in packets: views
 # with fewer rays per face than this are cast without the test.
 MIN_RAYS_PER_FACE = 256
@@ -76,6 +78,9 @@ def occluder_tree(vertices_mm: np.ndarray, faces: np.ndarray, piece_mm: float) -
     tri = v[f]
     longest = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2), axis=1) if len(f) else np.zeros(0)
     n_sub = np.clip(np.ceil(longest / piece_mm), 1, 64).astype(np.int64)
+    while np.sum(n_sub**2) > MAX_PIECES and np.any(n_sub > 1):  # bounded memory: coarser pieces
+        piece_mm *= 1.5
+        n_sub = np.clip(np.ceil(longest / piece_mm), 1, 64).astype(np.int64)
     pieces = _cut(tri, n_sub, int(np.sum(n_sub**2)))
     centre = pieces.mean(axis=1)
     radius = np.linalg.norm(pieces - centre[:, None], axis=2).max(axis=1) if len(pieces) else np.zeros(0)
