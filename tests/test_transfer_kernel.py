@@ -256,3 +256,29 @@ def test_a_face_called_clear_has_no_blocked_segment_to_its_lens():
                 elif blocked.any():
                     any_blocked_unclear = True
     assert any_blocked_unclear
+
+
+def test_a_plate_cutting_the_lens_rim_leaves_no_face_clear():
+    """A plate 3 mm in front of the lens covers the outer part of its disk (x > 4 mm of 5):
+    every facing face has segments that hit it (Embree says so), so none may be called
+    clear; a cone test that shrank the lens, or dropped the plate's pieces, would."""
+    from fluxcli.optics import visibility
+    from fluxcli.surface.mesh import merge
+
+    surf, views, occ = _scene()
+    rim = rectangle([7.0, 0.0, -3.0], [1, 0, 0], [0, 1, 0], (6.0, 30.0))
+    v, f = merge(surf, *occ, rim)
+    scene = OcclusionScene(v, f)
+    cam = views[0].camera
+    flags = visibility.clear_faces(visibility.occluder_tree(v, f, 0.5), surf.face_vertices_mm, surf.face_normals,
+                                   cam.center_mm, cam.aperture_radius_mm, 1e-3)
+    facing = np.einsum("fk,fk->f", surf.face_normals, cam.center_mm - surf.face_vertices_mm.mean(axis=1)) > 0
+    assert facing.sum() > 20 and np.all(flags[facing] == 0)
+    # and the rim does block part of every facing face's cone: the answer is right, not only safe
+    phi = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    L = cam.center_mm + 4.9 * (np.cos(phi)[:, None] * cam.right + np.sin(phi)[:, None] * cam.down)
+    for face in np.flatnonzero(facing):
+        o = surf.face_vertices_mm[face].mean(axis=0) + 1e-3 * surf.face_normals[face]
+        d = L - o
+        length = np.linalg.norm(d, axis=1)
+        assert scene.blocked(np.repeat(o[None], len(L), 0), d / length[:, None], length).any()
