@@ -93,13 +93,13 @@ def test_column_error_is_an_honest_estimate_over_many_columns():
     cols = ref.sum(axis=0)
     seen = cols > 1e-3 * cols.max()
     assert seen.sum() >= 30
-    for s in (LensSampling(target_column_error=0, **COARSE), LensSampling(target_column_error=0),
-              LensSampling()):
+    for s in (LensSampling(target_column_error=0, **COARSE), LensSampling(),
+              LensSampling(target_column_error=0.03, **COARSE), LensSampling(target_column_error=0.015)):
         res = build_transfer(cyl, views, [plate], lens_sampling=s)
         true = np.abs(res.T.toarray() - ref).sum(axis=0)[seen]
         est = res.column_error[seen]
         ratio = true / est
-        assert 0.2 < np.median(ratio) < 1.2
+        assert 0.3 < np.median(ratio) < 1.2
         assert np.mean(ratio <= 2) >= 0.9
         assert true.sum() <= 1.2 * est.sum()
 
