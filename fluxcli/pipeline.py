@@ -6,7 +6,9 @@ Stages import this module, never each other.
 
 from __future__ import annotations
 
+import collections
 import os
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,10 +20,12 @@ from .artefacts import transfer as AT
 from .config import LoadedConfig, Sensor, Transfer
 from .errors import UserError
 from .imaging import noise as N
-from .optics.transfer import (ALGORITHM_VERSION, Checkpoint, LensSampling, PairwiseSampling, View,
-                             build_transfer, default_threads, surface_sample_count)
+from .optics.raycast import OcclusionScene
+from .optics.transfer import (ALGORITHM_VERSION, Checkpoint, LensSampling, PairwiseSampling, View, build_transfer,
+                             cast_lens_block, default_threads, lens_blocks, lens_plan, surface_sample_count)
 from .scene import PlacedScene, Pose, SubjectPlacer, poses_from_config, views_from_config
 from .progress import run_tasks
+from .surface.mesh import merge
 from .workers import pool_for
 
 # build-T refuses a pose whose views collect nothing, and warns when a view collects less than
@@ -231,11 +235,24 @@ class PartialFiles(Checkpoint):
         nz_off = np.concatenate([[0], np.cumsum([len(r[2]) for r in results])])
         with atomic_path(self._path(view, spans)) as tmp:
             with open(tmp, "wb") as fh:
-                np.savez(fh, elements=np.concatenate([r[0] for r in results]),
-                         starts=np.concatenate([r[1] for r in results]), pix=np.concatenate([r[2] for r in results]),
-                         val=np.concatenate([r[3] for r in results]), err=np.concatenate([r[4] for r in results]),
-                         cast=np.array([r[5] for r in results]), rays=np.array([r[6] for r in results]),
-                         el_off=el_off, nz_off=nz_off, spans=np.asarray(spans, np.int64).reshape(-1, 2))
+                _write_npz(fh, elements=np.concatenate([r[0] for r in results]),
+                           starts=np.concatenate([r[1] for r in results]), pix=np.concatenate([r[2] for r in results]),
+                           val=np.concatenate([r[3] for r in results]), err=np.concatenate([r[4] for r in results]),
+                           cast=np.array([r[5] for r in results]), rays=np.array([r[6] for r in results]),
+                           el_off=el_off, nz_off=nz_off, spans=np.asarray(spans, np.int64).reshape(-1, 2))
+
+    def save_scene(self, scene: PlacedScene) -> Path:
+        """The pose's scene, pickled beside its blocks (atomic): what a cluster's block tasks
+        read it from (a path in their graph, not the arrays); removed with the blocks."""
+        import pickle
+
+        from .artefacts.atomic import atomic_path
+
+        self.folder.mkdir(parents=True, exist_ok=True)
+        path = self.folder / "scene.pickle"
+        with atomic_path(path) as tmp:
+            Path(tmp).write_bytes(pickle.dumps(scene, protocol=pickle.HIGHEST_PROTOCOL))
+        return path
 
     def remove(self) -> None:
         import shutil
@@ -243,13 +260,26 @@ class PartialFiles(Checkpoint):
         shutil.rmtree(self.folder, ignore_errors=True)
 
 
+def _write_npz(fh, **arrays: np.ndarray) -> None:
+    """``np.savez`` with fixed member times: the same arrays make the same bytes (a retried or
+    duplicated cluster task rewrites its partial file identically)."""
+    import zipfile
+
+    with zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED, allowZip64=True) as z:
+        for name, a in arrays.items():
+            with z.open(zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0)), "w", force_zip64=True) as f:
+                np.lib.format.write_array(f, np.asanyarray(a), allow_pickle=False)
+
+
 def _build_and_store(scene: PlacedScene, views: list[View], tr: Transfer, target: Path, config_sha: str,
-                     prov: A.Provenance | None = None, threads: int | None = None, progress=None) -> dict:
+                     prov: A.Provenance | None = None, threads: int | None = None, progress=None,
+                     rays_per_block: int | None = None) -> dict:
     """Worker: compute T for one pose and write it atomically; returns a summary.
     ``progress`` gets the fraction done after every chunk of rays; ``threads`` cast rays
-    within the pose (the bytes do not depend on it)."""
+    within the pose (the bytes do not depend on it); ``rays_per_block``: the size of the
+    partial files' blocks (default :data:`CHECKPOINT_RAYS`; the bytes do not depend on it)."""
     t0 = time.perf_counter()
-    partial = PartialFiles(Path(target).parent, Path(target).stem)
+    partial = PartialFiles(Path(target).parent, Path(target).stem, rays_per_block)
     res = build_transfer(
         scene.surface, views, scene.occluders, estimator=tr.estimator,
         lens_sampling=LensSampling(**tr.lens.model_dump()),
@@ -268,6 +298,111 @@ def _build_and_store(scene: PlacedScene, views: list[View], tr: Transfer, target
                column_error_per_view=res.column_error_per_view)
     partial.remove()
     return summarise(res, scene) | {"seconds": seconds}
+
+
+# ------------------------------------------------------------------ T chunks on a Dask cluster
+# With fewer poses to build than worker threads, each pose's lens build is split into blocks
+# of whole-element chunks (the blocks of the within-pose checkpoint), one task each, written as
+# partial files beside the T cache entry; this process then merges them into the T file the
+# way an interrupted local build resumes (same bytes).
+CLUSTER_TASKS_PER_THREAD = 3  # blocks per worker thread: uneven blocks and workers still balance
+CLUSTER_MIN_BLOCK_RAYS = 2_000_000  # below this a block costs more to schedule than to cast
+WORKER_SCENES_KEPT = 2  # poses whose Embree scene and lens plans a worker process keeps
+
+_worker_scenes: collections.OrderedDict = collections.OrderedDict()  # in a worker: key -> (scene, plans)
+_worker_lock = threading.Lock()
+
+
+def _worker_scene(scene_file: Path, views: list[View], tr: Transfer, view: int):
+    """This process's Embree scene of a pose and the lens plan of one of its views, made once
+    per process from the pose's pickled scene (its other blocks on this worker reuse them)."""
+    import pickle
+
+    key = str(scene_file)
+    with _worker_lock:
+        entry = _worker_scenes.get(key)
+        if entry is None:
+            try:
+                scene = pickle.loads(Path(scene_file).read_bytes())
+            except FileNotFoundError:
+                raise UserError(f"transfer.cache_dir: a Dask worker does not see {scene_file}, which this machine "
+                                "wrote: with --scheduler the T cache and the workdir must be a folder every worker "
+                                "and this machine share under the same path.") from None
+            occ = OcclusionScene(*merge(scene.surface, *scene.occluders))
+            occ.native  # noqa: B018 - the Embree scene, built once here and not by two threads
+            entry = _worker_scenes[key] = (scene, occ, {})
+            while len(_worker_scenes) > WORKER_SCENES_KEPT:
+                _worker_scenes.popitem(last=False)
+        _worker_scenes.move_to_end(key)
+        scene, occ, plans = entry
+        if view not in plans:
+            plans[view] = lens_plan(scene.surface, views[view], LensSampling(**tr.lens.model_dump()),
+                                    tr.rays_per_batch)
+        return occ, plans[view]
+
+
+def _build_block(scene_file: Path, views: list[View], tr: Transfer, target: Path, view: int,
+                 spans: list[tuple[int, int]], rays_per_block: int, progress=None) -> dict:
+    """Worker: one block of one view of a pose's lens T, written atomically as its partial file
+    beside the T cache entry ``target``; the pose's scene is read from ``scene_file``
+    (:meth:`PartialFiles.save_scene`).  A block whose file is already there is not cast again,
+    and a block cast twice makes the same bytes: a retried task is harmless."""
+    partial = PartialFiles(Path(target).parent, Path(target).stem, rays_per_block)
+    if partial.load(view, spans) is None:
+        occ, plan = _worker_scene(scene_file, views, tr, view)
+        partial.save(view, spans, cast_lens_block(views[view], occ, plan, tr.ray_offset_mm, spans, progress))
+    return {"view": view, "spans": [list(x) for x in spans]}
+
+
+def _call(fn, *args, progress=None):
+    return fn(*args, progress=progress)
+
+
+def _build_on_cluster(client, need: list, views: list[View], tr: Transfer, config_sha: str,
+                      prov: A.Provenance, label: str, quiet: bool) -> list[dict]:
+    """Build the poses ``need`` [(scene, PoseT)] on the Dask cluster behind ``client``; their
+    summaries.  A pose goes whole to one task, or, when the poses are fewer than the worker
+    threads (lens estimator), as blocks to many tasks whose partial files are then merged here.
+    A split pose's scene reaches the workers as a file beside its blocks, not in the graph."""
+    from .cluster import worker_threads
+
+    threads = worker_threads(client)
+    per_pose = -(-CLUSTER_TASKS_PER_THREAD * threads // max(len(need), 1))
+    tasks, split = [], []
+    for s, p in need:
+        blocks, rays_per_block = [], None
+        if tr.estimator == "lens" and len(need) < threads:
+            sampling = LensSampling(**tr.lens.model_dump())
+            plans = [lens_plan(s.surface, v, sampling, tr.rays_per_batch) for v in views]
+            rays = sum(pl.rays for pl in plans if pl is not None)
+            rays_per_block = min(CHECKPOINT_RAYS, max(CLUSTER_MIN_BLOCK_RAYS, -(-rays // per_pose)))
+            blocks = [(k, spans) for k, pl in enumerate(plans) for spans in lens_blocks(pl, rays_per_block)]
+            del plans
+        if len(blocks) > 1:
+            scene_file = PartialFiles(p.path.parent, p.path.stem).save_scene(s)
+            tasks += [(_build_block, scene_file, views, tr, p.path, k, spans, rays_per_block) for k, spans in blocks]
+            split.append((rays_per_block, blocks))
+        else:
+            tasks.append((_build_and_store, s, views, tr, p.path, config_sha, prov, None))
+            split.append(None)
+    done = run_tasks(_call, tasks, label=label, quiet=quiet, remote=True, pool=pool_for(client))
+    whole = iter(r for r, t in zip(done, tasks) if t[0] is _build_and_store)
+    merges = []
+    for (s, p), sp in zip(need, split):
+        if sp is not None:
+            partial = PartialFiles(p.path.parent, p.path.stem, sp[0])
+            missing = [partial._path(k, spans) for k, spans in sp[1] if not partial._path(k, spans).is_file()]
+            if missing:
+                check_shared(p.path.parent, missing)
+            merges.append((s, views, tr, p.path, config_sha, prov, None, sp[0]))
+    merged = iter(run_tasks(_merge, merges, label="merging T blocks", quiet=quiet))
+    return [next(whole) if sp is None else next(merged) for sp in split]
+
+
+def _merge(*args, progress=None) -> dict:
+    """This process: a pose's T from the partial files its blocks left (as a resumed build)."""
+    *head, rays_per_block = args
+    return _build_and_store(*head, progress=progress, rays_per_block=rays_per_block)
 
 
 def summarise(res, scene: PlacedScene) -> dict:
@@ -323,12 +458,13 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
     cluster = getattr(ctx, "client", None)  # --scheduler: a Dask cluster builds the poses
     # one bar over the poses, advanced after every batch of rays in every worker (with an ETA)
     # processes x threads <= cores locally; a cluster's workers bring their own threads
-    threads = None if cluster is not None else max(1, default_threads() // max(1, min(ctx.jobs, len(need))))
-    built = run_tasks(_build_and_store, [(s, views, tr, p.path, cfg.sha256, prov, threads) for s, p in need],
-                      label=label, jobs=ctx.jobs, quiet=ctx.quiet, remote=cluster is not None,
-                      pool=pool_for(cluster, temp_dirs=(cache_dir(cfg),)))
     if cluster is not None:
+        built = _build_on_cluster(cluster, need, views, tr, cfg.sha256, prov, label, ctx.quiet)
         check_shared(cache_dir(cfg), [p.path for _, p in need])
+    else:
+        threads = max(1, default_threads() // max(1, min(ctx.jobs, len(need))))
+        built = run_tasks(_build_and_store, [(s, views, tr, p.path, cfg.sha256, prov, threads) for s, p in need],
+                          label=label, jobs=ctx.jobs, quiet=ctx.quiet, pool=pool_for(None, temp_dirs=(cache_dir(cfg),)))
     results |= {p.key: r | {"cached": False} for (_, p), r in zip(need, built)}
     check_collection(todo, results, names, ctx)
     return views, placer, todo, results
