@@ -2,6 +2,8 @@
 repeats) run locally with --jobs 2 and on a 2-worker ``distributed.LocalCluster``
 (processes) in the same run: wall time of each, their ratio, and whether every artefact and
 cached T came out byte-identical (SOURCE_DATE_EPOCH fixes creation times, as `make demo`).
+Then one pose (paper-3d at one rotation) built three ways in the same run: locally with
+--jobs 2, on the cluster as one task, and on the cluster split into block tasks.
 
 Run: .venv/bin/python benchmarks/run.py --only bench_dask
 
@@ -40,20 +42,85 @@ def _config(base: Path) -> Path:
 
 
 def _sweep(cfg: Path, extra: list[str]) -> float:
-    from typer.testing import CliRunner
-
-    from fluxcli.cli import app
-
     t = time.perf_counter()
     for stage in ("build-T", "simulate", "reconstruct"):
-        r = CliRunner().invoke(app, [stage, str(cfg), "-q", *extra])
-        if r.exit_code != 0:
-            raise RuntimeError(f"{stage} {extra}: exit {r.exit_code}: {r.output}")
+        _stage(stage, cfg, extra)
     return time.perf_counter() - t
 
 
 def _digests(base: Path) -> dict[str, str]:
     return {str(p.relative_to(base)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(base.rglob("*.h5"))}
+
+
+def _one_pose(base: Path) -> Path:
+    """paper-3d at one rotation: 256 x 256 pixels, three views, 1600 elements (~11 M rays)."""
+    cfg = yaml.safe_load((ROOT / "configs" / "paper-3d.yaml").read_text())
+    cfg["subject"]["poses"]["rotations_deg"] = [0]
+    cfg["workdir"] = str(base / "run")
+    cfg["transfer"]["cache_dir"] = str(base / "cache")
+    p = base / "paper-3d-one-pose.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    return p
+
+
+def one_pose(cluster, repeats: int) -> list[dict]:
+    """One pose's build-T three ways in the same run: local (--jobs 2: one process, 2 threads),
+    on the cluster as one task, and on the cluster split into block tasks."""
+    from fluxcli import pipeline
+    from run import row
+
+    times: dict[str, list[float]] = {"local": [], "task": [], "blocks": []}
+    same, n_blocks = [], []
+    real_per_thread, real_run = pipeline.CLUSTER_TASKS_PER_THREAD, pipeline.run_tasks
+
+    def count(fn, arglists, **kw):
+        if fn is pipeline._call:
+            n_blocks.append(sum(a[0] is pipeline._build_block for a in arglists))
+        return real_run(fn, arglists, **kw)
+
+    pipeline.run_tasks = count
+    try:
+        for _ in range(repeats):
+            digests = {}
+            with tempfile.TemporaryDirectory() as tmp:  # one folder: the artefacts record the config's paths
+                cfg = _one_pose(Path(tmp))
+                for how in ("local", "task", "blocks"):
+                    pipeline.CLUSTER_TASKS_PER_THREAD = 0 if how == "task" else real_per_thread  # 0: never split
+                    extra = ["--jobs", "2"] if how == "local" else ["--scheduler", cluster.scheduler_address]
+                    t = time.perf_counter()
+                    _stage("build-T", cfg, extra)
+                    times[how].append(time.perf_counter() - t)
+                    digests[how] = _digests(Path(tmp))
+                    for d in ("run", "cache"):
+                        shutil.rmtree(Path(tmp) / d)
+            same.append(len(digests["local"]) == 2 and digests["local"] == digests["task"] == digests["blocks"])
+    finally:
+        pipeline.CLUSTER_TASKS_PER_THREAD, pipeline.run_tasks = real_per_thread, real_run
+    blocks = f"{max(n_blocks)} block tasks" if n_blocks else "no block tasks"
+    return [
+        row("4", "Dask one pose (paper-3d, 1 rotation): local build-T --jobs 2 (2 threads)", "s", times["local"]),
+        row("4", "Dask one pose: LocalCluster 2 workers, one task for the pose", "s", times["task"],
+            note="the task casts on 2 threads in its worker"),
+        row("4", f"Dask one pose: LocalCluster 2 workers, split into {blocks}", "s", times["blocks"],
+            note="scene built once per worker; blocks merged by the driver"),
+        row("4", "Dask one pose: time blocks / one task (same run)", "x",
+            [b / t for b, t in zip(times["blocks"], times["task"])],
+            note="one 2-core machine: both use 2 cores; on several machines one task uses one"),
+        row("4", "Dask one pose: time blocks / local --jobs 2 (same run)", "x",
+            [b / loc for b, loc in zip(times["blocks"], times["local"])], note="the split's overhead on one machine"),
+        row("4", "Dask one pose: T byte-identical local / one task / blocks", "runs identical", [sum(same)],
+            f"{repeats} of {repeats}", all(same)),
+    ]
+
+
+def _stage(stage: str, cfg: Path, extra: list[str]) -> None:
+    from typer.testing import CliRunner
+
+    from fluxcli.cli import app
+
+    r = CliRunner().invoke(app, [stage, str(cfg), "-q", *extra])
+    if r.exit_code != 0:
+        raise RuntimeError(f"{stage} {extra}: exit {r.exit_code}: {r.output}")
 
 
 def run(repeats: int = 3) -> list[dict]:
@@ -79,6 +146,7 @@ def run(repeats: int = 3) -> list[dict]:
                     remote = _digests(base)
                     same.append(remote == local and len(local) > 0)
                     differ |= {k for k in set(local) | set(remote) if local.get(k) != remote.get(k)}
+            pose_rows = one_pose(cluster, repeats)
     finally:
         if old is None:
             os.environ.pop("SOURCE_DATE_EPOCH", None)
@@ -93,6 +161,7 @@ def run(repeats: int = 3) -> list[dict]:
         row("4", f"Dask sweep: {n_files} artefacts + cached T byte-identical to the local run", "runs identical",
             [sum(same)], f"{repeats} of {repeats}", all(same),
             note=f"differing: {', '.join(sorted(differ))}" if differ else ""),
+        *pose_rows,
     ]
 
 

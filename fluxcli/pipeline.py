@@ -305,11 +305,11 @@ def _build_and_store(scene: PlacedScene, views: list[View], tr: Transfer, target
 # of whole-element chunks (the blocks of the within-pose checkpoint), one task each, written as
 # partial files beside the T cache entry; this process then merges them into the T file the
 # way an interrupted local build resumes (same bytes).
-CLUSTER_TASKS_PER_THREAD = 3  # blocks per worker thread: uneven blocks and workers still balance
+CLUSTER_TASKS_PER_THREAD = 3  # blocks per worker thread: uneven blocks and workers still balance (0: never split)
 CLUSTER_MIN_BLOCK_RAYS = 2_000_000  # below this a block costs more to schedule than to cast
 WORKER_SCENES_KEPT = 2  # poses whose Embree scene and lens plans a worker process keeps
 
-_worker_scenes: collections.OrderedDict = collections.OrderedDict()  # in a worker: key -> (scene, plans)
+_worker_scenes: collections.OrderedDict = collections.OrderedDict()  # in a worker: file -> (scene, Embree, plans)
 _worker_lock = threading.Lock()
 
 
@@ -335,10 +335,10 @@ def _worker_scene(scene_file: Path, views: list[View], tr: Transfer, view: int):
                 _worker_scenes.popitem(last=False)
         _worker_scenes.move_to_end(key)
         scene, occ, plans = entry
-        if view not in plans:
-            plans[view] = lens_plan(scene.surface, views[view], LensSampling(**tr.lens.model_dump()),
-                                    tr.rays_per_batch)
-        return occ, plans[view]
+        if (view, tr.rays_per_batch) not in plans:
+            plans[view, tr.rays_per_batch] = lens_plan(scene.surface, views[view], LensSampling(**tr.lens.model_dump()),
+                                                       tr.rays_per_batch)
+        return occ, plans[view, tr.rays_per_batch]
 
 
 def _build_block(scene_file: Path, views: list[View], tr: Transfer, target: Path, view: int,
@@ -371,7 +371,7 @@ def _build_on_cluster(client, need: list, views: list[View], tr: Transfer, confi
     tasks, split = [], []
     for s, p in need:
         blocks, rays_per_block = [], None
-        if tr.estimator == "lens" and len(need) < threads:
+        if tr.estimator == "lens" and len(need) < threads and CLUSTER_TASKS_PER_THREAD > 0:
             sampling = LensSampling(**tr.lens.model_dump())
             plans = [lens_plan(s.surface, v, sampling, tr.rays_per_batch) for v in views]
             rays = sum(pl.rays for pl in plans if pl is not None)

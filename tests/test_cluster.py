@@ -227,6 +227,29 @@ def test_a_block_task_run_twice_writes_the_same_bytes_and_does_not_cast_again(tm
     assert part.read_bytes() == first
 
 
+def test_collection_efficiency_has_the_same_bits_with_any_number_of_blas_threads():
+    """A Dask worker runs with one BLAS thread, this process with several: build-T's index
+    (efficiency per view) must not depend on it (a BLAS dot over 20 000 elements did)."""
+    import math
+
+    import numpy as np
+    import scipy.sparse as sp
+    from threadpoolctl import threadpool_limits
+
+    from fluxcli.artefacts.transfer import efficiency
+
+    rng = np.random.default_rng(3)
+    T = sp.random(4000, 20_000, density=1e-3, random_state=rng, format="csr")
+    areas = rng.uniform(0.5, 2.0, 20_000)
+    got = []
+    for n in (1, 2):
+        with threadpool_limits(n):
+            got.append(efficiency(T, 0.9, areas))
+    assert got[0] == got[1]
+    col = np.asarray(T.sum(axis=0)).ravel() * 0.9
+    assert math.isclose(got[0], math.fsum(col * areas) / math.fsum(areas), rel_tol=1e-12)
+
+
 def _fails_once(marker, x, progress=None):
     """Fails the first time (a lost worker), then succeeds: the scheduler's retry."""
     p = Path(marker)
