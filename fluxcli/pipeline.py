@@ -22,7 +22,8 @@ from .errors import UserError
 from .imaging import noise as N
 from .optics.raycast import OcclusionScene
 from .optics.transfer import (ALGORITHM_VERSION, Checkpoint, LensSampling, PairwiseSampling, View, build_transfer,
-                             cast_lens_block, default_threads, lens_blocks, lens_plan, surface_sample_count)
+                             cast_lens_block, default_threads, lens_blocks, lens_chunks, lens_plan,
+                             surface_sample_count)
 from .scene import PlacedScene, Pose, SubjectPlacer, poses_from_config, views_from_config
 from .progress import run_tasks
 from .surface.mesh import merge
@@ -354,6 +355,12 @@ def _build_block(scene_file: Path, views: list[View], tr: Transfer, target: Path
     return {"view": view, "spans": [list(x) for x in spans]}
 
 
+def _plan_view(scene_file: Path, views: list[View], tr: Transfer, view: int, progress=None):
+    """Worker: one view's lens plan, kept for the blocks this worker will cast; its chunks and
+    their rays (:func:`fluxcli.optics.transfer.lens_chunks`), for this process to cut blocks."""
+    return lens_chunks(_worker_scene(scene_file, views, tr, view)[1])
+
+
 def _call(fn, *args, progress=None):
     return fn(*args, progress=progress)
 
@@ -361,42 +368,48 @@ def _call(fn, *args, progress=None):
 def _build_on_cluster(client, need: list, views: list[View], tr: Transfer, config_sha: str,
                       prov: A.Provenance, label: str, quiet: bool) -> list[dict]:
     """Build the poses ``need`` [(scene, PoseT)] on the Dask cluster behind ``client``; their
-    summaries.  A pose goes whole to one task, or, when the poses are fewer than the worker
-    threads (lens estimator), as blocks to many tasks whose partial files are then merged here.
+    summaries.  A pose goes whole to one task; or, when the poses are fewer than the worker
+    threads (lens estimator), the workers plan its views (one task each), this process cuts
+    the views into blocks, one task each, and merges their partial files into the T file.
     A split pose's scene reaches the workers as a file beside its blocks, not in the graph."""
     from .cluster import worker_threads
 
     threads = worker_threads(client)
+    split = tr.estimator == "lens" and len(need) < threads and CLUSTER_TASKS_PER_THREAD > 0
     per_pose = -(-CLUSTER_TASKS_PER_THREAD * threads // max(len(need), 1))
-    tasks, split = [], []
-    for s, p in need:
+    pool = pool_for(client)
+    planned: list = []
+    if split:
+        files = [PartialFiles(p.path.parent, p.path.stem).save_scene(s) for s, p in need]
+        planned = run_tasks(_call, [(_plan_view, f, views, tr, k) for f in files for k in range(len(views))],
+                            label=f"{label} (planning blocks)", quiet=quiet, remote=True, pool=pool)
+    tasks, cut = [], []
+    for i, (s, p) in enumerate(need):
         blocks, rays_per_block = [], None
-        if tr.estimator == "lens" and len(need) < threads and CLUSTER_TASKS_PER_THREAD > 0:
-            sampling = LensSampling(**tr.lens.model_dump())
-            plans = [lens_plan(s.surface, v, sampling, tr.rays_per_batch) for v in views]
-            rays = sum(pl.rays for pl in plans if pl is not None)
+        if split:
+            per_view = planned[i * len(views):(i + 1) * len(views)]
+            rays = sum(sum(r) for _, r in per_view)
             rays_per_block = min(CHECKPOINT_RAYS, max(CLUSTER_MIN_BLOCK_RAYS, -(-rays // per_pose)))
-            blocks = [(k, spans) for k, pl in enumerate(plans) for spans in lens_blocks(pl, rays_per_block)]
-            del plans
+            blocks = [(k, spans) for k, (c, r) in enumerate(per_view) for spans in lens_blocks(c, r, rays_per_block)]
         if len(blocks) > 1:
-            scene_file = PartialFiles(p.path.parent, p.path.stem).save_scene(s)
+            scene_file = PartialFiles(p.path.parent, p.path.stem).folder / "scene.pickle"
             tasks += [(_build_block, scene_file, views, tr, p.path, k, spans, rays_per_block) for k, spans in blocks]
-            split.append((rays_per_block, blocks))
+            cut.append((rays_per_block, blocks))
         else:
             tasks.append((_build_and_store, s, views, tr, p.path, config_sha, prov, None))
-            split.append(None)
-    done = run_tasks(_call, tasks, label=label, quiet=quiet, remote=True, pool=pool_for(client))
+            cut.append(None)
+    done = run_tasks(_call, tasks, label=label, quiet=quiet, remote=True, pool=pool)
     whole = iter(r for r, t in zip(done, tasks) if t[0] is _build_and_store)
     merges = []
-    for (s, p), sp in zip(need, split):
-        if sp is not None:
-            partial = PartialFiles(p.path.parent, p.path.stem, sp[0])
-            missing = [partial._path(k, spans) for k, spans in sp[1] if not partial._path(k, spans).is_file()]
+    for (s, p), c in zip(need, cut):
+        if c is not None:
+            partial = PartialFiles(p.path.parent, p.path.stem, c[0])
+            missing = [partial._path(k, spans) for k, spans in c[1] if not partial._path(k, spans).is_file()]
             if missing:
                 check_shared(p.path.parent, missing)
-            merges.append((s, views, tr, p.path, config_sha, prov, None, sp[0]))
+            merges.append((s, views, tr, p.path, config_sha, prov, None, c[0]))
     merged = iter(run_tasks(_merge, merges, label="merging T blocks", quiet=quiet))
-    return [next(whole) if sp is None else next(merged) for sp in split]
+    return [next(whole) if c is None else next(merged) for c in cut]
 
 
 def _merge(*args, progress=None) -> dict:

@@ -448,19 +448,26 @@ def lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: int
     return _lens_plan(surface, view, s, rays_per_batch)
 
 
-def lens_blocks(plan: _LensPlan | None, rays_per_block: int) -> list[list[tuple[int, int]]]:
-    """The checkpoint blocks of one view: per block its chunks' sample spans, exactly what
-    :func:`build_transfer` hands ``Checkpoint.load``/``save`` with this ``rays_per_block``;
-    [] when it keeps no blocks for the view (nothing to cast, or less than one block)."""
-    if plan is None or not plan.chunks or not 0 < rays_per_block < plan.rays:
+def lens_chunks(plan: _LensPlan | None) -> tuple[list[tuple[int, int]], list[int]]:
+    """A view's chunks (sample spans of whole elements, the unit one thread casts) and the
+    rays of each: what :func:`lens_blocks` groups."""
+    if plan is None:
+        return [], []
+    return list(plan.chunks), [int(plan.n_lens[a:b].sum()) for a, b in plan.chunks]
+
+
+def lens_blocks(chunks: list[tuple[int, int]], chunk_rays: list[int], rays_per_block: int) -> list[list[tuple[int, int]]]:
+    """The checkpoint blocks of one view (from :func:`lens_chunks`): per block its chunks'
+    sample spans, exactly what :func:`build_transfer` hands ``Checkpoint.load``/``save`` with
+    this ``rays_per_block``; [] when it keeps no blocks for the view (less than one block)."""
+    if not chunks or not 0 < rays_per_block < sum(chunk_rays):
         return []
-    rays_of = [int(plan.n_lens[a:b].sum()) for a, b in plan.chunks]
-    return [[plan.chunks[i] for i in block] for block in _blocks(rays_of, rays_per_block)]
+    return [[chunks[i] for i in block] for block in _blocks(list(chunk_rays), rays_per_block)]
 
 
 def cast_lens_block(view: View, scene: OcclusionScene, plan: _LensPlan, eps: float, spans: list[tuple[int, int]],
                     progress: Callable[[float], None] | None = None) -> list:
-    """Cast one block (an entry of :func:`lens_blocks`) on this thread: per chunk the result
+    """Cast one block (an entry of :func:`lens_blocks`) of ``plan`` (:func:`lens_plan`) on this thread: per chunk the result
     :func:`build_transfer` gets for it, in the form ``Checkpoint.save`` takes (the chunks'
     numbers do not depend on where or in which order they are cast: no random stream, fixed
     sample patterns).  ``scene`` is ``OcclusionScene(*merge(surface, *occluders))``;
