@@ -2,8 +2,9 @@
 repeats) run locally with --jobs 2 and on a 2-worker ``distributed.LocalCluster``
 (processes) in the same run: wall time of each, their ratio, and whether every artefact and
 cached T came out byte-identical (SOURCE_DATE_EPOCH fixes creation times, as `make demo`).
-Then one pose (paper-3d at one rotation) built three ways in the same run: locally with
---jobs 2, on the cluster as one task, and on the cluster split into block tasks.
+Then one pose (paper-3d at one rotation; and again with 16x its lens samples) built three
+ways in the same run: locally with --jobs 2, on the cluster as one task, and on the cluster
+split into block tasks.
 
 Run: .venv/bin/python benchmarks/run.py --only bench_dask
 
@@ -63,9 +64,10 @@ def _one_pose(base: Path) -> Path:
     return p
 
 
-def one_pose(cluster, repeats: int) -> list[dict]:
+def one_pose(cluster, repeats: int, sets: tuple[str, ...] = (), what: str = "paper-3d, 1 rotation") -> list[dict]:
     """One pose's build-T three ways in the same run: local (--jobs 2: one process, 2 threads),
-    on the cluster as one task, and on the cluster split into block tasks."""
+    on the cluster as one task, and on the cluster split into block tasks; ``sets``: --set
+    overrides of the pose's config."""
     from fluxcli import pipeline
     from run import row
 
@@ -87,6 +89,7 @@ def one_pose(cluster, repeats: int) -> list[dict]:
                 for how in ("local", "task", "blocks"):
                     pipeline.CLUSTER_TASKS_PER_THREAD = 0 if how == "task" else real_per_thread  # 0: never split
                     extra = ["--jobs", "2"] if how == "local" else ["--scheduler", cluster.scheduler_address]
+                    extra += [a for kv in sets for a in ("--set", kv)]
                     t = time.perf_counter()
                     _stage("build-T", cfg, extra)
                     times[how].append(time.perf_counter() - t)
@@ -98,18 +101,19 @@ def one_pose(cluster, repeats: int) -> list[dict]:
         pipeline.CLUSTER_TASKS_PER_THREAD, pipeline.run_tasks = real_per_thread, real_run
     blocks = f"{max(n_blocks)} block tasks" if n_blocks else "no block tasks"
     return [
-        row("4", "Dask one pose (paper-3d, 1 rotation): local build-T --jobs 2 (2 threads)", "s", times["local"]),
-        row("4", "Dask one pose: LocalCluster 2 workers, one task for the pose", "s", times["task"],
+        row("4", f"Dask one pose ({what}): local build-T --jobs 2 (2 threads)", "s", times["local"]),
+        row("4", f"Dask one pose ({what}): LocalCluster 2 workers, one task", "s", times["task"],
             note="the task casts on 2 threads in its worker"),
-        row("4", f"Dask one pose: LocalCluster 2 workers, split into {blocks}", "s", times["blocks"],
-            note="scene built once per worker; blocks merged by the driver"),
-        row("4", "Dask one pose: time blocks / one task (same run)", "x",
+        row("4", f"Dask one pose ({what}): LocalCluster 2 workers, {blocks}", "s", times["blocks"],
+            note="views planned on the workers, blocks merged by the driver"),
+        row("4", f"Dask one pose ({what}): time blocks / one task (same run)", "x",
             [b / t for b, t in zip(times["blocks"], times["task"])],
-            note="one 2-core machine: both use 2 cores; on several machines one task uses one"),
-        row("4", "Dask one pose: time blocks / local --jobs 2 (same run)", "x",
-            [b / loc for b, loc in zip(times["blocks"], times["local"])], note="the split's overhead on one machine"),
-        row("4", "Dask one pose: T byte-identical local / one task / blocks", "runs identical", [sum(same)],
-            f"{repeats} of {repeats}", all(same)),
+            note="one 2-core machine: both use its 2 cores, so this is the split's overhead; on several "
+                 "machines one task uses one"),
+        row("4", f"Dask one pose ({what}): time blocks / local --jobs 2 (same run)", "x",
+            [b / loc for b, loc in zip(times["blocks"], times["local"])]),
+        row("4", f"Dask one pose ({what}): T byte-identical local / one task / blocks", "runs identical",
+            [sum(same)], f"{repeats} of {repeats}", all(same)),
     ]
 
 
@@ -147,6 +151,10 @@ def run(repeats: int = 3) -> list[dict]:
                     same.append(remote == local and len(local) > 0)
                     differ |= {k for k in set(local) | set(remote) if local.get(k) != remote.get(k)}
             pose_rows = one_pose(cluster, repeats)
+            # 16x the lens samples: casting outweighs the split's fixed costs (plans, merge)
+            pose_rows += one_pose(cluster, min(repeats, 2), ("transfer.lens.lens_samples_min=512",
+                                                            "transfer.lens.lens_samples_max=4096"),
+                                  "paper-3d, 512+ lens samples")
     finally:
         if old is None:
             os.environ.pop("SOURCE_DATE_EPOCH", None)

@@ -306,7 +306,7 @@ def _build_and_store(scene: PlacedScene, views: list[View], tr: Transfer, target
 # of whole-element chunks (the blocks of the within-pose checkpoint), one task each, written as
 # partial files beside the T cache entry; this process then merges them into the T file the
 # way an interrupted local build resumes (same bytes).
-CLUSTER_TASKS_PER_THREAD = 3  # blocks per worker thread: uneven blocks and workers still balance (0: never split)
+CLUSTER_TASKS_PER_THREAD = 4  # blocks per worker thread: uneven blocks and workers still balance (0: never split)
 CLUSTER_MIN_BLOCK_RAYS = 2_000_000  # below this a block costs more to schedule than to cast
 WORKER_SCENES_KEPT = 2  # poses whose Embree scene and lens plans a worker process keeps
 
