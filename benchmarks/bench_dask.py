@@ -103,15 +103,15 @@ def one_pose(cluster, repeats: int, sets: tuple[str, ...] = (), what: str = "pap
     return [
         row("4", f"Dask one pose ({what}): local build-T --jobs 2 (2 threads)", "s", times["local"]),
         row("4", f"Dask one pose ({what}): LocalCluster 2 workers, one task", "s", times["task"],
-            note="the task casts on 2 threads in its worker"),
+            note="a task casts on one thread (one worker thread = one core): the other worker idles"),
         row("4", f"Dask one pose ({what}): LocalCluster 2 workers, {blocks}", "s", times["blocks"],
             note="views planned on the workers, blocks merged by the driver"),
         row("4", f"Dask one pose ({what}): time blocks / one task (same run)", "x",
             [b / t for b, t in zip(times["blocks"], times["task"])],
-            note="one 2-core machine: both use its 2 cores, so this is the split's overhead; on several "
-                 "machines one task uses one"),
+            note="the speed-up of splitting one pose over 2 single-core workers"),
         row("4", f"Dask one pose ({what}): time blocks / local --jobs 2 (same run)", "x",
-            [b / loc for b, loc in zip(times["blocks"], times["local"])]),
+            [b / loc for b, loc in zip(times["blocks"], times["local"])],
+            note="the same 2 cores used locally by 2 threads: the split's overhead"),
         row("4", f"Dask one pose ({what}): T byte-identical local / one task / blocks", "runs identical",
             [sum(same)], f"{repeats} of {repeats}", all(same)),
     ]

@@ -10,6 +10,7 @@ import collections
 import os
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -205,9 +206,13 @@ class PartialFiles(Checkpoint):
     read back by the next run of the same pose (same key: same inputs, same blocks) and
     removed when the pose's T file is written."""
 
-    def __init__(self, cache: Path, key: str, rays_per_block: int | None = None):
+    def __init__(self, cache: Path, key: str, rays_per_block: int | None = None, plans: dict | None = None):
         self.folder = Path(cache) / f"{key}.part"
         self.rays_per_block = CHECKPOINT_RAYS if rays_per_block is None else rays_per_block
+        self.plans = plans or {}  # view -> its lens plan, when made beforehand (a cluster's merge)
+
+    def plan(self, view: int):
+        return self.plans.get(view)
 
     def _path(self, view: int, spans: list[tuple[int, int]]) -> Path:
         return self.folder / f"view{view}-samples{spans[0][0]}-{spans[-1][1]}-chunks{len(spans)}.npz"
@@ -274,13 +279,14 @@ def _write_npz(fh, **arrays: np.ndarray) -> None:
 
 def _build_and_store(scene: PlacedScene, views: list[View], tr: Transfer, target: Path, config_sha: str,
                      prov: A.Provenance | None = None, threads: int | None = None, progress=None,
-                     rays_per_block: int | None = None) -> dict:
+                     rays_per_block: int | None = None, plans: dict | None = None) -> dict:
     """Worker: compute T for one pose and write it atomically; returns a summary.
     ``progress`` gets the fraction done after every chunk of rays; ``threads`` cast rays
     within the pose (the bytes do not depend on it); ``rays_per_block``: the size of the
-    partial files' blocks (default :data:`CHECKPOINT_RAYS`; the bytes do not depend on it)."""
+    partial files' blocks (default :data:`CHECKPOINT_RAYS`; the bytes do not depend on it);
+    ``plans``: view -> lens plan already made for these inputs (not made again)."""
     t0 = time.perf_counter()
-    partial = PartialFiles(Path(target).parent, Path(target).stem, rays_per_block)
+    partial = PartialFiles(Path(target).parent, Path(target).stem, rays_per_block, plans)
     res = build_transfer(
         scene.surface, views, scene.occluders, estimator=tr.estimator,
         lens_sampling=LensSampling(**tr.lens.model_dump()),
@@ -368,7 +374,8 @@ def _call(fn, *args, progress=None):
 def _build_on_cluster(client, need: list, views: list[View], tr: Transfer, config_sha: str,
                       prov: A.Provenance, label: str, quiet: bool) -> list[dict]:
     """Build the poses ``need`` [(scene, PoseT)] on the Dask cluster behind ``client``; their
-    summaries.  A pose goes whole to one task; or, when the poses are fewer than the worker
+    summaries.  Every task casts on one thread (a worker thread is a core: ``dask worker
+    --nthreads``).  A pose goes whole to one task; or, when the poses are fewer than the worker
     threads (lens estimator), the workers plan its views (one task each), this process cuts
     the views into blocks, one task each, and merges their partial files into the T file.
     A split pose's scene reaches the workers as a file beside its blocks, not in the graph."""
@@ -396,26 +403,40 @@ def _build_on_cluster(client, need: list, views: list[View], tr: Transfer, confi
             tasks += [(_build_block, scene_file, views, tr, p.path, k, spans, rays_per_block) for k, spans in blocks]
             cut.append((rays_per_block, blocks))
         else:
-            tasks.append((_build_and_store, s, views, tr, p.path, config_sha, prov, None))
+            tasks.append((_build_and_store, s, views, tr, p.path, config_sha, prov, 1))  # a task: one thread
             cut.append(None)
-    done = run_tasks(_call, tasks, label=label, quiet=quiet, remote=True, pool=pool)
-    whole = iter(r for r, t in zip(done, tasks) if t[0] is _build_and_store)
-    merges = []
-    for (s, p), c in zip(need, cut):
-        if c is not None:
-            partial = PartialFiles(p.path.parent, p.path.stem, c[0])
-            missing = [partial._path(k, spans) for k, spans in c[1] if not partial._path(k, spans).is_file()]
+    # while the cluster casts, this process (idle otherwise) makes the plans the first merge
+    # needs (one pose's: memory); the other merges make their own
+    merging = [i for i, c in enumerate(cut) if c is not None]
+    ahead = ThreadPoolExecutor(1)
+    plans = {i: ahead.submit(_plans_of, need[i][0].surface, views, tr) for i in merging[:1]}
+    try:
+        done = run_tasks(_call, tasks, label=label, quiet=quiet, remote=True, pool=pool)
+        whole = iter(r for r, t in zip(done, tasks) if t[0] is _build_and_store)
+        merges = []
+        for i in merging:
+            (s, p), (rays_per_block, blocks) = need[i], cut[i]
+            partial = PartialFiles(p.path.parent, p.path.stem, rays_per_block)
+            missing = [partial._path(k, spans) for k, spans in blocks if not partial._path(k, spans).is_file()]
             if missing:
                 check_shared(p.path.parent, missing)
-            merges.append((s, views, tr, p.path, config_sha, prov, None, c[0]))
+            merges.append((s, views, tr, p.path, config_sha, prov, None, rays_per_block,
+                           plans[i].result() if i in plans else None))
+    finally:  # on Ctrl-C the plans not begun are dropped (one being made ends in a second or so)
+        ahead.shutdown(wait=False, cancel_futures=True)
     merged = iter(run_tasks(_merge, merges, label="merging T blocks", quiet=quiet))
     return [next(whole) if c is None else next(merged) for c in cut]
 
 
+def _plans_of(surface, views: list[View], tr: Transfer) -> dict:
+    sampling = LensSampling(**tr.lens.model_dump())
+    return {k: lens_plan(surface, v, sampling, tr.rays_per_batch) for k, v in enumerate(views)}
+
+
 def _merge(*args, progress=None) -> dict:
     """This process: a pose's T from the partial files its blocks left (as a resumed build)."""
-    *head, rays_per_block = args
-    return _build_and_store(*head, progress=progress, rays_per_block=rays_per_block)
+    *head, rays_per_block, plans = args
+    return _build_and_store(*head, progress=progress, rays_per_block=rays_per_block, plans=plans)
 
 
 def summarise(res, scene: PlacedScene) -> dict:
@@ -470,7 +491,7 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
     prov = provenance(cfg, placer.surface.digest())
     cluster = getattr(ctx, "client", None)  # --scheduler: a Dask cluster builds the poses
     # one bar over the poses, advanced after every batch of rays in every worker (with an ETA)
-    # processes x threads <= cores locally; a cluster's workers bring their own threads
+    # processes x threads <= cores locally; on a cluster one thread per task (a worker thread is a core)
     if cluster is not None:
         built = _build_on_cluster(cluster, need, views, tr, cfg.sha256, prov, label, ctx.quiet)
         check_shared(cache_dir(cfg), [p.path for _, p in need])

@@ -360,7 +360,7 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
     cam = view.camera
     n_pix = cam.nx * cam.ny
     shape = (n_pix, surface.n_elements)
-    plan = _lens_plan(surface, view, s, rays_per_batch)
+    plan = (checkpoint.plan(view_index) if checkpoint is not None else None) or _lens_plan(surface, view, s, rays_per_batch)
     err = np.zeros(surface.n_elements)
     if plan is None or not plan.chunks or scene.native is None:
         if plan is not None and plan.chunks and scene.native is None:
@@ -582,6 +582,11 @@ class Checkpoint:
 
     def save(self, view: int, spans: list[tuple[int, int]], results: list) -> None:  # pragma: no cover - interface
         pass
+
+    def plan(self, view: int):
+        """The view's plan if it was already made (:func:`lens_plan` with the same inputs, e.g.
+        while a cluster cast the blocks), else None: the build makes it."""
+        return None
 
 
 def default_threads() -> int:
