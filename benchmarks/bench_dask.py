@@ -72,14 +72,19 @@ def one_pose(cluster, repeats: int, sets: tuple[str, ...] = (), what: str = "pap
     from run import row
 
     times: dict[str, list[float]] = {"local": [], "task": [], "blocks": []}
-    same, n_blocks = [], []
+    same, n_blocks, cpu = [], [], []  # cpu: per run, CPU seconds per worker process
     real_per_thread, real_run = pipeline.CLUSTER_TASKS_PER_THREAD, pipeline.run_tasks
 
     def count(fn, arglists, **kw):
+        out = real_run(fn, arglists, **kw)
         if fn is pipeline._call:
             n_blocks.append(sum(a[0] is pipeline._build_block for a in arglists))
-        return real_run(fn, arglists, **kw)
+            for r in out:
+                r = r[2] if isinstance(r, tuple) else r
+                cpu[-1][r["pid"]] = cpu[-1].get(r["pid"], 0.0) + r["cpu_seconds"]
+        return out
 
+    busiest, extra_work = [], []
     pipeline.run_tasks = count
     try:
         for _ in range(repeats):
@@ -90,9 +95,15 @@ def one_pose(cluster, repeats: int, sets: tuple[str, ...] = (), what: str = "pap
                     pipeline.CLUSTER_TASKS_PER_THREAD = 0 if how == "task" else real_per_thread  # 0: never split
                     extra = ["--jobs", "2"] if how == "local" else ["--scheduler", cluster.scheduler_address]
                     extra += [a for kv in sets for a in ("--set", kv)]
+                    cpu.append({})
                     t = time.perf_counter()
                     _stage("build-T", cfg, extra)
                     times[how].append(time.perf_counter() - t)
+                    if how == "task":
+                        task_cpu = sum(cpu[-1].values())
+                    elif how == "blocks":
+                        busiest.append(max(cpu[-1].values()) / task_cpu)
+                        extra_work.append(sum(cpu[-1].values()) / task_cpu)
                     digests[how] = _digests(Path(tmp))
                     for d in ("run", "cache"):
                         shutil.rmtree(Path(tmp) / d)
@@ -112,9 +123,38 @@ def one_pose(cluster, repeats: int, sets: tuple[str, ...] = (), what: str = "pap
         row("4", f"Dask one pose ({what}): time blocks / local --jobs 2 (same run)", "x",
             [b / loc for b, loc in zip(times["blocks"], times["local"])],
             note="the same 2 cores used locally by 2 threads: the split's overhead"),
+        row("4", f"Dask one pose ({what}): blocks' CPU s on the workers / one task's", "x", extra_work,
+            note="the split's extra work (plans and scene per worker process), whatever the machine's load"),
+        row("4", f"Dask one pose ({what}): busiest worker's CPU s / one task's", "x", busiest,
+            note="the split's time with a free core per worker (0.5 ideal for 2): the driver's merge comes on top"),
         row("4", f"Dask one pose ({what}): T byte-identical local / one task / blocks", "runs identical",
             [sum(same)], f"{repeats} of {repeats}", all(same)),
     ]
+
+
+def _burn(seconds: float, out) -> None:
+    t0, c0, x = time.perf_counter(), time.process_time(), 0
+    while time.perf_counter() - t0 < seconds:
+        for i in range(10_000):
+            x += i
+    out.put(time.process_time() - c0)
+
+
+def cpu_share(seconds: float = 2.0) -> float:
+    """CPU seconds two busy processes get together over what one alone gets, now (2 on an idle
+    2-core machine; ~1 when other work already takes the cores)."""
+    import multiprocessing as mp
+
+    got = []
+    for n in (1, 2):
+        q = mp.get_context("spawn").Queue()
+        ps = [mp.get_context("spawn").Process(target=_burn, args=(seconds, q)) for _ in range(n)]
+        for p in ps:
+            p.start()
+        got.append(sum(q.get() for _ in ps))
+        for p in ps:
+            p.join()
+    return got[1] / got[0]
 
 
 def _stage(stage: str, cfg: Path, extra: list[str]) -> None:
@@ -150,7 +190,10 @@ def run(repeats: int = 3) -> list[dict]:
                     remote = _digests(base)
                     same.append(remote == local and len(local) > 0)
                     differ |= {k for k in set(local) | set(remote) if local.get(k) != remote.get(k)}
-            pose_rows = one_pose(cluster, repeats)
+            share = [cpu_share() for _ in range(repeats)]
+            pose_rows = [row("4", "machine now: CPU of 2 busy processes together / 1 alone", "x", share,
+                             note="2 on a free 2-core machine; near 1: no second core to split onto")]
+            pose_rows += one_pose(cluster, repeats)
             # 16x the lens samples: casting outweighs the split's fixed costs (plans, merge)
             pose_rows += one_pose(cluster, min(repeats, 2), ("transfer.lens.lens_samples_min=512",
                                                             "transfer.lens.lens_samples_max=4096"),

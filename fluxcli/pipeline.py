@@ -285,7 +285,7 @@ def _build_and_store(scene: PlacedScene, views: list[View], tr: Transfer, target
     within the pose (the bytes do not depend on it); ``rays_per_block``: the size of the
     partial files' blocks (default :data:`CHECKPOINT_RAYS`; the bytes do not depend on it);
     ``plans``: view -> lens plan already made for these inputs (not made again)."""
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     partial = PartialFiles(Path(target).parent, Path(target).stem, rays_per_block, plans)
     res = build_transfer(
         scene.surface, views, scene.occluders, estimator=tr.estimator,
@@ -304,7 +304,7 @@ def _build_and_store(scene: PlacedScene, views: list[View], tr: Transfer, target
                seconds=seconds, config_sha256=config_sha, provenance=prov, column_error=res.column_error,
                column_error_per_view=res.column_error_per_view)
     partial.remove()
-    return summarise(res, scene) | {"seconds": seconds}
+    return summarise(res, scene) | {"seconds": seconds, "cpu_seconds": time.process_time() - c0, "pid": os.getpid()}
 
 
 # ------------------------------------------------------------------ T chunks on a Dask cluster
@@ -354,17 +354,21 @@ def _build_block(scene_file: Path, views: list[View], tr: Transfer, target: Path
     beside the T cache entry ``target``; the pose's scene is read from ``scene_file``
     (:meth:`PartialFiles.save_scene`).  A block whose file is already there is not cast again,
     and a block cast twice makes the same bytes: a retried task is harmless."""
+    c0 = time.process_time()
     partial = PartialFiles(Path(target).parent, Path(target).stem, rays_per_block)
     if partial.load(view, spans) is None:
         occ, plan = _worker_scene(scene_file, views, tr, view)
         partial.save(view, spans, cast_lens_block(views[view], occ, plan, tr.ray_offset_mm, spans, progress))
-    return {"view": view, "spans": [list(x) for x in spans]}
+    return {"view": view, "cpu_seconds": time.process_time() - c0, "pid": os.getpid()}
 
 
 def _plan_view(scene_file: Path, views: list[View], tr: Transfer, view: int, progress=None):
     """Worker: one view's lens plan, kept for the blocks this worker will cast; its chunks and
-    their rays (:func:`fluxcli.optics.transfer.lens_chunks`), for this process to cut blocks."""
-    return lens_chunks(_worker_scene(scene_file, views, tr, view)[1])
+    their rays (:func:`fluxcli.optics.transfer.lens_chunks`), for this process to cut blocks,
+    and the CPU seconds it took."""
+    c0 = time.process_time()
+    chunks, rays = lens_chunks(_worker_scene(scene_file, views, tr, view)[1])
+    return chunks, rays, {"cpu_seconds": time.process_time() - c0, "pid": os.getpid()}
 
 
 def _call(fn, *args, progress=None):
@@ -395,9 +399,9 @@ def _build_on_cluster(client, need: list, views: list[View], tr: Transfer, confi
         blocks, rays_per_block = [], None
         if split:
             per_view = planned[i * len(views):(i + 1) * len(views)]
-            rays = sum(sum(r) for _, r in per_view)
+            rays = sum(sum(r) for _, r, _ in per_view)
             rays_per_block = min(CHECKPOINT_RAYS, max(CLUSTER_MIN_BLOCK_RAYS, -(-rays // per_pose)))
-            blocks = [(k, spans) for k, (c, r) in enumerate(per_view) for spans in lens_blocks(c, r, rays_per_block)]
+            blocks = [(k, spans) for k, (c, r, _) in enumerate(per_view) for spans in lens_blocks(c, r, rays_per_block)]
         if len(blocks) > 1:
             scene_file = PartialFiles(p.path.parent, p.path.stem).folder / "scene.pickle"
             tasks += [(_build_block, scene_file, views, tr, p.path, k, spans, rays_per_block) for k, spans in blocks]
