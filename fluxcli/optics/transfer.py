@@ -360,34 +360,13 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
     cam = view.camera
     n_pix = cam.nx * cam.ny
     shape = (n_pix, surface.n_elements)
-    plan = _lens_plan(surface, view, s, rays_per_batch)
+    plan = (checkpoint.plan(view_index) if checkpoint is not None else None) or _lens_plan(surface, view, s, rays_per_batch)
     err = np.zeros(surface.n_elements)
     if plan is None or not plan.chunks or scene.native is None:
         if plan is not None and plan.chunks and scene.native is None:
             raise ValueError("nothing to cast against: the scene has no triangles")
         return sp.csr_matrix(shape), err, {"rays": 0.0, "surface_samples": 0.0, "rays_evaluated": 0.0}
-    from . import transfer_kernel  # numba: imported when T is built, not by every command
-
-    nat = scene.native
-    cam_arr = np.array([*cam.center_mm, *cam.axis, *cam.right, *cam.down, cam.focus_distance_mm,
-                        cam.focal_pixel_mm, cam.aperture_radius_mm**2, 0.0, 0.0])
-    m = view.mirror
-    mir = (np.array([1.0, *m.center_mm, *m.normal, *m.axis_u, *m.axis_v, *m.half_size_mm]) if m is not None
-           else np.zeros(15))
-    ap_dist = np.array([a.distance_mm for a in cam.apertures], float)
-    ap_r2 = np.array([a.radius_mm**2 for a in cam.apertures], float)
-    scratch = threading.local()
-
-    def run(chunk: tuple[int, int]):
-        if not hasattr(scratch, "even"):
-            scratch.even, scratch.odd = np.zeros(n_pix), np.zeros(n_pix)
-            scratch.mark, scratch.touched = np.zeros(n_pix, np.bool_), np.zeros(n_pix, np.int32)
-        return transfer_kernel.lens_columns(
-            nat.occluded16, nat.scene, cam_arr, mir, ap_dist, ap_r2, eps, plan.P, plan.N, plan.G, plan.dA,
-            plan.elem, plan.lo, plan.hi, plan.dc, plan.disk_r, plan.use_box, plan.n_lens, plan.pat_off, plan.disk_unit,
-            plan.square_unit, plan.jitter, chunk[0], chunk[1], n_pix, cam.nx, cam.ny,
-            scratch.even, scratch.odd, scratch.mark, scratch.touched, _NO_RECORD)
-
+    run = _lens_runner(view, scene, plan, eps)
     rays_of = [int(plan.n_lens[a:b].sum()) for a, b in plan.chunks]
     if checkpoint is not None and not 0 < checkpoint.rays_per_block < plan.rays:
         checkpoint = None  # a view smaller than one block is not worth files
@@ -430,6 +409,78 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
 
 
 _NO_RECORD = np.zeros((0, 7), np.float32)
+
+
+def _lens_runner(view: View, scene: OcclusionScene, plan: _LensPlan, eps: float) -> Callable[[tuple[int, int]], tuple]:
+    """``run(chunk)``: cast one chunk ``(s0, s1)`` of ``plan`` (any thread: scratch per thread);
+    its result is (elements, column starts, pixels, values, column errors, rays cast, rays)."""
+    from . import transfer_kernel  # numba: imported when T is built, not by every command
+
+    cam = view.camera
+    n_pix = cam.nx * cam.ny
+    nat = scene.native
+    cam_arr = np.array([*cam.center_mm, *cam.axis, *cam.right, *cam.down, cam.focus_distance_mm,
+                        cam.focal_pixel_mm, cam.aperture_radius_mm**2, 0.0, 0.0])
+    m = view.mirror
+    mir = (np.array([1.0, *m.center_mm, *m.normal, *m.axis_u, *m.axis_v, *m.half_size_mm]) if m is not None
+           else np.zeros(15))
+    ap_dist = np.array([a.distance_mm for a in cam.apertures], float)
+    ap_r2 = np.array([a.radius_mm**2 for a in cam.apertures], float)
+    scratch = threading.local()
+
+    def run(chunk: tuple[int, int]):
+        if not hasattr(scratch, "even"):
+            scratch.even, scratch.odd = np.zeros(n_pix), np.zeros(n_pix)
+            scratch.mark, scratch.touched = np.zeros(n_pix, np.bool_), np.zeros(n_pix, np.int32)
+        return transfer_kernel.lens_columns(
+            nat.occluded16, nat.scene, cam_arr, mir, ap_dist, ap_r2, eps, plan.P, plan.N, plan.G, plan.dA,
+            plan.elem, plan.lo, plan.hi, plan.dc, plan.disk_r, plan.use_box, plan.n_lens, plan.pat_off, plan.disk_unit,
+            plan.square_unit, plan.jitter, chunk[0], chunk[1], n_pix, cam.nx, cam.ny,
+            scratch.even, scratch.odd, scratch.mark, scratch.touched, _NO_RECORD)
+
+    return run
+
+
+# ------------------------------------------------------------------ one block at a time (cluster tasks)
+def lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: int) -> _LensPlan | None:
+    """One view's lens-estimator plan (surface samples, their lens regions, the chunks of whole
+    elements), the same :func:`build_transfer` makes; None when no face can reach the lens."""
+    return _lens_plan(surface, view, s, rays_per_batch)
+
+
+def lens_chunks(plan: _LensPlan | None) -> tuple[list[tuple[int, int]], list[int]]:
+    """A view's chunks (sample spans of whole elements, the unit one thread casts) and the
+    rays of each: what :func:`lens_blocks` groups."""
+    if plan is None:
+        return [], []
+    return list(plan.chunks), [int(plan.n_lens[a:b].sum()) for a, b in plan.chunks]
+
+
+def lens_blocks(chunks: list[tuple[int, int]], chunk_rays: list[int], rays_per_block: int) -> list[list[tuple[int, int]]]:
+    """The checkpoint blocks of one view (from :func:`lens_chunks`): per block its chunks'
+    sample spans, exactly what :func:`build_transfer` hands ``Checkpoint.load``/``save`` with
+    this ``rays_per_block``; [] when it keeps no blocks for the view (less than one block)."""
+    if not chunks or not 0 < rays_per_block < sum(chunk_rays):
+        return []
+    return [[chunks[i] for i in block] for block in _blocks(list(chunk_rays), rays_per_block)]
+
+
+def cast_lens_block(view: View, scene: OcclusionScene, plan: _LensPlan, eps: float, spans: list[tuple[int, int]],
+                    progress: Callable[[float], None] | None = None) -> list:
+    """Cast one block (an entry of :func:`lens_blocks`) of ``plan`` (:func:`lens_plan`) on this thread: per chunk the result
+    :func:`build_transfer` gets for it, in the form ``Checkpoint.save`` takes (the chunks'
+    numbers do not depend on where or in which order they are cast: no random stream, fixed
+    sample patterns).  ``scene`` is ``OcclusionScene(*merge(surface, *occluders))``;
+    ``progress`` gets the fraction of the block's rays done after each chunk."""
+    run = _lens_runner(view, scene, plan, eps)
+    rays_of = [int(plan.n_lens[a:b].sum()) for a, b in spans]
+    out, done = [], 0
+    for span, rays in zip(spans, rays_of):
+        out.append(run(span))
+        done += rays
+        if progress:
+            progress(done / max(sum(rays_of), 1))
+    return out
 
 
 def _blocks(rays_of: list[int], rays_per_block: int) -> list[list[int]]:
@@ -531,6 +582,11 @@ class Checkpoint:
 
     def save(self, view: int, spans: list[tuple[int, int]], results: list) -> None:  # pragma: no cover - interface
         pass
+
+    def plan(self, view: int):
+        """The view's plan if it was already made (:func:`lens_plan` with the same inputs, e.g.
+        while a cluster cast the blocks), else None: the build makes it."""
+        return None
 
 
 def default_threads() -> int:
