@@ -437,7 +437,8 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
     cam = view.camera
     n_pix = cam.nx * cam.ny
     shape = (n_pix, surface.n_elements)
-    plan = _lens_plan(surface, view, s, rays_per_batch, tree, eps, turn_patterns)
+    plan = ((checkpoint.plan(view_index) if checkpoint is not None else None)
+            or _lens_plan(surface, view, s, rays_per_batch, tree, eps, turn_patterns))
     err = np.zeros(surface.n_elements)
     if plan is None or not plan.chunks or scene.native is None:
         if plan is not None and plan.chunks and scene.native is None:
@@ -517,6 +518,55 @@ def _lens_runner(view: View, scene: OcclusionScene, plan: _LensPlan, eps: float)
             plan.target, plan.n_cap, plan.spin)
 
     return run
+
+
+# ------------------------------------------------------------------ one block at a time (cluster tasks)
+def lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: int, occluders: list[Surface] | None = None,
+              ray_offset_mm: float = 1e-3) -> _LensPlan | None:
+    """One view's lens-estimator plan (surface samples, their lens regions, the chunks of whole
+    elements), the same :func:`build_transfer` makes; None when no face can reach the lens.
+    With ``occluders`` (the scene's other blocking geometry) it also marks the faces whose
+    segments are provably clear, so that casting it skips them (the same bytes either way)."""
+    tree = None
+    if occluders is not None:
+        v, f = merge(surface, *occluders)
+        tree = visibility.LazyTree(v, f, _piece_mm(surface, v)) if len(f) else None
+    return _lens_plan(surface, view, s, rays_per_batch, tree, ray_offset_mm)
+
+
+def lens_chunks(plan: _LensPlan | None) -> tuple[list[tuple[int, int]], list[int]]:
+    """A view's chunks (sample spans of whole elements, the unit one thread casts) and the
+    rays of each: what :func:`lens_blocks` groups."""
+    if plan is None:
+        return [], []
+    return list(plan.chunks), [int(plan.n_lens[a:b].sum()) for a, b in plan.chunks]
+
+
+def lens_blocks(chunks: list[tuple[int, int]], chunk_rays: list[int], rays_per_block: int) -> list[list[tuple[int, int]]]:
+    """The checkpoint blocks of one view (from :func:`lens_chunks`): per block its chunks'
+    sample spans, exactly what :func:`build_transfer` hands ``Checkpoint.load``/``save`` with
+    this ``rays_per_block``; [] when it keeps no blocks for the view (less than one block)."""
+    if not chunks or not 0 < rays_per_block < sum(chunk_rays):
+        return []
+    return [[chunks[i] for i in block] for block in _blocks(list(chunk_rays), rays_per_block)]
+
+
+def cast_lens_block(view: View, scene: OcclusionScene, plan: _LensPlan, eps: float, spans: list[tuple[int, int]],
+                    progress: Callable[[float], None] | None = None) -> list:
+    """Cast one block (an entry of :func:`lens_blocks`) of ``plan`` (:func:`lens_plan`) on this thread: per chunk the result
+    :func:`build_transfer` gets for it, in the form ``Checkpoint.save`` takes (the chunks'
+    numbers do not depend on where or in which order they are cast: no random stream, fixed
+    sample patterns).  ``scene`` is ``OcclusionScene(*merge(surface, *occluders))``;
+    ``progress`` gets the fraction of the block's rays done after each chunk."""
+    run = _lens_runner(view, scene, plan, eps)
+    rays_of = [int(plan.n_lens[a:b].sum()) for a, b in spans]
+    out, done = [], 0
+    for span, rays in zip(spans, rays_of):
+        out.append(run(span))
+        done += rays
+        if progress:
+            progress(done / max(sum(rays_of), 1))
+    return out
 
 
 def _blocks(rays_of: list[int], rays_per_block: int) -> list[list[int]]:
@@ -618,6 +668,11 @@ class Checkpoint:
 
     def save(self, view: int, spans: list[tuple[int, int]], results: list) -> None:  # pragma: no cover - interface
         pass
+
+    def plan(self, view: int):
+        """The view's plan if it was already made (:func:`lens_plan` with the same inputs, e.g.
+        while a cluster cast the blocks), else None: the build makes it."""
+        return None
 
 
 def default_threads() -> int:

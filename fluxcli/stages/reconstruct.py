@@ -247,6 +247,7 @@ class Grid:
     n_elements: int
     areas: np.ndarray | None = None  # (n_unknowns,) mm²: priors act on exitance
     surface: object = None  # the elements' surface
+    paths: list | None = None  # per pose, the T cache file Ts[k] was read from
 
 
 def make_grid(cfg: C.LoadedConfig, ctx: RunContext, surface, unknowns: str) -> Grid:
@@ -254,7 +255,7 @@ def make_grid(cfg: C.LoadedConfig, ctx: RunContext, surface, unknowns: str) -> G
     _, _, todo, _ = ensure_T(cfg, replace(ctx, force=False), label=label, unknowns=unknowns)
     grid_surface, parent = surface.unknowns() if unknowns == "sub_elements" else (surface, None)
     return Grid([load_T(pt.path) for _, pt in todo], grid_surface.element_adjacency(), parent, surface.n_elements,
-                grid_surface.element_areas_mm2, surface)
+                grid_surface.element_areas_mm2, surface, [str(pt.path) for _, pt in todo])
 
 
 def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSettings, noise: N.PhotonNoise,
@@ -578,9 +579,11 @@ def _total_summary(per_pose, joint, todo) -> list[str]:
 # ------------------------------------------------------------------ the study sweep
 def _sweep_cell(sim_path: str, grids_k: dict, pose: int, level: int, repeats: int,
                 methods: list[C.MethodSettings], noise: N.PhotonNoise, sensor: dict | None) -> np.ndarray:
-    """Errors (methods x repeats) of one (level, pose) cell; runs in a worker process."""
+    """Errors (methods x repeats) of one (level, pose) cell; runs in a worker process.
+    ``grids_k``: per unknowns (T's cache file, adjacency, parent, n_elements, areas)."""
     import h5py
 
+    Ts = {u: load_T(grids_k[u][0]) for u in {m.unknowns for m in methods}}  # by path: no T inside a task graph
     out = np.zeros((len(methods), repeats))
     with h5py.File(sim_path, "r") as f:
         truth = f["truth/power"][()] * f["truth/level_scale"][level]
@@ -590,8 +593,8 @@ def _sweep_cell(sim_path: str, grids_k: dict, pose: int, level: int, repeats: in
     for r in range(repeats):
         valid = np.isfinite(imgs[r]) & (~N.saturated(counts[r], model) if model is not None else True)
         for i, m in enumerate(methods):
-            T, adjacency, parent, n_el, areas = grids_k[m.unknowns]
-            res, _ = run_method(T, imgs[r], valid, m, noise, adjacency, parent, n_el, areas)
+            _, adjacency, parent, n_el, areas = grids_k[m.unknowns]
+            res, _ = run_method(Ts[m.unknowns], imgs[r], valid, m, noise, adjacency, parent, n_el, areas)
             out[i, r] = error_l1(res.power, truth)
     return out
 
@@ -631,8 +634,8 @@ def _sweep(cfg: C.LoadedConfig, ctx: RunContext, g, grids: dict, todo) -> None:
     cells = [(li, k) for li in lv for k in range(P)]
     err = np.full((len(methods), L, P, reps), np.nan)
     t0 = time.perf_counter()
-    def per_pose(k):  # only what this pose's cell needs crosses to the worker
-        return {u: (gr.Ts[k], gr.adjacency, gr.parent, gr.n_elements, gr.areas) for u, gr in grids.items()}
+    def per_pose(k):  # only what this pose's cell needs crosses to the worker; its T by path
+        return {u: (gr.paths[k], gr.adjacency, gr.parent, gr.n_elements, gr.areas) for u, gr in grids.items()}
 
     args = [(str(path), per_pose(k), k, li, reps, methods, noise, sensor)
             for li, k in cells]
