@@ -344,7 +344,7 @@ def _worker_scene(scene_file: Path, views: list[View], tr: Transfer, view: int):
         scene, occ, plans = entry
         if (view, tr.rays_per_batch) not in plans:
             plans[view, tr.rays_per_batch] = lens_plan(scene.surface, views[view], LensSampling(**tr.lens.model_dump()),
-                                                       tr.rays_per_batch)
+                                                       tr.rays_per_batch, scene.occluders, tr.ray_offset_mm)
         return occ, plans[view, tr.rays_per_batch]
 
 
