@@ -1,14 +1,18 @@
 """Sweeps on a Dask distributed cluster: ``--scheduler ADDRESS`` (or ``FLUXMAP_SCHEDULER``).
 
 The independent work of a run — one T per pose (build-T, simulate's forward T, the T
-reconstruct needs) and the cells of a reconstruction sweep — goes to the workers of a
-running ``dask scheduler`` instead of local processes; without an address nothing here is
-used and ``--jobs`` runs local processes as before.
+reconstruct needs), or, when the poses are fewer than the workers' threads, blocks of one
+pose's T (:func:`fluxcli.pipeline._build_on_cluster`), and the cells of a reconstruction
+sweep — goes to the workers of a running ``dask scheduler`` instead of local processes;
+without an address nothing here is used and ``--jobs`` runs local processes as before.
 
 What a task carries and does:
 
 - meshes and numbers, never an Embree scene: each worker builds its own scene from the
-  surface and occluder arrays (:func:`fluxcli.optics.transfer.build_transfer`);
+  surface and occluder arrays (once per pose and worker process for a pose's blocks);
+  what many tasks share travels as a path in the shared cache, never inside the task graph
+  (a pose's scene, pickled beside its partial files; a sweep cell's T, its cache file),
+  so that nothing is lost with a worker and no graph carries large arrays;
 - it writes its file itself, atomically (:mod:`fluxcli.artefacts.atomic`), to the absolute
   path this process chose — so the T cache (``transfer.cache_dir``) and the workdir must be
   a folder every worker sees under the same path (one machine, or a shared file system);
@@ -56,6 +60,11 @@ def connect(address: str):
         raise UserError(f"--scheduler {address}: no Dask scheduler answers there within {CONNECT_TIMEOUT_S:g} s "
                         f"({type(e).__name__}: {e}). Start one ('dask scheduler' prints its address, "
                         "'dask worker ADDRESS' on each machine) or leave --scheduler out to run locally.") from None
+
+
+def worker_threads(client) -> int:
+    """How many tasks the cluster runs at once (its workers' threads; at least 1)."""
+    return max(1, sum(client.nthreads().values()))
 
 
 def _call(env: dict, fn: Callable, *args, **kwargs):

@@ -261,6 +261,8 @@ class LensSampling(Model):
     lens_samples_min: int = Field(32, ge=1, description="Lens samples per surface point, at least.")
     lens_samples_max: int = Field(2048, ge=1, description="Lens samples per surface point, at most.")
     lens_samples_per_blur_pixel: float = Field(4.0, gt=0, description="Lens samples per pixel of blur-disk area.")
+    # fewer rays for the same accuracy (issue 14): see docs/design.md, "The T kernel"
+    target_column_error: float = Field(0.0, ge=0, description="Adaptive sampling: cast an element's lens samples in doubling rounds until its column's error estimate is at most this fraction of its sum (0: one round).")
 
     @model_validator(mode="after")
     def _ranges(self) -> "LensSampling":

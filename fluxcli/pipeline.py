@@ -6,8 +6,11 @@ Stages import this module, never each other.
 
 from __future__ import annotations
 
+import collections
 import os
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,10 +21,13 @@ from .artefacts import transfer as AT
 from .config import LoadedConfig, Sensor, Transfer
 from .errors import UserError
 from .imaging import noise as N
-from .optics.transfer import (ALGORITHM_VERSION, Checkpoint, LensSampling, PairwiseSampling, View,
-                             build_transfer, default_threads, surface_sample_count)
+from .optics.raycast import OcclusionScene
+from .optics.transfer import (ALGORITHM_VERSION, Checkpoint, LensSampling, PairwiseSampling, View, build_transfer,
+                             cast_lens_block, default_threads, lens_blocks, lens_chunks, lens_plan,
+                             surface_sample_count)
 from .scene import PlacedScene, Pose, SubjectPlacer, poses_from_config, views_from_config
 from .progress import run_tasks
+from .surface.mesh import merge
 from .workers import pool_for
 
 # build-T refuses a pose whose views collect nothing, and warns when a view collects less than
@@ -200,9 +206,13 @@ class PartialFiles(Checkpoint):
     read back by the next run of the same pose (same key: same inputs, same blocks) and
     removed when the pose's T file is written."""
 
-    def __init__(self, cache: Path, key: str, rays_per_block: int | None = None):
+    def __init__(self, cache: Path, key: str, rays_per_block: int | None = None, plans: dict | None = None):
         self.folder = Path(cache) / f"{key}.part"
         self.rays_per_block = CHECKPOINT_RAYS if rays_per_block is None else rays_per_block
+        self.plans = plans or {}  # view -> its lens plan, when made beforehand (a cluster's merge)
+
+    def plan(self, view: int):
+        return self.plans.get(view)
 
     def _path(self, view: int, spans: list[tuple[int, int]]) -> Path:
         return self.folder / f"view{view}-samples{spans[0][0]}-{spans[-1][1]}-chunks{len(spans)}.npz"
@@ -231,11 +241,24 @@ class PartialFiles(Checkpoint):
         nz_off = np.concatenate([[0], np.cumsum([len(r[2]) for r in results])])
         with atomic_path(self._path(view, spans)) as tmp:
             with open(tmp, "wb") as fh:
-                np.savez(fh, elements=np.concatenate([r[0] for r in results]),
-                         starts=np.concatenate([r[1] for r in results]), pix=np.concatenate([r[2] for r in results]),
-                         val=np.concatenate([r[3] for r in results]), err=np.concatenate([r[4] for r in results]),
-                         cast=np.array([r[5] for r in results]), rays=np.array([r[6] for r in results]),
-                         el_off=el_off, nz_off=nz_off, spans=np.asarray(spans, np.int64).reshape(-1, 2))
+                _write_npz(fh, elements=np.concatenate([r[0] for r in results]),
+                           starts=np.concatenate([r[1] for r in results]), pix=np.concatenate([r[2] for r in results]),
+                           val=np.concatenate([r[3] for r in results]), err=np.concatenate([r[4] for r in results]),
+                           cast=np.array([r[5] for r in results]), rays=np.array([r[6] for r in results]),
+                           el_off=el_off, nz_off=nz_off, spans=np.asarray(spans, np.int64).reshape(-1, 2))
+
+    def save_scene(self, scene: PlacedScene) -> Path:
+        """The pose's scene, pickled beside its blocks (atomic): what a cluster's block tasks
+        read it from (a path in their graph, not the arrays); removed with the blocks."""
+        import pickle
+
+        from .artefacts.atomic import atomic_path
+
+        self.folder.mkdir(parents=True, exist_ok=True)
+        path = self.folder / "scene.pickle"
+        with atomic_path(path) as tmp:
+            Path(tmp).write_bytes(pickle.dumps(scene, protocol=pickle.HIGHEST_PROTOCOL))
+        return path
 
     def remove(self) -> None:
         import shutil
@@ -243,13 +266,27 @@ class PartialFiles(Checkpoint):
         shutil.rmtree(self.folder, ignore_errors=True)
 
 
+def _write_npz(fh, **arrays: np.ndarray) -> None:
+    """``np.savez`` with fixed member times: the same arrays make the same bytes (a retried or
+    duplicated cluster task rewrites its partial file identically)."""
+    import zipfile
+
+    with zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED, allowZip64=True) as z:
+        for name, a in arrays.items():
+            with z.open(zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0)), "w", force_zip64=True) as f:
+                np.lib.format.write_array(f, np.asanyarray(a), allow_pickle=False)
+
+
 def _build_and_store(scene: PlacedScene, views: list[View], tr: Transfer, target: Path, config_sha: str,
-                     prov: A.Provenance | None = None, threads: int | None = None, progress=None) -> dict:
+                     prov: A.Provenance | None = None, threads: int | None = None, progress=None,
+                     rays_per_block: int | None = None, plans: dict | None = None) -> dict:
     """Worker: compute T for one pose and write it atomically; returns a summary.
     ``progress`` gets the fraction done after every chunk of rays; ``threads`` cast rays
-    within the pose (the bytes do not depend on it)."""
-    t0 = time.perf_counter()
-    partial = PartialFiles(Path(target).parent, Path(target).stem)
+    within the pose (the bytes do not depend on it); ``rays_per_block``: the size of the
+    partial files' blocks (default :data:`CHECKPOINT_RAYS`; the bytes do not depend on it);
+    ``plans``: view -> lens plan already made for these inputs (not made again)."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    partial = PartialFiles(Path(target).parent, Path(target).stem, rays_per_block, plans)
     res = build_transfer(
         scene.surface, views, scene.occluders, estimator=tr.estimator,
         lens_sampling=LensSampling(**tr.lens.model_dump()),
@@ -267,7 +304,143 @@ def _build_and_store(scene: PlacedScene, views: list[View], tr: Transfer, target
                seconds=seconds, config_sha256=config_sha, provenance=prov, column_error=res.column_error,
                column_error_per_view=res.column_error_per_view)
     partial.remove()
-    return summarise(res, scene) | {"seconds": seconds}
+    return summarise(res, scene) | {"seconds": seconds, "cpu_seconds": time.process_time() - c0, "pid": os.getpid()}
+
+
+# ------------------------------------------------------------------ T chunks on a Dask cluster
+# With fewer poses to build than worker threads, each pose's lens build is split into blocks
+# of whole-element chunks (the blocks of the within-pose checkpoint), one task each, written as
+# partial files beside the T cache entry; this process then merges them into the T file the
+# way an interrupted local build resumes (same bytes).
+CLUSTER_TASKS_PER_THREAD = 4  # blocks per worker thread: uneven blocks and workers still balance (0: never split)
+CLUSTER_MIN_BLOCK_RAYS = 2_000_000  # below this a block costs more to schedule than to cast
+WORKER_SCENES_KEPT = 2  # poses whose Embree scene and lens plans a worker process keeps
+
+_worker_scenes: collections.OrderedDict = collections.OrderedDict()  # in a worker: file -> (scene, Embree, plans)
+_worker_lock = threading.Lock()
+
+
+def _worker_scene(scene_file: Path, views: list[View], tr: Transfer, view: int):
+    """This process's Embree scene of a pose and the lens plan of one of its views, made once
+    per process from the pose's pickled scene (its other blocks on this worker reuse them)."""
+    import pickle
+
+    key = str(scene_file)
+    with _worker_lock:
+        entry = _worker_scenes.get(key)
+        if entry is None:
+            try:
+                scene = pickle.loads(Path(scene_file).read_bytes())
+            except FileNotFoundError:
+                raise UserError(f"transfer.cache_dir: a Dask worker does not see {scene_file}, which this machine "
+                                "wrote: with --scheduler the T cache and the workdir must be a folder every worker "
+                                "and this machine share under the same path.") from None
+            occ = OcclusionScene(*merge(scene.surface, *scene.occluders))
+            occ.native  # noqa: B018 - the Embree scene, built once here and not by two threads
+            entry = _worker_scenes[key] = (scene, occ, {})
+            while len(_worker_scenes) > WORKER_SCENES_KEPT:
+                _worker_scenes.popitem(last=False)
+        _worker_scenes.move_to_end(key)
+        scene, occ, plans = entry
+        if (view, tr.rays_per_batch) not in plans:
+            plans[view, tr.rays_per_batch] = lens_plan(scene.surface, views[view], LensSampling(**tr.lens.model_dump()),
+                                                       tr.rays_per_batch, scene.occluders, tr.ray_offset_mm)
+        return occ, plans[view, tr.rays_per_batch]
+
+
+def _build_block(scene_file: Path, views: list[View], tr: Transfer, target: Path, view: int,
+                 spans: list[tuple[int, int]], rays_per_block: int, progress=None) -> dict:
+    """Worker: one block of one view of a pose's lens T, written atomically as its partial file
+    beside the T cache entry ``target``; the pose's scene is read from ``scene_file``
+    (:meth:`PartialFiles.save_scene`).  A block whose file is already there is not cast again,
+    and a block cast twice makes the same bytes: a retried task is harmless."""
+    c0 = time.process_time()
+    partial = PartialFiles(Path(target).parent, Path(target).stem, rays_per_block)
+    if partial.load(view, spans) is None:
+        occ, plan = _worker_scene(scene_file, views, tr, view)
+        partial.save(view, spans, cast_lens_block(views[view], occ, plan, tr.ray_offset_mm, spans, progress))
+    return {"view": view, "cpu_seconds": time.process_time() - c0, "pid": os.getpid()}
+
+
+def _plan_view(scene_file: Path, views: list[View], tr: Transfer, view: int, progress=None):
+    """Worker: one view's lens plan, kept for the blocks this worker will cast; its chunks and
+    their rays (:func:`fluxcli.optics.transfer.lens_chunks`), for this process to cut blocks,
+    and the CPU seconds it took."""
+    c0 = time.process_time()
+    chunks, rays = lens_chunks(_worker_scene(scene_file, views, tr, view)[1])
+    return chunks, rays, {"cpu_seconds": time.process_time() - c0, "pid": os.getpid()}
+
+
+def _call(fn, *args, progress=None):
+    return fn(*args, progress=progress)
+
+
+def _build_on_cluster(client, need: list, views: list[View], tr: Transfer, config_sha: str,
+                      prov: A.Provenance, label: str, quiet: bool) -> list[dict]:
+    """Build the poses ``need`` [(scene, PoseT)] on the Dask cluster behind ``client``; their
+    summaries.  Every task casts on one thread (a worker thread is a core: ``dask worker
+    --nthreads``).  A pose goes whole to one task; or, when the poses are fewer than the worker
+    threads (lens estimator), the workers plan its views (one task each), this process cuts
+    the views into blocks, one task each, and merges their partial files into the T file.
+    A split pose's scene reaches the workers as a file beside its blocks, not in the graph."""
+    from .cluster import worker_threads
+
+    threads = worker_threads(client)
+    split = tr.estimator == "lens" and len(need) < threads and CLUSTER_TASKS_PER_THREAD > 0
+    per_pose = -(-CLUSTER_TASKS_PER_THREAD * threads // max(len(need), 1))
+    pool = pool_for(client)
+    planned: list = []
+    if split:
+        files = [PartialFiles(p.path.parent, p.path.stem).save_scene(s) for s, p in need]
+        planned = run_tasks(_call, [(_plan_view, f, views, tr, k) for f in files for k in range(len(views))],
+                            label=f"{label} (planning blocks)", quiet=quiet, remote=True, pool=pool)
+    tasks, cut = [], []
+    for i, (s, p) in enumerate(need):
+        blocks, rays_per_block = [], None
+        if split:
+            per_view = planned[i * len(views):(i + 1) * len(views)]
+            rays = sum(sum(r) for _, r, _ in per_view)
+            rays_per_block = min(CHECKPOINT_RAYS, max(CLUSTER_MIN_BLOCK_RAYS, -(-rays // per_pose)))
+            blocks = [(k, spans) for k, (c, r, _) in enumerate(per_view) for spans in lens_blocks(c, r, rays_per_block)]
+        if len(blocks) > 1:
+            scene_file = PartialFiles(p.path.parent, p.path.stem).folder / "scene.pickle"
+            tasks += [(_build_block, scene_file, views, tr, p.path, k, spans, rays_per_block) for k, spans in blocks]
+            cut.append((rays_per_block, blocks))
+        else:
+            tasks.append((_build_and_store, s, views, tr, p.path, config_sha, prov, 1))  # a task: one thread
+            cut.append(None)
+    # while the cluster casts, this process (idle otherwise) makes the plans the first merge
+    # needs (one pose's: memory); the other merges make their own
+    merging = [i for i, c in enumerate(cut) if c is not None]
+    ahead = ThreadPoolExecutor(1)
+    plans = {i: ahead.submit(_plans_of, need[i][0].surface, views, tr) for i in merging[:1]}
+    try:
+        done = run_tasks(_call, tasks, label=label, quiet=quiet, remote=True, pool=pool)
+        whole = iter(r for r, t in zip(done, tasks) if t[0] is _build_and_store)
+        merges = []
+        for i in merging:
+            (s, p), (rays_per_block, blocks) = need[i], cut[i]
+            partial = PartialFiles(p.path.parent, p.path.stem, rays_per_block)
+            missing = [partial._path(k, spans) for k, spans in blocks if not partial._path(k, spans).is_file()]
+            if missing:
+                check_shared(p.path.parent, missing)
+            merges.append((s, views, tr, p.path, config_sha, prov, None, rays_per_block,
+                           plans[i].result() if i in plans else None))
+    finally:  # on Ctrl-C the plans not begun are dropped (one being made ends in a second or so)
+        ahead.shutdown(wait=False, cancel_futures=True)
+    merged = iter(run_tasks(_merge, merges, label="merging T blocks", quiet=quiet))
+    return [next(whole) if c is None else next(merged) for c in cut]
+
+
+def _plans_of(surface, views: list[View], tr: Transfer) -> dict:
+    sampling = LensSampling(**tr.lens.model_dump())
+    return {k: lens_plan(surface, v, sampling, tr.rays_per_batch) for k, v in enumerate(views)}
+
+
+def _merge(*args, progress=None) -> dict:
+    """This process: a pose's T from the partial files its blocks left (as a resumed build)."""
+    *head, rays_per_block, plans = args
+    return _build_and_store(*head, progress=progress, rays_per_block=rays_per_block, plans=plans)
 
 
 def summarise(res, scene: PlacedScene) -> dict:
@@ -322,13 +495,14 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
     prov = provenance(cfg, placer.surface.digest())
     cluster = getattr(ctx, "client", None)  # --scheduler: a Dask cluster builds the poses
     # one bar over the poses, advanced after every batch of rays in every worker (with an ETA)
-    # processes x threads <= cores locally; a cluster's workers bring their own threads
-    threads = None if cluster is not None else max(1, default_threads() // max(1, min(ctx.jobs, len(need))))
-    built = run_tasks(_build_and_store, [(s, views, tr, p.path, cfg.sha256, prov, threads) for s, p in need],
-                      label=label, jobs=ctx.jobs, quiet=ctx.quiet, remote=cluster is not None,
-                      pool=pool_for(cluster, temp_dirs=(cache_dir(cfg),)))
+    # processes x threads <= cores locally; on a cluster one thread per task (a worker thread is a core)
     if cluster is not None:
+        built = _build_on_cluster(cluster, need, views, tr, cfg.sha256, prov, label, ctx.quiet)
         check_shared(cache_dir(cfg), [p.path for _, p in need])
+    else:
+        threads = max(1, default_threads() // max(1, min(ctx.jobs, len(need))))
+        built = run_tasks(_build_and_store, [(s, views, tr, p.path, cfg.sha256, prov, threads) for s, p in need],
+                          label=label, jobs=ctx.jobs, quiet=ctx.quiet, pool=pool_for(None, temp_dirs=(cache_dir(cfg),)))
     results |= {p.key: r | {"cached": False} for (_, p), r in zip(need, built)}
     check_collection(todo, results, names, ctx)
     return views, placer, todo, results

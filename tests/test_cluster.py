@@ -4,7 +4,9 @@ processes) makes the same bytes as the local run; progress moves; a bad address 
 from __future__ import annotations
 
 import hashlib
+import pickle
 import shutil
+import warnings
 from pathlib import Path
 
 import pytest
@@ -21,6 +23,7 @@ EPOCH = "1700000000"
 def _sweep_config(base: Path) -> Path:
     """The tiny two-pose cylinder, three noise repeats, a two-method sweep over them."""
     cfg = tiny_config(base)
+    cfg["system"]["camera"] |= {"pixels": [48, 48], "pixel_pitch_mm": 0.05}  # T larger than a task's other data
     cfg["simulate"]["noise"]["repeats"] = 3
     cfg["transfer"]["lens"] = {"lens_samples_min": 8, "lens_samples_max": 64}  # small: the test is about the bytes
     cfg["simulate"]["transfer"] = {"lens": {"lens_samples_min": 16, "lens_samples_max": 128}}
@@ -50,6 +53,7 @@ def cluster():
 
 
 def test_sweep_on_a_local_cluster_is_byte_identical_to_the_local_run(tmp_path, monkeypatch, cluster):
+    dask = pytest.importorskip("dask")
     monkeypatch.setenv("SOURCE_DATE_EPOCH", EPOCH)  # creation times fixed, as `make demo` does
     cfg = _sweep_config(tmp_path)
     _run_all(cfg, ["--jobs", "2"])
@@ -68,7 +72,20 @@ def test_sweep_on_a_local_cluster_is_byte_identical_to_the_local_run(tmp_path, m
             yield ev
 
     monkeypatch.setattr(FC._EventQueue, "drain", spy)
-    _run_all(cfg, ["--scheduler", cluster.scheduler_address])
+    # no task carries a T: Dask warns about any graph larger than the smallest T (pickled)
+    from fluxcli.artefacts.transfer import load_T
+
+    smallest = min(len(pickle.dumps(load_T(p))) for p in (tmp_path / "local-cache").glob("*.h5"))
+    with dask.config.set({"distributed.admin.large-graph-warning-threshold": smallest}):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            _run_all(cfg, ["--scheduler", cluster.scheduler_address])
+            from distributed import Client
+
+            with Client(cluster.scheduler_address, set_as_default=False) as client:  # the check itself works
+                client.submit(repr, load_T(next((tmp_path / "local-cache").glob("*.h5")))).result()
+    large = [str(w.message) for w in caught if "large graph" in str(w.message)]
+    assert len(large) == 1, ([m.splitlines()[0] for m in large], smallest)  # only the deliberate one
     remote = _digests(tmp_path)
     local = {k.replace("local-", ""): v for k, v in _digests(tmp_path).items() if k.startswith("local-")}
     remote = {k: v for k, v in remote.items() if not k.startswith("local-")}
@@ -77,6 +94,161 @@ def test_sweep_on_a_local_cluster_is_byte_identical_to_the_local_run(tmp_path, m
     assert seen and max(f for _, f in seen) == 1.0 and min(f for _, f in seen) < 1.0
     with __import__("h5py").File(tmp_path / "run" / "reconstruction.h5") as f:
         assert f["sweep/error"].shape[0] == 2 and f["sweep/error"].shape[-1] == 3  # the repeats ran remotely
+
+
+def _one_pose_config(base: Path) -> Path:
+    """The tiny cylinder at one pose, cast in many small chunks (so one pose has blocks)."""
+    cfg = tiny_config(base)
+    cfg["subject"]["poses"] = {"heights_mm": [0]}
+    cfg["transfer"]["rays_per_batch"] = 1000
+    p = base / "cfg.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    return p
+
+
+def _build_T(cfg: Path, extra: list[str]) -> None:
+    r = CliRunner().invoke(app, ["build-T", str(cfg), "-q", *extra])
+    assert r.exit_code == 0, r.output
+
+
+def _die_in_first_save(marker: str) -> None:
+    """On a worker: the first block save anywhere (whichever worker gets there first) leaves a
+    half-written temporary file beside the block and kills its worker process, as a machine
+    lost mid-write would; the nanny starts a fresh worker and the scheduler runs the task again."""
+    import os
+
+    from fluxcli import pipeline
+
+    real = pipeline.PartialFiles.save
+
+    def save(self, view, spans, results):
+        try:
+            fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            return real(self, view, spans, results)
+        os.close(fd)
+        from fluxcli.artefacts.atomic import temp_name
+
+        self.folder.mkdir(parents=True, exist_ok=True)
+        temp_name(self._path(view, spans)).write_bytes(b"PK\x03\x04 torn")
+        os._exit(1)
+
+    pipeline.PartialFiles.save = save
+
+
+def _restore_save() -> None:
+    import importlib
+
+    from fluxcli import pipeline
+
+    importlib.reload(pipeline)  # the surviving worker's PartialFiles.save, as it was
+
+
+def test_one_pose_is_split_into_blocks_on_the_cluster_and_merged_to_the_local_bytes(tmp_path, monkeypatch, cluster):
+    """One pose on a 2-worker cluster: its lens build goes out as >= 3 block tasks (scene
+    built on the workers), their partial files merge into the T the local build writes, byte
+    for byte — also when a worker dies while writing a block (the task is run again)."""
+    from distributed import Client
+
+    import fluxcli.cluster as FC
+    from fluxcli import pipeline
+
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", EPOCH)
+    cfg = _one_pose_config(tmp_path)
+    _build_T(cfg, ["--jobs", "2"])
+    local = _digests(tmp_path)
+    assert len(local) == 2  # the cached T and build-T's artefact
+    for d in ("cache", "run"):
+        shutil.rmtree(tmp_path / d)
+
+    monkeypatch.setattr(pipeline, "CLUSTER_MIN_BLOCK_RAYS", 1)  # the tiny pose is ~1e5 rays
+    tasks, seen = [], []
+    real_run, real_drain = pipeline.run_tasks, FC._EventQueue.drain
+
+    def spy_run(fn, arglists, **kw):
+        tasks.extend([a[0].__name__ for a in arglists if a[0] is not pipeline._plan_view] if fn is pipeline._call
+                     else [])
+        return real_run(fn, arglists, **kw)
+
+    def spy_drain(self):
+        for ev in real_drain(self):
+            seen.append(ev)
+            yield ev
+
+    monkeypatch.setattr(pipeline, "run_tasks", spy_run)
+    monkeypatch.setattr(FC._EventQueue, "drain", spy_drain)
+    _build_T(cfg, ["--scheduler", cluster.scheduler_address])
+    assert len(tasks) >= 3 and set(tasks) == {"_build_block"}, tasks
+    assert _digests(tmp_path) == local  # the merged T: the local bytes
+    assert not list((tmp_path / "cache").glob("*.part"))  # the blocks are removed once merged
+    assert len({t for t, _ in seen}) >= 3 and any(0 < f < 1 for _, f in seen)  # block tasks move the bar
+
+    # a worker killed while writing a block: the task is run again elsewhere, nothing is corrupted
+    for d in ("cache", "run"):
+        shutil.rmtree(tmp_path / d)
+    marker = tmp_path / "died"
+    with Client(cluster.scheduler_address, set_as_default=False) as client:
+        client.run(_die_in_first_save, str(marker))
+        tasks.clear()
+        _build_T(cfg, ["--scheduler", cluster.scheduler_address])
+        assert marker.exists()  # a worker did die mid-write
+        client.wait_for_workers(2, timeout=60)  # the nanny's fresh worker, for the next tests
+        client.run(_restore_save)
+    assert len(tasks) >= 3
+    assert _digests(tmp_path) == local
+    assert not list((tmp_path / "cache").glob("*.part")) and not list((tmp_path / "cache").glob(".*"))
+
+
+def test_a_block_task_run_twice_writes_the_same_bytes_and_does_not_cast_again(tmp_path, monkeypatch):
+    """Retry safety of one block task, in this process: the second run finds the file and
+    leaves it as it is; a block cast anew (the file removed) makes the same bytes."""
+    from fluxcli import pipeline
+    from fluxcli.config import load_config
+    from fluxcli.optics.transfer import LensSampling, lens_blocks, lens_chunks, lens_plan
+
+    c = load_config(_one_pose_config(tmp_path))
+    views, _, todo = pipeline.plan(c)
+    scene, pt = todo[0]
+    tr = c.model.transfer
+    plan = lens_plan(scene.surface, views[0], LensSampling(**tr.lens.model_dump()), tr.rays_per_batch)
+    blocks = lens_blocks(*lens_chunks(plan), plan.rays // 3)
+    assert len(blocks) >= 3
+    scene_file = pipeline.PartialFiles(pt.path.parent, pt.path.stem).save_scene(scene)
+    pipeline._build_block(scene_file, views, tr, pt.path, 0, blocks[1], plan.rays // 3)
+    (part,) = pt.path.parent.glob("*.part/view*.npz")
+    first = part.read_bytes()
+    casts = []
+    monkeypatch.setattr(pipeline, "cast_lens_block", lambda *a, **k: casts.append(1))
+    pipeline._build_block(scene_file, views, tr, pt.path, 0, blocks[1], plan.rays // 3)
+    assert casts == [] and part.read_bytes() == first
+    monkeypatch.undo()
+    pipeline._worker_scenes.clear()  # as on a fresh worker: scene and plan made again
+    part.unlink()
+    pipeline._build_block(scene_file, views, tr, pt.path, 0, blocks[1], plan.rays // 3)
+    assert part.read_bytes() == first
+
+
+def test_collection_efficiency_has_the_same_bits_with_any_number_of_blas_threads():
+    """A Dask worker runs with one BLAS thread, this process with several: build-T's index
+    (efficiency per view) must not depend on it (a BLAS dot over 20 000 elements did)."""
+    import math
+
+    import numpy as np
+    import scipy.sparse as sp
+    from threadpoolctl import threadpool_limits
+
+    from fluxcli.artefacts.transfer import efficiency
+
+    rng = np.random.default_rng(3)
+    T = sp.random(4000, 20_000, density=1e-3, random_state=rng, format="csr")
+    areas = rng.uniform(0.5, 2.0, 20_000)
+    got = []
+    for n in (1, 2):
+        with threadpool_limits(n):
+            got.append(efficiency(T, 0.9, areas))
+    assert got[0] == got[1]
+    col = np.asarray(T.sum(axis=0)).ravel() * 0.9
+    assert math.isclose(got[0], math.fsum(col * areas) / math.fsum(areas), rel_tol=1e-12)
 
 
 def _fails_once(marker, x, progress=None):

@@ -188,3 +188,97 @@ def test_partial_files_resume_a_pose_and_are_removed_when_it_is_written(tmp_path
     assert a.data.tobytes() == b.data.tobytes() and np.array_equal(a.indices, b.indices)
     err = AT.load_column_error(target)
     assert err is not None and err.shape == (surf.n_elements,) and np.all(err >= 0)
+
+
+# ------------------------------------------------------------------ rays not cast (issue 14)
+def test_skipping_provably_clear_faces_leaves_T_unchanged_to_the_bit():
+    """Faces whose whole lens cone is clear are not cast; the plate shadows part of the
+    direct view and the mirror part of the scene, so some faces are cast and some not."""
+    surf, views, occ = _scene()
+    cast = build_transfer(surf, views, occ, skip_clear=False)
+    skipped = build_transfer(surf, views, occ, skip_clear=True)
+    for x, y in zip([cast.T, *cast.T_per_view], [skipped.T, *skipped.T_per_view]):
+        assert np.array_equal(x.indptr, y.indptr) and np.array_equal(x.indices, y.indices)
+        assert x.data.tobytes() == y.data.tobytes()
+    assert cast.column_error.tobytes() == skipped.column_error.tobytes()
+    for name in ("direct", "m"):
+        assert cast.stats[name]["rays"] > 0 and 0 < skipped.stats[name]["rays"] < 0.9 * cast.stats[name]["rays"]
+
+
+def test_a_face_called_clear_has_no_blocked_segment_to_its_lens():
+    """Against Embree itself: from every face the cone test calls clear, random segments to
+    random lens points (and, through the mirror, to the real lens) are all unblocked; and
+    the test is not vacuous (faces called not clear include blocked ones)."""
+    from fluxcli.optics import visibility
+    from fluxcli.surface.mesh import merge
+
+    surf, views, occ = _scene()
+    v, f = merge(surf, *occ)
+    scene = OcclusionScene(v, f)
+    tree = visibility.occluder_tree(v, f, 0.5)
+    rng = np.random.default_rng(3)
+    tri, nrm = surf.face_vertices_mm, surf.face_normals
+    n = 400
+    any_blocked_unclear = False
+    for view in views:
+        cam, mirror = view.camera, view.mirror
+        flags = visibility.clear_faces(tree, tri, nrm, cam.center_mm, cam.aperture_radius_mm, 1e-3, mirror)
+        full = 3 if mirror is not None else 1
+        assert 0 < np.count_nonzero(flags == full) < len(flags)
+        for face in range(len(tri)):
+            ab = rng.random((n, 2))
+            ab = np.where(ab.sum(axis=1, keepdims=True) > 1, 1 - ab, ab)
+            q = tri[face, 0] + ab[:, :1] * (tri[face, 1] - tri[face, 0]) + ab[:, 1:] * (tri[face, 2] - tri[face, 0])
+            o = q + 1e-3 * nrm[face]
+            r = np.sqrt(rng.random(n)) * cam.aperture_radius_mm
+            phi = rng.random(n) * 2 * np.pi
+            L = cam.center_mm + r[:, None] * (np.cos(phi)[:, None] * cam.right + np.sin(phi)[:, None] * cam.down)
+            d = L - o
+            ok = d @ nrm[face] > 0
+            if mirror is None:
+                segs = [(o, d)]
+            else:
+                t = ((mirror.center_mm - o) @ mirror.normal) / (d @ mirror.normal)
+                M = o + t[:, None] * d
+                ok &= (t > 0) & (t < 1) & mirror.contains(M) & (np.abs(d @ mirror.normal) > 0.2 * np.linalg.norm(d, axis=1))
+                # both real segments, each stopping short of the mirror as the kernel's do
+                u1 = M - o
+                real = mirror.reflect_points(L)
+                u2 = real - M
+                segs = [(o, u1 * (1 - 1e-3 / np.linalg.norm(u1, axis=1))[:, None]),
+                        (M + 1e-3 * u2 / np.linalg.norm(u2, axis=1)[:, None],
+                         u2 * (1 - 1e-3 / np.linalg.norm(u2, axis=1))[:, None])]
+            for bit, (start, seg) in enumerate(segs):
+                length = np.linalg.norm(seg[ok], axis=1)
+                blocked = scene.blocked(start[ok], seg[ok] / length[:, None], length)
+                if flags[face] & (1 << bit):
+                    assert not blocked.any(), (view.name, face, bit)
+                elif blocked.any():
+                    any_blocked_unclear = True
+    assert any_blocked_unclear
+
+
+def test_a_plate_cutting_the_lens_rim_leaves_no_face_clear():
+    """A plate 3 mm in front of the lens covers the outer part of its disk (x > 4 mm of 5):
+    every facing face has segments that hit it (Embree says so), so none may be called
+    clear; a cone test that shrank the lens, or dropped the plate's pieces, would."""
+    from fluxcli.optics import visibility
+    from fluxcli.surface.mesh import merge
+
+    surf, views, occ = _scene()
+    rim = rectangle([7.0, 0.0, -3.0], [1, 0, 0], [0, 1, 0], (6.0, 30.0))
+    v, f = merge(surf, *occ, rim)
+    scene = OcclusionScene(v, f)
+    cam = views[0].camera
+    flags = visibility.clear_faces(visibility.occluder_tree(v, f, 0.5), surf.face_vertices_mm, surf.face_normals,
+                                   cam.center_mm, cam.aperture_radius_mm, 1e-3)
+    facing = np.einsum("fk,fk->f", surf.face_normals, cam.center_mm - surf.face_vertices_mm.mean(axis=1)) > 0
+    assert facing.sum() > 20 and np.all(flags[facing] == 0)
+    # and the rim does block part of every facing face's cone: the answer is right, not only safe
+    phi = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    L = cam.center_mm + 4.9 * (np.cos(phi)[:, None] * cam.right + np.sin(phi)[:, None] * cam.down)
+    for face in np.flatnonzero(facing):
+        o = surf.face_vertices_mm[face].mean(axis=0) + 1e-3 * surf.face_normals[face]
+        d = L - o
+        length = np.linalg.norm(d, axis=1)
+        assert scene.blocked(np.repeat(o[None], len(L), 0), d / length[:, None], length).any()

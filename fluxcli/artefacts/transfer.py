@@ -47,7 +47,9 @@ def efficiency(Tv: sp.csr_matrix, weight: float, areas_mm2: np.ndarray) -> float
     """Collection efficiency of one view: the fraction of the power of a uniformly glowing
     surface the view delivers to the sensor (area-weighted mean column sum)."""
     col = np.asarray(Tv.sum(axis=0)).ravel() * weight
-    return float(col @ areas_mm2 / areas_mm2.sum())
+    # numpy's own (pairwise) sum, not a BLAS dot: the same bits however many BLAS threads this
+    # process has (a Dask worker has one), so a cluster's build-T index matches the local one
+    return float(np.sum(col * areas_mm2) / areas_mm2.sum())
 
 
 def write_T(path: Path, *, T: sp.csr_matrix, T_per_view: list, view_kinds: list[str], weights: list[float],

@@ -16,6 +16,12 @@ Two estimators of the same integral (DESIGN.md section 3):
 
 Both share one pair filter: beta, the mirror window, and Embree visibility of the real
 segments (surface -> lens, or surface -> mirror -> lens).
+
+Fewer rays for the same accuracy (``lens``): faces whose every segment is provably clear
+are not cast (:mod:`fluxcli.optics.visibility`, T unchanged to the bit); each surface sample
+turns its lens pattern, so that an element's lens error averages over its samples; and with
+``LensSampling.target_column_error`` an element is cast in doubling rounds until its column's
+error estimate meets the target.
 """
 
 from __future__ import annotations
@@ -30,10 +36,11 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..surface.mesh import Surface, merge
+from . import visibility
 from .camera import PlaneMirror, ThinLensCamera, sunflower_disk
 from .raycast import OcclusionScene
 
-ALGORITHM_VERSION = "transfer-2"  # bump whenever the numbers an estimator gives change
+ALGORITHM_VERSION = "transfer-3"  # bump whenever the numbers an estimator gives change
 
 
 @dataclass(frozen=True)
@@ -54,6 +61,7 @@ class LensSampling:
     lens_samples_min: int = 32
     lens_samples_max: int = 2048
     lens_samples_per_blur_pixel: float = 4.0
+    target_column_error: float = 0.0  # adaptive rounds until the column's estimate <= this x its sum (0: off)
 
 
 @dataclass(frozen=True)
@@ -91,21 +99,23 @@ def subtriangle_barycentrics(n: int) -> tuple[np.ndarray, np.ndarray]:
     return np.column_stack([1 - ab.sum(axis=1), ab]), np.array(sign)
 
 
-def sample_faces(surface: Surface, face_ids: np.ndarray, n_sub: np.ndarray):
+def sample_faces(surface: Surface, face_ids: np.ndarray, n_sub: np.ndarray, return_faces: bool = False):
     """Sub-triangle centroid samples of the given faces.
 
     Returns points (S, 3) mm, normals (S, 3), element index (S,), the fraction of the
     element's area each sample stands for (S,), and the two edge vectors of each sample's
     sub-triangle (S, 2, 3), signed so that ``p + (a - 1/3) e0 + (b - 1/3) e1`` with
-    ``a, b >= 0, a + b <= 1`` covers exactly that sub-triangle.
+    ``a, b >= 0, a + b <= 1`` covers exactly that sub-triangle; with ``return_faces`` also
+    the face of each sample (S,).
     """
     tri = surface.face_vertices_mm
     normals = surface.face_normals
     areas = surface.face_areas_mm2
     el_area = surface.element_areas_mm2
-    out_p, out_n, out_e, out_w, out_edges = [], [], [], [], []
+    out_p, out_n, out_e, out_w, out_edges, out_f = [], [], [], [], [], []
     for n in np.unique(n_sub):
         f = face_ids[n_sub == n]
+        out_f.append(np.repeat(f, n * n))
         bary, sign = subtriangle_barycentrics(int(n))
         p = np.einsum("kc,fcd->fkd", bary, tri[f]).reshape(-1, 3)
         k = len(bary)
@@ -118,9 +128,11 @@ def sample_faces(surface: Surface, face_ids: np.ndarray, n_sub: np.ndarray):
         out_edges.append((edges[:, None] * sign[None, :, None, None]).reshape(-1, 2, 3))
     if not out_p:
         z = np.zeros((0, 3))
-        return z, z, np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 2, 3))
-    return (np.concatenate(out_p), np.concatenate(out_n), np.concatenate(out_e), np.concatenate(out_w),
-            np.concatenate(out_edges))
+        out = z, z, np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 2, 3))
+        return (*out, np.zeros(0, np.int64)) if return_faces else out
+    out = (np.concatenate(out_p), np.concatenate(out_n), np.concatenate(out_e), np.concatenate(out_w),
+           np.concatenate(out_edges))
+    return (*out, np.concatenate(out_f)) if return_faces else out
 
 
 def square_points(n: int) -> np.ndarray:
@@ -139,6 +151,32 @@ def triangle_jitter(n: int) -> np.ndarray:
     # decorrelate from the lens spiral, which is ordered by radius
     order = (np.arange(n) * 7919) % n if n % 7919 else np.arange(n)
     return np.column_stack([a, b])[order] - 1 / 3
+
+
+def lens_pattern(n: int, n_cap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The lens and surface points of a sample with ``n`` lens samples, and of its adaptive
+    rounds up to ``n_cap``: lens points on the unit disk, in the unit square and surface
+    offsets in the unit triangle, each (N, 2) with N = n 2^p <= max(n, n_cap).
+
+    Points ``[0, n)`` are round 0 (Vogel's spiral, the R2 square and the folded R2 jitter of
+    n points); round p >= 1 adds points ``[n 2^(p-1), n 2^p)``: a spiral of n 2^(p-1) points
+    turned by an irrational angle and its own jitter, so that every round is by itself an
+    evenly spread set and the rounds so far, weighted equally per ray, are one estimate.
+    The square points are one R2 sequence (any prefix is evenly spread)."""
+    total = n
+    while 2 * total <= n_cap:
+        total *= 2
+    disks, jits = [sunflower_disk(n)], [triangle_jitter(n)]
+    m, rnd = n, 1
+    while sum(len(d) for d in disks) < total:
+        turn = 2 * np.pi * ((rnd * 0.7548776662466927) % 1.0)
+        c, s_ = np.cos(turn), np.sin(turn)
+        d = sunflower_disk(m)
+        disks.append(d @ np.array([[c, s_], [-s_, c]]))
+        j = triangle_jitter(m)
+        jits.append(j[::-1] if rnd % 2 else j)
+        m, rnd = sum(len(d) for d in disks), rnd + 1
+    return np.concatenate(disks), square_points(total), np.concatenate(jits)
 
 
 def _candidate_faces(surface: Surface, view: View) -> np.ndarray:
@@ -271,20 +309,30 @@ class _LensPlan:
     jitter: np.ndarray
     chunks: list[tuple[int, int]]  # sample ranges [s0, s1), each whole elements
     rays: int
+    clear: np.ndarray  # (S,) uint8: which of the sample's segments are known clear (visibility.clear_faces)
+    spin: np.ndarray  # (S, 4): per sample the turn (cos, sin) of its disk pattern and the shift of its square one
+    margin_mm: float  # a mirror segment is known clear only this far (x2) in front of the mirror
+    target: float  # adaptive rounds: the column error target (0: one round)
+    n_cap: int  # adaptive rounds: lens samples per surface sample, at most
 
 
-def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: int) -> _LensPlan | None:
+def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: int,
+               tree: "visibility.LazyTree | None" = None, ray_offset_mm: float = 1e-3,
+               turn_patterns: bool = True) -> _LensPlan | None:
     """Surface samples, their lens-sampling regions and counts (vectorised over samples,
-    O(samples) work); the per-ray work is :func:`fluxcli.optics.transfer_kernel.lens_columns`."""
+    O(samples) work); the per-ray work is :func:`fluxcli.optics.transfer_kernel.lens_columns`.
+    With ``tree`` (the occluders), the faces whose every segment is clear are found
+    (:func:`fluxcli.optics.visibility.clear_faces`) and their rays are not cast, when the view
+    has enough rays per face to repay the test."""
     cam = view.camera
     faces = _candidate_faces(surface, view)
     if len(faces) == 0:
         return None
     n_sub = _lens_subdivisions(surface, faces, cam, s)
-    P, N, E, W, G = sample_faces(surface, faces, n_sub)
+    P, N, E, W, G, F = sample_faces(surface, faces, n_sub, return_faces=True)
     z = cam.axial(P)
     front = (z > 0) & (np.einsum("ij,ij->i", N, cam.center_mm - P) > -cam.aperture_radius_mm)
-    P, N, E, W, z, G = P[front], N[front], E[front], W[front], z[front], G[front]
+    P, N, E, W, z, G, F = P[front], N[front], E[front], W[front], z[front], G[front], F[front]
     disk_c, disk_r = _sampling_disks(cam, P, z)
     # Clip the sampling to the lens points whose rays land on the sensor: the focal-plane
     # hit is X = k L + (u/z) p (lateral, k = 1 - u/z), so the sensor's preimage on the lens
@@ -308,8 +356,8 @@ def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: in
     # grouped by element (stable: the sampling order within an element is kept), so that each
     # element's column is finished in one piece; one gather per array
     keep = hits[np.argsort(E[hits], kind="stable")]
-    P, N, E, W, z, G, lo, hi, dc, disk_r, k = (np.ascontiguousarray(x[keep])
-                                               for x in (P, N, E, W, z, G, lo, hi, dc, disk_r, k))
+    P, N, E, W, z, G, F, lo, hi, dc, disk_r, k = (np.ascontiguousarray(x[keep])
+                                                  for x in (P, N, E, W, z, G, F, lo, hi, dc, disk_r, k))
     box_area = np.prod(hi - lo, axis=1)
     use_box = box_area < 0.6 * np.pi * disk_r**2
     # the blur the sampled region paints, in pixels: sample its area at the requested density
@@ -321,17 +369,44 @@ def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: in
     n_lens = np.minimum(s.lens_samples_min * 2**level, s.lens_samples_max).astype(np.int64)
     area = np.where(use_box, box_area, np.pi * disk_r**2)
     dA = area / n_lens * W
-    # one pattern per distinct count: lens disk (sunflower), box (R2) and surface jitter
+    # one pattern per distinct count, with its adaptive rounds: lens disk, box and surface jitter
     counts = np.unique(n_lens)
-    starts = np.concatenate([[0], np.cumsum(counts)])
+    pats = [lens_pattern(int(n), s.lens_samples_max if s.target_column_error > 0 else int(n)) for n in counts]
+    starts = np.concatenate([[0], np.cumsum([len(p[0]) for p in pats])]).astype(np.int64)
     pat_off = starts[np.searchsorted(counts, n_lens)]
-    disk_unit = np.concatenate([sunflower_disk(int(n)) for n in counts]) if len(counts) else np.zeros((0, 2))
-    square_unit = np.concatenate([square_points(int(n)) for n in counts]) if len(counts) else np.zeros((0, 2))
-    jitter = np.concatenate([triangle_jitter(int(n)) for n in counts]) if len(counts) else np.zeros((0, 2))
+    disk_unit, square_unit, jitter = ((np.concatenate([p[i] for p in pats]) if pats else np.zeros((0, 2)))
+                                      for i in range(3))
     chunks = _element_chunks(E, n_lens, rays_per_batch)
+    clear = np.zeros(len(P), np.uint8)
+    margin = visibility.MARGIN_MM
+    if tree is not None and len(P) and n_lens.sum() >= visibility.MIN_RAYS_PER_FACE * len(faces):
+        used, at = np.unique(F, return_inverse=True)
+        occ = tree.get()
+        margin = occ.margin_mm
+        flags = visibility.clear_faces(occ, surface.face_vertices_mm[used], surface.face_normals[used],
+                                       cam.center_mm, cam.aperture_radius_mm, ray_offset_mm, view.mirror)
+        clear = np.ascontiguousarray(flags[at])
     return _LensPlan(P, N, G, dA, E.astype(np.int64), lo, hi, dc, disk_r, use_box, n_lens, pat_off,
                      np.ascontiguousarray(disk_unit), np.ascontiguousarray(square_unit), np.ascontiguousarray(jitter),
-                     chunks, int(n_lens.sum()))
+                     chunks, int(n_lens.sum()), clear, _spins(E, turn_patterns),
+                     margin, float(s.target_column_error),
+                     int(s.lens_samples_max))
+
+
+def _spins(elem: np.ndarray, turn: bool = True) -> np.ndarray:
+    """Per sample (sorted by element) a turn of the disk pattern and a shift of the square
+    pattern, from the sample's rank within its element (R2 sequence: the turns of an
+    element's samples are evenly spread): (S, 4) cos, sin, shift_x, shift_y.  With the
+    same points for every sample (``turn=False``, transfer-2) an element's lens error does
+    not average out over its surface samples: at 1024 x 1024 pixels the blurred mirror
+    views kept ~2 % L1 however many surface samples they had."""
+    if len(elem) == 0 or not turn:
+        return np.column_stack([np.ones(len(elem)), np.zeros((len(elem), 3))])
+    first = np.concatenate([[0], np.flatnonzero(np.diff(elem)) + 1])
+    rank = np.arange(len(elem)) - np.repeat(first, np.diff(np.concatenate([first, [len(elem)]])))
+    turn = 2 * np.pi * ((rank * 0.6180339887498949) % 1.0)
+    return np.ascontiguousarray(np.column_stack([np.cos(turn), np.sin(turn), (rank * 0.7548776662466927) % 1.0,
+                                                 (rank * 0.5698402909980532) % 1.0]))
 
 
 def _element_chunks(elem: np.ndarray, rays: np.ndarray, rays_per_chunk: int) -> list[tuple[int, int]]:
@@ -354,40 +429,22 @@ def _element_chunks(elem: np.ndarray, rays: np.ndarray, rays_per_chunk: int) -> 
 
 def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampling, eps: float,
                rays_per_batch: int, threads: int, progress: Callable[[float], None] | None,
-               checkpoint: "Checkpoint | None", view_index: int) -> tuple[sp.csr_matrix, np.ndarray, dict]:
+               checkpoint: "Checkpoint | None", view_index: int,
+               tree: "visibility.LazyTree | None" = None,
+               turn_patterns: bool = True) -> tuple[sp.csr_matrix, np.ndarray, dict]:
     """One view's T by the lens estimator: chunks of whole elements cast on ``threads``
     threads, columns placed by element (independent of which thread finished first)."""
     cam = view.camera
     n_pix = cam.nx * cam.ny
     shape = (n_pix, surface.n_elements)
-    plan = _lens_plan(surface, view, s, rays_per_batch)
+    plan = ((checkpoint.plan(view_index) if checkpoint is not None else None)
+            or _lens_plan(surface, view, s, rays_per_batch, tree, eps, turn_patterns))
     err = np.zeros(surface.n_elements)
     if plan is None or not plan.chunks or scene.native is None:
         if plan is not None and plan.chunks and scene.native is None:
             raise ValueError("nothing to cast against: the scene has no triangles")
         return sp.csr_matrix(shape), err, {"rays": 0.0, "surface_samples": 0.0, "rays_evaluated": 0.0}
-    from . import transfer_kernel  # numba: imported when T is built, not by every command
-
-    nat = scene.native
-    cam_arr = np.array([*cam.center_mm, *cam.axis, *cam.right, *cam.down, cam.focus_distance_mm,
-                        cam.focal_pixel_mm, cam.aperture_radius_mm**2, 0.0, 0.0])
-    m = view.mirror
-    mir = (np.array([1.0, *m.center_mm, *m.normal, *m.axis_u, *m.axis_v, *m.half_size_mm]) if m is not None
-           else np.zeros(15))
-    ap_dist = np.array([a.distance_mm for a in cam.apertures], float)
-    ap_r2 = np.array([a.radius_mm**2 for a in cam.apertures], float)
-    scratch = threading.local()
-
-    def run(chunk: tuple[int, int]):
-        if not hasattr(scratch, "even"):
-            scratch.even, scratch.odd = np.zeros(n_pix), np.zeros(n_pix)
-            scratch.mark, scratch.touched = np.zeros(n_pix, np.bool_), np.zeros(n_pix, np.int32)
-        return transfer_kernel.lens_columns(
-            nat.occluded16, nat.scene, cam_arr, mir, ap_dist, ap_r2, eps, plan.P, plan.N, plan.G, plan.dA,
-            plan.elem, plan.lo, plan.hi, plan.dc, plan.disk_r, plan.use_box, plan.n_lens, plan.pat_off, plan.disk_unit,
-            plan.square_unit, plan.jitter, chunk[0], chunk[1], n_pix, cam.nx, cam.ny,
-            scratch.even, scratch.odd, scratch.mark, scratch.touched, _NO_RECORD)
-
+    run = _lens_runner(view, scene, plan, eps)
     rays_of = [int(plan.n_lens[a:b].sum()) for a, b in plan.chunks]
     if checkpoint is not None and not 0 < checkpoint.rays_per_block < plan.rays:
         checkpoint = None  # a view smaller than one block is not worth files
@@ -425,11 +482,91 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
     T = sp.csc_matrix((val, pix, indptr), shape=shape)
     T.eliminate_zeros()
     stats = {"rays": float(sum(r[5] for r in results)), "surface_samples": float(len(plan.P)),
-             "rays_evaluated": float(plan.rays)}
+             "rays_evaluated": float(sum(r[6] for r in results))}
     return T.tocsr(), err, stats
 
 
 _NO_RECORD = np.zeros((0, 7), np.float32)
+
+
+def _lens_runner(view: View, scene: OcclusionScene, plan: _LensPlan, eps: float) -> Callable[[tuple[int, int]], tuple]:
+    """``run(chunk)``: cast one chunk ``(s0, s1)`` of ``plan`` (any thread: scratch per thread);
+    its result is (elements, column starts, pixels, values, column errors, rays cast, rays, -)."""
+    from . import transfer_kernel  # numba: imported when T is built, not by every command
+
+    cam = view.camera
+    n_pix = cam.nx * cam.ny
+    nat = scene.native
+    cam_arr = np.array([*cam.center_mm, *cam.axis, *cam.right, *cam.down, cam.focus_distance_mm,
+                        cam.focal_pixel_mm, cam.aperture_radius_mm**2, 0.0, 0.0])
+    m = view.mirror
+    mir = (np.array([1.0, *m.center_mm, *m.normal, *m.axis_u, *m.axis_v, *m.half_size_mm]) if m is not None
+           else np.zeros(15))
+    ap_dist = np.array([a.distance_mm for a in cam.apertures], float)
+    ap_r2 = np.array([a.radius_mm**2 for a in cam.apertures], float)
+    scratch = threading.local()
+
+    def run(chunk: tuple[int, int]):
+        if not hasattr(scratch, "even"):
+            scratch.even, scratch.odd = np.zeros(n_pix), np.zeros(n_pix)
+            scratch.mark, scratch.touched = np.zeros(n_pix, np.bool_), np.zeros(n_pix, np.int32)
+        return transfer_kernel.lens_columns(
+            nat.occluded16, nat.scene, cam_arr, mir, ap_dist, ap_r2, eps, plan.P, plan.N, plan.G, plan.dA,
+            plan.elem, plan.lo, plan.hi, plan.dc, plan.disk_r, plan.use_box, plan.n_lens, plan.pat_off, plan.disk_unit,
+            plan.square_unit, plan.jitter, chunk[0], chunk[1], n_pix, cam.nx, cam.ny,
+            scratch.even, scratch.odd, scratch.mark, scratch.touched, _NO_RECORD, plan.clear, plan.margin_mm,
+            plan.target, plan.n_cap, plan.spin)
+
+    return run
+
+
+# ------------------------------------------------------------------ one block at a time (cluster tasks)
+def lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: int, occluders: list[Surface] | None = None,
+              ray_offset_mm: float = 1e-3) -> _LensPlan | None:
+    """One view's lens-estimator plan (surface samples, their lens regions, the chunks of whole
+    elements), the same :func:`build_transfer` makes; None when no face can reach the lens.
+    With ``occluders`` (the scene's other blocking geometry) it also marks the faces whose
+    segments are provably clear, so that casting it skips them (the same bytes either way)."""
+    tree = None
+    if occluders is not None:
+        v, f = merge(surface, *occluders)
+        tree = visibility.LazyTree(v, f, _piece_mm(surface, v)) if len(f) else None
+    return _lens_plan(surface, view, s, rays_per_batch, tree, ray_offset_mm)
+
+
+def lens_chunks(plan: _LensPlan | None) -> tuple[list[tuple[int, int]], list[int]]:
+    """A view's chunks (sample spans of whole elements, the unit one thread casts) and the
+    rays of each: what :func:`lens_blocks` groups."""
+    if plan is None:
+        return [], []
+    return list(plan.chunks), [int(plan.n_lens[a:b].sum()) for a, b in plan.chunks]
+
+
+def lens_blocks(chunks: list[tuple[int, int]], chunk_rays: list[int], rays_per_block: int) -> list[list[tuple[int, int]]]:
+    """The checkpoint blocks of one view (from :func:`lens_chunks`): per block its chunks'
+    sample spans, exactly what :func:`build_transfer` hands ``Checkpoint.load``/``save`` with
+    this ``rays_per_block``; [] when it keeps no blocks for the view (less than one block)."""
+    if not chunks or not 0 < rays_per_block < sum(chunk_rays):
+        return []
+    return [[chunks[i] for i in block] for block in _blocks(list(chunk_rays), rays_per_block)]
+
+
+def cast_lens_block(view: View, scene: OcclusionScene, plan: _LensPlan, eps: float, spans: list[tuple[int, int]],
+                    progress: Callable[[float], None] | None = None) -> list:
+    """Cast one block (an entry of :func:`lens_blocks`) of ``plan`` (:func:`lens_plan`) on this thread: per chunk the result
+    :func:`build_transfer` gets for it, in the form ``Checkpoint.save`` takes (the chunks'
+    numbers do not depend on where or in which order they are cast: no random stream, fixed
+    sample patterns).  ``scene`` is ``OcclusionScene(*merge(surface, *occluders))``;
+    ``progress`` gets the fraction of the block's rays done after each chunk."""
+    run = _lens_runner(view, scene, plan, eps)
+    rays_of = [int(plan.n_lens[a:b].sum()) for a, b in spans]
+    out, done = [], 0
+    for span, rays in zip(spans, rays_of):
+        out.append(run(span))
+        done += rays
+        if progress:
+            progress(done / max(sum(rays_of), 1))
+    return out
 
 
 def _blocks(rays_of: list[int], rays_per_block: int) -> list[list[int]]:
@@ -532,6 +669,11 @@ class Checkpoint:
     def save(self, view: int, spans: list[tuple[int, int]], results: list) -> None:  # pragma: no cover - interface
         pass
 
+    def plan(self, view: int):
+        """The view's plan if it was already made (:func:`lens_plan` with the same inputs, e.g.
+        while a cluster cast the blocks), else None: the build makes it."""
+        return None
+
 
 def default_threads() -> int:
     """Threads one T build may use: the cores this process may run on."""
@@ -554,6 +696,8 @@ def build_transfer(
     progress: Callable[[float], None] | None = None,
     threads: int | None = None,
     checkpoint: Checkpoint | None = None,
+    skip_clear: bool = True,
+    turn_patterns: bool = True,
 ) -> TransferResult:
     """Compute T for ``surface`` seen by ``views``, with ``surface`` and ``occluders`` blocking.
 
@@ -566,6 +710,11 @@ def build_transfer(
     progress : called with the fraction done (0..1) after every chunk of rays, for a progress bar.
     threads : threads casting rays (default: the cores available); the result does not depend on it.
     checkpoint : keeps finished blocks of a long build (lens estimator), see :class:`Checkpoint`.
+    skip_clear : lens estimator: do not cast the rays of faces whose every segment to the lens
+        is provably clear (:mod:`fluxcli.optics.visibility`); T is the same to the bit either way.
+    turn_patterns : lens estimator: turn each surface sample's lens pattern by its own angle
+        (False: the same lens points for every sample, as transfer-2 did; for the benchmark's
+        before/after figures).
 
     Returns
     -------
@@ -577,6 +726,9 @@ def build_transfer(
     threads = threads or default_threads()
     v, f = merge(surface, *occluders)
     scene = OcclusionScene(v, f)
+    tree = None
+    if estimator == "lens" and skip_clear and len(f):
+        tree = visibility.LazyTree(v, f, _piece_mm(surface, v))
     n_pix = views[0].camera.nx * views[0].camera.ny
     shape = (n_pix, surface.n_elements)
     per_view, errors, stats = [], [], {}
@@ -587,7 +739,7 @@ def build_transfer(
 
         if estimator == "lens":
             T, err, st = _lens_view(surface, view, scene, lens_sampling, ray_offset_mm, rays_per_batch, threads,
-                                    sub, checkpoint, k)
+                                    sub, checkpoint, k, tree, turn_patterns)
         else:
             T, st = _pairwise_view(surface, view, scene, pairwise_sampling, ray_offset_mm, rays_per_batch, shape,
                                    sub)
@@ -602,6 +754,15 @@ def build_transfer(
     # the views' errors add at most (triangle inequality)
     total_err = sum(e * view.weight for e, view in zip(errors, views))
     return TransferResult(list(views), per_view, total.tocsr(), stats, errors, total_err)
+
+
+def _piece_mm(surface: Surface, vertices_mm: np.ndarray) -> float:
+    """Occluders are cut into pieces about the size of the subject's faces (a ball around a
+    whole stage plate would touch every lens cone), but no finer than 1/64 of the scene."""
+    tri = surface.face_vertices_mm
+    edge = float(np.median(np.linalg.norm(tri[:, 1] - tri[:, 0], axis=1))) if len(tri) else 1.0
+    extent = float(np.ptp(vertices_mm, axis=0).max()) if len(vertices_mm) else 1.0
+    return max(2 * edge, extent / 64)
 
 
 def _pairwise_view(surface: Surface, view: View, scene: OcclusionScene, s: PairwiseSampling, eps: float,

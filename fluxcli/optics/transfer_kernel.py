@@ -9,7 +9,9 @@ Nothing per ray is stored: memory is O(pixels) scratch per thread plus the outpu
 Columns are summed in a fixed order (samples in order, lens samples in order), so the
 bytes do not depend on threads or timing.  Each ray also goes into one of two halves
 (even / odd lens sample); ``sum_pixels |half_even - half_odd|`` per column is the error
-estimate stored with T (:mod:`fluxcli.optics.transfer`).
+estimate stored with T (:mod:`fluxcli.optics.transfer`).  Segments known to be clear
+(:mod:`fluxcli.optics.visibility`) are not cast but added in the same order; with an error
+target an element is cast in doubling rounds until its estimate meets it.
 """
 
 from __future__ import annotations
@@ -21,12 +23,14 @@ import numpy as np
 
 from .embree_native import new_packet, packet_cast, packet_put
 
+_QUEUE = 64  # rays queued before a flush (known-clear ones need no packet slot)
+
 
 @nb.njit(nogil=True, cache=True)
 def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
                  P, N, G, dA, elem, lo, hi, dc, disk_r, use_box, n_lens, pat_off,
                  disk_unit, square_unit, jitter, s0, s1, n_pix, nx, ny,
-                 acc_even, acc_odd, mark, touched, record):
+                 acc_even, acc_odd, mark, touched, record, clear, margin, target, n_cap, spin):
     """Columns of the elements whose samples are ``[s0, s1)`` (whole elements, sorted).
 
     Parameters
@@ -49,6 +53,21 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
     record : float32 (R, 7), usually (0, 7): the first R segments cast are written here
         (origin, unit direction, length) so that a benchmark can cast the very same rays
         through embreex.
+    clear : uint8 (S,): bit 1 when every surface -> lens (surface -> mirror) segment of the
+        sample is known clear, bit 2 when every mirror -> lens segment is
+        (:func:`fluxcli.optics.visibility.clear_faces`); those segments are not cast.
+    margin : mm; a mirror segment is taken as known clear only when it ends at least
+        2 x ``margin`` in front of the mirror plane (its offset is not lost to rounding).
+    spin : float64 (S, 4): per sample, the cosine and sine of the turn given to its disk
+        pattern and the shift (mod 1) given to its square pattern, so that the samples of an
+        element do not all use the same lens points (their lens errors then average out).
+    target, n_cap : adaptive sampling.  An element's samples are cast in rounds: round 0
+        takes lens samples ``[0, n_lens)`` of each sample's nested pattern, round p
+        ``[n_lens 2^(p-1), n_lens 2^p)`` (the weights of all rounds so far halved, exactly);
+        after each round the column's error estimate ``sum |even - odd|`` is compared with
+        ``target`` x the column sum, and the element stops once it is met or when another
+        round would exceed ``n_cap`` lens samples for one of its samples (``target <= 0``:
+        one round).  The patterns must hold ``n_cap`` points from ``pat_off``.
 
     Returns
     -------
@@ -57,11 +76,14 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
     """
     pk, pku, valid = new_packet()
     pk2, pku2, _ = new_packet()
-    seg2 = np.empty((16, 7), np.float64)  # mirror views: the mirror -> lens segment of each queued ray
-    q_pix = np.empty(16, np.int64)
-    q_w = np.empty(16, np.float64)
-    q_odd = np.empty(16, np.int64)
-    m = 0  # rays queued in the packet
+    seg2 = np.empty((_QUEUE, 7), np.float64)  # mirror views: the mirror -> lens segment of each queued ray
+    q_pix = np.empty(_QUEUE, np.int64)
+    q_w = np.empty(_QUEUE, np.float64)
+    q_odd = np.empty(_QUEUE, np.int64)
+    q_slot = np.empty(_QUEUE, np.int64)  # the ray's slot in the packet, -1 when known clear
+    q_need2 = np.empty(_QUEUE, np.bool_)  # mirror views: the mirror -> lens segment must be cast
+    m = 0  # rays queued
+    n_slot = 0  # of them, in the packet
     cx, cy, cz = cam[0], cam[1], cam[2]
     ax, ay, az = cam[3], cam[4], cam[5]
     rx, ry, rz = cam[6], cam[7], cam[8]
@@ -72,7 +94,7 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
     n_rays = 0
     for s in range(s0, s1):
         n_rays += n_lens[s]
-    cap = max(n_rays, 1)
+    cap = max(n_rays, 1)  # grows when later rounds touch more pixels
     out_pix = np.empty(cap, np.int32)
     out_val = np.empty(cap, np.float64)
     n_el = 1
@@ -87,135 +109,202 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
     k_el = 0
     cast = 0
     n_rec = 0
-    for s in range(s0, s1):
-        px, py, pz = P[s, 0], P[s, 1], P[s, 2]
-        nx_, ny_, nz_ = N[s, 0], N[s, 1], N[s, 2]
-        n = n_lens[s]
-        base = pat_off[s]
-        r = disk_r[s]
-        for k in range(n):
-            # the lens point, in lens-plane coordinates (right, down) then in the world
-            if use_box[s]:
-                ox2 = lo[s, 0] + (hi[s, 0] - lo[s, 0]) * square_unit[base + k, 0]
-                oy2 = lo[s, 1] + (hi[s, 1] - lo[s, 1]) * square_unit[base + k, 1]
-                ex, ey = ox2 - dc[s, 0], oy2 - dc[s, 1]
-                if ex * ex + ey * ey > r * r:
-                    continue
-            else:
-                ox2 = dc[s, 0] + r * disk_unit[base + k, 0]
-                oy2 = dc[s, 1] + r * disk_unit[base + k, 1]
-            offx = ox2 * rx + oy2 * dx_
-            offy = ox2 * ry + oy2 * dy_
-            offz = ox2 * rz + oy2 * dz_
-            if offx * offx + offy * offy + offz * offz > R2:
-                continue
-            Lx, Ly, Lz = cx + offx, cy + offy, cz + offz
-            # the surface point: this ray's own point of the sample's sub-triangle
-            ja, jb = jitter[base + k, 0], jitter[base + k, 1]
-            qx = px + ja * G[s, 0, 0] + jb * G[s, 1, 0]
-            qy = py + ja * G[s, 0, 1] + jb * G[s, 1, 1]
-            qz = pz + ja * G[s, 0, 2] + jb * G[s, 1, 2]
-            vx, vy, vz = Lx - qx, Ly - qy, Lz - qz
-            r2 = vx * vx + vy * vy + vz * vz
-            inv = 1.0 / math.sqrt(r2)
-            cos_s = (nx_ * vx + ny_ * vy + nz_ * vz) * inv
-            if not cos_s > 0:
-                continue
-            cos_l = -(vx * ax + vy * ay + vz * az) * inv
-            w = cos_s * cos_l / (math.pi * r2) * dA[s]
-            if not w > 0:
-                continue
-            # the pixel: where the line meets the front focal plane
-            zz = (qx - cx) * ax + (qy - cy) * ay + (qz - cz) * az
-            t = u / zz
-            hx, hy, hz = Lx + t * (qx - Lx) - fx, Ly + t * (qy - Ly) - fy, Lz + t * (qz - Lz) - fz
-            col = (hx * rx + hy * ry + hz * rz) / pf + nx / 2
-            row = (hx * dx_ + hy * dy_ + hz * dz_) / pf + ny / 2
-            if not (col >= 0 and row >= 0 and col < nx and row < ny):
-                continue
-            pix = int(math.floor(row)) * nx + int(math.floor(col))
-            # beta: inside every extra aperture nearer the lens than the point
-            ok = True
-            for a in range(len(ap_dist)):
-                sa = ap_dist[a] / zz
-                if sa >= 1:
-                    continue
-                x0 = Lx + sa * (qx - Lx) - cx
-                x1 = Ly + sa * (qy - Ly) - cy
-                x2 = Lz + sa * (qz - Lz) - cz
-                along = x0 * ax + x1 * ay + x2 * az
-                q0, q1, q2 = x0 - along * ax, x1 - along * ay, x2 - along * az
-                if q0 * q0 + q1 * q1 + q2 * q2 > ap_r2[a]:
-                    ok = False
-                    break
-            if not ok:
-                continue
-            # alpha: the segment(s) to the lens are clear, cast 16 at a time (rays of one
-            # surface point are coherent: one packet traversal costs far less than 16 rays)
-            Ox, Oy, Oz = qx + eps * nx_, qy + eps * ny_, qz + eps * nz_
-            ux, uy, uz = Lx - Ox, Ly - Oy, Lz - Oz
-            if not has_mirror:
-                length = math.sqrt(ux * ux + uy * uy + uz * uz)
-                packet_put(pk, pku, m, Ox, Oy, Oz, ux / length, uy / length, uz / length, length)
-                if n_rec < len(record):
-                    _record(record, n_rec, Ox, Oy, Oz, ux / length, uy / length, uz / length, length)
-                    n_rec += 1
-            else:
-                mnx, mny, mnz = mir[4], mir[5], mir[6]
-                denom = ux * mnx + uy * mny + uz * mnz
-                tm = ((mir[1] - Ox) * mnx + (mir[2] - Oy) * mny + (mir[3] - Oz) * mnz) / denom
-                if not (tm > 0 and tm < 1):
-                    continue
-                Mx, My, Mz = Ox + tm * ux, Oy + tm * uy, Oz + tm * uz
-                m0, m1, m2 = Mx - mir[1], My - mir[2], Mz - mir[3]
-                if abs(m0 * mir[7] + m1 * mir[8] + m2 * mir[9]) > mir[13]:
-                    continue
-                if abs(m0 * mir[10] + m1 * mir[11] + m2 * mir[12]) > mir[14]:
-                    continue
-                dist = (Lx - mir[1]) * mnx + (Ly - mir[2]) * mny + (Lz - mir[3]) * mnz
-                Rx, Ry, Rz = Lx - 2 * dist * mnx, Ly - 2 * dist * mny, Lz - 2 * dist * mnz  # the real lens point
-                s1x, s1y, s1z = Mx - Ox, My - Oy, Mz - Oz
-                l1 = math.sqrt(s1x * s1x + s1y * s1y + s1z * s1z)
-                s2x, s2y, s2z = Rx - Mx, Ry - My, Rz - Mz
-                l2 = math.sqrt(s2x * s2x + s2y * s2y + s2z * s2z)
-                e2x, e2y, e2z = s2x / l2, s2y / l2, s2z / l2
-                # surface -> mirror now; mirror -> lens for those that pass (second packet)
-                packet_put(pk, pku, m, Ox, Oy, Oz, s1x / l1, s1y / l1, s1z / l1, l1 - eps)
-                if n_rec < len(record):
-                    _record(record, n_rec, Ox, Oy, Oz, s1x / l1, s1y / l1, s1z / l1, l1 - eps)
-                    n_rec += 1
-                seg2[m, 0], seg2[m, 1], seg2[m, 2] = Mx + eps * e2x, My + eps * e2y, Mz + eps * e2z
-                seg2[m, 3], seg2[m, 4], seg2[m, 5], seg2[m, 6] = e2x, e2y, e2z, l2 - eps
-            q_pix[m] = pix
-            q_w[m] = w
-            q_odd[m] = k % 2
-            m += 1
-            if m == 16:
-                cast, n_touched, n_rec = _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, has_mirror, seg2, q_pix,
-                                                q_w, q_odd, acc_even, acc_odd, mark, touched, n_touched, cast,
-                                                record, n_rec)
-                m = 0
-        if m > 0:  # the surface point's last rays
-            cast, n_touched, n_rec = _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, has_mirror, seg2, q_pix, q_w,
-                                            q_odd, acc_even, acc_odd, mark, touched, n_touched, cast, record, n_rec)
-            m = 0
-        if s + 1 == s1 or elem[s + 1] != elem[s]:  # the element's column is complete
-            order = np.sort(touched[:n_touched])
+    n_rays = 0
+    e0 = s0  # the element's samples are [e0, e1)
+    while e0 < s1:
+        e1 = e0 + 1
+        while e1 < s1 and elem[e1] == elem[e0]:
+            e1 += 1
+        last_round = 0
+        if target > 0:
+            last_round = 62
+            for s in range(e0, e1):
+                q = 0
+                while (n_lens[s] << (q + 1)) <= n_cap:
+                    q += 1
+                last_round = min(last_round, q)
+        rnd = 0
+        while True:
+            scale = 1.0 / (1 << rnd)
+            for s in range(e0, e1):
+                px, py, pz = P[s, 0], P[s, 1], P[s, 2]
+                nx_, ny_, nz_ = N[s, 0], N[s, 1], N[s, 2]
+                k_start = 0 if rnd == 0 else n_lens[s] << (rnd - 1)
+                k_end = n_lens[s] << rnd
+                n_rays += k_end - k_start
+                base = pat_off[s]
+                r = disk_r[s]
+                dA_s = dA[s] * scale
+                clear1 = (clear[s] & 1) != 0
+                clear2 = (clear[s] & 2) != 0
+                for k in range(k_start, k_end):
+                    # the lens point, in lens-plane coordinates (right, down) then in the world
+                    if use_box[s]:
+                        ux_ = square_unit[base + k, 0] + spin[s, 2]
+                        uy_ = square_unit[base + k, 1] + spin[s, 3]
+                        ux_ -= math.floor(ux_)
+                        uy_ -= math.floor(uy_)
+                        ox2 = lo[s, 0] + (hi[s, 0] - lo[s, 0]) * ux_
+                        oy2 = lo[s, 1] + (hi[s, 1] - lo[s, 1]) * uy_
+                        ex, ey = ox2 - dc[s, 0], oy2 - dc[s, 1]
+                        if ex * ex + ey * ey > r * r:
+                            continue
+                    else:
+                        du, dv = disk_unit[base + k, 0], disk_unit[base + k, 1]
+                        ox2 = dc[s, 0] + r * (spin[s, 0] * du - spin[s, 1] * dv)
+                        oy2 = dc[s, 1] + r * (spin[s, 1] * du + spin[s, 0] * dv)
+                    offx = ox2 * rx + oy2 * dx_
+                    offy = ox2 * ry + oy2 * dy_
+                    offz = ox2 * rz + oy2 * dz_
+                    if offx * offx + offy * offy + offz * offz > R2:
+                        continue
+                    Lx, Ly, Lz = cx + offx, cy + offy, cz + offz
+                    # the surface point: this ray's own point of the sample's sub-triangle
+                    ja, jb = jitter[base + k, 0], jitter[base + k, 1]
+                    qx = px + ja * G[s, 0, 0] + jb * G[s, 1, 0]
+                    qy = py + ja * G[s, 0, 1] + jb * G[s, 1, 1]
+                    qz = pz + ja * G[s, 0, 2] + jb * G[s, 1, 2]
+                    vx, vy, vz = Lx - qx, Ly - qy, Lz - qz
+                    r2 = vx * vx + vy * vy + vz * vz
+                    inv = 1.0 / math.sqrt(r2)
+                    cos_s = (nx_ * vx + ny_ * vy + nz_ * vz) * inv
+                    if not cos_s > 0:
+                        continue
+                    cos_l = -(vx * ax + vy * ay + vz * az) * inv
+                    w = cos_s * cos_l / (math.pi * r2) * dA_s
+                    if not w > 0:
+                        continue
+                    # the pixel: where the line meets the front focal plane
+                    zz = (qx - cx) * ax + (qy - cy) * ay + (qz - cz) * az
+                    t = u / zz
+                    hx, hy, hz = Lx + t * (qx - Lx) - fx, Ly + t * (qy - Ly) - fy, Lz + t * (qz - Lz) - fz
+                    col = (hx * rx + hy * ry + hz * rz) / pf + nx / 2
+                    row = (hx * dx_ + hy * dy_ + hz * dz_) / pf + ny / 2
+                    if not (col >= 0 and row >= 0 and col < nx and row < ny):
+                        continue
+                    pix = int(math.floor(row)) * nx + int(math.floor(col))
+                    # beta: inside every extra aperture nearer the lens than the point
+                    ok = True
+                    for a in range(len(ap_dist)):
+                        sa = ap_dist[a] / zz
+                        if sa >= 1:
+                            continue
+                        x0 = Lx + sa * (qx - Lx) - cx
+                        x1 = Ly + sa * (qy - Ly) - cy
+                        x2 = Lz + sa * (qz - Lz) - cz
+                        along = x0 * ax + x1 * ay + x2 * az
+                        q0, q1, q2 = x0 - along * ax, x1 - along * ay, x2 - along * az
+                        if q0 * q0 + q1 * q1 + q2 * q2 > ap_r2[a]:
+                            ok = False
+                            break
+                    if not ok:
+                        continue
+                    # alpha: the segment(s) to the lens are clear, cast 16 at a time (rays of one
+                    # surface point are coherent: one packet traversal costs far less than 16 rays)
+                    Ox, Oy, Oz = qx + eps * nx_, qy + eps * ny_, qz + eps * nz_
+                    ux, uy, uz = Lx - Ox, Ly - Oy, Lz - Oz
+                    if not has_mirror:
+                        if clear1:
+                            q_slot[m] = -1
+                        else:
+                            length = math.sqrt(ux * ux + uy * uy + uz * uz)
+                            packet_put(pk, pku, n_slot, Ox, Oy, Oz, ux / length, uy / length, uz / length, length)
+                            if n_rec < len(record):
+                                _record(record, n_rec, Ox, Oy, Oz, ux / length, uy / length, uz / length, length)
+                                n_rec += 1
+                            q_slot[m] = n_slot
+                            n_slot += 1
+                    else:
+                        mnx, mny, mnz = mir[4], mir[5], mir[6]
+                        denom = ux * mnx + uy * mny + uz * mnz
+                        tm = ((mir[1] - Ox) * mnx + (mir[2] - Oy) * mny + (mir[3] - Oz) * mnz) / denom
+                        if not (tm > 0 and tm < 1):
+                            continue
+                        Mx, My, Mz = Ox + tm * ux, Oy + tm * uy, Oz + tm * uz
+                        m0, m1, m2 = Mx - mir[1], My - mir[2], Mz - mir[3]
+                        if abs(m0 * mir[7] + m1 * mir[8] + m2 * mir[9]) > mir[13]:
+                            continue
+                        if abs(m0 * mir[10] + m1 * mir[11] + m2 * mir[12]) > mir[14]:
+                            continue
+                        dist = (Lx - mir[1]) * mnx + (Ly - mir[2]) * mny + (Lz - mir[3]) * mnz
+                        Rx, Ry, Rz = Lx - 2 * dist * mnx, Ly - 2 * dist * mny, Lz - 2 * dist * mnz  # the real lens point
+                        s1x, s1y, s1z = Mx - Ox, My - Oy, Mz - Oz
+                        l1 = math.sqrt(s1x * s1x + s1y * s1y + s1z * s1z)
+                        s2x, s2y, s2z = Rx - Mx, Ry - My, Rz - Mz
+                        l2 = math.sqrt(s2x * s2x + s2y * s2y + s2z * s2z)
+                        e2x, e2y, e2z = s2x / l2, s2y / l2, s2z / l2
+                        # both segments end ``eps`` from the mirror along the ray: known clear only when
+                        # that is well in front of the plane
+                        far = eps * abs(denom) >= 2 * margin * math.sqrt(ux * ux + uy * uy + uz * uz)
+                        # surface -> mirror now; mirror -> lens for those that pass (second packet)
+                        if clear1 and far:
+                            q_slot[m] = -1
+                        else:
+                            packet_put(pk, pku, n_slot, Ox, Oy, Oz, s1x / l1, s1y / l1, s1z / l1, l1 - eps)
+                            if n_rec < len(record):
+                                _record(record, n_rec, Ox, Oy, Oz, s1x / l1, s1y / l1, s1z / l1, l1 - eps)
+                                n_rec += 1
+                            q_slot[m] = n_slot
+                            n_slot += 1
+                        q_need2[m] = not (clear2 and far)
+                        seg2[m, 0], seg2[m, 1], seg2[m, 2] = Mx + eps * e2x, My + eps * e2y, Mz + eps * e2z
+                        seg2[m, 3], seg2[m, 4], seg2[m, 5], seg2[m, 6] = e2x, e2y, e2z, l2 - eps
+                    q_pix[m] = pix
+                    q_w[m] = w
+                    q_odd[m] = k % 2
+                    m += 1
+                    if n_slot == 16 or m == _QUEUE:
+                        cast, n_touched, n_rec = _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, n_slot, has_mirror, seg2,
+                                                        q_pix, q_w, q_odd, q_slot, q_need2, acc_even, acc_odd, mark, touched,
+                                                        n_touched, cast, record, n_rec)
+                        m = 0
+                        n_slot = 0
+                if m > 0:  # the surface point's last rays
+                    cast, n_touched, n_rec = _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, n_slot, has_mirror,
+                                                    seg2, q_pix, q_w, q_odd, q_slot, q_need2, acc_even, acc_odd, mark,
+                                                    touched, n_touched, cast, record, n_rec)
+                    m = 0
+                    n_slot = 0
+            if rnd >= last_round:
+                break
             err = 0.0
+            tot = 0.0
             for i in range(n_touched):
-                q = order[i]
-                out_pix[nnz] = q
-                out_val[nnz] = acc_even[q] + acc_odd[q]
+                q = touched[i]
                 err += abs(acc_even[q] - acc_odd[q])
-                nnz += 1
-                acc_even[q] = 0.0
-                acc_odd[q] = 0.0
-                mark[q] = False
-            elements[k_el] = elem[s]
-            col_err[k_el] = err
-            k_el += 1
-            starts[k_el] = nnz
-            n_touched = 0
+                tot += acc_even[q] + acc_odd[q]
+            if err <= target * tot:
+                break
+            for i in range(n_touched):  # the next round's rays weigh half as much: so do these
+                q = touched[i]
+                acc_even[q] *= 0.5
+                acc_odd[q] *= 0.5
+            rnd += 1
+        # the element's column is complete
+        if nnz + n_touched > len(out_pix):
+            grown = max(2 * len(out_pix), nnz + n_touched)
+            p2 = np.empty(grown, np.int32)
+            v2 = np.empty(grown, np.float64)
+            p2[:nnz] = out_pix[:nnz]
+            v2[:nnz] = out_val[:nnz]
+            out_pix, out_val = p2, v2
+        order = np.sort(touched[:n_touched])
+        err = 0.0
+        for i in range(n_touched):
+            q = order[i]
+            out_pix[nnz] = q
+            out_val[nnz] = acc_even[q] + acc_odd[q]
+            err += abs(acc_even[q] - acc_odd[q])
+            nnz += 1
+            acc_even[q] = 0.0
+            acc_odd[q] = 0.0
+            mark[q] = False
+        elements[k_el] = elem[e0]
+        col_err[k_el] = err
+        k_el += 1
+        starts[k_el] = nnz
+        n_touched = 0
+        e0 = e1
     return elements, starts, out_pix[:nnz].copy(), out_val[:nnz].copy(), col_err, cast, n_rays, n_rec
 
 
@@ -227,20 +316,22 @@ def _record(record, i, ox, oy, oz, dx, dy, dz, length):
 
 
 @nb.njit(nogil=True, cache=True)
-def _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, has_mirror, seg2, q_pix, q_w, q_odd, acc_even, acc_odd, mark,
-           touched, n_touched, cast, record, n_rec):
-    """Cast the ``m`` queued rays (for a mirror view: then the mirror -> lens segments of those
-    that reach the mirror) and add the visible ones, in queue order, into the column."""
-    packet_cast(fn16, scene, pk, valid, m)
-    cast += m
-    clear = np.empty(16, np.bool_)
+def _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, n_slot, has_mirror, seg2, q_pix, q_w, q_odd, q_slot, q_need2,
+           acc_even, acc_odd, mark, touched, n_touched, cast, record, n_rec):
+    """Cast the ``n_slot`` packed rays of the ``m`` queued ones (the others are known clear; for
+    a mirror view then the mirror -> lens segments of those that reach the mirror and are not
+    known clear, 16 at a time) and add the visible ones, in queue order, into the column."""
+    if n_slot > 0:
+        packet_cast(fn16, scene, pk, valid, n_slot)
+        cast += n_slot
+    clear = np.empty(_QUEUE, np.bool_)
     for j in range(m):
-        clear[j] = not pk[128 + j] < 0
+        clear[j] = q_slot[j] < 0 or not pk[128 + q_slot[j]] < 0
     if has_mirror:
         idx = np.empty(16, np.int64)
         m2 = 0
         for j in range(m):
-            if clear[j]:
+            if clear[j] and q_need2[j]:
                 packet_put(pk2, pku2, m2, seg2[j, 0], seg2[j, 1], seg2[j, 2], seg2[j, 3], seg2[j, 4], seg2[j, 5],
                            seg2[j, 6])
                 if n_rec < len(record):
@@ -249,6 +340,12 @@ def _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, has_mirror, seg2, q_pix, q
                     n_rec += 1
                 idx[m2] = j
                 m2 += 1
+                if m2 == 16:
+                    packet_cast(fn16, scene, pk2, valid, m2)
+                    cast += m2
+                    for i in range(m2):
+                        clear[idx[i]] = not pk2[128 + i] < 0
+                    m2 = 0
         if m2 > 0:
             packet_cast(fn16, scene, pk2, valid, m2)
             cast += m2

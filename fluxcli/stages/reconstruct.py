@@ -248,6 +248,8 @@ class Grid:
     n_elements: int
     areas: np.ndarray | None = None  # (n_unknowns,) mm²: priors act on exitance
     surface: object = None  # the elements' surface
+    paths: list | None = None  # per pose, the T cache file Ts[k] was read from (vertices: the fine T)
+    vmap: "VertexMap | None" = None  # vertices: how the fine T gives T per vertex and per element
     maps: list | None = None  # vertices: per pose the ElementMap (parent is then None)
 
     def parts(self, k: int | None = None):
@@ -272,6 +274,25 @@ class ElementMap:
     areas: np.ndarray
 
 
+@dataclass
+class VertexMap:
+    """Pose-independent maps of the vertex unknowns (no T inside: a sweep task takes this
+    and the fine T's cache path): T per vertex = T_fine · to_fine, per element = T_fine ·
+    fine_to_elements."""
+
+    to_fine: sp.csr_array  # (n_fine, n_vertices)
+    fine_to_elements: sp.csr_array  # (n_fine, n_elements)
+    to_elements: sp.csr_array  # (n_elements, n_vertices)
+    adjacency: sp.csr_matrix  # elements touching
+    areas: np.ndarray  # element areas, mm²
+
+    def unknowns_T(self, T_fine) -> sp.csr_array:
+        return sp.csr_array(T_fine @ self.to_fine)
+
+    def element_map(self, T_fine) -> ElementMap:
+        return ElementMap(self.to_elements, sp.csr_array(T_fine @ self.fine_to_elements), self.adjacency, self.areas)
+
+
 def make_grid(cfg: C.LoadedConfig, ctx: RunContext, surface, unknowns: str) -> Grid:
     if unknowns == "vertices":  # T per face of the once-refined surface, combined per hat function
         _, _, todo, _ = ensure_T(cfg, replace(ctx, force=False), label="building T (vertices)", unknowns="refined:1")
@@ -279,16 +300,15 @@ def make_grid(cfg: C.LoadedConfig, ctx: RunContext, surface, unknowns: str) -> G
         _, fine_parent = surface.refined(1)
         fine_to_el = sp.csr_array((np.ones(fine_parent.size), (np.arange(fine_parent.size), fine_parent)),
                                   shape=(fine_parent.size, surface.n_elements))
+        vmap = VertexMap(vb.to_fine, fine_to_el, vb.to_elements, surface.element_adjacency(), surface.element_areas_mm2)
         Tf = [load_T(pt.path).tocsr() for _, pt in todo]
-        adj, areas = surface.element_adjacency(), surface.element_areas_mm2
-        maps = [ElementMap(vb.to_elements, sp.csr_array(T @ fine_to_el), adj, areas) for T in Tf]
-        return Grid([sp.csr_array(T @ vb.to_fine) for T in Tf], vb.adjacency, None, surface.n_elements,
-                    vb.areas_mm2, surface, maps)
+        return Grid([vmap.unknowns_T(T) for T in Tf], vb.adjacency, None, surface.n_elements, vb.areas_mm2, surface,
+                    [str(pt.path) for _, pt in todo], vmap, [vmap.element_map(T) for T in Tf])
     label = "building T" if unknowns == "elements" else "building T (sub-elements)"
     _, _, todo, _ = ensure_T(cfg, replace(ctx, force=False), label=label, unknowns=unknowns)
     grid_surface, parent = surface.unknowns() if unknowns == "sub_elements" else (surface, None)
     return Grid([load_T(pt.path) for _, pt in todo], grid_surface.element_adjacency(), parent, surface.n_elements,
-                grid_surface.element_areas_mm2, surface)
+                grid_surface.element_areas_mm2, surface, [str(pt.path) for _, pt in todo])
 
 
 def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSettings, noise: N.PhotonNoise,
@@ -663,9 +683,16 @@ def _total_summary(per_pose, joint, todo) -> list[str]:
 # ------------------------------------------------------------------ the study sweep
 def _sweep_cell(sim_path: str, grids_k: dict, pose: int, level: int, repeats: int,
                 methods: list[C.MethodSettings], noise: N.PhotonNoise, sensor: dict | None) -> np.ndarray:
-    """Errors (methods x repeats) of one (level, pose) cell; runs in a worker process."""
+    """Errors (methods x repeats) of one (level, pose) cell; runs in a worker process.
+    ``grids_k``: per unknowns (T's cache file, adjacency, parent or VertexMap, n_elements, areas)."""
     import h5py
 
+    Ts, parts = {}, {}
+    for u in {m.unknowns for m in methods}:  # T by path: no T inside a task graph
+        T, part = load_T(grids_k[u][0]), grids_k[u][2]
+        if isinstance(part, VertexMap):  # the fine T: per vertex, and per element for the classes
+            T, part = part.unknowns_T(T), part.element_map(T)
+        Ts[u], parts[u] = T, part
     out = np.zeros((len(methods), repeats))
     with h5py.File(sim_path, "r") as f:
         truth = f["truth/power"][()] * f["truth/level_scale"][level]
@@ -675,8 +702,8 @@ def _sweep_cell(sim_path: str, grids_k: dict, pose: int, level: int, repeats: in
     for r in range(repeats):
         valid = np.isfinite(imgs[r]) & (~N.saturated(counts[r], model) if model is not None else True)
         for i, m in enumerate(methods):
-            T, adjacency, parent, n_el, areas = grids_k[m.unknowns]
-            res, _ = run_method(T, imgs[r], valid, m, noise, adjacency, parent, n_el, areas)
+            _, adjacency, _, n_el, areas = grids_k[m.unknowns]
+            res, _ = run_method(Ts[m.unknowns], imgs[r], valid, m, noise, adjacency, parts[m.unknowns], n_el, areas)
             out[i, r] = error_l1(res.power, truth)
     return out
 
@@ -716,8 +743,9 @@ def _sweep(cfg: C.LoadedConfig, ctx: RunContext, g, grids: dict, todo) -> None:
     cells = [(li, k) for li in lv for k in range(P)]
     err = np.full((len(methods), L, P, reps), np.nan)
     t0 = time.perf_counter()
-    def per_pose(k):  # only what this pose's cell needs crosses to the worker
-        return {u: (gr.Ts[k], gr.adjacency, gr.parts(k), gr.n_elements, gr.areas) for u, gr in grids.items()}
+    def per_pose(k):  # only what this pose's cell needs crosses to the worker; its T by path
+        return {u: (gr.paths[k], gr.adjacency, gr.vmap if gr.vmap is not None else gr.parent, gr.n_elements, gr.areas)
+                for u, gr in grids.items()}
 
     args = [(str(path), per_pose(k), k, li, reps, methods, noise, sensor)
             for li, k in cells]
