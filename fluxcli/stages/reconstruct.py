@@ -421,8 +421,8 @@ def resolve_unknowns(m: C.MethodSettings, surface, camera: C.Camera | None = Non
     source behind (8 % / 13 % error, totals over well-observed elements 0.96 / 0.93), against
     0.06 / 0.04 (0.3 % / 0.6 %, 1.000 / 1.002) for exitance linear in each face, with fewer
     unknowns (312 vertices, 576 faces). At 5–6 pixels per element (paper-3d, heights: 1650
-    vertices for 1600 elements; the demo) it still helps: 2.82 → 1.38 %, 3.14 → 2.50 %,
-    4.8 → 2.7 % error, χ²/pixel 1.3–2.9 → 0.7–1.0. Where an element covers less than a pixel
+    vertices for 1600 elements; the demo) it still helps: 3.13 → 1.40 %, 3.19 → 2.58 %,
+    5.0 → 2.1 % error, χ²/pixel up to 2.9 → 0.7–1.0. Where an element covers less than a pixel
     (0.6 pixels, tests/test_capture.py's scene) the shape within it is not imaged and the
     basis only changes how neighbours are coupled: the total went 1.038 → 1.067 there."""
     if m.unknowns != "auto":
