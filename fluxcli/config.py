@@ -403,9 +403,10 @@ class MethodSettings(Model):
     max_iter: int = Field(10, ge=1, description="paper: at most this many solves; smooth: this many.")
     tol: float = Field(0.01, gt=0, description="paper: stop when the fit improves by less than this fraction.")
     n_iter: int = Field(500, ge=1, description="mlem: EM iterations.")
-    unknowns: Literal["auto", "elements", "sub_elements"] = Field(
-        "elements", description="Solve per element, or per sub-element (phantom strips, else faces) summed per element; "
-                                "auto: sub-elements for smooth when there are at most 4000 of them.")
+    unknowns: Literal["auto", "elements", "sub_elements", "vertices"] = Field(
+        "elements", description="Solve per element; per sub-element (phantom strips, else faces) summed per element; or "
+                                "per vertex (exitance linear within faces) shared out to the elements; auto: as "
+                                "reconstruct.unknowns.")
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True, allow_inf_nan=False)
 
@@ -459,10 +460,12 @@ class Reconstruct(Model):
     max_iter: int = Field(10, ge=1, description="paper: at most this many solves; smooth: this many.")
     tol: float = Field(0.01, gt=0, description="paper: stop when the fit improves by less than this fraction.")
     n_iter: int = Field(500, ge=1, description="mlem: EM iterations.")
-    unknowns: Literal["auto", "elements", "sub_elements"] = Field(
-        "auto", description="auto (default): smooth solves per sub-element (faces, or strips) summed per element when "
-                            "the camera resolves an element (>= 12 pixels) and there are at most 4000; elements or "
-                            "sub_elements to choose.")
+    unknowns: Literal["auto", "elements", "sub_elements", "vertices"] = Field(
+        "auto", description="auto (default): smooth solves for the exitance at the vertices (linear within each face, "
+                            "continuous; T from the once-refined surface), shared out to the elements, when there are at "
+                            "most 4000 vertices and the camera resolves an element (>= 12 pixels, or >= 4 with at most "
+                            "1.25 vertices per element); else per element. elements, sub_elements (phantom strips, else "
+                            "faces) or vertices to choose.")
     images: ImageFiles | CaptureSource | None = Field(None, description="Images from files, or from a capture, instead of simulation.h5.")
     level: int = Field(0, ge=0, description="Which signal level of the simulation to reconstruct.")
     repeat: int = Field(0, ge=0, description="Which noise repeat of the simulation to reconstruct.")

@@ -149,3 +149,30 @@ def test_solving_on_sub_elements_and_summing_back(write_config, minimal_config, 
         truth, got, obs = f["truth/power"][()], f["flux/power"][()], f["flux/observed"][()]
         assert got.shape == (40,) and 0 < obs.sum() < 40
         assert np.nansum(np.abs(got - truth)[obs]) / truth[obs].sum() < 0.05
+
+
+def test_vertex_basis_integrates_a_linear_exitance_exactly():
+    """unknowns: vertices: exitance linear within each face. For J(x) = 1 + x·g (linear on
+    every flat face) the element powers from the vertex values must equal the closed form
+    Σ_faces S_f J(centroid_f) (a linear function's integral over a triangle), every vertex's
+    lumped power must be shared out completely (columns sum to 1), and the lumped areas must
+    add up to the surface."""
+    from fluxcli.surface import phantoms
+
+    surf = phantoms.cylinder(radius_mm=12.5, length_mm=50, n_angular=24, n_axial=12)[0]
+    for levels in (1, 2):
+        vb = surf.vertex_basis(levels)
+        V = surf.vertices_mm[vb.vertex_index]
+        g = np.array([0.013, -0.02, 0.031])
+        u = (1.0 + V @ g) * vb.areas_mm2  # lumped power of each vertex, photons
+        ok = surf.element_of_face >= 0
+        c = surf.face_vertices_mm[ok].mean(axis=1)
+        exact = np.bincount(surf.element_of_face[ok], weights=surf.face_areas_mm2[ok] * (1.0 + c @ g),
+                            minlength=surf.n_elements)
+        assert np.allclose(vb.to_elements @ u, exact, rtol=1e-12)
+        assert np.allclose(np.asarray(vb.to_elements.sum(axis=0)).ravel(), 1.0)
+        assert vb.areas_mm2.sum() == pytest.approx(surf.element_areas_mm2.sum(), rel=1e-12)
+        # the fine faces' powers are the same integrals on the refined surface
+        fine, parent = surf.refined(levels)
+        cf = fine.face_vertices_mm[fine.element_of_face >= 0].mean(axis=1)
+        assert np.allclose(vb.to_fine @ u, fine.face_areas_mm2[fine.element_of_face >= 0] * (1.0 + cf @ g))

@@ -606,6 +606,20 @@ def observation_classes(T, power, sigma, *, adjacency=None, areas=None, rel_thre
     return out.astype(np.int8)
 
 
+POOR_SHARE_TEXT = "of the total over observed elements lies in poorly observed elements"
+
+
+def poor_share_warning(power, observed, observation) -> str | None:
+    """The warning when poorly observed elements hold more than :data:`POOR_SHARE_WARNING`
+    of the total over observed ones (None otherwise)."""
+    total = np.nansum(np.where(observed, power, 0.0))
+    share = np.nansum(np.where(observation == POORLY_OBSERVED, power, 0.0)) / total if total > 0 else 0.0
+    if share <= POOR_SHARE_WARNING:
+        return None
+    return (f"{share:.0%} {POOR_SHARE_TEXT} (seen edge-on, or uncertain beyond their value): that total is not "
+            "pinned down by the data; the total over well-observed elements is the one to trust.")
+
+
 # ------------------------------------------------------------------ the method registry
 
 
@@ -624,12 +638,14 @@ class Problem:
     adjacency: object
     areas: np.ndarray | None
     rel_threshold: float
-    groups: tuple | None = None  # (parent (n_elements,), n_groups): also σ of the sums per group
+    groups: object = None  # (parent (n_elements,), n_groups) or sparse (n_groups, n_unknowns): also σ per group
 
     def sums(self):
         """Sparse (n_groups, n_obs) summing observed unknowns into their groups, or None."""
         if self.groups is None:
             return None
+        if sp.issparse(self.groups):  # a weighted map, e.g. vertex unknowns -> elements
+            return sp.csr_array(sp.csc_array(self.groups)[:, self.mask])
         parent, n_groups = self.groups
         idx = np.flatnonzero(self.mask)
         return sp.csr_array((np.ones(idx.size), (np.asarray(parent)[idx], np.arange(idx.size))),
@@ -816,9 +832,10 @@ def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | 
         poorly-observed test.
     areas : ndarray, shape (n_elements,), optional
         Element areas in mm²; priors act on exitance ``b/S``.
-    groups : (parent, n_groups), optional
+    groups : (parent, n_groups) or sparse (n_groups, n_elements), optional
         ``parent`` (n_elements,) int: when the unknowns are sub-elements, the element
-        each belongs to; ``Result.sigma_groups`` is then the σ of their sums, with the
+        each belongs to; or a matrix of weights (e.g. vertex unknowns shared by
+        elements); ``Result.sigma_groups`` is then the σ of these sums, with the
         covariances between parts (methods on the spectral engine; else None).
     rel_threshold : float, optional
         See :func:`observed_mask`.
@@ -896,12 +913,9 @@ def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | 
                                           rel_threshold=rel_threshold)
     else:
         observation = np.where(mask, WELL_OBSERVED, UNOBSERVED).astype(np.int8)
-    total = np.nansum(np.where(mask, power, 0.0))
-    poor_share = np.nansum(np.where(observation == POORLY_OBSERVED, power, 0.0)) / total if total > 0 else 0.0
-    if poor_share > POOR_SHARE_WARNING:
-        warnings.append(f"{poor_share:.0%} of the total over observed elements lies in poorly observed elements "
-                        "(seen edge-on, or uncertain beyond their value): that total is not pinned down by the data; "
-                        "the total over well-observed elements is the one to trust.")
+    poor = poor_share_warning(power, mask, observation)
+    if poor:
+        warnings.append(poor)
     return Result(power=power, observed=mask, sigma=sigma, fitted=fitted, residual=a - fitted, method=method,
                   lam=float(lam_used), lam_absolute=float(out.get("lam_absolute", 0.0)),
                   iterations=int(out.get("iterations", 1)), converged=bool(out.get("converged", True)),

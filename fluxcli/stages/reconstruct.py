@@ -239,7 +239,8 @@ REGULARISED = ("paper", "tikhonov", "nnls", "weighted_lsq")  # lambda rules of f
 
 @dataclass
 class Grid:
-    """The unknowns of a solve: the elements, or sub-elements summed back per element."""
+    """The unknowns of a solve: the elements, or sub-elements summed back per element, or
+    vertices (exitance linear within a face) shared out to the elements."""
 
     Ts: list  # per pose, (n_pixels, n_unknowns)
     adjacency: sp.csr_matrix  # unknowns touching (for smooth)
@@ -247,10 +248,62 @@ class Grid:
     n_elements: int
     areas: np.ndarray | None = None  # (n_unknowns,) mm²: priors act on exitance
     surface: object = None  # the elements' surface
-    paths: list | None = None  # per pose, the T cache file Ts[k] was read from
+    paths: list | None = None  # per pose, the T cache file Ts[k] was read from (vertices: the fine T)
+    vmap: "VertexMap | None" = None  # vertices: how the fine T gives T per vertex and per element
+    maps: list | None = None  # vertices: per pose the ElementMap (parent is then None)
+
+    def parts(self, k: int | None = None):
+        """What run_method takes as ``parent`` for pose k (None: all poses jointly)."""
+        if self.maps is None:
+            return self.parent
+        if k is not None:
+            return self.maps[k]
+        m = self.maps[0]
+        return replace(m, T=sp.vstack([x.T for x in self.maps]).tocsr())
+
+
+@dataclass
+class ElementMap:
+    """Unknowns that are not parts of one element (vertices): the element power per unit of
+    each unknown, and the element-level T, adjacency and areas that classify the elements
+    (observed, poorly observed) exactly as a solve per element would."""
+
+    to_elements: sp.csr_array  # (n_elements, n_unknowns)
+    T: sp.csr_array  # (n_pixels, n_elements)
+    adjacency: sp.csr_matrix
+    areas: np.ndarray
+
+
+@dataclass
+class VertexMap:
+    """Pose-independent maps of the vertex unknowns (no T inside: a sweep task takes this
+    and the fine T's cache path): T per vertex = T_fine · to_fine, per element = T_fine ·
+    fine_to_elements."""
+
+    to_fine: sp.csr_array  # (n_fine, n_vertices)
+    fine_to_elements: sp.csr_array  # (n_fine, n_elements)
+    to_elements: sp.csr_array  # (n_elements, n_vertices)
+    adjacency: sp.csr_matrix  # elements touching
+    areas: np.ndarray  # element areas, mm²
+
+    def unknowns_T(self, T_fine) -> sp.csr_array:
+        return sp.csr_array(T_fine @ self.to_fine)
+
+    def element_map(self, T_fine) -> ElementMap:
+        return ElementMap(self.to_elements, sp.csr_array(T_fine @ self.fine_to_elements), self.adjacency, self.areas)
 
 
 def make_grid(cfg: C.LoadedConfig, ctx: RunContext, surface, unknowns: str) -> Grid:
+    if unknowns == "vertices":  # T per face of the once-refined surface, combined per hat function
+        _, _, todo, _ = ensure_T(cfg, replace(ctx, force=False), label="building T (vertices)", unknowns="refined:1")
+        vb = surface.vertex_basis()
+        _, fine_parent = surface.refined(1)
+        fine_to_el = sp.csr_array((np.ones(fine_parent.size), (np.arange(fine_parent.size), fine_parent)),
+                                  shape=(fine_parent.size, surface.n_elements))
+        vmap = VertexMap(vb.to_fine, fine_to_el, vb.to_elements, surface.element_adjacency(), surface.element_areas_mm2)
+        Tf = [load_T(pt.path).tocsr() for _, pt in todo]
+        return Grid([vmap.unknowns_T(T) for T in Tf], vb.adjacency, None, surface.n_elements, vb.areas_mm2, surface,
+                    [str(pt.path) for _, pt in todo], vmap, [vmap.element_map(T) for T in Tf])
     label = "building T" if unknowns == "elements" else "building T (sub-elements)"
     _, _, todo, _ = ensure_T(cfg, replace(ctx, force=False), label=label, unknowns=unknowns)
     grid_surface, parent = surface.unknowns() if unknowns == "sub_elements" else (surface, None)
@@ -265,12 +318,17 @@ def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSe
     ``noise`` is the images' noise model; ``adjacency`` (unknowns touching) and ``areas``
     (mm²) are what the exitance prior of ``smooth`` needs; with ``parent`` the unknowns are
     sub-elements, summed back into ``n_elements`` elements (an element counts as observed
-    when any of its parts is, its class is its best part's; sigma is not propagated: NaN)."""
+    when any of its parts is, its class is its best part's; sigma is not propagated: NaN);
+    with an :class:`ElementMap` they are vertices shared out to the elements, which are
+    classified on their own T."""
     with blas_threads(1):  # dense ~10^3 solves: BLAS threads cost more than they give (workers.blas_threads)
-        res, keep = _solve(T, a, valid, m, noise, adjacency, areas,
-                           groups=None if parent is None else (parent, n_elements))
+        groups = parent.to_elements if isinstance(parent, ElementMap) else (
+            None if parent is None else (parent, n_elements))
+        res, keep = _solve(T, a, valid, m, noise, adjacency, areas, groups=groups)
     if parent is None:
         return res, keep
+    if isinstance(parent, ElementMap):
+        return _on_elements(res, keep, parent), keep
     obs = res.observed
     power = np.bincount(parent, weights=np.where(obs, res.power, 0.0), minlength=n_elements)
     observed = np.bincount(parent, weights=obs.astype(float), minlength=n_elements) > 0
@@ -279,6 +337,26 @@ def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSe
     sigma = res.sigma_groups if res.sigma_groups is not None else np.full(n_elements, np.nan)
     return replace(res, power=np.where(observed, power, np.nan), observed=observed,
                    sigma=np.where(observed, sigma, np.nan), observation=cls), keep
+
+
+def _on_elements(res, keep, emap: ElementMap):
+    """A solve on vertex unknowns as element powers; the elements are classified on their
+    own T (sensitivity, neighbours, σ of the element sums), as a solve per element would."""
+    from ..inverse.methods import POOR_SHARE_TEXT, observation_classes, poor_share_warning
+    from ..inverse._common import DEFAULT_REL_THRESHOLD
+
+    T_el = emap.T[keep]
+    power = emap.to_elements @ np.where(res.observed, res.power, 0.0)
+    sigma = res.sigma_groups if res.sigma_groups is not None else np.full(power.size, np.nan)
+    cls = observation_classes(T_el, power, sigma, adjacency=emap.adjacency, areas=emap.areas,
+                              rel_threshold=DEFAULT_REL_THRESHOLD)
+    observed = cls > 0
+    warnings = [w for w in res.warnings if POOR_SHARE_TEXT not in w]
+    poor = poor_share_warning(power, observed, cls)
+    if poor:
+        warnings.append(poor)
+    return replace(res, power=np.where(observed, power, np.nan), observed=observed,
+                   sigma=np.where(observed, sigma, np.nan), observation=cls, warnings=tuple(warnings))
 
 
 def _solve(T, a, valid, m, noise, adjacency, areas, groups=None):
@@ -315,6 +393,8 @@ def _solve(T, a, valid, m, noise, adjacency, areas, groups=None):
 
 MAX_AUTO_SUB_ELEMENTS = 4000
 MIN_PIXELS_PER_ELEMENT = 12.0
+VERTICES_PER_ELEMENT = 1.25  # up to this many vertices per element the vertex basis adds no unknowns
+MIN_PIXELS_FOR_A_GRADIENT = 4.0  # 2 x 2 pixels per element: a gradient across it is imaged
 
 
 def pixels_per_element(camera: C.Camera, surface) -> float:
@@ -326,21 +406,38 @@ def pixels_per_element(camera: C.Camera, surface) -> float:
 
 
 def resolve_unknowns(m: C.MethodSettings, surface, camera: C.Camera | None = None) -> C.MethodSettings:
-    """``unknowns: auto``: ``smooth`` solves on the sub-elements (faces, or a phantom's strips)
-    and sums them per element when the camera resolves an element (≥ MIN_PIXELS_PER_ELEMENT
-    pixels) and there are more parts than elements, at most MAX_AUTO_SUB_ELEMENTS; the rest
-    solve per element. Light varies within an element, and where the camera resolves that a
-    model constant per element cannot fit the data (honest simulation of a 2 x 2-quad
-    cylinder at 21 pixels per element, SNR 30: 3.4 % error per element, 1.6 % on faces);
-    where it does not (the demo, ~5 pixels per element) the finer unknowns only add
-    freedom the data cannot pin down."""
+    """``unknowns: auto``: ``smooth`` solves for the exitance at the vertices (linear within
+    each face, continuous across edges; :meth:`Surface.vertex_basis`) and shares it out to
+    the elements, when there are at most MAX_AUTO_SUB_ELEMENTS vertices and the camera
+    resolves an element: ≥ MIN_PIXELS_PER_ELEMENT pixels, or ≥ MIN_PIXELS_FOR_A_GRADIENT
+    (2 x 2: a gradient across an element is imaged) where there are about as many vertices
+    as elements (≤ VERTICES_PER_ELEMENT per element: the basis adds no unknowns). The rest
+    solve per element.
+
+    Light varies within an element, and where it varies steeply a model constant per element
+    (or per face) cannot fit the data even without noise: honest simulations of a cylinder
+    at 21 pixels per element, noiseless, λ → 0, give χ²/pixel (at SNR 30) 3.7 per element and
+    2.8 per face with the source at the limb (2.2 % / 2.8 % error), and 1.7 / 1.2 with the
+    source behind (8 % / 13 % error, totals over well-observed elements 0.96 / 0.93), against
+    0.06 / 0.04 (0.3 % / 0.6 %, 1.000 / 1.002) for exitance linear in each face, with fewer
+    unknowns (312 vertices, 576 faces). At 5–6 pixels per element (paper-3d, heights: 1650
+    vertices for 1600 elements; the demo) it still helps: 3.13 → 1.40 %, 3.19 → 2.58 %,
+    5.0 → 2.1 % error, χ²/pixel up to 2.9 → 0.7–1.0. Where an element covers less than a pixel
+    (0.6 pixels, tests/test_capture.py's scene) the shape within it is not imaged and the
+    basis only changes how neighbours are coupled: the total went 1.038 → 1.067 there."""
     if m.unknowns != "auto":
         return m
-    n_sub = surface.unknowns()[0].n_elements
-    sub = m.method == "smooth" and surface.n_elements < n_sub <= MAX_AUTO_SUB_ELEMENTS
-    if sub and camera is not None:
-        sub = pixels_per_element(camera, surface) >= MIN_PIXELS_PER_ELEMENT
-    return m.model_copy(update={"unknowns": "sub_elements" if sub else "elements"})
+    nv = n_vertices(surface)
+    fine = m.method == "smooth" and nv <= MAX_AUTO_SUB_ELEMENTS
+    if fine and camera is not None:
+        need = MIN_PIXELS_FOR_A_GRADIENT if nv <= VERTICES_PER_ELEMENT * surface.n_elements else MIN_PIXELS_PER_ELEMENT
+        fine = pixels_per_element(camera, surface) >= need
+    return m.model_copy(update={"unknowns": "vertices" if fine else "elements"})
+
+
+def n_vertices(surface) -> int:
+    """Unknowns of ``reconstruct.unknowns: vertices``: the vertices of the element faces."""
+    return int(np.unique(surface.faces[surface.element_of_face >= 0]).size)
 
 
 DENSE = ("paper", "tikhonov", "nnls", "weighted_lsq", "smooth")  # form T'WT (n x n) densely
@@ -354,6 +451,7 @@ def _check_solver_size(cfg: C.LoadedConfig, ctx: RunContext, surface, n_poses: i
     n_sub = {"elements": surface.n_elements}
     if any(s.unknowns == "sub_elements" for s in methods):
         n_sub["sub_elements"] = surface.unknowns()[0].n_elements
+    n_sub["vertices"] = n_vertices(surface)
     nx, ny = cfg.model.system.camera.pixels
     need = 8.0 * nx * ny * n_poses * 8  # images, masks, fits and residuals
     for s in methods:
@@ -366,7 +464,8 @@ def _check_solver_size(cfg: C.LoadedConfig, ctx: RunContext, surface, n_poses: i
 
 def describe(m: C.MethodSettings) -> str:
     base = _describe(m)
-    return base if m.unknowns == "elements" else f"{base} on sub-elements"
+    return {"elements": base, "vertices": f"{base} on vertices (exitance linear within faces)"}.get(
+        m.unknowns, f"{base} on sub-elements")
 
 
 def _describe(m: C.MethodSettings) -> str:
@@ -380,6 +479,10 @@ def _describe(m: C.MethodSettings) -> str:
     return f"{m.method}({m.n_iter} it)" if m.method == "mlem" else m.method
 
 
+# what `unknowns: auto` and the solvers do; a reconstruction made by an older version is redone
+SOLVER_VERSION = "2026-11 vertex basis"
+
+
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     rc = cfg.model.reconstruct
     check_folders(cfg)
@@ -388,7 +491,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     sources = _image_sources(cfg)
     digest = A.inputs_digest(system=m_.system.model_dump(mode="json"), subject=m_.subject.model_dump(mode="json"),
                              transfer=m_.transfer.model_dump(mode="json"),
-                             reconstruct=rc.model_dump(mode="json", by_alias=True), images=sources)
+                             reconstruct=rc.model_dump(mode="json", by_alias=True), images=sources,
+                             solver=SOLVER_VERSION)
     if not ctx.force and A.is_up_to_date(out, "reconstruction", digest):
         ctx.say(f"reconstruct: {out} is up to date (--force to redo)")
         with A.open_artefact(out, "reconstruction") as f:
@@ -418,14 +522,14 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     per_pose = []
     for k in range(P):
         res, keep = run_method(gm.Ts[k], inp.images[k], inp.valid[k], m, noise, gm.adjacency,
-                               gm.parent, gm.n_elements, gm.areas)
+                               gm.parts(k), gm.n_elements, gm.areas)
         fitted = np.full(nx * ny, np.nan)
         fitted[keep] = res.fitted
         per_pose.append((res, fitted.reshape(ny, nx)))
     joint = None
     if rc.joint and P > 1:
         Tj = sp.vstack(gm.Ts).tocsr()
-        joint, _ = run_method(Tj, inp.images, inp.valid, m, noise, gm.adjacency, gm.parent,
+        joint, _ = run_method(Tj, inp.images, inp.valid, m, noise, gm.adjacency, gm.parts(),
                               gm.n_elements, gm.areas)
     seconds = time.perf_counter() - t0
     main = joint if joint is not None else per_pose[0][0]
@@ -580,10 +684,15 @@ def _total_summary(per_pose, joint, todo) -> list[str]:
 def _sweep_cell(sim_path: str, grids_k: dict, pose: int, level: int, repeats: int,
                 methods: list[C.MethodSettings], noise: N.PhotonNoise, sensor: dict | None) -> np.ndarray:
     """Errors (methods x repeats) of one (level, pose) cell; runs in a worker process.
-    ``grids_k``: per unknowns (T's cache file, adjacency, parent, n_elements, areas)."""
+    ``grids_k``: per unknowns (T's cache file, adjacency, parent or VertexMap, n_elements, areas)."""
     import h5py
 
-    Ts = {u: load_T(grids_k[u][0]) for u in {m.unknowns for m in methods}}  # by path: no T inside a task graph
+    Ts, parts = {}, {}
+    for u in {m.unknowns for m in methods}:  # T by path: no T inside a task graph
+        T, part = load_T(grids_k[u][0]), grids_k[u][2]
+        if isinstance(part, VertexMap):  # the fine T: per vertex, and per element for the classes
+            T, part = part.unknowns_T(T), part.element_map(T)
+        Ts[u], parts[u] = T, part
     out = np.zeros((len(methods), repeats))
     with h5py.File(sim_path, "r") as f:
         truth = f["truth/power"][()] * f["truth/level_scale"][level]
@@ -593,8 +702,8 @@ def _sweep_cell(sim_path: str, grids_k: dict, pose: int, level: int, repeats: in
     for r in range(repeats):
         valid = np.isfinite(imgs[r]) & (~N.saturated(counts[r], model) if model is not None else True)
         for i, m in enumerate(methods):
-            _, adjacency, parent, n_el, areas = grids_k[m.unknowns]
-            res, _ = run_method(Ts[m.unknowns], imgs[r], valid, m, noise, adjacency, parent, n_el, areas)
+            _, adjacency, _, n_el, areas = grids_k[m.unknowns]
+            res, _ = run_method(Ts[m.unknowns], imgs[r], valid, m, noise, adjacency, parts[m.unknowns], n_el, areas)
             out[i, r] = error_l1(res.power, truth)
     return out
 
@@ -635,7 +744,8 @@ def _sweep(cfg: C.LoadedConfig, ctx: RunContext, g, grids: dict, todo) -> None:
     err = np.full((len(methods), L, P, reps), np.nan)
     t0 = time.perf_counter()
     def per_pose(k):  # only what this pose's cell needs crosses to the worker; its T by path
-        return {u: (gr.paths[k], gr.adjacency, gr.parent, gr.n_elements, gr.areas) for u, gr in grids.items()}
+        return {u: (gr.paths[k], gr.adjacency, gr.vmap if gr.vmap is not None else gr.parent, gr.n_elements, gr.areas)
+                for u, gr in grids.items()}
 
     args = [(str(path), per_pose(k), k, li, reps, methods, noise, sensor)
             for li, k in cells]

@@ -157,6 +157,56 @@ class Surface:
         fine_eof[ok] = np.arange(int(ok.sum()))
         return Surface(v, f, fine_eof, int(ok.sum())), eof[ok].astype(np.int64)
 
+    def vertex_basis(self, levels: int = 1) -> "VertexBasis":
+        """Exitance linear within each face and continuous across edges: one unknown per
+        vertex of the element faces (the hat function φ_v, 1 at v, 0 at the other vertices).
+
+        A constant per face or element is a poor model where the camera resolves the
+        surface and the light varies steeply across an element (towards a source at the
+        limb or behind it): no value per element reproduces the image, and the best fit is
+        biased even on noiseless data. The hat functions follow such a gradient.
+
+        The unknown of vertex v is its lumped power ``u_v = J_v A_v`` (photons), with
+        ``A_v = ∫φ_v dS`` and ``J_v`` the exitance at v (photons mm⁻²). T is built per face
+        of :meth:`refined` (``levels`` times): a fine face's power is ``∫_f J dS = S_f Σ_v φ_v(c_f)
+        J_v`` exactly (φ_v is linear on the fine face; c_f its centroid), and the only
+        approximation is that T spreads it uniformly over that quarter of a face.
+
+        Parameters
+        ----------
+        levels : int, how often the faces T is built on are split into 4 (1: quarters).
+
+        Returns
+        -------
+        VertexBasis
+        """
+        import scipy.sparse as sp
+
+        fine, parent = self.refined(levels)
+        ok = self.element_of_face >= 0
+        used, local = np.unique(self.faces[ok], return_inverse=True)
+        local = local.reshape(-1, 3)
+        # coarse face of each fine element: refined() lists the children of face i at t*F + i
+        fine_ok = np.tile(ok, 4 ** int(levels))
+        coarse = np.flatnonzero(fine_ok) % len(self.faces)  # index into all faces
+        rank = np.cumsum(ok) - 1  # index into the element faces
+        tri = self.vertices_mm[self.faces[coarse]]  # (n_fine, 3, 3)
+        c = fine.face_vertices_mm[fine.element_of_face >= 0].mean(axis=1)
+        n_fine, n_v = len(c), len(used)
+        S_f = fine.face_areas_mm2[fine.element_of_face >= 0]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            bary = np.where(S_f[:, None] > 0, _barycentric(tri, c), 1.0 / 3.0)  # degenerate faces carry no area
+        W = sp.csr_array((np.ravel(S_f[:, None] * bary), (np.repeat(np.arange(n_fine), 3),
+                                                           local[rank[coarse]].ravel())), shape=(n_fine, n_v))
+        A_v = np.asarray(W.sum(axis=0)).ravel()  # ∫φ_v dS
+        inv = np.divide(1.0, A_v, out=np.zeros_like(A_v), where=A_v > 0)  # a vertex of degenerate faces only: no light
+        to_fine = sp.csr_array(W @ sp.diags_array(inv))
+        P = sp.csr_array((np.ones(n_fine), (parent, np.arange(n_fine))), shape=(self.n_elements, n_fine))
+        e = np.sort(local[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        adj = sp.csr_array((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_v, n_v))
+        adj = sp.csr_array(((adj + adj.T) > 0).astype(np.float64))
+        return VertexBasis(fine, to_fine, sp.csr_array(P @ to_fine), A_v, adj, used)
+
     def digest(self) -> str:
         """Content hash of the placed geometry (rounded to 1 nm, so float noise does not matter)."""
         h = hashlib.sha256()
@@ -167,6 +217,45 @@ class Surface:
 
     def bounds_mm(self) -> tuple[np.ndarray, np.ndarray]:
         return self.vertices_mm.min(axis=0), self.vertices_mm.max(axis=0)
+
+
+@dataclass(frozen=True)
+class VertexBasis:
+    """Unknowns per vertex (:meth:`Surface.vertex_basis`): exitance linear within a face.
+
+    Attributes
+    ----------
+    fine : Surface, every element face split into 4; T is built with a column per fine face.
+    to_fine : sparse (n_fine, n_vertices), power of each fine face per photon of a vertex's
+        lumped power (T per vertex = T_fine @ to_fine).
+    to_elements : sparse (n_elements, n_vertices), element power per photon of lumped
+        power; every column sums to 1.
+    areas_mm2 : (n_vertices,) ``A_v = ∫φ_v dS``; exitance at v = u_v / A_v.
+    adjacency : sparse (n_vertices, n_vertices), 1 where two vertices share an edge.
+    vertex_index : (n_vertices,) the surface vertex each unknown is.
+    """
+
+    fine: "Surface"
+    to_fine: object
+    to_elements: object
+    areas_mm2: np.ndarray
+    adjacency: object
+    vertex_index: np.ndarray
+
+    @property
+    def n_vertices(self) -> int:
+        return len(self.areas_mm2)
+
+
+def _barycentric(tri: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """(n, 3) barycentric coordinates of points p (n, 3) in triangles tri (n, 3, 3)."""
+    e0, e1, d = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], p - tri[:, 0]
+    d00, d01, d11 = (np.einsum("ij,ij->i", x, y) for x, y in ((e0, e0), (e0, e1), (e1, e1)))
+    d20, d21 = np.einsum("ij,ij->i", d, e0), np.einsum("ij,ij->i", d, e1)
+    den = d00 * d11 - d01 ** 2
+    v = (d11 * d20 - d01 * d21) / den
+    w = (d00 * d21 - d01 * d20) / den
+    return np.stack([1.0 - v - w, v, w], axis=1)
 
 
 def edge_face_counts(faces: np.ndarray) -> np.ndarray:
