@@ -16,7 +16,8 @@ default (smooth, unknowns auto: exitance linear within faces where the camera re
 elements) is checked against issue 8's bars; "smooth on faces" is the default before
 (exitance constant per face), for before/after in one run:
   - never > 10 % off in total over observed elements without a warning;
-  - at max SNR >= 30: error < 3 % and total within 2 % over well-observed elements.
+  - at max SNR >= 30: error < 3 % and total within 2 % over well-observed elements (the error
+    is held to 3 % over the observed and over the well-observed elements).
 
     $ make accuracy                    # all cases (~10 min on 2 cores)
     $ .venv/bin/python benchmarks/accuracy.py --cases renderer-direct,emccd-snr30
@@ -325,7 +326,9 @@ def main() -> int:
                 off = abs(m["ratio_obs"] - 1) > 0.10
                 if off and not m["warnings"]:
                     flag, _ = "  << >10 % off without a warning", fails.append((name, "silent >10 %"))
-                if snr >= 29.5 and (m["error_obs"] >= 0.03 or abs(m["ratio_well"] - 1) >= 0.02):
+                # "error < 3 % and total within 2 % over well-observed elements": the error is held
+                # to 3 % over the observed and over the well-observed elements (the stricter reading)
+                if snr >= 29.5 and (max(m["error_obs"], m["error_well"]) >= 0.03 or abs(m["ratio_well"] - 1) >= 0.02):
                     flag += "  << misses the SNR>=30 bar"
                     fails.append((name, "SNR>=30 bar"))
             w = "; ".join(x[:70] for x in m["warnings"]) if m["warnings"] else "-"
