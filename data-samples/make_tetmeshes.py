@@ -18,6 +18,7 @@ from pathlib import Path
 from fluxcli.config import load_config
 from fluxcli.diffusion.mesh import tetrahedralize
 from fluxcli.scene import SubjectPlacer
+from fluxcli.stages.capture import truth_config
 from fluxcli.truth import tetmesh_key
 
 HERE = Path(__file__).resolve().parent / "tetmesh"
@@ -28,7 +29,7 @@ def main(configs: list[str]) -> None:
 
     HERE.mkdir(exist_ok=True)
     for c in configs:
-        cfg = load_config(c)
+        cfg = truth_config(load_config(c))  # the rig's true surface where the config captures its own
         surface = SubjectPlacer(cfg).surface
         edge = cfg.model.simulate.flux.mesh_edge_mm
         path = HERE / f"{tetmesh_key(surface, edge)}.h5"

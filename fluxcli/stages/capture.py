@@ -49,6 +49,19 @@ CREATE_PAUSE_ENV = "FLUXMAP_CAPTURE_CREATE_PAUSE_S"
 
 
 # ------------------------------------------------------------------ the simulated scene
+
+def truth_config(cfg: C.LoadedConfig) -> C.LoadedConfig:
+    """The config whose ``subject.surface`` is what the simulated camera looks at:
+    ``rig.camera.true_surface`` when given (the truth differs from ``subject.surface``, e.g.
+    a captured one), else ``cfg`` itself. data-samples/make_tetmeshes.py meshes that surface."""
+    rig = cfg.model.rig
+    cc = (rig.camera if rig is not None else None) or C.RigCamera()
+    if cc.true_surface is None:
+        return cfg
+    m = cfg.model
+    return C.LoadedConfig(m.model_copy(update={"subject": m.subject.model_copy(update={"surface": cc.true_surface})}),
+                          cfg.path, cfg.raw)
+
 class SimulatedScene:
     """What the simulated camera sees: ``render(height_mm, filter) -> photons/s per pixel``.
 
@@ -63,11 +76,8 @@ class SimulatedScene:
         C.require(cfg, "capture-surface with rig.camera.backend: simulated",
                   ("system", "system.camera.lens", "system.camera.pose", "subject", "simulate"))
         cc = cfg.model.rig.camera or C.RigCamera()
-        if cc.true_surface is not None:  # the truth differs from subject.surface (e.g. the captured one)
-            m = cfg.model
-            cfg = C.LoadedConfig(m.model_copy(update={"subject": m.subject.model_copy(
-                update={"surface": cc.true_surface})}), cfg.path, cfg.raw)
-        elif isinstance(cfg.model.subject.surface, C.ArtefactSurface):
+        cfg = truth_config(cfg)
+        if isinstance(cfg.model.subject.surface, C.ArtefactSurface):
             raise UserError("rig.camera.true_surface: subject.surface is a captured surface artefact; the simulated "
                             "camera needs the true surface to render (a phantom or a mesh file).")
         self.cfg = cfg
