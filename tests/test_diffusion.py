@@ -321,3 +321,26 @@ def test_auto_solver_switches_to_amg_above_the_size(monkeypatch):
     assert DiffusionModel(nodes, tets, **kw).solver == "amg"
     with pytest.raises(ValueError, match="solver"):
         DiffusionModel(nodes, tets, solver="cholmod", **kw)
+
+
+def test_fem_undershoot_is_clipped_when_negligible_and_refused_when_not():
+    """A few photons below zero on a 10⁸ peak (what an unlucky fTetWild mesh gave the demo rig)
+    are clipped; a lobe worth 1 % of the light means the mesh is too coarse: exit 2 naming
+    simulate.flux.mesh_edge_mm, with the decay length 1/μ_eff = 1/√(3μa(μa+μs'))."""
+    import fluxcli.config as C
+    from fluxcli.errors import UserError
+    from fluxcli.truth import check_undershoot
+
+    flux = C.DiffusionFlux(kind="diffusion", wavelength_nm=650, mesh_edge_mm=2.5,
+                           optical={650: {"mua_per_mm": 0.02, "musp_per_mm": 1.7}},
+                           sources=[{"depth_mm": 5.0, "power_photons": 2e8}])
+    p = np.linspace(0.0, 1e8, 500)
+    p[:3] = -6.0
+    clipped, lost = check_undershoot(p, flux)
+    assert clipped.min() == 0.0 and lost == pytest.approx(18.0)
+    assert clipped.sum() == pytest.approx(p[p > 0].sum(), rel=1e-15)
+    p[:50] = -0.002 * p.sum() / 50  # 0.2 % of the light negative
+    with pytest.raises(UserError, match=r"simulate\.flux\.mesh_edge_mm.*too coarse") as e:
+        check_undershoot(p, flux)
+    mu_eff = np.sqrt(3 * 0.02 * (0.02 + 1.7))
+    assert f"{1 / mu_eff:.3g} mm" in str(e.value)

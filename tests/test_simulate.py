@@ -99,8 +99,11 @@ def test_diffusion_truth_conserves_power_and_emccd_export(write_config, sim_conf
 
         notes = json.loads(f["truth"].attrs["notes"])
     # what leaves through the elements (caps included) is what the FEM says leaves the
-    # volume, and with absorption it is less than the source emits
-    assert power.sum() == pytest.approx(notes["total_exitance_photons"], rel=1e-6)
+    # volume, and with absorption it is less than the source emits; fTetWild's mesh differs
+    # from run to run, and an unlucky one undershoots by a few 1e-4 of the light, which the
+    # truth clips and accounts for (truth.check_undershoot)
+    assert 0 <= notes["clipped_photons"] <= 1e-3 * notes["total_exitance_photons"]
+    assert power.sum() == pytest.approx(notes["total_exitance_photons"] + notes["clipped_photons"], rel=1e-6)
     assert notes["total_exitance_photons"] + notes["absorbed_photons"] == pytest.approx(1e8, rel=1e-6)
     assert power.sum() < 1e8
     # the tetrahedral mesh is cached, so a second run gives the same bytes

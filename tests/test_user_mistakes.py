@@ -305,6 +305,11 @@ MISTAKES = [
     ("diffusion-too-deep", "simulate", _diffusion(**{"sources": [{"depth_mm": 50.0, "power_photons": 1e8}]}),
      ["simulate.flux.sources.0.depth_mm"]),
     ("fem-too-fine", "simulate", _diffusion(mesh_edge_mm=0.001), ["simulate.flux.mesh_edge_mm", "tetrahedra"]),
+    # light that dies within 0.5 mm on a 4 mm mesh: the FEM truth swings negative (it was a
+    # negative total and an error about the noise level before)
+    ("fem-too-coarse", "simulate", _diffusion(mesh_edge_mm=4.0, optical={650: {"mua_per_mm": 0.5, "musp_per_mm": 1.7}},
+                                              sources=[{"depth_mm": 6.0, "power_photons": 1e8}]),
+     ["simulate.flux.mesh_edge_mm", "too coarse", "undershoots"]),
     ("export-folder-is-a-file", "simulate",
      lambda c, d, b: ((d / "run").mkdir(), (d / "run" / "images").write_text("x"), put(c, "workdir", str(d / "run")),
                       put(c, "simulate.export", {"format": "tiff"})) and None, ["run/images"]),

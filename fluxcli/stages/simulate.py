@@ -84,7 +84,9 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         raise UserError("simulate.flux: the ground truth is zero everywhere.")
     truth_seconds = time.perf_counter() - t0
     ctx.say(f"simulate: truth '{sim.flux.kind}' on {surface.n_elements} elements, total "
-            f"{power.sum():.4g} photons, peak {power.max():.4g} ({truth_seconds:.1f} s)")
+            f"{power.sum():.4g} photons, peak {power.max():.4g} ({truth_seconds:.1f} s)"
+            + (f"; the FEM's undershoot clipped: {notes['clipped_photons']:.3g} photons "
+               f"({notes['clipped_photons'] / power.sum():.2%})" if notes.get("clipped_photons") else ""))
     views, placer, todo, built = ensure_T(cfg, replace(ctx, force=False), tr_fwd, label="building forward T",
                                           unknowns=f"refined:{truth_refinement(sim)}")
     lv = levels(cfg, power)
