@@ -176,3 +176,36 @@ def test_vertex_basis_integrates_a_linear_exitance_exactly():
         fine, parent = surf.refined(levels)
         cf = fine.face_vertices_mm[fine.element_of_face >= 0].mean(axis=1)
         assert np.allclose(vb.to_fine @ u, fine.face_areas_mm2[fine.element_of_face >= 0] * (1.0 + cf @ g))
+
+
+def test_light_outside_the_model_is_warned_or_refused_never_ignored():
+    """The solve uses only the pixels T reaches; light elsewhere is counted against the
+    image's total: a warning above 5 %, exit 2 above 50 %, nothing for noise alone."""
+    import scipy.sparse as sp
+
+    from fluxcli.errors import UserError
+    from fluxcli.imaging.noise import PhotonNoise
+    from fluxcli.stages.reconstruct import light_outside
+    from fluxcli.surface.phantoms import cylinder
+
+    surface = cylinder(radius_mm=8, length_mm=24, n_angular=8, n_axial=3)[0]
+    n = 400
+    T = sp.csr_array((np.ones(100), (np.arange(100), np.zeros(100, int))), shape=(n, 1))  # pixels 0-99 seen
+    noise = PhotonNoise(kind="poisson")
+    valid = np.ones(n, bool)
+    rng = np.random.default_rng(0)
+    a = np.zeros(n)
+    a[:100] = 900.0
+    a[100:] = 10.0  # 300 pixels x 10 = 3000 of 93 000 photons outside: 3 %, well above the noise
+    assert light_outside(T, a, valid, noise, "p", surface) is None
+    a[100:] = 40.0  # 12 000 of 102 000: 12 %
+    w = light_outside(T, a, valid, noise, "p", surface)
+    assert w is not None and w.startswith("12% of the image's light")
+    a[100:] = 400.0  # 120 000 of 210 000: refused
+    with pytest.raises(UserError, match="no element of the subject can reach"):
+        light_outside(T, a, valid, noise, "p", surface)
+    a[100:] = rng.normal(0.0, 30.0, 300)  # bias-subtracted read noise only: sums to about 0
+    assert light_outside(T, a, valid, PhotonNoise(kind="gaussian", read_noise_photons=30.0), "p", surface) is None
+    a[100:] = 400.0
+    valid[100:] = False  # NaN-masked by the user: left out
+    assert light_outside(T, a, valid, noise, "p", surface) is None

@@ -206,6 +206,19 @@ def _patch_diffusion(cfg, d, b):
     _diffusion()(cfg, d, b)
 
 
+def _mesh_in_metres(cfg, d, b):
+    """The tiny run's own simulated images, with the subject's size given in metres."""
+    with h5py.File(b / "run" / "simulation.h5") as f:
+        photons = f["images/noisy"][0, 0]  # level 0, repeat 0, every pose (photons)
+    files = []
+    for k, a in enumerate(photons):
+        write_image(d / f"sim{k}.tif", a.astype(np.float32), metadata={"fluxmap:units": "photons"})
+        files.append(str(d / f"sim{k}.tif"))
+    cfg["subject"]["surface"].update(radius_mm=0.008, length_mm=0.024)
+    cfg["reconstruct"]["images"] = {"files": files}
+    cfg["workdir"] = str(d / "run")
+
+
 def _no_sim(cfg, d, b):
     cfg["workdir"] = str(d / "run")
 
@@ -318,6 +331,9 @@ MISTAKES = [
     ("inverse-crime", "simulate", _cfg("simulate.transfer", {"lens": {"lens_samples_min": 16}}), ["simulate.transfer"]),
     # --- reconstruct from a simulation
     ("no-simulation", "reconstruct", _no_sim, ["simulation.h5", "does not exist"]),
+    # the solve only looks at pixels T reaches: light elsewhere must not vanish without a word
+    ("mesh-in-metres", "reconstruct", _mesh_in_metres, ["no element of the subject can reach", "millimetres",
+                                                        "subject.surface spans"]),
     ("sim-other-f-number", "reconstruct", _set("system.camera.lens.f_number=2.8"),
      ["system.camera.lens.f_number: 4 in simulation.h5, 2.8 now"]),
     ("sim-other-heights", "reconstruct", _set("subject.poses.heights_mm=[0, 10]"),

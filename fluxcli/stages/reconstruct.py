@@ -218,6 +218,44 @@ def _image_files(cfg: C.LoadedConfig, n_poses: int, poses: list | None) -> Input
                   noise_kind="emccd" if model is not None else "poisson", exposure_s=im.exposure_s)
 
 
+STRAY_WARN = 0.05  # share of the image's light on pixels no element reaches: warned above this
+STRAY_REFUSE = 0.5  # ... and refused above this: the images do not show this geometry
+
+
+def light_outside(T, image: np.ndarray, valid: np.ndarray, noise: N.PhotonNoise, label: str, surface) -> str | None:
+    """The image's light that no element of the subject can have sent: on pixels where every
+    column of T (all views) is zero.  The solve only looks at the pixels T reaches, so light
+    elsewhere would otherwise be ignored without a word — a mesh in metres instead of mm, a
+    pose or a camera that does not match the images would give a plausible total.
+
+    Counted when it stands out of the noise (more than 5 σ of the noise model summed over
+    those pixels); a warning above :data:`STRAY_WARN` of the light, a :class:`UserError`
+    above :data:`STRAY_REFUSE`.  Returns the warning or None."""
+    reach = np.asarray(abs(T).sum(axis=1)).ravel() > 0
+    a = np.asarray(image, dtype=np.float64).ravel()
+    ok = np.asarray(valid).ravel() & np.isfinite(a)
+    out_px = ok & ~reach
+    outside = float(a[out_px].sum())
+    total = float(a[ok].sum())
+    if total <= 0 or outside <= 0:
+        return None
+    noise_sd = float(np.sqrt(noise.variance(a[out_px]).sum()))
+    share = outside / total
+    if outside <= 5 * noise_sd or share <= STRAY_WARN:
+        return None
+    lo, hi = surface.bounds_mm()
+    what = (f"{share:.0%} of the image's light ({outside:.3g} of {total:.3g} photons, {noise_sd:.2g} of it noise) "
+            f"falls on pixels that no element of the subject can reach")
+    if share > STRAY_REFUSE:
+        raise UserError(
+            f"reconstruct, pose {label}: {what}: the images do not show this geometry. Check the mesh's units "
+            f"(fluxmap reads millimetres; subject.surface spans {np.ptp(np.stack([lo, hi]), axis=0).round(3).tolist()} mm), "
+            "subject.poses (their order is the images' order) and system.camera (pose, pixels, binning); "
+            "set pixels that show something else to NaN to leave them out.")
+    return (f"{what}: it is left out of the fit (light from outside the subject's mesh, a misplaced pose or "
+            "camera, or stray light); set such pixels to NaN to silence this")
+
+
 def direct_roi(T_path: Path, image: np.ndarray) -> float:
     """The older quantification: photons summed over the region the direct view covers."""
     direct = load_view(T_path, 0)
@@ -517,12 +555,16 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     Ts = grids["elements"].Ts
     gm = grids[m.unknowns]
     noise = photon_noise(cfg, inp.noise_kind, inp.exposure_s, inp.frames_averaged)
+    stray = [light_outside(Ts[k], inp.images[k], inp.valid[k], noise, pt.pose.label, surface)
+             for k, (_, pt) in enumerate(todo)]
     ctx.say(f"reconstruct: {inp.source}; {describe(m)}, {P} pose(s); {noise.kind} noise model")
     t0 = time.perf_counter()
     per_pose = []
     for k in range(P):
         res, keep = run_method(gm.Ts[k], inp.images[k], inp.valid[k], m, noise, gm.adjacency,
                                gm.parts(k), gm.n_elements, gm.areas)
+        if stray[k]:
+            res = replace(res, warnings=(stray[k], *res.warnings))
         fitted = np.full(nx * ny, np.nan)
         fitted[keep] = res.fitted
         per_pose.append((res, fitted.reshape(ny, nx)))
