@@ -249,11 +249,13 @@ def light_outside(T, image: np.ndarray, valid: np.ndarray, noise: N.PhotonNoise,
     if share > STRAY_REFUSE:
         raise UserError(
             f"reconstruct, pose {label}: {what}: the images do not show this geometry. Check the mesh's units "
-            f"(fluxmap reads millimetres; subject.surface spans {np.ptp(np.stack([lo, hi]), axis=0).round(3).tolist()} mm), "
-            "subject.poses (their order is the images' order) and system.camera (pose, pixels, binning); "
-            "set pixels that show something else to NaN to leave them out.")
+            f"(fluxmap reads millimetres; subject.surface spans {np.ptp(np.stack([lo, hi]), axis=0).round(3).tolist()} mm; "
+            "a mesh in metres needs subject.surface.scale_to_mm: 1000), "
+            "subject.poses (their order is the images' order), system.camera (pose, pixels, binning) and whether "
+            "the images still hold a bias or background; set pixels that show something else to NaN to leave "
+            "them out.")
     return (f"{what}: it is left out of the fit (light from outside the subject's mesh, a misplaced pose or "
-            "camera, or stray light); set such pixels to NaN to silence this")
+            "camera, an unsubtracted bias or background, or stray light); set such pixels to NaN to silence this")
 
 
 def direct_roi(T_path: Path, image: np.ndarray) -> float:
