@@ -178,6 +178,43 @@ def test_vertex_basis_integrates_a_linear_exitance_exactly():
         assert np.allclose(vb.to_fine @ u, fine.face_areas_mm2[fine.element_of_face >= 0] * (1.0 + cf @ g))
 
 
+def test_vertex_prior_is_the_exact_gradient_energy_of_a_linear_exitance():
+    """The prior of a solve on vertices: Jᵀ(diag(W1) − W)J with W = vertex_basis().stiffness
+    must equal ∫|∇J|² dS of J linear on each face, computed face by face from each face's
+    own gradient (the triangle's edge vectors, not the cotangent formula), for any vertex
+    values; on the cylinder (right triangles) no weight is clipped. A linear J along the
+    axis has energy |g|² × the side area; a constant has none."""
+    from fluxcli.surface import phantoms
+
+    surf = phantoms.cylinder(radius_mm=12.5, length_mm=50, n_angular=24, n_axial=12)[0]
+    vb = surf.vertex_basis()
+    W = vb.stiffness
+    K = np.diag(np.asarray(W.sum(axis=1)).ravel()) - W.toarray()
+    ok = surf.element_of_face >= 0
+    local = np.searchsorted(vb.vertex_index, surf.faces[ok])
+    P = surf.vertices_mm[surf.faces[ok]]
+
+    def energy(J):  # Σ_f S_f |∇J_f|²: the gradient solves ∇J·e1 = J1 − J0, ∇J·e2 = J2 − J0 in the face's plane
+        e1, e2 = P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]
+        G = np.stack([np.einsum("ij,ij->i", e1, e1), np.einsum("ij,ij->i", e1, e2),
+                      np.einsum("ij,ij->i", e2, e2)], axis=1)
+        dJ = J[local[:, 1:]] - J[local[:, :1]]
+        det = G[:, 0] * G[:, 2] - G[:, 1] ** 2
+        a = (G[:, 2] * dJ[:, 0] - G[:, 1] * dJ[:, 1]) / det  # ∇J = a e1 + b e2
+        b = (G[:, 0] * dJ[:, 1] - G[:, 1] * dJ[:, 0]) / det
+        grad = a[:, None] * e1 + b[:, None] * e2
+        return float(np.sum(0.5 * np.linalg.norm(np.cross(e1, e2), axis=1) * np.sum(grad * grad, axis=1)))
+
+    rng = np.random.default_rng(2)
+    for _ in range(3):
+        J = rng.normal(size=vb.n_vertices)
+        assert J @ K @ J == pytest.approx(energy(J), rel=1e-10)
+    J = 0.7 * surf.vertices_mm[vb.vertex_index, 0]  # along the axis: |∇J| = 0.7 on the side, 0 on the caps
+    side = 2 * np.pi * 12.5 * 50 * (np.sin(np.pi / 24) / (np.pi / 24))  # the 24-gon's side area
+    assert J @ K @ J == pytest.approx(0.49 * side, rel=1e-10)
+    assert np.allclose(K @ np.ones(vb.n_vertices), 0.0, atol=1e-12)
+
+
 def test_light_outside_the_model_is_warned_or_refused_never_ignored():
     """The solve uses only the pixels T reaches; light elsewhere is counted against the
     image's total: a warning above 5 %, exit 2 above 50 %, nothing for noise alone."""

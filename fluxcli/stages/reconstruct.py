@@ -283,7 +283,7 @@ class Grid:
     vertices (exitance linear within a face) shared out to the elements."""
 
     Ts: list  # per pose, (n_pixels, n_unknowns)
-    adjacency: sp.csr_matrix  # unknowns touching (for smooth)
+    adjacency: sp.csr_matrix  # unknowns touching, as edge weights of the smooth prior (vertices: cotangent)
     parent: np.ndarray | None  # unknown -> element; None when the unknowns are the elements
     n_elements: int
     areas: np.ndarray | None = None  # (n_unknowns,) mm²: priors act on exitance
@@ -342,7 +342,7 @@ def make_grid(cfg: C.LoadedConfig, ctx: RunContext, surface, unknowns: str) -> G
                                   shape=(fine_parent.size, surface.n_elements))
         vmap = VertexMap(vb.to_fine, fine_to_el, vb.to_elements, surface.element_adjacency(), surface.element_areas_mm2)
         Tf = [load_T(pt.path).tocsr() for _, pt in todo]
-        return Grid([vmap.unknowns_T(T) for T in Tf], vb.adjacency, None, surface.n_elements, vb.areas_mm2, surface,
+        return Grid([vmap.unknowns_T(T) for T in Tf], vb.stiffness, None, surface.n_elements, vb.areas_mm2, surface,
                     [str(pt.path) for _, pt in todo], vmap, [vmap.element_map(T) for T in Tf])
     label = "building T" if unknowns == "elements" else "building T (sub-elements)"
     _, _, todo, _ = ensure_T(cfg, replace(ctx, force=False), label=label, unknowns=unknowns)
@@ -520,7 +520,7 @@ def _describe(m: C.MethodSettings) -> str:
 
 
 # what `unknowns: auto` and the solvers do; a reconstruction made by an older version is redone
-SOLVER_VERSION = "2026-11 vertex basis"
+SOLVER_VERSION = "2026-11 vertex basis, cotangent prior"
 
 
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:

@@ -205,7 +205,8 @@ class Surface:
         e = np.sort(local[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
         adj = sp.csr_array((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_v, n_v))
         adj = sp.csr_array(((adj + adj.T) > 0).astype(np.float64))
-        return VertexBasis(fine, to_fine, sp.csr_array(P @ to_fine), A_v, adj, used)
+        K = cotangent_weights(self.vertices_mm[used], local)
+        return VertexBasis(fine, to_fine, sp.csr_array(P @ to_fine), A_v, adj, used, K)
 
     def digest(self) -> str:
         """Content hash of the placed geometry (rounded to 1 nm, so float noise does not matter)."""
@@ -233,6 +234,9 @@ class VertexBasis:
     areas_mm2 : (n_vertices,) ``A_v = ∫φ_v dS``; exitance at v = u_v / A_v.
     adjacency : sparse (n_vertices, n_vertices), 1 where two vertices share an edge.
     vertex_index : (n_vertices,) the surface vertex each unknown is.
+    stiffness : sparse (n_vertices, n_vertices), the edge weights of ``∫|∇J|² dS`` for an
+        exitance linear within each face (:func:`cotangent_weights`): the smoothness prior
+        of a solve on vertices.
     """
 
     fine: "Surface"
@@ -241,10 +245,40 @@ class VertexBasis:
     areas_mm2: np.ndarray
     adjacency: object
     vertex_index: np.ndarray
+    stiffness: object = None
 
     @property
     def n_vertices(self) -> int:
         return len(self.areas_mm2)
+
+
+def cotangent_weights(vertices_mm: np.ndarray, faces: np.ndarray):
+    """Edge weights ``w_ij = (cot α_ij + cot β_ij)/2`` (α, β the angles opposite edge ij)
+    as a symmetric sparse (n, n) matrix, negative weights set to 0.
+
+    For J linear on each triangle, ``∫|∇J|² dS = Σ_edges w_ij (J_i − J_j)²`` exactly (the
+    P1 finite-element stiffness matrix is ``diag(W1) − W``): a smoothness prior that
+    measures the exitance's gradient, not the mesh's connectivity. A graph Laplacian with
+    unit weights also smooths along the diagonals of split quads and ignores how long an
+    edge is. Weights of obtuse triangles can be negative; they are clipped at 0 (the prior
+    must stay positive semi-definite), which changes nothing on meshes without them.
+    """
+    import scipy.sparse as sp
+
+    P = np.asarray(vertices_mm, dtype=np.float64)[faces]  # (F, 3, 3)
+    rows, cols, w = [], [], []
+    for k in range(3):  # the angle at corner k faces the edge (k+1, k+2)
+        i, j = (k + 1) % 3, (k + 2) % 3
+        u, v = P[:, i] - P[:, k], P[:, j] - P[:, k]
+        sin = np.linalg.norm(np.cross(u, v), axis=1)
+        cot = np.divide(np.einsum("ij,ij->i", u, v), sin, out=np.zeros(len(sin)), where=sin > 0)
+        rows.append(faces[:, i]), cols.append(faces[:, j]), w.append(0.5 * cot)
+    n = len(vertices_mm)
+    W = sp.coo_array((np.concatenate(w), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)).tocsr()
+    W = sp.csr_array(W + W.T)
+    W.data = np.maximum(W.data, 0.0)
+    W.eliminate_zeros()
+    return W
 
 
 def _barycentric(tri: np.ndarray, p: np.ndarray) -> np.ndarray:
