@@ -74,8 +74,10 @@ class Study:
     truth_power: np.ndarray | None = None  # (n,) photons at the reconstructed level
     error_per_pose: np.ndarray | None = None
     total_ratio_per_pose: np.ndarray | None = None
-    error: float | None = None
+    error: float | None = None  # over all elements, unobserved ones counted as 0 (the paper's)
     total_ratio: float | None = None
+    error_observed: float | None = None  # over the observed elements
+    total_ratio_observed: float | None = None
     sweep: Sweep | None = None
     snr: np.ndarray | None = None  # (L, P) max SNR per level and pose
     levels_peak_photons: np.ndarray | None = None  # (L,)
@@ -162,6 +164,8 @@ def load(reconstruction: Path, *, t_cache_dir: Path | None = None, simulation: P
             st.total_ratio_per_pose = _opt(t, "total_ratio_per_pose")
             st.error = float(t.attrs["error"]) if "error" in t.attrs else None
             st.total_ratio = float(t.attrs["total_ratio"]) if "total_ratio" in t.attrs else None
+            st.error_observed = float(t.attrs["error_observed"]) if "error_observed" in t.attrs else None
+            st.total_ratio_observed = float(t.attrs["total_ratio_observed"]) if "total_ratio_observed" in t.attrs else None
         if "sweep" in f:
             s = f["sweep"]
             st.sweep = Sweep(json.loads(s.attrs["methods"]), s["error"][()], s["mean"][()], s["sd"][()],
@@ -350,6 +354,8 @@ def summarise(st: Study, *, title: str, slice_axial_mm: float, view_names: list[
         out["truth_observed_total_photons_per_pose"] = [float(st.truth_power[o].sum()) for o in st.pose_observed]
         out["error"] = st.error
         out["total_ratio"] = st.total_ratio
+        out["error_observed"] = st.error_observed
+        out["total_ratio_observed"] = st.total_ratio_observed
     if st.snr is not None:
         out["snr_table"] = {"levels_peak_photons": st.levels_peak_photons, "heights_mm": st.heights_mm,
                             "rotations_deg": st.rotations_deg, "max_snr": st.snr,

@@ -77,8 +77,11 @@ class Page:
                      ("poorly observed elements (hatched)", fmt(s.get("flux_poorly_observed_fraction"), "%"))]
         if "truth_total_photons" in s:
             rows += [("ground-truth total (photons)", fmt(s["truth_total_photons"])),
-                     ("error Σ|b̃ − b| / Σb", fmt(s.get("error"), "%")),
-                     ("total ratio Σb̃ / Σb", fmt(s.get("total_ratio")))]
+                     ("error Σ|b̃ − b| / Σb (all elements; unobserved count as 0)", fmt(s.get("error"), "%")),
+                     ("total ratio Σb̃ / Σb (all elements)", fmt(s.get("total_ratio")))]
+            if s.get("error_observed") is not None:
+                rows += [("error over observed elements", fmt(s["error_observed"], "%")),
+                         ("total ratio over observed elements", fmt(s.get("total_ratio_observed")))]
         self.parts.append('<table class="meta">' + "".join(
             f'<tr><th class="l">{html.escape(k)}</th><td class="l">{html.escape(str(v))}</td></tr>' for k, v in rows)
             + "</table>")

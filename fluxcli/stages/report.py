@@ -88,7 +88,10 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     sp = summary["spreads"]
     ctx.say("spread over poses: " + ", ".join(f"{k} {v:.1%}" for k, v in sp.items() if v is not None))
     if summary.get("error") is not None:
-        ctx.say(f"error {summary['error']:.2%}, total ratio {summary['total_ratio']:.3f}")
+        obs = (f"; over observed elements {summary['error_observed']:.2%}, {summary['total_ratio_observed']:.3f}"
+               if summary.get("error_observed") is not None else "")
+        ctx.say(f"error {summary['error']:.2%}, total ratio {summary['total_ratio']:.3f} over all elements "
+                f"(unobserved ones count as 0){obs}")
     ctx.say(f"{len(summary['figures'])} figure(s); open {index}")
     return index
 
