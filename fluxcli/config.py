@@ -398,7 +398,10 @@ Method = Literal["backprojection", "paper", "tikhonov", "nnls", "weighted_lsq", 
 class MethodSettings(Model):
     method: Method = Field("smooth", description="smooth (default) | backprojection | paper | tikhonov | nnls | weighted_lsq | mlem.")
     lam: float | Literal["auto"] = Field("auto", alias="lambda",
-                                          description="Regularisation in the paper's relative units (lambda~ = lambda max diag(T'T)), or auto.")
+                                          description="Regularisation in the paper's relative units, or auto: lambda~ = lambda max diag(T'WT), "
+                                                      "W = I for paper, W = 1/sigma^2 of the noise model for smooth (so a "
+                                                      "fixed value regularises differently as the signal level changes; auto "
+                                                      "picks it per image).")
     lambda_rule: Literal["gcv", "lcurve", "discrepancy"] = Field("gcv", description="How 'auto' picks lambda.")
     max_iter: int = Field(10, ge=1, description="paper: at most this many solves; smooth: this many.")
     tol: float = Field(0.01, gt=0, description="paper: stop when the fit improves by less than this fraction.")
