@@ -246,3 +246,23 @@ def test_light_outside_the_model_is_warned_or_refused_never_ignored():
     a[100:] = 400.0
     valid[100:] = False  # NaN-masked by the user: left out
     assert light_outside(T, a, valid, noise, "p", surface) is None
+
+
+def test_cotangent_weights_clip_negative_and_never_leave_a_vertex_untied():
+    """Obtuse angles on both sides of an edge give it a negative weight: clipped to 0 so the
+    prior stays positive semi-definite. A vertex left with no weight at all (here only in a
+    degenerate, zero-area face) keeps its edges at the median weight, so the prior still ties
+    it to its neighbours."""
+    from fluxcli.surface.mesh import cotangent_weights
+
+    # edge 0-1 between two flat triangles whose apexes (2, 3) are at 157°: cot sum < 0
+    V = np.array([[0, 0, 0], [10, 0, 0], [5, 1, 0], [5, -1, 0], [20, 0, 0], [30, 0, 0], [40, 0, 0]], float)
+    F = np.array([[0, 1, 2], [1, 0, 3], [4, 5, 6]])  # the last face is degenerate (collinear)
+    W = cotangent_weights(V, F).toarray()
+    assert W[0, 1] == 0.0 and np.all(W >= 0) and np.allclose(W, W.T)
+    a = np.arctan2(1, 5)  # the angle at 0 (and at 1) of the flat triangles
+    assert W[0, 2] == pytest.approx(0.5 / np.tan(a)) and W[1, 3] == pytest.approx(0.5 / np.tan(a))
+    median = np.median(W[W > 0])
+    assert W[4, 5] == W[5, 6] == W[4, 6] == median
+    K = np.diag(W.sum(axis=1)) - W
+    assert np.linalg.eigvalsh(K).min() > -1e-12

@@ -261,7 +261,8 @@ def cotangent_weights(vertices_mm: np.ndarray, faces: np.ndarray):
     measures the exitance's gradient, not the mesh's connectivity. A graph Laplacian with
     unit weights also smooths along the diagonals of split quads and ignores how long an
     edge is. Weights of obtuse triangles can be negative; they are clipped at 0 (the prior
-    must stay positive semi-definite), which changes nothing on meshes without them.
+    must stay positive semi-definite), which changes nothing on meshes without them; a
+    vertex left with no weight at all keeps its edges at the median weight.
     """
     import scipy.sparse as sp
 
@@ -278,6 +279,13 @@ def cotangent_weights(vertices_mm: np.ndarray, faces: np.ndarray):
     W = sp.csr_array(W + W.T)
     W.data = np.maximum(W.data, 0.0)
     W.eliminate_zeros()
+    lone = np.flatnonzero((np.asarray(W.sum(axis=1)).ravel() == 0) & np.isin(np.arange(n), faces))
+    if lone.size and W.nnz:  # a vertex whose every angle is obtuse-clipped: tie it to its neighbours anyway
+        e = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        e = e[np.isin(e, lone).any(axis=1)]
+        fill = sp.coo_array((np.full(len(e), float(np.median(W.data))), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
+        fill = sp.csr_array(((fill + fill.T) > 0).astype(np.float64) * float(np.median(W.data)))
+        W = sp.csr_array(W.maximum(fill))
     return W
 
 
