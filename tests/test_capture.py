@@ -354,3 +354,34 @@ def test_devices_served_elsewhere_are_driven_through_their_ports(reference, tmp_
     counts, committed, *_ = frames(tmp_path / "run" / "capture.h5")
     # the same frames as with in-process simulators: the scene depends on physical state only
     assert committed.all() and np.array_equal(counts, frames(ref_path)[0])
+
+
+def test_the_simulated_camera_renders_a_truth_finer_than_the_elements(reference, tmp_path):
+    """The rig simulator's emission is T_fwd per face of the refined surface times the truth
+    per face (simulate.truth_refinement), not a constant per element: summed per element it
+    is /truth/<filter>/power, the light on the sensor is the same to the forward T's sampling,
+    and the variation within elements shows in the image (a constant per element would be
+    half an inverse crime for a reconstruction on those elements)."""
+    from fluxcli.config import load_config
+    from fluxcli.pipeline import ensure_pose_T
+    from fluxcli.scene import Pose
+    from fluxcli.stages.capture import SimulatedScene
+    from fluxcli.truth import forward_transfer
+
+    cfg_dict, _ = reference
+    cfg_dict = copy.deepcopy(cfg_dict)
+    cfg_dict["system"]["camera"] |= {"pixels": [64, 64], "pixel_pitch_mm": 0.05}  # resolves the elements
+    p = tmp_path / "cfg.yaml"
+    p.write_text(yaml.safe_dump(cfg_dict))
+    scene = SimulatedScene(load_config(p))
+    fine, parent = scene.fine_rate("open")
+    surface = scene.placer.surface
+    n = surface.n_elements
+    assert len(fine) == 4 * np.count_nonzero(surface.element_of_face >= 0)  # truth_refinement 1: faces split in 4
+    per_element = scene.power_rate("open")
+    assert np.allclose(np.bincount(parent, weights=fine, minlength=n), per_element, rtol=1e-12)
+    image = scene.emission(0.0, "open")
+    T_el = ensure_pose_T(scene.cfg, Pose(0.0, 0.0), forward_transfer(scene.cfg), scene.placer)
+    constant = (T_el @ per_element).reshape(image.shape)
+    assert image.sum() == pytest.approx(constant.sum(), rel=0.01)
+    assert np.abs(image - constant).max() > 0.05 * image.max()
