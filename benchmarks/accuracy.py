@@ -247,7 +247,7 @@ def unequal_area_case(name: str, snr: float):
     return run
 
 
-def independent_case(name: str, mirrors: bool, snr: float, blob_centre_deg: float = 20.0):
+def independent_case(name: str, mirrors: bool, snr: float, **scene):
     """Images from tests/independent_renderer.py (no fluxcli code: numpy Monte Carlo of a
     continuous Gaussian exitance through a thin lens, mirrors by reflection, Poisson noise),
     written as a float TIFF beside a mesh with an `element` cell array, reconstructed through
@@ -256,7 +256,7 @@ def independent_case(name: str, mirrors: bool, snr: float, blob_centre_deg: floa
         sys.path.insert(0, str(ROOT / "tests"))
         import independent_renderer as ir
 
-        p, truth, clean = ir.blob_scene(OUT / name, mirrors=mirrors, max_snr=snr, blob_centre_deg=blob_centre_deg)
+        p, truth, clean = ir.blob_scene(OUT / name, mirrors=mirrors, max_snr=snr, **scene)
         write(OUT / name, yaml.safe_load(p.read_text()))  # the shared T cache
         p = OUT / name / "case.yaml"
         fluxmap("build-T", p, "--quiet", "--jobs", "2")
@@ -302,6 +302,8 @@ def cases() -> dict:
         # the blob towards the limb (20° is the top view above): what a check with its own scene may do
         "indep-direct-blob45": independent_case("indep-direct-blob45", False, 30, blob_centre_deg=45.0),
         "indep-direct-blob60": independent_case("indep-direct-blob60", False, 30, blob_centre_deg=60.0),
+        # a finer mesh: 120 x 48 quads in 2 x 2 elements, 5880 vertices, 0.3 pixels per quad
+        "indep-direct-fine": independent_case("indep-direct-fine", False, 30, n_angular=120, n_axial=48),
     }
     return c
 

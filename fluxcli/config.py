@@ -466,9 +466,8 @@ class Reconstruct(Model):
     unknowns: Literal["auto", "elements", "sub_elements", "vertices"] = Field(
         "auto", description="auto (default): smooth solves for the exitance at the vertices (linear within each face, "
                             "continuous; T from the once-refined surface), shared out to the elements, when there are at "
-                            "most 4000 vertices and the camera resolves an element (>= 12 pixels, or >= 4 with at most "
-                            "1.25 vertices per element); else per element. elements, sub_elements (phantom strips, else "
-                            "faces) or vertices to choose.")
+                            "most 6000 vertices; else (and for the other methods) per element. elements, sub_elements "
+                            "(phantom strips, else faces) or vertices to choose.")
     images: ImageFiles | CaptureSource | None = Field(None, description="Images from files, or from a capture, instead of simulation.h5.")
     level: int = Field(0, ge=0, description="Which signal level of the simulation to reconstruct.")
     repeat: int = Field(0, ge=0, description="Which noise repeat of the simulation to reconstruct.")

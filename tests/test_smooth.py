@@ -84,3 +84,59 @@ def test_smooth_needs_an_adjacency():
     T, adj, truth = ring_problem()
     with pytest.raises(ValueError, match="adjacency"):
         reconstruct(T, T @ truth, method="smooth")
+
+
+def _chain_problem(n=300, m=300, seed=0):
+    """A 1-D chain of n unknowns under m blurred pixels, Poisson counts of a bump on a floor."""
+    import scipy.sparse as sp
+
+    from fluxcli.inverse.smooth import exitance_prior
+
+    rng = np.random.default_rng(seed)
+    x, px = np.linspace(0, 1, n), np.linspace(0, 1, m)
+    T = np.exp(-((px[:, None] - x[None, :]) / 0.01) ** 2)
+    T /= T.sum(axis=1, keepdims=True) / 0.5
+    truth = 1e3 * np.exp(-((x - 0.4) / 0.1) ** 2) + 10
+    a = rng.poisson(T @ truth).astype(float)
+    R = exitance_prior(sp.diags([np.ones(n - 1), np.ones(n - 1)], [-1, 1]), np.ones(n, bool))
+    return sp.csr_array(T), a, R, truth
+
+
+def test_a_provisional_pass_whose_gcv_runs_off_the_grid_falls_back_to_the_noise_model():
+    """The first, unweighted pass of a weighted solve picks λ by GCV, which estimates the noise
+    from the residual. Here it runs below the grid (λ ~1e-9: a total 239x too large, χ²/pixel
+    2e4) and the model weights taken from that would ruin the final solve. The fallback picks
+    that pass's λ by UPRE with the noise model's mean variance: the final answer is right."""
+    from fluxcli.imaging.noise import PhotonNoise
+    from fluxcli.inverse import spectral as S
+    from fluxcli.inverse.filtered import filtered_solve
+
+    T, a, R, truth = _chain_problem()
+    spec = S.Spectrum(T, a, None, R)
+    gcv = S.choose(spec, "gcv", k=10)
+    assert gcv.widened and gcv.lam < 1e-6  # the failure the fallback is for
+    runaway = S.iterated_clipped(spec, gcv.lam * spec.scale, 10)[0]
+    assert runaway.sum() > 10 * truth.sum()
+    out = filtered_solve(T, a, prior=R, k=10, variance=PhotonNoise(kind="poisson").variance, free_level=True)
+    assert np.abs(out.power - truth).sum() / truth.sum() < 0.05
+    assert out.power.sum() / truth.sum() == pytest.approx(1.0, abs=0.02)
+    assert 0.5 <= out.chi2_per_pixel <= 2.0
+
+
+def test_iterated_solve_uses_the_spectrum_when_cholesky_cannot_vouch_for_its_pivots():
+    """Columns whose weights span 15 decades make Cholesky's smallest pivot fall under its
+    rounding-level test although G + λ̃I is positive definite; the solve then comes from the
+    generalised eigenbasis, (G + λ̃R)⁻¹ = V diag(1/(s + λ̃)) Vᵀ, and must equal the closed form
+    g_i / (G_ii + λ̃) of this diagonal problem."""
+    import scipy.sparse as sp
+
+    from fluxcli.inverse import _common as c
+    from fluxcli.inverse import spectral as S
+
+    T = sp.csr_array(np.diag([1.0, np.sqrt(1e-15)]))
+    a = np.array([2.0, 3e-8])
+    spec = S.Spectrum(T, a)
+    lam = 1e-16
+    assert c.try_cholesky(spec.G + lam * np.eye(2)) is None
+    b, _, _ = S.iterated_clipped(spec, lam, 1)
+    np.testing.assert_allclose(b, spec.g / (np.diag(spec.G) + lam), rtol=1e-9)

@@ -285,18 +285,31 @@ def iterated_clipped(spec: Spectrum, lam_abs: float, k: int, *, tol: float | Non
         by less than 1 %.
     """
     R = np.eye(len(spec.s)) if spec.prior is None else spec.prior
-    cf = c.cholesky(spec.G + lam_abs * R, "TᵀWT + λ̃R")
+    cf = c.try_cholesky(spec.G + lam_abs * R)
+    if cf is not None:
+        def solve(x):
+            return sla.cho_solve(cf, x, check_finite=False)
+    elif lam_abs > 0:
+        # Cholesky cannot vouch for its pivots (a wide range of column weights: bright and
+        # dark pixels), but the spectrum already holds the inverse exactly: VᵀGV = diag(s),
+        # VᵀRV = I, so (G + λ̃R)⁻¹ = V diag(1/(s + λ̃)) Vᵀ, finite for any λ̃ > 0
+        d = 1.0 / (spec.s + lam_abs)
+
+        def solve(x):
+            return spec.V @ (d * (spec.V.T @ x))
+    else:
+        c.cholesky(spec.G, "TᵀWT")  # raises: singular without regularisation, saying what to change
     T, a, w = spec.T, spec.a, spec.weights
 
     def fit(b):
         r = a - T @ b
         return r, float(np.sqrt(np.sum(r * r if w is None else w * r * r)))
 
-    b = np.maximum(sla.cho_solve(cf, spec.g, check_finite=False), 0.0)
+    b = np.maximum(solve(spec.g), 0.0)
     r, norm = fit(b)
     it, converged, gain = 1, False, np.inf
     while it < k and norm > 0:
-        step = sla.cho_solve(cf, T.T @ (r if w is None else w * r), check_finite=False)
+        step = solve(T.T @ (r if w is None else w * r))
         b_new = np.maximum(b + step, 0.0)
         r_new, norm_new = fit(b_new)
         it += 1

@@ -431,28 +431,15 @@ def _solve(T, a, valid, m, noise, adjacency, areas, groups=None):
         raise UserError(f"reconstruct.method {m.method}: {msg}") from None
 
 
-MAX_AUTO_SUB_ELEMENTS = 4000
-MIN_PIXELS_PER_ELEMENT = 12.0
-VERTICES_PER_ELEMENT = 1.25  # up to this many vertices per element the vertex basis adds no unknowns
-MIN_PIXELS_FOR_A_GRADIENT = 4.0  # 2 x 2 pixels per element: a gradient across it is imaged
-
-
-def pixels_per_element(camera: C.Camera, surface) -> float:
-    """Median element area in pixels at the focal plane, (S·v/u)²/pitch²: how finely the
-    camera resolves an element."""
-    f, u = camera.lens.focal_length_mm, camera.lens.focus_distance_mm
-    v = 1.0 / (1.0 / f - 1.0 / u)
-    return float(np.median(surface.element_areas_mm2) * (v / u / camera.pixel_pitch_mm) ** 2)
+MAX_AUTO_SUB_ELEMENTS = 6000  # dense solves: 6000² doubles is 0.29 GB a matrix (a 5880-vertex pose took 14 s)
 
 
 def resolve_unknowns(m: C.MethodSettings, surface, camera: C.Camera | None = None) -> C.MethodSettings:
     """``unknowns: auto``: ``smooth`` solves for the exitance at the vertices (linear within
     each face, continuous across edges; :meth:`Surface.vertex_basis`) and shares it out to
-    the elements, when there are at most MAX_AUTO_SUB_ELEMENTS vertices and the camera
-    resolves an element: ≥ MIN_PIXELS_PER_ELEMENT pixels, or ≥ MIN_PIXELS_FOR_A_GRADIENT
-    (2 x 2: a gradient across an element is imaged) where there are about as many vertices
-    as elements (≤ VERTICES_PER_ELEMENT per element: the basis adds no unknowns). The rest
-    solve per element.
+    the elements when there are at most MAX_AUTO_SUB_ELEMENTS vertices; the other methods,
+    and larger meshes, solve per element. (``camera`` is kept in the signature for its
+    callers: how finely the camera resolves an element no longer decides, see below.)
 
     Light varies within an element, and where it varies steeply a model constant per element
     (or per face) cannot fit the data even without noise: honest simulations of a cylinder
@@ -460,18 +447,22 @@ def resolve_unknowns(m: C.MethodSettings, surface, camera: C.Camera | None = Non
     2.8 per face with the source at the limb (2.2 % / 2.8 % error), and 1.7 / 1.2 with the
     source behind (8 % / 13 % error, totals over well-observed elements 0.96 / 0.93), against
     0.06 / 0.04 (0.3 % / 0.6 %, 1.000 / 1.002) for exitance linear in each face, with fewer
-    unknowns (312 vertices, 576 faces). At 5–6 pixels per element (paper-3d, heights: 1650
-    vertices for 1600 elements; the demo) it still helps: 3.13 → 1.40 %, 3.19 → 2.58 %,
-    5.0 → 2.1 % error, χ²/pixel up to 2.9 → 0.7–1.0. Where an element covers less than a pixel
-    (0.6 pixels, tests/test_capture.py's scene) the shape within it is not imaged and the
-    basis only changes how neighbours are coupled: the total went 1.038 → 1.067 there."""
+    unknowns (312 vertices, 576 faces). At 5–6 pixels per element (paper-3d, heights, the
+    demo) it helps as much: 3.13 → 1.40 %, 3.19 → 2.46 %, 5.0 → 2.1 % error.
+
+    Until November 2026 ``auto`` also asked for ≥ 12 pixels per element (≥ 4 where there are
+    at most 1.25 vertices per element) and at most 4000 vertices, from one scene at 0.6
+    pixels per element whose total went 1.038 → 1.067 on vertices. Measured since, on the
+    independent renderer's cylinder (elements of 2 x 2 quads, SNR 30, blob 20° / 45° from
+    the top; error over observed elements, per element → vertices): 48 x 24 quads at 4.7
+    pixels per element 7.5 → 2.7 % / 10.0 → 4.3 %, at 2 pixels 9.9 → 5.5 % / 16.1 → 9.2 %, at
+    0.9 pixels 8.8 → 5.3 % / 11.6 → 6.0 %; 96 x 48 quads (4706 vertices) at 4.7 pixels
+    3.2 → 2.0 % / 4.3 → 2.6 %, at 0.2 pixels 6.2 → 5.4 % / 8.8 → 6.5 %; the battery's
+    cylinder at 2.2 and 0.55 pixels per element 6.1 → 3.7 % and 7.4 → 5.0 % (top), 9.3 →
+    6.3 % and 12.9 → 8.4 % (limb). Vertices won every one; totals moved either way by ≤ 1.5 %."""
     if m.unknowns != "auto":
         return m
-    nv = n_vertices(surface)
-    fine = m.method == "smooth" and nv <= MAX_AUTO_SUB_ELEMENTS
-    if fine and camera is not None:
-        need = MIN_PIXELS_FOR_A_GRADIENT if nv <= VERTICES_PER_ELEMENT * surface.n_elements else MIN_PIXELS_PER_ELEMENT
-        fine = pixels_per_element(camera, surface) >= need
+    fine = m.method == "smooth" and n_vertices(surface) <= MAX_AUTO_SUB_ELEMENTS
     return m.model_copy(update={"unknowns": "vertices" if fine else "elements"})
 
 
@@ -520,7 +511,7 @@ def _describe(m: C.MethodSettings) -> str:
 
 
 # what `unknowns: auto` and the solvers do; a reconstruction made by an older version is redone
-SOLVER_VERSION = "2026-11 vertex basis, cotangent prior"
+SOLVER_VERSION = "2026-11 vertex basis, cotangent prior, provisional UPRE"
 
 
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
