@@ -44,7 +44,7 @@ check-report: $(VENV)/.installed
 
 # issue 8: realistic, honestly simulated cases x methods (a benchmark, ~15 min on 2 cores)
 accuracy: $(VENV)/.installed
-	$(PY) benchmarks/accuracy.py
+	$(PY) benchmarks/accuracy.py --draws 5
 
 demo-rig: $(VENV)/.installed  # issue 12: build-T and reconstruct on the surface capture-surface measured
 	$(FLUXMAP) capture-surface configs/demo-rig.yaml --resume

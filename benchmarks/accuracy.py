@@ -19,8 +19,14 @@ elements) is checked against issue 8's bars; "smooth on faces" is the default be
   - at max SNR >= 30: error < 3 % and total within 2 % over well-observed elements (the error
     is held to 3 % over the observed and over the well-observed elements).
 
-    $ make accuracy                    # all cases (~10 min on 2 cores)
-    $ .venv/bin/python benchmarks/accuracy.py --cases renderer-direct,emccd-snr30
+An error is one noise draw's. With ``--draws N`` (``make accuracy`` uses 5) the default also
+runs on N - 1 further Poisson/EMCCD draws of the same scene and prints mean +- sd (worst); the
+SNR >= 30 bar is then judged on the means (the estimator's expected error, not one draw's
+luck), a draw that misses it is marked in the table, and every draw must warn when it is
+more than 10 % off.
+
+    $ make accuracy                    # all cases, 5 draws each (~20 min on 2 cores)
+    $ .venv/bin/python benchmarks/accuracy.py --cases renderer-direct,emccd-snr30 --draws 1
 """
 
 from __future__ import annotations
@@ -149,6 +155,7 @@ def metrics(rec: Path, truth: np.ndarray) -> dict:
     with h5py.File(rec) as f:
         p = f["flux/power"][()]
         well = f["flux/well_observed"][()]
+        sigma = f["flux/sigma"][()]
         obs = f["flux/observed"][()]
         chi2 = float(np.nanmean(f["per_pose/chi2_per_pixel"][()]))
         lam = float(f.attrs["lambda_used"])
@@ -158,12 +165,14 @@ def metrics(rec: Path, truth: np.ndarray) -> dict:
     return {"error_obs": err, "error_well": err_well, "ratio_obs": p[obs].sum() / truth[obs].sum(),
             "ratio_well": p[well].sum() / truth[well].sum() if well.any() else np.nan,
             "observed": obs.mean(), "well": well.mean(), "chi2": chi2, "lambda": lam, "warnings": warns,
-            "truth_seen": truth[obs].sum() / truth.sum()}
+            "truth_seen": truth[obs].sum() / truth.sum(),
+            # what the noise alone costs: E|e| = sqrt(2/pi) sigma per element, the reported sigma
+            "noise_floor_well": np.sqrt(2 / np.pi) * sigma[well].sum() / truth[well].sum() if well.any() else np.nan}
 
 
-def reconstruct_all(cfg_path: Path, truth_of) -> dict:
+def reconstruct_all(cfg_path: Path, truth_of, methods=METHODS) -> dict:
     out = {}
-    for name, extra in METHODS.items():
+    for name, extra in methods.items():
         fluxmap("reconstruct", cfg_path, "--quiet", "--force", "--jobs", "2", *extra)
         rec = cfg_path.parent / "run" / "reconstruction.h5"
         out[name] = metrics(rec, truth_of(rec))
@@ -190,19 +199,26 @@ def base(**over) -> dict:
     return cfg
 
 
+def _folder(name: str, draw: int) -> Path:
+    """Draw 0 is the table's; further noise draws run beside it."""
+    return OUT / name if draw == 0 else OUT / name / "draws" / str(draw)
+
+
 def simulated_case(name: str, cfg: dict, snr: float | None):
-    def run():
-        p = write(OUT / name, cfg)
+    def run(draw=0, methods=METHODS):
+        c = copy.deepcopy(cfg)
+        c["simulate"]["noise"]["seed"] += draw
+        p = write(_folder(name, draw), c)
         fluxmap("build-T", p, "--quiet", "--jobs", "2")
         got = simulate_at_snr(p, snr)
-        return got, reconstruct_all(p, truth_from_simulation)
+        return got, reconstruct_all(p, truth_from_simulation, methods)
     return run
 
 
 def renderer_case(name: str, mirrors: list, snr: float):
     """The independent-renderer emulation: images from a 4x finer mesh, as files."""
-    def run():
-        folder = OUT / name
+    def run(draw=0, methods=METHODS):
+        folder = _folder(name, draw)
         Na, Nz = 24, 12
         coarse = cylinder_mesh(folder / "cylinder.vtk", n_angular=2 * Na, n_axial=2 * Nz, group=2)
         fine_elem = cylinder_mesh(folder / "render" / "cylinder_fine.vtk", n_angular=4 * Na, n_axial=4 * Nz, group=1)
@@ -218,7 +234,7 @@ def renderer_case(name: str, mirrors: list, snr: float):
                   "transfer": {"lens": fine_lens},
                   "simulate": {"flux": dict(BLOB), "transfer": {"lens": fine_lens}, "allow_inverse_crime": True,
                                "truth_refinement": 1,
-                               "noise": {"model": "poisson", "peaks_photons": [1e6], "seed": 21},
+                               "noise": {"model": "poisson", "peaks_photons": [1e6], "seed": 21 + draw},
                                "export": {"format": "fits"}}}
         rp = write(folder / "render", render)
         got = simulate_at_snr(rp, snr)
@@ -230,20 +246,21 @@ def renderer_case(name: str, mirrors: list, snr: float):
                    "reconstruct": {"images": {"files": [str(image)], "units": "photons"}}}
         p = write(folder, rec_cfg)
         fluxmap("build-T", p, "--quiet")
-        return got, reconstruct_all(p, lambda rec: truth)
+        return got, reconstruct_all(p, lambda rec: truth, methods)
     return run
 
 
 def unequal_area_case(name: str, snr: float):
-    def run():
-        folder = OUT / name
+    def run(draw=0, methods=METHODS):
+        folder = _folder(name, draw)
         cylinder_mesh(folder / "cylinder_unequal.vtk", n_angular=24, n_axial=12, group=1,
                       axial_lengths=np.where(np.arange(12) % 2 == 0, 1.0, 4.0))
         cfg = base()
         cfg["subject"]["surface"] = {"mesh": "cylinder_unequal.vtk"}
+        cfg["simulate"]["noise"]["seed"] += draw
         p = write(folder, cfg)
         fluxmap("build-T", p, "--quiet")
-        return simulate_at_snr(p, snr), reconstruct_all(p, truth_from_simulation)
+        return simulate_at_snr(p, snr), reconstruct_all(p, truth_from_simulation, methods)
     return run
 
 
@@ -252,15 +269,16 @@ def independent_case(name: str, mirrors: bool, snr: float, **scene):
     continuous Gaussian exitance through a thin lens, mirrors by reflection, Poisson noise),
     written as a float TIFF beside a mesh with an `element` cell array, reconstructed through
     the CLI as a user would; the truth is the renderer's integral per element."""
-    def run():
+    def run(draw=0, methods=METHODS):
         sys.path.insert(0, str(ROOT / "tests"))
         import independent_renderer as ir
 
-        p, truth, clean = ir.blob_scene(OUT / name, mirrors=mirrors, max_snr=snr, **scene)
-        write(OUT / name, yaml.safe_load(p.read_text()))  # the shared T cache
-        p = OUT / name / "case.yaml"
+        folder = _folder(name, draw)
+        p, truth, clean = ir.blob_scene(folder, mirrors=mirrors, max_snr=snr, noise_draw=draw, **scene)
+        write(folder, yaml.safe_load(p.read_text()))  # the shared T cache
+        p = folder / "case.yaml"
         fluxmap("build-T", p, "--quiet", "--jobs", "2")
-        return float(np.sqrt(clean.max())), reconstruct_all(p, lambda rec: truth)
+        return float(np.sqrt(clean.max())), reconstruct_all(p, lambda rec: truth, methods)
     return run
 
 
@@ -313,9 +331,44 @@ def _lens(cfg, f_number):
     return cfg
 
 
+def _bars(name: str, snr: float, m: dict, fails: list, *, off_only=False) -> str:
+    """Issue 8's bars on one default-method result (or on the means over noise draws)."""
+    flag = ""
+    if abs(m["ratio_obs"] - 1) > 0.10 and not m["warnings"]:
+        flag, _ = "  << >10 % off without a warning", fails.append((name, "silent >10 %"))
+    # "error < 3 % and total within 2 % over well-observed elements": the error is held
+    # to 3 % over the observed and over the well-observed elements (the stricter reading)
+    if not off_only and snr >= 29.5 and (max(m["error_obs"], m["error_well"]) >= 0.03
+                                         or abs(m["ratio_well"] - 1) >= 0.02):
+        flag += "  << misses the SNR>=30 bar"
+        fails.append((name, "SNR>=30 bar"))
+    return flag
+
+
+def _spread(name: str, snr: float, draws: list[dict], fails: list) -> str:
+    """The default over noise draws: mean +- sd (worst), and the SNR>=30 bar on the means."""
+    def col(key, pct):
+        v = np.array([d[key] for d in draws]) * (100 if pct else 1)
+        worst = v.max() if pct else v[np.argmax(np.abs(v - 1))]
+        d = 2 if pct else 3
+        return v.mean(), f"{v.mean():.{d}f}{'%' if pct else ''} +- {v.std(ddof=1):.{d}f} ({worst:.{d}f})"
+    means = {k: col(k, k.startswith("error"))[0] / (100 if k.startswith("error") else 1)
+             for k in ("error_obs", "error_well", "ratio_obs", "ratio_well")}
+    over = sum(max(d["error_obs"], d["error_well"]) >= 0.03 for d in draws)
+    flag = _bars(name, snr, {**means, "warnings": ["(per draw)"]}, fails)
+    return (f"{'':20s} {DEFAULT} over {len(draws)} noise draws, mean +- sd (worst): err obs "
+            f"{col('error_obs', True)[1]}, err well {col('error_well', True)[1]}, tot obs "
+            f"{col('ratio_obs', False)[1]}, tot well {col('ratio_well', False)[1]}; noise alone over "
+            f"well-observed elements (sqrt(2/pi) sum sigma / sum truth) {col('noise_floor_well', True)[1]}"
+            + (f"; {over} draw(s) at or above 3 %" if snr >= 29.5 else "") + flag)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cases", default=None, help="comma-separated case names (default all)")
+    ap.add_argument("--draws", type=int, default=1,
+                    help="noise draws per case for the default method (draw 0 is the table's); with more "
+                         "than one, the SNR>=30 bar is judged on their mean and every draw must warn when >10 %% off")
     args = ap.parse_args()
     todo = cases()
     names = list(todo) if args.cases is None else args.cases.split(",")
@@ -326,21 +379,23 @@ def main() -> int:
         t0 = time.perf_counter()
         snr, res = todo[name]()
         for method, m in res.items():
-            flag = ""
-            if method == DEFAULT:
-                off = abs(m["ratio_obs"] - 1) > 0.10
-                if off and not m["warnings"]:
-                    flag, _ = "  << >10 % off without a warning", fails.append((name, "silent >10 %"))
-                # "error < 3 % and total within 2 % over well-observed elements": the error is held
-                # to 3 % over the observed and over the well-observed elements (the stricter reading)
-                if snr >= 29.5 and (max(m["error_obs"], m["error_well"]) >= 0.03 or abs(m["ratio_well"] - 1) >= 0.02):
-                    flag += "  << misses the SNR>=30 bar"
-                    fails.append((name, "SNR>=30 bar"))
+            flag = _bars(name, snr, m, fails, off_only=args.draws > 1) if method == DEFAULT else ""
+            if method == DEFAULT and args.draws > 1 and "SNR>=30" in _bars(name, snr, m, []):
+                flag += "  (this draw misses the SNR>=30 bar; judged on the mean below)"
             w = "; ".join(x[:70] for x in m["warnings"]) if m["warnings"] else "-"
             print(f"{name:20s} {method:17s} {snr:5.1f} {100 * m['error_obs']:7.2f}% {100 * m['error_well']:7.2f}% {m['ratio_obs']:8.3f} "
                   f"{m['ratio_well']:8.3f} {m['observed']:4.0%}/{m['well']:4.0%} {m['chi2']:6.2f} "
                   f"{m['lambda']:8.2g}  {len(m['warnings'])}: {w}{flag}", flush=True)
-            rows.append({"case": name, "method": method, "max_snr": snr, **m})
+            rows.append({"case": name, "method": method, "max_snr": snr, "draw": 0, **m})
+        if args.draws > 1:
+            draws = [res[DEFAULT]]
+            for k in range(1, args.draws):
+                _, more = todo[name](k, {DEFAULT: METHODS[DEFAULT]})
+                m = more[DEFAULT]
+                _bars(name, snr, m, fails, off_only=True)
+                draws.append(m)
+                rows.append({"case": name, "method": DEFAULT, "max_snr": snr, "draw": k, **m})
+            print(_spread(name, snr, draws, fails), flush=True)
         print(f"{'':20s} ({time.perf_counter() - t0:.0f} s)", flush=True)
     (OUT / "accuracy.json").write_text(json.dumps(rows, indent=1, default=float))
     print(f"\n{len(names)} cases; default-method failures of issue 8's bars: {len(fails)} {fails if fails else ''}")

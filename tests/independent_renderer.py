@@ -316,12 +316,13 @@ STAGE = {"top_z_mm": 0.0, "size_mm": [100, 34], "thickness_mm": 5}
 
 
 def blob_scene(folder, *, mirrors: bool, max_snr: float = 30.0, n_angular=48, n_axial=24, k=12, K=16,
-               blob_centre_deg=20.0, blob_x_mm=4.0, width_mm=6.0, seed=1, camera=None):
+               blob_centre_deg=20.0, blob_x_mm=4.0, width_mm=6.0, seed=1, camera=None, noise_draw=0):
     """Render the Gaussian-blob cylinder (direct view, or with two 45° mirrors), add Poisson
     noise at ``max_snr`` (√ of the brightest pixel's expected photons) and write what a user
     has: ``cylinder.vtk`` (integer cell array ``element``), ``image.tif`` (photons) and
     ``fluxmap.yaml`` reading them. Returns (config path, truth per element in photons of
-    the exposure, noiseless image)."""
+    the exposure, noiseless image). ``noise_draw`` picks another Poisson draw of the same
+    rendering."""
     from pathlib import Path
 
     import yaml
@@ -342,7 +343,7 @@ def blob_scene(folder, *, mirrors: bool, max_snr: float = 30.0, n_angular=48, n_
                           mirrors=mir, occluders=[box_planes(lo, hi)], k=k, K=K, seed=seed)
     scale = max_snr**2 / clean.max()  # photons per unit exitance, so that sqrt(max a) = max_snr
     clean, truth = clean * scale, truth * scale
-    noisy = np.random.default_rng(seed + 1000).poisson(clean).astype(np.float32)
+    noisy = np.random.default_rng(seed + 1000 + 7919 * noise_draw).poisson(clean).astype(np.float32)
     write_vtk_mesh(folder / "cylinder.vtk", verts, faces, element)
     write_float_tiff(folder / "image.tif", noisy)
     cfg = {"workdir": "run",
