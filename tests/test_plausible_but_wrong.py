@@ -93,16 +93,21 @@ def _images(d, arrays, units="photons", heights=(0, 5)):
     return files
 
 
+def _reconstruct_images(cfg, tmp_path, images, *args):
+    """reconstruct ``images`` (one [ny, nx] array per pose) written as TIFFs, in tmp_path/run."""
+    c = copy.deepcopy(cfg)
+    c["workdir"] = str(tmp_path / "run")
+    c["reconstruct"]["images"] = {"files": _images(tmp_path, list(images))}
+    return invoke("reconstruct", write(tmp_path, c), *args)
+
+
 def test_one_nan_pixel_is_masked_everywhere_and_the_files_are_recorded(run, tmp_path):
     d, cfg, p = run
     with h5py.File(d / "run" / "simulation.h5") as f:
         noisy = f["images/noisy"][0, 0]
     noisy = noisy.copy()
     noisy[0, 3, 4] = np.nan
-    c = copy.deepcopy(cfg)
-    c["workdir"] = str(tmp_path / "run")
-    c["reconstruct"]["images"] = {"files": _images(tmp_path, list(noisy))}
-    r, out = invoke("reconstruct", write(tmp_path, c), "-q")
+    r, out = _reconstruct_images(cfg, tmp_path, noisy, "-q")
     assert r.exit_code == 0, out
     with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
         assert np.all(np.isfinite(f["per_pose/backprojection_total"][()]))
@@ -112,6 +117,66 @@ def test_one_nan_pixel_is_masked_everywhere_and_the_files_are_recorded(run, tmp_
         assert sorted(files) == ["image pose 0", "image pose 1"]
         assert files["image pose 1"]["path"].endswith("i1.tif")
         assert json.loads(f["geometry"].attrs["image_files"])[0].endswith("i0.tif")
+
+
+def test_a_cosmic_ray_and_a_hot_pixel_are_left_out_by_name_and_the_total_is_unmoved(run, tmp_path):
+    """A cosmic ray on a lit pixel used to be fitted as flux (chi^2 warned, the total moved)
+    and a hot pixel off the subject counted as light no element can reach (refused as a
+    wrong geometry). Both are single pixels no surface behind the lens can light alone."""
+    d, cfg, p = run
+    with h5py.File(d / "run" / "simulation.h5") as f:
+        clean = f["images/noiseless"][0] * 1e4  # ~2e4 photons a pixel, not ~2
+    noisy = np.random.default_rng(7).poisson(clean).astype(np.float32)
+    r, out = _reconstruct_images(cfg, tmp_path, noisy, "-q")
+    assert r.exit_code == 0, out
+    with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
+        before = float(f["per_pose/total"][0])
+    hit = np.unravel_index(np.argmax(clean[0]), clean[0].shape)  # the brightest pixel: the fit's worst place
+    dark = np.argwhere(clean[0] == 0)[0]  # no element reaches it
+    ray = 0.05 * noisy[0].sum()  # 5 % of the image's light in one pixel
+    bad = noisy.copy()
+    bad[0][hit] += ray
+    bad[0][tuple(dark)] = 1e9
+    r, out = _reconstruct_images(cfg, tmp_path, bad, "--force")
+    assert r.exit_code == 0, out
+    assert "left out 2 isolated pixel(s)" in out, out
+    assert f"(row {hit[0]}, column {hit[1]})" in out and f"(row {dark[0]}, column {dark[1]})" in out, out
+    with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
+        after = float(f["per_pose/total"][0])
+        assert not f["fit/valid"][0][hit] and not f["fit/valid"][0][tuple(dark)]
+        assert f["fit/valid"][0].sum() == noisy[0].size - 2
+        assert any("cosmic rays" in w.decode() for w in f["warnings"][()])
+    assert abs(after / before - 1) < 0.005, (after, before)
+    # the same light spread over the 3 x 3 pixels around: a patch a surface can send, kept and fitted
+    patch = noisy.copy()
+    patch[0][hit[0] - 1:hit[0] + 2, hit[1] - 1:hit[1] + 2] += ray / 9
+    r, out = _reconstruct_images(cfg, tmp_path, patch, "--force")
+    assert r.exit_code == 0 and "isolated" not in out, out
+    with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
+        assert f["fit/valid"][0].all()
+        assert float(f["per_pose/total"][0]) > 1.01 * before  # what the ray would have added
+
+
+def test_spikes_are_single_pixels_far_above_the_model_and_nothing_else():
+    """No spike in a sharp, well-modelled image at 10^6 photons (a 1 % model error is 10
+    sigma there, but its neighbours share it); a lone pixel far above them is one."""
+    from scipy.ndimage import gaussian_filter
+
+    from fluxcli.imaging.noise import PhotonNoise
+    from fluxcli.stages.reconstruct import isolated_spikes
+
+    rng = np.random.default_rng(1)
+    model = gaussian_filter(rng.random((64, 64)) ** 4, 0.8) * 4e6  # point spread of about a pixel
+    noise = PhotonNoise(kind="poisson")
+    image = rng.poisson(model * 1.01).astype(float)  # 1 % off everywhere: up to ~10 sigma
+    valid = np.ones(image.shape, bool)
+    assert not isolated_spikes(image, model, valid, noise).any()
+    image[30, 40] += 0.3 * model[30, 40]  # a cosmic ray: ~270 sigma, its neighbours ~10 (the 1 %)
+    image[0, 0] = np.nan  # not a spike: left out already
+    found = isolated_spikes(image, model, valid, noise)
+    assert found.sum() == 1 and found[30, 40]
+    row = isolated_spikes(image[30], model[30], valid[30], noise)  # a 1-D image: one row
+    assert row.sum() == 1 and row[40]
 
 
 def test_counts_tiffs_claimed_as_photons_are_refused(run, tmp_path):

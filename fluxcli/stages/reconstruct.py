@@ -220,6 +220,43 @@ def _image_files(cfg: C.LoadedConfig, n_poses: int, poses: list | None) -> Input
 
 STRAY_WARN = 0.05  # share of the image's light on pixels no element reaches: warned above this
 STRAY_REFUSE = 0.5  # ... and refused above this: the images do not show this geometry
+SPIKE_SIGMA = 20.0  # a pixel this many sigma above the model ...
+SPIKE_ISOLATION = 8.0  # ... and this many times further above it than any of its 8 neighbours
+MAX_SPIKE_SHARE = 0.005  # at most this share of the valid pixels is left out as spikes
+
+
+def isolated_spikes(image: np.ndarray, model: np.ndarray, valid: np.ndarray, noise: N.PhotonNoise) -> np.ndarray:
+    """Pixels far above the model that none of their neighbours follows: cosmic rays, hot
+    pixels, a stray reflection off a screw head — light no smooth surface behind a lens
+    with a point spread of a pixel or more can send to one pixel alone.
+
+    ``z = (a - model) / sqrt(var(max(a, model)))`` (the variance at the larger of the two,
+    so a spike cannot shrink its own sigma); a spike has ``z > SPIKE_SIGMA`` and
+    ``z > SPIKE_ISOLATION x`` the largest ``z`` of its valid neighbours (at least 1).  Images
+    are [ny, nx] (a 1-D array is one row).  Returns a mask of the image's shape."""
+    from scipy.ndimage import maximum_filter
+
+    a = np.asarray(image, dtype=np.float64)
+    shape = a.shape
+    a2 = a.reshape(1, -1) if a.ndim == 1 else a
+    m2 = np.broadcast_to(np.asarray(model, dtype=np.float64).reshape(a2.shape) if np.ndim(model) else model, a2.shape)
+    ok = np.asarray(valid, bool).reshape(a2.shape) & np.isfinite(a2) & np.isfinite(m2)
+    with np.errstate(invalid="ignore"):
+        z = np.where(ok, (a2 - m2) / np.sqrt(noise.variance(np.where(ok, np.maximum(a2, m2), 0.0))), 0.0)
+    ring = np.ones((3, 3), bool)
+    ring[1, 1] = False
+    neighbours = maximum_filter(z, footprint=ring, mode="constant", cval=0.0)
+    return ((z > SPIKE_SIGMA) & (z > SPIKE_ISOLATION * np.maximum(neighbours, 1.0))).reshape(shape)
+
+
+def describe_pixels(mask: np.ndarray, excess: np.ndarray, limit: int = 3) -> str:
+    """'(row r, column c) +X photons' for the brightest few pixels of ``mask``."""
+    m2 = mask.reshape(1, -1) if mask.ndim == 1 else mask
+    e2 = excess.reshape(m2.shape)
+    rows, cols = np.nonzero(m2)
+    order = np.argsort(-e2[rows, cols])[:limit]
+    text = ", ".join(f"(row {rows[i]}, column {cols[i]}) +{e2[rows[i], cols[i]]:.3g}" for i in order)
+    return text + (f" and {rows.size - limit} more" if rows.size > limit else "") + " photons"
 
 
 def light_outside(T, image: np.ndarray, valid: np.ndarray, noise: N.PhotonNoise, label: str, surface) -> str | None:
@@ -230,11 +267,17 @@ def light_outside(T, image: np.ndarray, valid: np.ndarray, noise: N.PhotonNoise,
 
     Counted when it stands out of the noise (more than 5 σ of the noise model summed over
     those pixels); a warning above :data:`STRAY_WARN` of the light, a :class:`UserError`
-    above :data:`STRAY_REFUSE`.  Returns the warning or None."""
+    above :data:`STRAY_REFUSE`.  Isolated spikes there (:func:`isolated_spikes` against a
+    model of 0: cosmic rays, hot pixels) say nothing of the geometry and are not counted
+    (:func:`reject_spikes` names them after the solve).  Returns the warning or None."""
     reach = np.asarray(abs(T).sum(axis=1)).ravel() > 0
     a = np.asarray(image, dtype=np.float64).ravel()
     ok = np.asarray(valid).ravel() & np.isfinite(a)
     out_px = ok & ~reach
+    spikes = isolated_spikes(np.asarray(image), 0.0, np.asarray(valid).reshape(np.shape(image)), noise).ravel() & out_px
+    if spikes.sum() <= MAX_SPIKE_SHARE * ok.sum():
+        out_px &= ~spikes
+        ok &= ~spikes
     outside = float(a[out_px].sum())
     total = float(a[ok].sum())
     if total <= 0 or outside <= 0:
@@ -256,6 +299,26 @@ def light_outside(T, image: np.ndarray, valid: np.ndarray, noise: N.PhotonNoise,
             "them out.")
     return (f"{what}: it is left out of the fit (light from outside the subject's mesh, a misplaced pose or "
             "camera, an unsubtracted bias or background, or stray light); set such pixels to NaN to silence this")
+
+
+def reject_spikes(image: np.ndarray, fitted: np.ndarray, valid: np.ndarray,
+                  noise: N.PhotonNoise) -> tuple[np.ndarray, str | None]:
+    """After a solve: the valid mask without the isolated spikes above the fit, and the
+    warning that names them.  More than :data:`MAX_SPIKE_SHARE` of the pixels is not a few
+    cosmic rays: nothing is left out, and the warning says so."""
+    spikes = isolated_spikes(image, fitted, valid, noise)
+    n = int(spikes.sum())
+    if n == 0:
+        return valid, None
+    excess = np.where(spikes, np.asarray(image, float) - np.nan_to_num(fitted), 0.0)
+    where = describe_pixels(spikes, excess)
+    if n > MAX_SPIKE_SHARE * np.count_nonzero(valid):
+        return valid, (f"{n} pixels stand alone more than {SPIKE_SIGMA:g} sigma above the fit "
+                       f"({where}); too many to be cosmic rays or hot pixels, so all were kept: check the images")
+    return valid & ~spikes, (f"left out {n} isolated pixel(s) more than {SPIKE_SIGMA:g} sigma above "
+                             f"the fit that no neighbour follows ({where}): cosmic rays or hot pixels? They "
+                             "held light no surface behind the lens can send to one pixel; set them to NaN to "
+                             "silence this")
 
 
 def direct_roi(T_path: Path, image: np.ndarray) -> float:
@@ -511,7 +574,7 @@ def _describe(m: C.MethodSettings) -> str:
 
 
 # what `unknowns: auto` and the solvers do; a reconstruction made by an older version is redone
-SOLVER_VERSION = "2026-11 vertex basis, cotangent prior, provisional UPRE"
+SOLVER_VERSION = "2026-11 vertex basis, cotangent prior, provisional UPRE, isolated spikes left out"
 
 
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
@@ -554,13 +617,19 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     t0 = time.perf_counter()
     per_pose = []
     for k in range(P):
-        res, keep = run_method(gm.Ts[k], inp.images[k], inp.valid[k], m, noise, gm.adjacency,
-                               gm.parts(k), gm.n_elements, gm.areas)
-        if stray[k]:
-            res = replace(res, warnings=(stray[k], *res.warnings))
-        fitted = np.full(nx * ny, np.nan)
-        fitted[keep] = res.fitted
-        per_pose.append((res, fitted.reshape(ny, nx)))
+        def solve_pose():
+            res, keep = run_method(gm.Ts[k], inp.images[k], inp.valid[k], m, noise, gm.adjacency,
+                                   gm.parts(k), gm.n_elements, gm.areas)
+            fitted = np.full(nx * ny, np.nan)
+            fitted[keep] = res.fitted
+            return res, fitted.reshape(ny, nx)
+        res, fitted = solve_pose()
+        valid_k, spiked = reject_spikes(inp.images[k], fitted, inp.valid[k], noise)
+        if valid_k is not inp.valid[k]:  # solved again without them; the joint solve leaves them out too
+            inp.valid[k] = valid_k
+            res, fitted = solve_pose()
+        res = replace(res, warnings=tuple(w for w in (stray[k], spiked) if w) + tuple(res.warnings))
+        per_pose.append((res, fitted))
     joint = None
     if rc.joint and P > 1:
         Tj = sp.vstack(gm.Ts).tocsr()
