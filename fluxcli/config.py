@@ -19,8 +19,28 @@ from .errors import UserError
 Vec3 = tuple[float, float, float]
 
 
+MAX_LENGTH_MM = 1e6  # 1 km: no imaging rig is larger, and squares of lengths beyond ~1e150 overflow
+
+
+def _longest(v) -> float:
+    if isinstance(v, (int, float)) and not isinstance(v, bool):
+        return abs(float(v))
+    if isinstance(v, (list, tuple)):
+        return max((_longest(x) for x in v), default=0.0)
+    return 0.0
+
+
 class Model(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # NaN/inf: never a length
+
+    @field_validator("*", mode="after")
+    @classmethod
+    def _lengths_in_range(cls, v, info):
+        """Every ``*_mm`` value (and each number in a ``*_mm`` list) is at most 1 km."""
+        if info.field_name and info.field_name.endswith("_mm") and _longest(v) > MAX_LENGTH_MM:
+            raise ValueError(f"lengths are in millimetres here and at most {MAX_LENGTH_MM:g} mm (1 km); "
+                             f"got {_longest(v):g}")
+        return v
 
 
 def _unit(v: Vec3, what: str) -> Vec3:
@@ -174,6 +194,18 @@ class System(Model):
 
 
 # --------------------------------------------------------------------------- subject
+MAX_PHANTOM_PIECES = 1_000_000  # elements x strips: 10^6 faces are minutes of ray tracing; 10^7 filled 6 GB
+
+
+def _not_too_fine(v: int, info, other: str) -> int:
+    """A field validator on a phantom's last count: its product with ``other`` is bounded."""
+    n = v * info.data.get(other, 1) if isinstance(info.data.get(other), int) else v
+    if n > MAX_PHANTOM_PIECES:
+        raise ValueError(f"{other} x {info.field_name} = {n:.3g} pieces; at most {MAX_PHANTOM_PIECES:.0e} (no camera "
+                         "resolves more, and building them would exhaust the memory)")
+    return v
+
+
 class CylinderPhantom(Model):
     """A closed cylinder along x resting on the stage; its side is split into elements."""
 
@@ -183,6 +215,11 @@ class CylinderPhantom(Model):
     n_angular: int = Field(50, ge=3, description="Elements around the circumference.")
     n_axial: int = Field(32, ge=1, description="Elements along the axis.")
     cap_elements: bool = Field(False, description="Make the end caps elements too (else they only occlude).")
+
+    @field_validator("n_axial")
+    @classmethod
+    def _fine(cls, v, info):
+        return _not_too_fine(v, info, "n_angular")
 
 
 class RingPhantom(Model):
@@ -194,6 +231,11 @@ class RingPhantom(Model):
     n_elements: int = Field(200, ge=3, description="Elements around the ring.")
     strips_per_element: int = Field(1, ge=1, description="Sub-elements along the arc (what reconstruct.unknowns: sub_elements solves for).")
 
+    @field_validator("strips_per_element")
+    @classmethod
+    def _fine(cls, v, info):
+        return _not_too_fine(v, info, "n_elements")
+
 
 class SpherePhantom(Model):
     """A sphere split into latitude x longitude elements."""
@@ -202,6 +244,11 @@ class SpherePhantom(Model):
     radius_mm: float = Field(10.0, gt=0, description="Sphere radius (mm).")
     n_latitude: int = Field(16, ge=2, description="Element rows from pole to pole.")
     n_longitude: int = Field(32, ge=3, description="Elements around each row.")
+
+    @field_validator("n_longitude")
+    @classmethod
+    def _fine(cls, v, info):
+        return _not_too_fine(v, info, "n_latitude")
 
 
 class PatchPhantom(Model):
@@ -212,6 +259,14 @@ class PatchPhantom(Model):
     n: tuple[int, int] = Field((1, 1), description="Elements along each side.")
     center_mm: Vec3 = Field((0.0, 0.0, 0.0), description="Patch centre (before any pose).")
     normal: Vec3 = Field((0.0, 0.0, 1.0), description="Emitting side.")
+
+    @field_validator("n")
+    @classmethod
+    def _fine(cls, v, info):
+        if v[0] * v[1] > MAX_PHANTOM_PIECES:
+            raise ValueError(f"n = {list(v)}: {v[0] * v[1]:.3g} pieces; at most {MAX_PHANTOM_PIECES:.0e} (no camera "
+                             "resolves more, and building them would exhaust the memory)")
+        return v
 
 
 class MeshSurface(Model):

@@ -313,6 +313,12 @@ MISTAKES = [
     ("flux-file-wrong-count", "simulate", _flux_file(np.ones(5)), ["simulate.flux.path", "flux.npy", "5 values"]),
     ("flux-file-negative", "simulate", _flux_file(-np.ones(24)), ["simulate.flux.path", "negative"]),
     ("flux-width-zero", "simulate", _cfg("simulate.flux.width_mm", 0), ["simulate.flux", "width_mm"]),
+    # lengths beyond 1 km: their squares overflowed inside the ray tracer (found by fuzzing every key)
+    ("flux-width-absurd", "simulate", _cfg("simulate.flux.width_mm", 1e300), ["simulate.flux.width_mm", "1 km"]),
+    ("phantom-too-fine", "build-T", _set("subject.surface={phantom: cylinder, n_angular: 10000000, n_axial: 3}"),
+     ["subject.surface.n_axial", "3e+07 pieces"]),  # used to fill 6 GB building the mesh
+    ("aperture-absurd", "build-T", _cfg("system.camera.apertures", [{"distance_mm": 30, "diameter_mm": 1e300}]),
+     ["system.camera.apertures.0.diameter_mm", "millimetres", "1 km"]),
     ("diffusion-wavelength", "simulate", _diffusion(wavelength_nm=800), ["simulate.flux", "wavelength_nm"]),
     ("diffusion-open-surface", "simulate", _patch_diffusion, ["simulate.flux", "closed"]),
     ("diffusion-too-deep", "simulate", _diffusion(**{"sources": [{"depth_mm": 50.0, "power_photons": 1e8}]}),
