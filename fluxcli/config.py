@@ -148,6 +148,15 @@ class Stage(Model):
     center_xy_mm: tuple[float, float] = Field((0.0, 0.0), description="Plate centre in x, y (mm).")
 
 
+MAX_PANEL_PX = 16384  # a side of a projector panel: 4 x a 4K panel (2^31 filled 24 GB and was killed)
+
+
+def _panel_pixels(v: tuple[int, int]) -> tuple[int, int]:
+    if min(v) < 2 or max(v) > MAX_PANEL_PX:
+        raise ValueError(f"pixels must be two integers [width, height], each from 2 to {MAX_PANEL_PX}")
+    return v
+
+
 class ProjectorPose(Model):
     center_mm: Vec3 = Field(description="World position of the projector's centre of projection (mm).")
     look: Vec3 = Field(description="Projection axis, from the projector into the scene.")
@@ -175,9 +184,7 @@ class ProjectorModel(Model):
     @field_validator("pixels")
     @classmethod
     def _pixels(cls, v: tuple[int, int]) -> tuple[int, int]:
-        if min(v) < 2:
-            raise ValueError("pixels must be two integers [width, height], each 2 or more")
-        return v
+        return _panel_pixels(v)
 
     @field_validator("focal_px")
     @classmethod
@@ -658,6 +665,11 @@ class ProjectorCalibration(Model):
     min_contrast_fraction: float = Field(0.1, gt=0, lt=1, description="Shadow mask: white - black above this fraction of its 99th percentile.")
     half_window_px: int = Field(6, ge=2, description="Local homography window: (2 h + 1)^2 camera pixels around each grid point.")
     gamma: float | None = Field(None, gt=0, description="The panel's gamma if known; none: measured from the phase frames' mean.")
+
+    @field_validator("pixels")
+    @classmethod
+    def _pixels(cls, v: tuple[int, int]) -> tuple[int, int]:
+        return _panel_pixels(v)
 
     @model_validator(mode="after")
     def _check(self) -> "ProjectorCalibration":

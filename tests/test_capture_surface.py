@@ -204,7 +204,10 @@ def test_surface_block_names_bad_keys(reference, tmp_path):
                               (("capture", "surface", "filter"), "red", "capture.surface.filter"),
                               (("capture", "surface", "binning"), 3, "capture.surface.binning"),
                               (("rig", "projectors", "left"), {**cfg["rig"]["projectors"]["left"], "display": "window"},
-                               "rig.projectors.left.display")):
+                               "rig.projectors.left.display"),
+                              # 2^31 columns used to fill 24 GB until the kernel killed it (found by fuzzing)
+                              (("rig", "projectors", "left"), {**cfg["rig"]["projectors"]["left"], "pixels": [2**31, 768]},
+                               "rig.projectors.left.pixels")):
         c = copy.deepcopy(cfg)
         c[key[0]][key[1]][key[2]] = value
         p = tmp_path / "bad.yaml"
