@@ -630,8 +630,8 @@ class CalibrationImage(Model):
 
 # --------------------------------------------------------------------------- calibrate: projectors
 class ProjectorPatternSettings(Model):
-    period_px: int = Field(16, ge=4, multiple_of=4, description="Fringe period of the phase-shift frames (projector pixels; a multiple of 4).")
-    n_steps: int = Field(8, ge=3, description="Phase steps per code.")
+    period_px: int = Field(16, ge=4, le=MAX_PANEL_PX, multiple_of=4, description="Fringe period of the phase-shift frames (projector pixels; a multiple of 4).")
+    n_steps: int = Field(8, ge=3, le=64, description="Phase steps per code.")
 
 
 class ProjectorFrames(Model):
@@ -786,8 +786,8 @@ class Rig(Model):
 
 # --------------------------------------------------------------------------- capture (acquisition)
 class SurfacePatterns(Model):
-    period_px: int = Field(16, ge=4, multiple_of=4, description="Fringe period of the phase-shift patterns (projector pixels, a multiple of 4).")
-    n_steps: int = Field(8, ge=3, description="Phase steps (8 leaves a gamma-2.2 phase error below 1e-3 period).")
+    period_px: int = Field(16, ge=4, le=MAX_PANEL_PX, multiple_of=4, description="Fringe period of the phase-shift patterns (projector pixels, a multiple of 4).")
+    n_steps: int = Field(8, ge=3, le=64, description="Phase steps (8 leaves a gamma-2.2 phase error below 1e-3 period).")
 
 
 class SurfaceMesh(Model):

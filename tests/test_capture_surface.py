@@ -207,7 +207,9 @@ def test_surface_block_names_bad_keys(reference, tmp_path):
                                "rig.projectors.left.display"),
                               # 2^31 columns used to fill 24 GB until the kernel killed it (found by fuzzing)
                               (("rig", "projectors", "left"), {**cfg["rig"]["projectors"]["left"], "pixels": [2**31, 768]},
-                               "rig.projectors.left.pixels")):
+                               "rig.projectors.left.pixels"),
+                              (("capture", "surface", "patterns"), {"period_px": 16, "n_steps": 2**31},
+                               "capture.surface.patterns.n_steps")):  # likewise
         c = copy.deepcopy(cfg)
         c[key[0]][key[1]][key[2]] = value
         p = tmp_path / "bad.yaml"
