@@ -4,3 +4,7 @@ The package is ``fluxcli``; the command is ``fluxmap``.  See README.md.
 """
 
 __version__ = "0.1.0"
+
+from . import _numba_cache
+
+NUMBA_CACHE = _numba_cache.configure()  # before any kernel module imports numba
