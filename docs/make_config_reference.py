@@ -23,7 +23,7 @@ OUT = ROOT / "docs" / "config-reference.md"
 # name suffix -> unit (longest first wins)
 UNIT_SUFFIXES = [
     ("_photons_per_mm2", "photons mm⁻² per exposure"), ("_e_per_pixel", "electrons per pixel"),
-    ("_e_per_s", "electrons s⁻¹"), ("_per_mm", "mm⁻¹"), ("_mm2", "mm²"), ("_mm", "mm"), ("_deg", "degrees"),
+    ("_e_per_s", "electrons s⁻¹"), ("_mm_s", "mm s⁻¹"), ("_per_mm", "mm⁻¹"), ("_mm2", "mm²"), ("_mm", "mm"), ("_deg", "degrees"),
     ("_nm", "nm"), ("_s", "s"), ("_photons", "photons"), ("_counts", "ADC counts"), ("_e", "electrons"),
     ("electrons_per_count", "electrons per count"),
 ]

@@ -169,9 +169,14 @@ def _not_built(name: str, issue: str) -> Callable:
     return stage
 
 
+# stage name -> the module under fluxcli.stages that runs it (None: registered but not built)
+STAGE_MODULES: dict[str, str | None] = {}
+
+
 def _stage_command(name: str, module: str | None, doc: str, cluster: bool = False) -> None:
     """Register ``fluxmap <name> CONFIG`` running ``fluxcli.stages.<module>.run`` (one lifecycle for all);
     ``cluster``: the stage takes ``--scheduler`` (its tasks can run on a Dask cluster)."""
+    STAGE_MODULES[name] = module
 
     def stage_of():
         if module is None:
