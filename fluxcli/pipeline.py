@@ -117,6 +117,12 @@ def geometry_of(cfg: LoadedConfig, surface_sha256: str | None = None) -> dict:
     m = cfg.model
     g = {"system": m.system.model_dump(mode="json") if m.system is not None else None,
          "subject": m.subject.model_dump(mode="json") if m.subject is not None else None}
+    if g["subject"] is not None:  # Lambertian (absent or explicit): the digest of before emission profiles
+        em = g["subject"].pop("emission", None)
+        if em is not None and em.get("model") != "lambertian":
+            from .config import emission_profile
+
+            g["subject"]["emission"] = emission_profile(cfg).key()  # a table by its numbers, not its path
     if surface_sha256 is not None:
         g["surface_sha256"] = surface_sha256
     return g
@@ -168,7 +174,8 @@ def key_parts(scene: PlacedScene, views: list[View], tr: Transfer) -> dict:
         "estimator": tr.estimator,
         "sampling": sampling,
         "ray_offset_mm": tr.ray_offset_mm,
-    })
+    } | ({"emission": scene.emission.key()} if scene.emission is not None and not scene.emission.is_lambertian
+         else {}))  # Lambertian: no entry, so that its keys are those made before emission profiles
 
 
 def plan(cfg: LoadedConfig, transfer: Transfer | None = None, unknowns: str = "elements"
@@ -186,11 +193,11 @@ def plan(cfg: LoadedConfig, transfer: Transfer | None = None, unknowns: str = "e
     for pose in poses_from_config(cfg.model.subject):
         scene = placer.scene(pose, cfg.model.system)
         if unknowns == "sub_elements":
-            scene = PlacedScene(scene.pose, scene.surface.unknowns()[0], scene.occluders)
+            scene = PlacedScene(scene.pose, scene.surface.unknowns()[0], scene.occluders, scene.emission)
         elif unknowns.startswith("refined:"):  # simulate: columns per face of the refined surface
             levels = int(unknowns.split(":")[1])
             if levels > 0:
-                scene = PlacedScene(scene.pose, scene.surface.refined(levels)[0], scene.occluders)
+                scene = PlacedScene(scene.pose, scene.surface.refined(levels)[0], scene.occluders, scene.emission)
         key = A.cache_key(key_parts(scene, views, tr))
         out.append((scene, PoseT(pose, key, AT.entry_path(cdir, key))))
     return views, placer, out
@@ -292,7 +299,7 @@ def _build_and_store(scene: PlacedScene, views: list[View], tr: Transfer, target
         lens_sampling=LensSampling(**tr.lens.model_dump()),
         pairwise_sampling=PairwiseSampling(**tr.pairwise.model_dump()),
         ray_offset_mm=tr.ray_offset_mm, rays_per_batch=tr.rays_per_batch, progress=progress,
-        threads=threads, checkpoint=partial,
+        threads=threads, checkpoint=partial, emission=scene.emission,
     )
     seconds = time.perf_counter() - t0
     cam = res.views[0].camera
@@ -344,7 +351,8 @@ def _worker_scene(scene_file: Path, views: list[View], tr: Transfer, view: int):
         scene, occ, plans = entry
         if (view, tr.rays_per_batch) not in plans:
             plans[view, tr.rays_per_batch] = lens_plan(scene.surface, views[view], LensSampling(**tr.lens.model_dump()),
-                                                       tr.rays_per_batch, scene.occluders, tr.ray_offset_mm)
+                                                       tr.rays_per_batch, scene.occluders, tr.ray_offset_mm,
+                                                       emission=scene.emission)
         return occ, plans[view, tr.rays_per_batch]
 
 
@@ -413,7 +421,7 @@ def _build_on_cluster(client, need: list, views: list[View], tr: Transfer, confi
     # needs (one pose's: memory); the other merges make their own
     merging = [i for i, c in enumerate(cut) if c is not None]
     ahead = ThreadPoolExecutor(1)
-    plans = {i: ahead.submit(_plans_of, need[i][0].surface, views, tr) for i in merging[:1]}
+    plans = {i: ahead.submit(_plans_of, need[i][0].surface, views, tr, need[i][0].emission) for i in merging[:1]}
     try:
         done = run_tasks(_call, tasks, label=label, quiet=quiet, remote=True, pool=pool)
         whole = iter(r for r, t in zip(done, tasks) if t[0] is _build_and_store)
@@ -432,9 +440,9 @@ def _build_on_cluster(client, need: list, views: list[View], tr: Transfer, confi
     return [next(whole) if c is None else next(merged) for c in cut]
 
 
-def _plans_of(surface, views: list[View], tr: Transfer) -> dict:
+def _plans_of(surface, views: list[View], tr: Transfer, emission=None) -> dict:
     sampling = LensSampling(**tr.lens.model_dump())
-    return {k: lens_plan(surface, v, sampling, tr.rays_per_batch) for k, v in enumerate(views)}
+    return {k: lens_plan(surface, v, sampling, tr.rays_per_batch, emission=emission) for k, v in enumerate(views)}
 
 
 def _merge(*args, progress=None) -> dict:
@@ -527,7 +535,7 @@ def ensure_pose_T(cfg: LoadedConfig, pose: Pose, transfer: Transfer | None = Non
     views = views_from_config(cfg.model.system)
     scene = (placer or SubjectPlacer(cfg)).scene(pose, cfg.model.system)
     if refine > 0:
-        scene = PlacedScene(scene.pose, scene.surface.refined(refine)[0], scene.occluders)
+        scene = PlacedScene(scene.pose, scene.surface.refined(refine)[0], scene.occluders, scene.emission)
     path = AT.entry_path(cache_dir(cfg), A.cache_key(key_parts(scene, views, tr)))
     if not path.is_file():
         _build_and_store(scene, views, tr, path, cfg.sha256, provenance(cfg))
