@@ -133,6 +133,20 @@ def provenance(cfg: LoadedConfig, surface_sha256: str | None = None) -> A.Proven
                         geometry=geometry_of(cfg, surface_sha256))
 
 
+EMISSION_NOTICE = ("subject.emission is not set: the surface is taken as Lambertian. Light leaving tissue or a turbid "
+                   "phantom is better described by subject.emission: {model: diffuse, refractive_index: 1.40} (read as "
+                   "Lambertian it is ~10 % too bright head-on and ~40 % too dim at 80 deg from the normal; "
+                   "docs/design.md, Emission).")
+
+
+def emission_notice(cfg: LoadedConfig, ctx) -> None:
+    """One short notice per run when ``subject.emission`` is absent (Lambertian is assumed)."""
+    if cfg.model.subject is None or cfg.model.subject.emission is not None or EMISSION_NOTICE in ctx.warned:
+        return
+    ctx.warned.add(EMISSION_NOTICE)
+    ctx.say(EMISSION_NOTICE)
+
+
 def announce(ctx, placer: SubjectPlacer) -> None:
     """Say what a mesh file yielded, and warn about what was repaired in it (once per run)."""
     for k, note in enumerate(placer.notes):
@@ -470,6 +484,7 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
     tr = transfer or cfg.model.transfer
     views, placer, todo = plan(cfg, tr, unknowns)
     announce(ctx, placer)
+    emission_notice(cfg, ctx)
     A.clean_stale_temps(cache_dir(cfg))  # what killed runs left, even when nothing is rebuilt
     nx, ny = cfg.model.system.camera.pixels
     n_el = todo[0][0].surface.n_elements if todo else 0

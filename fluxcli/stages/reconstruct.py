@@ -583,7 +583,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     out = cfg.workdir / "reconstruction.h5"
     m_ = cfg.model
     sources = _image_sources(cfg)
-    digest = A.inputs_digest(system=m_.system.model_dump(mode="json"), subject=m_.subject.model_dump(mode="json"),
+    digest = A.inputs_digest(system=m_.system.model_dump(mode="json"), subject=geometry_of(cfg)["subject"],
                              transfer=m_.transfer.model_dump(mode="json"),
                              reconstruct=rc.model_dump(mode="json", by_alias=True), images=sources,
                              solver=SOLVER_VERSION)
