@@ -49,7 +49,7 @@ def test_residual_structure_fires_on_a_model_mismatch_and_stays_quiet_when_it_ma
     profiles = {"lambertian": E.lambertian(), "diffuse": E.diffuse(1.40)}
     rng = np.random.default_rng(7)
     c = surf.element_centroids_mm
-    truth = surf.element_areas_mm2 * 4e4 * (1 + 2 * np.exp(-((c[:, 1] - 4) ** 2 + c[:, 0] ** 2) / 40))
+    truth = surf.element_areas_mm2 * 4e5 * (1 + 2 * np.exp(-((c[:, 1] - 4) ** 2 + c[:, 0] ** 2) / 40))
     a = rng.poisson(_T(surf, views, profiles[render], fine=True).T @ truth).astype(float)
     res = _T(surf, views, profiles[model], fine=False)
     b = _reconstruct(res, a)
