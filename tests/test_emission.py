@@ -265,3 +265,54 @@ def test_bad_emission_settings_exit_2_naming_the_key_or_file(write_config, minim
     text = " ".join(r.output.split())
     for w in words:
         assert w in text, (w, r.output)
+
+
+# ------------------------------------------------------------------ through the stages
+@pytest.fixture
+def patch_config(minimal_config):
+    """A flat 6 x 4-element patch tilted 50 deg from the camera, two poses (as test_reconstruct)."""
+    cfg = copy.deepcopy(minimal_config)
+    cfg["system"]["camera"]["pixels"] = [40, 40]
+    cfg["system"]["camera"]["pixel_pitch_mm"] = 0.25
+    cfg["subject"]["surface"] = {"phantom": "patch", "size_mm": [24, 16], "n": [6, 4], "center_mm": [0, 0, 10],
+                                 "normal": [0, 0.77, 0.64]}
+    cfg["subject"]["poses"] = {"heights_mm": [0, 8]}
+    cfg["simulate"] = {"flux": {"kind": "gaussian", "width_mm": 6.0, "peak_photons": 1e7, "center_mm": [2, 1, 10]},
+                       "noise": {"model": "poisson", "peaks_photons": [1e7], "repeats": 1, "seed": 2}}
+    cfg["reconstruct"] = {"method": "nnls"}
+    return cfg
+
+
+def test_stages_use_the_model_store_it_and_report_grazing_shares(write_config, patch_config, tmp_path):
+    import h5py
+
+    cfg = copy.deepcopy(patch_config)
+    p = write_config(cfg, name="absent.yaml")
+    r = _cli("simulate", p)
+    assert r.exit_code == 0, r.output
+    assert "subject.emission is not set" in " ".join(r.output.split())  # the notice, once
+    assert " ".join(r.output.split()).count("subject.emission is not set") == 1
+    cfg["subject"]["emission"] = {"model": "diffuse", "refractive_index": 1.40}
+    p = write_config(cfg, name="diffuse.yaml")
+    # images simulated with another emission model are refused, naming it
+    r = _cli("reconstruct", p)
+    assert r.exit_code == 2 and "emission" in r.output, r.output
+    assert _cli("simulate", p, "--quiet").exit_code == 0
+    r = _cli("reconstruct", p)
+    assert r.exit_code == 0, r.output
+    text = " ".join(r.output.split())
+    assert "subject.emission is not set" not in text
+    assert "emission model: diffuse (refractive index 1.4)" in text
+    assert "beyond 60 deg" in text and "beyond 75 deg" in text
+    with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
+        assert f["emission"].attrs["model"] == "diffuse"
+        assert f["emission"].attrs["refractive_index"] == 1.40
+        curve = f["emission/relative_radiance"][()]
+        assert curve[0] == 1.0 and curve[np.searchsorted(f["emission/angle_deg"][()], 80.0)] == pytest.approx(0.587, abs=0.01)
+        shares = f["per_pose/light_beyond_deg"][()]
+        assert shares.shape == (2, 2)
+        # the patch is seen ~50 deg from its normal: none of its light beyond 60 deg
+        assert np.all(shares < 0.05)
+        # the model matches the images: no grazing or structure warning
+        assert not any("viewing angle" in w.decode() if isinstance(w, bytes) else "viewing angle" in w
+                       for w in f["warnings"][()])
