@@ -316,3 +316,13 @@ def test_stages_use_the_model_store_it_and_report_grazing_shares(write_config, p
         # the model matches the images: no grazing or structure warning
         assert not any("viewing angle" in w.decode() if isinstance(w, bytes) else "viewing angle" in w
                        for w in f["warnings"][()])
+    # the report states the model and draws its curve, from the artefact
+    import json
+
+    r = _cli("report", p, "--quiet", "--set", "report.surface_views=false")
+    assert r.exit_code == 0, r.output
+    summary = json.loads((tmp_path / "run" / "report" / "summary.json").read_text())
+    assert summary["emission"]["model"] == "diffuse" and summary["emission"]["refractive_index"] == 1.40
+    assert "emission.png" in summary["figures"]
+    assert len(summary["emission"]["light_beyond_per_pose"]) == 2
+    assert "diffuse (refractive index 1.4)" in (tmp_path / "run" / "report" / "index.html").read_text()
