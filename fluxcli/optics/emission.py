@@ -91,7 +91,7 @@ def diffuse_radiance(cos_theta: np.ndarray, n: float) -> np.ndarray:
 
 
 # ------------------------------------------------------------------ the profile
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # eq would compare arrays
 class Profile:
     """An emission profile: ray weights ``pi p`` tabulated on mu = cos(theta) in [0, 1].
 
