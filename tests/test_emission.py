@@ -80,12 +80,12 @@ def test_table_of_the_diffuse_curve_reproduces_it(tmp_path):
     diff = E.diffuse(1.40)
     f = tmp_path / "profile.csv"
     f.write_text("angle_deg,radiance\n" + "".join(f"{a:g},{3.7 * r:.9f}\n" for a, r in zip(deg, diff.radiance(np.radians(deg)))))
-    tab = E.profile({"model": "table", "file": f})
+    tab = E.table_from_csv(f.read_text())
     mu = np.cos(np.radians(np.arange(0, 85, 0.5)))
     assert tab.weight(mu) == pytest.approx(diff.weight(mu), rel=2e-3)
     c = tmp_path / "cos.csv"
     c.write_text("cos_theta,radiance\n1,2\n0,2\n")
-    assert E.profile({"model": "table", "file": c}).weight(mu) == pytest.approx(1.0, rel=1e-12)
+    assert E.table_from_csv(c.read_text()).weight(mu) == pytest.approx(1.0, rel=1e-12)
 
 
 @pytest.mark.parametrize("rows,words", [
@@ -101,7 +101,7 @@ def test_bad_table_files_say_what_is_wrong(tmp_path, rows, words):
     f = tmp_path / "p.csv"
     f.write_text(rows)
     with pytest.raises(ValueError, match=words):
-        E.profile({"model": "table", "file": f})
+        E.table_from_csv(f.read_text())
 
 
 # ------------------------------------------------------------------ in T: closed forms and quadratures
