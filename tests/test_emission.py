@@ -314,6 +314,7 @@ def test_stages_use_the_model_store_it_and_report_grazing_shares(write_config, p
         assert shares.shape == (2, 2)
         # the patch is seen ~50 deg from its normal: none of its light beyond 60 deg
         assert np.all(shares < 0.05)
+        assert np.all(f["per_pose/total_beyond_deg"][()] < 0.05)
         # the model matches the images: no grazing or structure warning
         assert not any("viewing angle" in w.decode() if isinstance(w, bytes) else "viewing angle" in w
                        for w in f["warnings"][()])

@@ -724,8 +724,9 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
 
 def _emission_checks(f, placer, views, todo, per_pose, joint, inp, noise) -> tuple[list, object, list[str]]:
     """Issue 21, item 2: per pose (and jointly) the share of the observed light seen beyond 60 and
-    75 deg from the normal, and whether the residual is structured by viewing angle
-    (:mod:`fluxcli.inverse.diagnostics`); stored under /emission, warnings added to the poses'."""
+    75 deg from the normal and the share of the total resting on such views, and whether the
+    residual is structured by viewing angle (:mod:`fluxcli.inverse.diagnostics`); stored under
+    /emission and /per_pose, warnings added to the poses' (and the joint solve's)."""
     from ..inverse import diagnostics as D
     from ..optics.emission import CHECK_DEG
 
@@ -740,44 +741,45 @@ def _emission_checks(f, placer, views, todo, per_pose, joint, inp, noise) -> tup
     g.create_dataset("relative_radiance", data=prof.radiance(np.radians(deg))).attrs["meaning"] = "L(theta) / L(0)"
     weights = [v.weight for v in views]
     centres = [v.camera.center_mm for v in views]
-    shares, slopes, out, seen_joint = [], [], [], []
+    light, totals, slopes, out, all_T, all_ang = [], [], [], [], [], []
     for k, ((res, fitted), (scene, pt)) in enumerate(zip(per_pose, todo)):
         Tv = [load_view(pt.path, v) for v in range(len(views))]
         ang = D.element_angles(scene.surface, centres, prof.weight)
-        sh = D.grazing_shares(Tv, weights, res.power, ang)
+        light.append(D.grazing_shares(Tv, weights, res.power, ang))
+        totals.append(D.total_shares(Tv, weights, res.power, ang))
         px = D.pixel_angles(Tv, weights, res.power, ang)
         model = np.nan_to_num(fitted.ravel())
         st = D.angle_structure(inp.images[k].ravel(), model, noise.variance(model), px, inp.valid[k].ravel())
-        warns = tuple(w for w in (D.grazing_warning(sh), D.structure_warning(st, prof.describe())) if w)
+        warns = tuple(w for w in (D.grazing_warning(totals[-1]), D.structure_warning(st, prof.describe())) if w)
         out.append((replace(res, warnings=tuple(res.warnings) + warns), fitted) if warns else (res, fitted))
-        shares.append(sh)
         slopes.append([np.nan, np.nan] if st is None else [st.slope_per_10deg, st.t])
         if joint is not None:
-            seen_joint.append((Tv, ang))
+            all_T += Tv
+            all_ang.append(ang)
     pp = f["per_pose"]
-    pp.create_dataset("light_beyond_deg", data=np.array(shares)).attrs["bands_deg"] = np.array(D.BANDS_DEG)
+    bands = np.array(D.BANDS_DEG)
+    pp.create_dataset("light_beyond_deg", data=np.array(light)).attrs["bands_deg"] = bands
     pp["light_beyond_deg"].attrs["meaning"] = "share of the model image's light that left the surface beyond each angle"
+    pp.create_dataset("total_beyond_deg", data=np.array(totals)).attrs["bands_deg"] = bands
+    pp["total_beyond_deg"].attrs["meaning"] = ("share of the reconstructed total resting on views beyond each angle "
+                                               "(each element weighted by the share of its collected light from there)")
     pp.create_dataset("residual_vs_angle", data=np.array(slopes)).attrs["meaning"] = \
         "relative residual change per 10 deg of emission angle, and its t value (NaN: not testable)"
     lines = [f"emission model: {prof.describe()}"
              + ("" if prof.is_lambertian else " (L/L0 " + ", ".join(
                  f"{r:.2f} at {a:g} deg" for a, r in zip(CHECK_DEG[::2], prof.radiance(np.radians(CHECK_DEG[::2]))))
                 + ")")]
-    lines += [f"light seen at grazing angles, pose {pt.pose.label}: {D.describe_shares(sh)}"
-              for sh, (_, pt) in zip(shares, todo)]
+    lines += [f"seen at grazing angles, pose {pt.pose.label}: light {D.describe_shares(li)}; "
+              f"total {D.describe_shares(to)}" for li, to, (_, pt) in zip(light, totals, todo)]
     if joint is not None:
-        tot = np.zeros(len(D.BANDS_DEG))
-        norm = 0.0
-        for Tv, ang in seen_joint:
-            one = D.grazing_shares(Tv, weights, joint.power, ang)
-            light = sum(w * float(np.asarray(T.sum(axis=0)).ravel() @ np.nan_to_num(joint.power)) for w, T in zip(weights, Tv))
-            if np.all(np.isfinite(one)):
-                tot += one * light
-                norm += light
-        js = tot / norm if norm > 0 else np.full(len(D.BANDS_DEG), np.nan)
-        g.create_dataset("joint_light_beyond_deg", data=js)
-        lines.append(f"light seen at grazing angles, all poses jointly: {D.describe_shares(js)}")
-        w = D.grazing_warning(js)
+        ang = D.ElementAngles(np.concatenate([a.mean_deg for a in all_ang]), np.concatenate([a.beyond for a in all_ang]))
+        jl = D.grazing_shares(all_T, weights * len(todo), joint.power, ang)
+        jt = D.total_shares(all_T, weights * len(todo), joint.power, ang)
+        g.create_dataset("joint_light_beyond_deg", data=jl)
+        g.create_dataset("joint_total_beyond_deg", data=jt)
+        lines.append(f"seen at grazing angles, all poses jointly: light {D.describe_shares(jl)}; "
+                     f"total {D.describe_shares(jt)}")
+        w = D.grazing_warning(jt)
         if w:
             joint = replace(joint, warnings=tuple(joint.warnings) + (w,))
     return out, joint, lines
