@@ -84,6 +84,8 @@ def test_table_of_the_diffuse_curve_reproduces_it(tmp_path):
     tab = E.table_from_csv(f.read_text())
     mu = np.cos(np.radians(np.arange(0, 85, 0.5)))
     assert tab.weight(mu) == pytest.approx(diff.weight(mu), rel=2e-3)
+    for scale in (1e-320, 1e308):  # any scale
+        assert E.table_from_csv(f"angle_deg,radiance\n0,{scale}\n90,{scale}\n").weight(mu) == pytest.approx(1.0)
     c = tmp_path / "cos.csv"
     c.write_text("cos_theta,radiance\n1,2\n0,2\n")
     assert E.table_from_csv(c.read_text()).weight(mu) == pytest.approx(1.0, rel=1e-12)
@@ -97,6 +99,8 @@ def test_table_of_the_diffuse_curve_reproduces_it(tmp_path):
     ("angle_deg,radiance\n0,1\n40,x\n", "numbers"),
     ("0,1\n40,1\n", "header"),
     ("angle_deg,radiance\n0,0\n40,1\n", "normal"),
+    ("angle_deg,radiance\n0,0\n40,0\n", "nothing"),
+    ("angle_deg\n0\n", "header"),
 ])
 def test_bad_table_files_say_what_is_wrong(tmp_path, rows, words):
     f = tmp_path / "p.csv"

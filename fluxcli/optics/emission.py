@@ -208,6 +208,9 @@ def table(x, radiance, *, unit: str = "deg", source: str | None = None) -> Profi
         x, r = x[order], r[order]
     else:
         raise ValueError(f"unit must be 'deg' or 'cos', got {unit!r}")
+    if not r.max() > 0:
+        raise ValueError("the profile emits nothing (zero everywhere)")
+    r = r / r.max()  # any scale: 1e-320 or 1e308 as well as 1
     mu = np.linspace(0.0, 1.0, N_TABLE)
     if unit == "deg":  # linear in the angle, as given
         vals = np.interp(np.degrees(np.arccos(mu)), x, r)
