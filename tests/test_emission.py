@@ -299,16 +299,24 @@ def test_stages_use_the_model_store_it_and_report_grazing_shares(write_config, p
     assert r.exit_code == 0, r.output
     assert "subject.emission is not set" in " ".join(r.output.split())  # the notice, once
     assert " ".join(r.output.split()).count("subject.emission is not set") == 1
+    absent = p
     cfg["subject"]["emission"] = {"model": "diffuse", "refractive_index": 1.40}
     p = write_config(cfg, name="diffuse.yaml")
-    # images simulated with another emission model are refused, naming it
+    # images simulated with another emission model: reconstructed (a model-mismatch experiment), saying so
     r = _cli("reconstruct", p)
-    assert r.exit_code == 2 and "emission" in r.output, r.output
+    assert r.exit_code == 0, r.output
+    text = " ".join(r.output.split())
+    assert "simulated with the emission model lambertian and are reconstructed with diffuse" in text, r.output
+    # a reconstruction (its T) made with another emission model than the config's is refused, naming both
+    r = _cli("report", absent)
+    assert r.exit_code == 2, r.output
+    text = " ".join(r.output.split())
+    assert "subject.emission.model: diffuse in reconstruction.h5, not set now" in text, r.output
     assert _cli("simulate", p, "--quiet").exit_code == 0
     r = _cli("reconstruct", p)
     assert r.exit_code == 0, r.output
     text = " ".join(r.output.split())
-    assert "subject.emission is not set" not in text
+    assert "subject.emission is not set" not in text and "model-mismatch" not in text
     assert "emission model: diffuse (refractive index 1.4)" in text
     assert "beyond 60 deg" in text and "beyond 75 deg" in text
     with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:

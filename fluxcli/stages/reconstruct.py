@@ -112,7 +112,10 @@ def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int, surface_sha2
         return _image_files(cfg, n_poses, poses)
     path = _simulation(cfg)
     with A.open_artefact(path, "simulation") as f:
-        A.check_geometry(path, A.read_provenance(f), geometry_of(cfg, surface_sha256),
+        # images simulated under another emission model are a model-mismatch experiment, not other
+        # geometry: reconstructed, with a warning (_emission_checks); T itself is always this config's
+        stored, now = _without_emission(A.read_provenance(f)), _without_emission(geometry_of(cfg, surface_sha256))
+        A.check_geometry(path, stored, now,
                          remedy=f"Run 'fluxmap simulate {cfg.path}' again, or reconstruct with the config it was made with")
         power = f["truth/power"][()]
         if len(power) != n_elements:
@@ -703,7 +706,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
             if inp.truth is not None:
                 row += _vs_truth(joint.power, joint.observed, inp.truth)
             rows.append(row)
-        per_pose, joint, emission_lines = _emission_checks(f, placer, views, todo, per_pose, joint, inp, noise)
+        per_pose, joint, emission_lines = _emission_checks(f, placer, views, todo, per_pose, joint, inp, noise, cfg)
         _warnings(ctx, f, per_pose, joint, todo)
         summary = _total_summary(per_pose, joint, todo)
         f.attrs["totals_summary"] = json.dumps(summary)
@@ -722,7 +725,39 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     return out
 
 
-def _emission_checks(f, placer, views, todo, per_pose, joint, inp, noise) -> tuple[list, object, list[str]]:
+def _without_emission(x):
+    """A provenance (or a geometry dict) without ``subject.emission``."""
+    import copy
+
+    geo = copy.deepcopy(x.geometry if isinstance(x, A.Provenance) else x)
+    if isinstance(geo.get("subject"), dict):
+        geo["subject"].pop("emission", None)
+    return replace(x, geometry=geo) if isinstance(x, A.Provenance) else geo
+
+
+def _simulated_emission(cfg: C.LoadedConfig) -> str | None:
+    """How the images were simulated, when they come from simulation.h5 under another emission
+    model than this config's: a warning (None when the same, or not simulated)."""
+    rc = cfg.model.reconstruct
+    if rc.images is not None:
+        return None
+    path = _simulation(cfg)
+    try:
+        with A.open_artefact(path, "simulation") as f:
+            then = (A.read_provenance(f).geometry.get("subject") or {}).get("emission")
+    except UserError:
+        return None
+    now = (geometry_of(cfg).get("subject") or {}).get("emission")
+    if then == now:
+        return None
+    what = lambda e: "lambertian" if e is None else e.get("model", "?") + (  # noqa: E731
+        f" (refractive index {e['refractive_index']:g})" if "refractive_index" in e else "")
+    return (f"the images were simulated with the emission model {what(then)} and are reconstructed with "
+            f"{what(now)} (subject.emission): a model-mismatch experiment, unless the simulation's light does not "
+            "depend on it (Monte Carlo photons).")
+
+
+def _emission_checks(f, placer, views, todo, per_pose, joint, inp, noise, cfg=None) -> tuple[list, object, list[str]]:
     """Issue 21, item 2: per pose (and jointly) the share of the observed light seen beyond 60 and
     75 deg from the normal and the share of the total resting on such views, and whether the
     residual is structured by viewing angle (:mod:`fluxcli.inverse.diagnostics`); stored under
@@ -739,6 +774,7 @@ def _emission_checks(f, placer, views, todo, per_pose, joint, inp, noise) -> tup
     deg = np.linspace(0.0, 90.0, 181)
     g.create_dataset("angle_deg", data=deg)
     g.create_dataset("relative_radiance", data=prof.radiance(np.radians(deg))).attrs["meaning"] = "L(theta) / L(0)"
+    mismatch = _simulated_emission(cfg) if cfg is not None else None
     weights = [v.weight for v in views]
     centres = [v.camera.center_mm for v in views]
     light, totals, slopes, out, all_T, all_ang = [], [], [], [], [], []
@@ -750,7 +786,8 @@ def _emission_checks(f, placer, views, todo, per_pose, joint, inp, noise) -> tup
         px = D.pixel_angles(Tv, weights, res.power, ang)
         model = np.nan_to_num(fitted.ravel())
         st = D.angle_structure(inp.images[k].ravel(), model, noise.variance(model), px, inp.valid[k].ravel())
-        warns = tuple(w for w in (D.grazing_warning(totals[-1]), D.structure_warning(st, prof.describe())) if w)
+        warns = tuple(w for w in (D.grazing_warning(totals[-1]), D.structure_warning(st, prof.describe()),
+                                  mismatch if k == 0 else None) if w)
         out.append((replace(res, warnings=tuple(res.warnings) + warns), fitted) if warns else (res, fitted))
         slopes.append([np.nan, np.nan] if st is None else [st.slope_per_10deg, st.t])
         if joint is not None:
