@@ -112,7 +112,10 @@ def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int, surface_sha2
         return _image_files(cfg, n_poses, poses)
     path = _simulation(cfg)
     with A.open_artefact(path, "simulation") as f:
-        A.check_geometry(path, A.read_provenance(f), geometry_of(cfg, surface_sha256),
+        # images simulated under another emission model are a model-mismatch experiment, not other
+        # geometry: reconstructed, with a warning (_emission_checks); T itself is always this config's
+        stored, now = _without_emission(A.read_provenance(f)), _without_emission(geometry_of(cfg, surface_sha256))
+        A.check_geometry(path, stored, now,
                          remedy=f"Run 'fluxmap simulate {cfg.path}' again, or reconstruct with the config it was made with")
         power = f["truth/power"][()]
         if len(power) != n_elements:
@@ -583,7 +586,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     out = cfg.workdir / "reconstruction.h5"
     m_ = cfg.model
     sources = _image_sources(cfg)
-    digest = A.inputs_digest(system=m_.system.model_dump(mode="json"), subject=m_.subject.model_dump(mode="json"),
+    digest = A.inputs_digest(system=m_.system.model_dump(mode="json"), subject=geometry_of(cfg)["subject"],
                              transfer=m_.transfer.model_dump(mode="json"),
                              reconstruct=rc.model_dump(mode="json", by_alias=True), images=sources,
                              solver=SOLVER_VERSION)
@@ -703,6 +706,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
             if inp.truth is not None:
                 row += _vs_truth(joint.power, joint.observed, inp.truth)
             rows.append(row)
+        per_pose, joint, emission_lines = _emission_checks(f, placer, views, todo, per_pose, joint, inp, noise, cfg)
         _warnings(ctx, f, per_pose, joint, todo)
         summary = _total_summary(per_pose, joint, todo)
         f.attrs["totals_summary"] = json.dumps(summary)
@@ -716,9 +720,106 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     ctx.table(header, rows)
     ctx.say(f"{seconds:.2f} s of solving")
     export_3d(cfg, ctx, out)  # <workdir>/*.vtp for ParaView/pyvista, from the artefact
-    for line in summary:
+    for line in summary + emission_lines:
         ctx.say(line)
     return out
+
+
+def _without_emission(x):
+    """A provenance (or a geometry dict) without ``subject.emission``."""
+    import copy
+
+    geo = copy.deepcopy(x.geometry if isinstance(x, A.Provenance) else x)
+    if isinstance(geo.get("subject"), dict):
+        geo["subject"].pop("emission", None)
+    return replace(x, geometry=geo) if isinstance(x, A.Provenance) else geo
+
+
+def _simulated_emission(cfg: C.LoadedConfig) -> str | None:
+    """How the images were simulated, when they come from simulation.h5 under another emission
+    model than this config's: a warning (None when the same, or not simulated)."""
+    rc = cfg.model.reconstruct
+    if rc.images is not None:
+        return None
+    path = _simulation(cfg)
+    try:
+        with A.open_artefact(path, "simulation") as f:
+            then = (A.read_provenance(f).geometry.get("subject") or {}).get("emission")
+    except UserError:
+        return None
+    now = (geometry_of(cfg).get("subject") or {}).get("emission")
+    if then == now:
+        return None
+    what = lambda e: "lambertian" if e is None else e.get("model", "?") + (  # noqa: E731
+        f" (refractive index {e['refractive_index']:g})" if "refractive_index" in e else "")
+    return (f"the images were simulated with the emission model {what(then)} and are reconstructed with "
+            f"{what(now)} (subject.emission): a model-mismatch experiment, unless the simulation's light does not "
+            "depend on it (Monte Carlo photons).")
+
+
+def _emission_checks(f, placer, views, todo, per_pose, joint, inp, noise, cfg=None) -> tuple[list, object, list[str]]:
+    """Issue 21, item 2: per pose (and jointly) the share of the observed light seen beyond 60 and
+    75 deg from the normal and the share of the total resting on such views, and whether the
+    residual is structured by viewing angle (:mod:`fluxcli.inverse.diagnostics`); stored under
+    /emission and /per_pose, warnings added to the poses' (and the joint solve's)."""
+    from ..inverse import diagnostics as D
+    from ..optics.emission import CHECK_DEG
+
+    prof = placer.emission
+    g = f.create_group("emission")
+    g.attrs["model"] = prof.model
+    g.attrs["description"] = prof.describe()
+    g.attrs["refractive_index"] = np.nan if prof.refractive_index is None else prof.refractive_index
+    g.attrs["table_file"] = prof.source or ""
+    deg = np.linspace(0.0, 90.0, 181)
+    g.create_dataset("angle_deg", data=deg)
+    g.create_dataset("relative_radiance", data=prof.radiance(np.radians(deg))).attrs["meaning"] = "L(theta) / L(0)"
+    mismatch = _simulated_emission(cfg) if cfg is not None else None
+    weights = [v.weight for v in views]
+    centres = [v.camera.center_mm for v in views]
+    light, totals, slopes, out, all_T, all_ang = [], [], [], [], [], []
+    for k, ((res, fitted), (scene, pt)) in enumerate(zip(per_pose, todo)):
+        Tv = [load_view(pt.path, v) for v in range(len(views))]
+        ang = D.element_angles(scene.surface, centres, prof.weight)
+        light.append(D.grazing_shares(Tv, weights, res.power, ang))
+        totals.append(D.total_shares(Tv, weights, res.power, ang))
+        px = D.pixel_angles(Tv, weights, res.power, ang)
+        model = np.nan_to_num(fitted.ravel())
+        st = D.angle_structure(inp.images[k].ravel(), model, noise.variance(model), px, inp.valid[k].ravel())
+        warns = tuple(w for w in (D.grazing_warning(totals[-1]), D.structure_warning(st, prof.describe()),
+                                  mismatch if k == 0 else None) if w)
+        out.append((replace(res, warnings=tuple(res.warnings) + warns), fitted) if warns else (res, fitted))
+        slopes.append([np.nan, np.nan] if st is None else [st.slope_per_10deg, st.t])
+        if joint is not None:
+            all_T += Tv
+            all_ang.append(ang)
+    pp = f["per_pose"]
+    bands = np.array(D.BANDS_DEG)
+    pp.create_dataset("light_beyond_deg", data=np.array(light)).attrs["bands_deg"] = bands
+    pp["light_beyond_deg"].attrs["meaning"] = "share of the model image's light that left the surface beyond each angle"
+    pp.create_dataset("total_beyond_deg", data=np.array(totals)).attrs["bands_deg"] = bands
+    pp["total_beyond_deg"].attrs["meaning"] = ("share of the reconstructed total resting on views beyond each angle "
+                                               "(each element weighted by the share of its collected light from there)")
+    pp.create_dataset("residual_vs_angle", data=np.array(slopes)).attrs["meaning"] = \
+        "relative residual change per 10 deg of emission angle, and its t value (NaN: not testable)"
+    lines = [f"emission model: {prof.describe()}"
+             + ("" if prof.is_lambertian else " (L/L0 " + ", ".join(
+                 f"{r:.2f} at {a:g} deg" for a, r in zip(CHECK_DEG[::2], prof.radiance(np.radians(CHECK_DEG[::2]))))
+                + ")")]
+    lines += [f"seen at grazing angles, pose {pt.pose.label}: light {D.describe_shares(li)}; "
+              f"total {D.describe_shares(to)}" for li, to, (_, pt) in zip(light, totals, todo)]
+    if joint is not None:
+        ang = D.ElementAngles(np.concatenate([a.mean_deg for a in all_ang]), np.concatenate([a.beyond for a in all_ang]))
+        jl = D.grazing_shares(all_T, weights * len(todo), joint.power, ang)
+        jt = D.total_shares(all_T, weights * len(todo), joint.power, ang)
+        g.create_dataset("joint_light_beyond_deg", data=jl)
+        g.create_dataset("joint_total_beyond_deg", data=jt)
+        lines.append(f"seen at grazing angles, all poses jointly: light {D.describe_shares(jl)}; "
+                     f"total {D.describe_shares(jt)}")
+        w = D.grazing_warning(jt)
+        if w:
+            joint = replace(joint, warnings=tuple(joint.warnings) + (w,))
+    return out, joint, lines
 
 
 def _vs_truth(power, observed, truth) -> list[str]:
