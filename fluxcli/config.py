@@ -844,6 +844,53 @@ class Capture(Model):
         return tuple(self.exposure_s) if isinstance(self.exposure_s, tuple) else (float(self.exposure_s),)
 
 
+# --------------------------------------------------------------------------- regions of interest
+_ROI_KEYS = {"sphere": ("center_mm", "radius_mm"), "disc": ("center_mm", "radius_mm"), "box": ("min_mm", "max_mm"),
+             "threshold": ("fraction",), "cell_array": ("array", "value"), "elements": ("ids",)}
+
+
+class Roi(Model):
+    """A region of interest on the surface, in the subject's own frame (at rest, before any pose)."""
+
+    name: str = Field(min_length=1, description="What the region is called in tables, files and plots.")
+    kind: Literal["sphere", "disc", "box", "threshold", "cell_array", "elements"] = Field(
+        description="sphere | disc (geodesic, around the surface point nearest center_mm) | box | threshold "
+                    "(a fraction of the peak, connected to it) | cell_array (an integer cell array of the mesh) | "
+                    "elements (a list).")
+    center_mm: Vec3 | None = Field(None, description="sphere, disc: the centre (mm, subject at rest).")
+    radius_mm: float | None = Field(None, gt=0, description="sphere: the radius; disc: the geodesic radius over the surface (mm).")
+    min_mm: Vec3 | None = Field(None, description="box: the lower corner (mm, subject at rest).")
+    max_mm: Vec3 | None = Field(None, description="box: the upper corner (mm).")
+    fraction: float | None = Field(None, gt=0, le=1, description="threshold: elements at or above this fraction of the peak exitance.")
+    array: str | None = Field(None, min_length=1, description="cell_array: the integer cell array of the mesh file (e.g. region).")
+    value: int | None = Field(None, description="cell_array: the value whose elements form the region.")
+    ids: tuple[int, ...] | None = Field(None, min_length=1, description="elements: element ids (the mesh file's, else indices from 0).")
+
+    @model_validator(mode="after")
+    def _keys_of_kind(self) -> "Roi":
+        need = _ROI_KEYS[self.kind]
+        missing = [k for k in need if getattr(self, k) is None]
+        extra = [k for ks in _ROI_KEYS.values() for k in ks
+                 if k not in need and k in self.model_fields_set and getattr(self, k) is not None]
+        if missing:
+            raise ValueError(f"a {self.kind} ROI needs {', '.join(need)}; missing {', '.join(missing)}")
+        if extra:
+            raise ValueError(f"a {self.kind} ROI takes {', '.join(need)}, not {', '.join(sorted(set(extra)))}")
+        if self.kind == "box" and any(lo >= hi for lo, hi in zip(self.min_mm, self.max_mm)):
+            raise ValueError("box: min_mm must be below max_mm on every axis")
+        return self
+
+
+def _distinct_rois(v: tuple[Roi, ...]) -> tuple[Roi, ...]:
+    names = [r.name for r in v]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ValueError(f"ROI names must be distinct; {', '.join(dup)} is given more than once")
+    if any(n == "joint" or "," in n or "\n" in n for n in names):
+        raise ValueError("an ROI name may not be 'joint' nor hold commas or line breaks (rois.csv)")
+    return v
+
+
 # --------------------------------------------------------------------------- top level
 class Config(Model):
     workdir: Path | None = Field(None, description="Output folder (default runs/<config name>), relative to the config file.")
@@ -859,6 +906,13 @@ class Config(Model):
     calibrate: Calibrate | None = Field(None, description="Settings of 'fluxmap calibrate': grid images, radiometric frames.")
     capture: Capture | None = Field(None, description="The acquisition plan of capture-surface.")
     rig: Rig | None = Field(None, description="The devices of the rig (issue 11).")
+    rois: tuple[Roi, ...] = Field((), description="Regions of interest on the surface (issue 24): their totals per pose and "
+                                                  "jointly, in reconstruction.h5, rois.csv, summary.json and the report.")
+
+    @field_validator("rois")
+    @classmethod
+    def _rois(cls, v):
+        return _distinct_rois(v)
 
 
 class LoadedConfig:

@@ -430,6 +430,11 @@ def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSe
         res, keep = _solve(T, a, valid, m, noise, adjacency, areas, groups=groups)
     if parent is None:
         return res, keep
+    from ..inverse.covariance import Mapped, parent_map
+
+    if res.covariance is not None:  # variance_of(weights over the elements) (ROI totals)
+        res = replace(res, covariance=Mapped(res.covariance, parent.to_elements if isinstance(parent, ElementMap)
+                                             else parent_map(parent, n_elements)))
     if isinstance(parent, ElementMap):
         return _on_elements(res, keep, parent), keep
     obs = res.observed
@@ -586,7 +591,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     digest = A.inputs_digest(system=m_.system.model_dump(mode="json"), subject=m_.subject.model_dump(mode="json"),
                              transfer=m_.transfer.model_dump(mode="json"),
                              reconstruct=rc.model_dump(mode="json", by_alias=True), images=sources,
-                             solver=SOLVER_VERSION)
+                             solver=SOLVER_VERSION,
+                             **({"rois": [r.model_dump(mode="json") for r in m_.rois]} if m_.rois else {}))
     if not ctx.force and A.is_up_to_date(out, "reconstruction", digest):
         ctx.say(f"reconstruct: {out} is up to date (--force to redo)")
         with A.open_artefact(out, "reconstruction") as f:
@@ -614,6 +620,10 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     stray = [light_outside(Ts[k], inp.images[k], inp.valid[k], noise, pt.pose.label, surface)
              for k, (_, pt) in enumerate(todo)]
     ctx.say(f"reconstruct: {inp.source}; {describe(m)}, {P} pose(s); {noise.kind} noise model")
+    from .outputs import reconstruction_exposure_s
+    from .rois import RoiMeter
+
+    rois = RoiMeter(cfg, surface, reconstruction_exposure_s(cfg))  # regions of interest (issue 24)
     t0 = time.perf_counter()
     per_pose = []
     for k in range(P):
@@ -629,12 +639,17 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
             inp.valid[k] = valid_k
             res, fitted = solve_pose()
         res = replace(res, warnings=tuple(w for w in (stray[k], spiked) if w) + tuple(res.warnings))
-        per_pose.append((res, fitted))
+        if rois:
+            rois.measure(str(k + 1), todo[k][1].pose.height_mm, todo[k][1].pose.rotation_deg, res)
+        per_pose.append((replace(res, covariance=None), fitted))  # the covariance is n x n: measured, dropped
     joint = None
     if rc.joint and P > 1:
         Tj = sp.vstack(gm.Ts).tocsr()
         joint, _ = run_method(Tj, inp.images, inp.valid, m, noise, gm.adjacency, gm.parts(),
                               gm.n_elements, gm.areas)
+        if rois:
+            rois.measure("joint", None, None, joint)
+        joint = replace(joint, covariance=None)
     seconds = time.perf_counter() - t0
     main = joint if joint is not None else per_pose[0][0]
     areas = surface.element_areas_mm2
@@ -710,11 +725,20 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         pp.create_dataset("observation", data=np.array([r.observation for r, _ in per_pose]))
         if rc.sweep is not None:
             _sweep(cfg, ctx, f.create_group("sweep"), grids, todo)
+        if rois:
+            rois.write(f.create_group("rois"))
     header = ["height_mm", "rotation_deg", "total photons", "observed", "lambda"]
     if inp.truth is not None:  # the paper's convention (unobserved elements count as 0) beside the observed ones
         header += ["error all / observed", "total ratio all / observed"]
     ctx.table(header, rows)
     ctx.say(f"{seconds:.2f} s of solving")
+    if rois:
+        ctx.table(*rois.table())
+        for name, label, _, _, x in rois.rows():
+            if x.status:
+                ctx.warn(f"ROI {name}, {label}: {x.status}")
+        ctx.say(f"ROI numbers for other tools: {rois.write_csv(cfg.workdir / 'rois.csv')}"
+                + ("" if rois.exposure_s is not None else " (no exposure time given: per exposure, not per second)"))
     export_3d(cfg, ctx, out)  # <workdir>/*.vtp for ParaView/pyvista, from the artefact
     for line in summary:
         ctx.say(line)
