@@ -1,0 +1,183 @@
+"""Regions of interest (issue 24): membership, σ of a region's total, geodesic discs, and a
+sphere ROI on the analytic Gaussian spot against its closed form."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import yaml
+
+from fluxcli.imaging import noise as N
+from fluxcli.inverse import reconstruct
+from fluxcli.quantify import rois as Q
+from fluxcli.surface.mesh import Surface
+from fluxcli.surface.phantoms import sphere
+
+
+# ------------------------------------------------------------------ σ of a region's total
+def _chain(n=40, m=120, width=0.02):
+    """A row of n elements seen by m pixels through a Gaussian blur (an element's light
+    spreads over ~7 pixels), collection efficiency 1e-3."""
+    x_el, x_px = (np.arange(n) + 0.5) / n, (np.arange(m) + 0.5) / m
+    T = np.exp(-(x_px[:, None] - x_el[None, :]) ** 2 / (2 * width**2))
+    T *= 1e-3 / T.sum(axis=0)
+    return sp.csr_array(np.where(T > 1e-9 * T.max(), T, 0.0)), x_el
+
+
+@pytest.mark.parametrize("method, kw", [("smooth", {"lam": 1e-2}), ("paper", {"lam": 1e-3}),
+                                         ("weighted_lsq", {"lam": 1e-4})])
+def test_sigma_of_roi_total_matches_scatter_over_100_noise_draws(method, kw):
+    """√(wᵀCw) against the standard deviation of the region's total over 100 Poisson draws
+    (ratio 1 ± 0.15); the sum of the per-element σ is far off (the elements of a region
+    share pixels and are anti-correlated), so the test also fails on that shortcut."""
+    T, x = _chain()
+    n = len(x)
+    truth = 1e8 * np.exp(-(x - 0.5) ** 2 / (2 * 0.1**2)) + 1e6
+    a0 = T @ truth
+    w = ((x > 0.35) & (x < 0.6)).astype(float)
+    adj = sp.diags_array([np.ones(n - 1), np.ones(n - 1)], offsets=[-1, 1]).tocsr()
+    extra = {"adjacency": adj, "areas": np.ones(n)} if method == "smooth" else {}
+    rng = np.random.default_rng(7)
+    noise = N.PhotonNoise("poisson")
+    totals, sigmas, naive = [], [], []
+    for _ in range(100):
+        res = reconstruct(T, rng.poisson(a0).astype(float), method=method, variance=noise.variance, **kw, **extra)
+        totals.append(np.nansum(w * res.power))
+        sigmas.append(np.sqrt(res.covariance.variance_of(w)))
+        naive.append(np.nansum(w * res.sigma))
+    scatter = np.std(totals, ddof=1)
+    assert np.mean(sigmas) / scatter == pytest.approx(1.0, abs=0.15)
+    assert np.mean(naive) / scatter > 1.5  # why the covariance is needed
+
+
+# ------------------------------------------------------------------ renumbering
+def _renumbered(s: Surface, rng) -> tuple[Surface, np.ndarray]:
+    """The same surface with its elements and faces in another order: (surface, old id of each new element)."""
+    perm = rng.permutation(s.n_elements)  # new element k is old element perm[k]
+    new_of_old = np.argsort(perm)
+    order = rng.permutation(len(s.faces))
+    eof = s.element_of_face[order]
+    eof = np.where(eof >= 0, new_of_old[np.maximum(eof, 0)], -1)
+    return Surface(s.vertices_mm, s.faces[order], eof, s.n_elements), perm
+
+
+def test_rois_unchanged_when_the_elements_are_renumbered():
+    s = sphere(radius_mm=10, n_latitude=12, n_longitude=24)[0]
+    s2, perm = _renumbered(s, np.random.default_rng(3))
+    ex = np.exp(-np.sum((s.element_centroids_mm - [0, 0, 10]) ** 2, axis=1) / 18.0)
+    regions = [Q.Region("s", "sphere", center_mm=(0, 0, 10), radius_mm=5.0),
+               Q.Region("b", "box", min_mm=(-3, -20, -20), max_mm=(20, 20, 5)),
+               Q.Region("d", "disc", center_mm=(0, 0, 11), radius_mm=6.0),
+               Q.Region("t", "threshold", fraction=0.3)]
+    for r in regions:
+        a = Q.members(r, s, exitance=ex)
+        b = Q.members(r, s2, exitance=ex[perm])
+        assert 0 < a.sum() < s.n_elements
+        np.testing.assert_array_equal(b, a[perm])
+        p = ex * s.element_areas_mm2
+        na = Q.measure(a, p, np.ones(len(p), bool), np.ones(len(p), bool), s.element_areas_mm2, exposure_s=1.0)
+        nb = Q.measure(b, p[perm], np.ones(len(p), bool), np.ones(len(p), bool), s2.element_areas_mm2, exposure_s=1.0)
+        assert na.total_photons_per_s == pytest.approx(nb.total_photons_per_s, rel=1e-12)
+        assert na.area_mm2 == pytest.approx(nb.area_mm2, rel=1e-12)
+
+
+def test_threshold_roi_is_connected_to_the_peak():
+    """Two bright blobs: only the one holding the peak is in the contour."""
+    s = sphere(radius_mm=10, n_latitude=12, n_longitude=24)[0]
+    c = s.element_centroids_mm
+    ex = np.exp(-np.sum((c - [0, 0, 10]) ** 2, axis=1) / 8.0) + 0.9 * np.exp(-np.sum((c - [0, 0, -10]) ** 2, axis=1) / 8.0)
+    m = Q.threshold_members(ex, s.element_adjacency(), 0.5)
+    assert m.any() and np.all(c[m, 2] > 0)
+    assert np.any((ex >= 0.5 * ex.max()) & (c[:, 2] < 0))  # the other blob is above the threshold too
+
+
+# ------------------------------------------------------------------ geodesic distance
+def test_geodesic_distance_on_a_sphere_against_the_great_circle():
+    """On a sphere the geodesic from p is R·acos(u·p̂); the mesh is a polyhedron (chords), so
+    allow 2 % of R on average and 5 % of the distance at worst beyond 1 mm; plain Dijkstra on
+    the edges is also measured and must be worse (the reason for the triangle update)."""
+    R = 10.0
+    s = sphere(radius_mm=R, n_latitude=16, n_longitude=32)[0]
+    fine, _ = s.refined(1)
+    src = np.array([R * np.sin(0.3), 0.0, R * np.cos(0.3)])
+    d = Q.geodesic_distance_mm(fine.vertices_mm, fine.faces, src)
+    u = fine.vertices_mm / np.linalg.norm(fine.vertices_mm, axis=1, keepdims=True)
+    exact = R * np.arccos(np.clip(u @ (src / R), -1, 1))
+    far = exact > 1.0
+    assert np.mean(np.abs(d - exact)) < 0.02 * R
+    assert np.max(np.abs(d[far] - exact[far]) / exact[far]) < 0.05
+    from scipy.sparse.csgraph import dijkstra
+
+    f = fine.faces
+    e = np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    L = np.linalg.norm(fine.vertices_mm[e[:, 0]] - fine.vertices_mm[e[:, 1]], axis=1)
+    G = sp.csr_matrix((L, (e[:, 0], e[:, 1])), shape=(len(u), len(u)))
+    start = int(np.argmin(np.linalg.norm(fine.vertices_mm - src, axis=1)))
+    dj = dijkstra(G, directed=False, indices=start) + np.linalg.norm(fine.vertices_mm[start] - src)
+    assert np.mean(np.abs(dj - exact)) > 1.5 * np.mean(np.abs(d - exact))
+
+
+def test_geodesic_disc_on_a_plane_is_the_euclidean_disc():
+    n = 30
+    g = np.linspace(-15, 15, n + 1)
+    X, Y = np.meshgrid(g, g)
+    v = np.stack([X.ravel(), Y.ravel(), np.zeros(X.size)], axis=1)
+    idx = np.arange(X.size).reshape(n + 1, n + 1)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    s = Surface(v, faces, np.arange(len(faces)), len(faces))
+    dist = Q.element_geodesic_mm(s, np.array([0.3, -0.2, 2.0]))
+    exact = np.linalg.norm(s.element_centroids_mm[:, :2] - [0.3, -0.2], axis=1)
+    assert np.max(np.abs(dist - exact)) < 0.05 * 30 / n + 0.02 * exact.max()
+
+
+# ------------------------------------------------------------------ the Gaussian spot, closed form
+def test_sphere_roi_on_the_gaussian_spot_holds_the_closed_form_fraction(tmp_path):
+    """A Gaussian exitance exp(−d²/2w²) centred on the pole of a sphere of radius R, with d the
+    chord distance: on a sphere the area at chord distance d is 2πd dd (Archimedes), so the
+    part within chord d₀ holds (1 − e^{−d₀²/2w²}) / (1 − e^{−2R²/w²}) of the light.  A sphere
+    ROI centred on the pole takes the latitude rows whose centroids it holds: rows down to
+    polar angle θ₀, chord d₀ = 2R sin(θ₀/2).  Simulate (truth on a finer surface),
+    reconstruct from two poses, and compare ROI total / true total with the closed form, 1 %."""
+    from typer.testing import CliRunner
+
+    from fluxcli.cli import app
+
+    R, w, nlat = 10.0, 3.0, 16
+    theta0 = 2 * np.pi / nlat * 1  # rows of pi/nlat: two rows around the pole (the first is the cap)
+    d0 = 2 * R * np.sin(theta0 / 2)
+    closed = (1 - np.exp(-d0**2 / (2 * w**2))) / (1 - np.exp(-2 * R**2 / w**2))
+    cfg = {
+        "workdir": str(tmp_path / "run"),
+        "system": {"camera": {"pixels": [40, 40], "pixel_pitch_mm": 0.06,
+                              "lens": {"focal_length_mm": 25.0, "f_number": 4.0, "focus_distance_mm": 300.0},
+                              "pose": {"lens_center_mm": [0, 0, 310.0]}}, "mirrors": []},
+        "subject": {"surface": {"phantom": "sphere", "radius_mm": R, "n_latitude": nlat, "n_longitude": 2 * nlat},
+                    "poses": {"heights_mm": [0], "rotations_deg": [0, 20]}},
+        "transfer": {"cache_dir": str(tmp_path / "cache")},
+        "simulate": {"flux": {"kind": "gaussian", "center_mm": [0, 0, 2 * R], "width_mm": w, "peak_photons": 1e6},
+                     "noise": {"model": "poisson", "peaks_photons": [1e9], "repeats": 1, "seed": 1, "exposure_s": 2.0}},
+        # the subject at rest sits on the stage: the pole is at z = 2R; the radius falls between row centroids
+        "rois": [{"name": "spot", "kind": "sphere", "center_mm": [0, 0, 2 * R], "radius_mm": float(d0 + 0.3)}],
+    }
+    p = tmp_path / "cfg.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    for stage in ("build-T", "simulate", "reconstruct"):
+        r = CliRunner().invoke(app, [stage, str(p), "-q"])
+        assert r.exit_code == 0, r.output
+    import csv
+
+    import h5py
+
+    with h5py.File(tmp_path / "run" / "simulation.h5") as f:
+        truth_total = float(f["truth/power"][()].sum() * f["truth/level_scale"][0])
+    rows = list(csv.DictReader((tmp_path / "run" / "rois.csv").open()))
+    assert [r_["pose"] for r_ in rows] == ["1", "2", "joint"]
+    assert list(rows[0]) == list(Q.CSV_COLUMNS)
+    for row in rows:
+        frac = float(row["total_photons_per_s"]) * 2.0 / truth_total
+        assert frac == pytest.approx(closed, rel=0.01), (row, closed)
+        assert float(row["observed_share"]) == 1.0
+        sigma = float(row["sigma_photons_per_s"])
+        assert 0 < sigma < 0.01 * float(row["total_photons_per_s"])
