@@ -14,6 +14,8 @@ from fluxcli.quantify import rois as Q
 from fluxcli.surface.mesh import Surface
 from fluxcli.surface.phantoms import sphere
 
+from tiny_pipeline import tiny_run  # noqa: F401  (the session fixture)
+
 
 # ------------------------------------------------------------------ σ of a region's total
 def _chain(n=40, m=120, width=0.02):
@@ -181,3 +183,104 @@ def test_sphere_roi_on_the_gaussian_spot_holds_the_closed_form_fraction(tmp_path
         assert float(row["observed_share"]) == 1.0
         sigma = float(row["sigma_photons_per_s"])
         assert 0 < sigma < 0.01 * float(row["total_photons_per_s"])
+
+
+# ------------------------------------------------------------------ through the stages
+def _copy_run(tiny_run, tmp_path, rois):
+    import shutil
+
+    src, cfg, _ = tiny_run
+    shutil.copytree(src / "run", tmp_path / "run")
+    cfg = dict(cfg, workdir=str(tmp_path / "run"), rois=rois)
+    p = tmp_path / "cfg.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    return p
+
+
+def test_reconstruct_report_and_vtp_carry_the_rois(tiny_run, tmp_path):
+    """reconstruct writes /rois and rois.csv (the contract's columns, a row per ROI per pose
+    and 'joint'); report puts them in summary.json and the page; the VTP has a cell array
+    per ROI; an unobserved region says so."""
+    import csv
+    import json
+
+    import h5py
+    import pyvista as pv
+    from typer.testing import CliRunner
+
+    from fluxcli.cli import app
+
+    p = _copy_run(tiny_run, tmp_path, [
+        {"name": "top", "kind": "box", "min_mm": [-20, -20, 12], "max_mm": [20, 20, 40]},
+        {"name": "under", "kind": "box", "min_mm": [-20, -20, -5], "max_mm": [20, 20, 3]},
+        {"name": "listed", "kind": "elements", "ids": [0, 1]}])
+    for stage in ("reconstruct", "report"):
+        r = CliRunner().invoke(app, [stage, str(p)])
+        assert r.exit_code == 0, r.output
+    run = tmp_path / "run"
+    rows = list(csv.DictReader((run / "rois.csv").open()))
+    assert list(rows[0]) == list(Q.CSV_COLUMNS)
+    assert [(x["roi"], x["pose"]) for x in rows] == [(n, k) for n in ("top", "under", "listed")
+                                                      for k in ("1", "2", "joint")]
+    with h5py.File(run / "reconstruction.h5") as f:
+        got = Q.read_group(f["rois"])
+        power, obs, areas = f["flux/power"][()], f["flux/observed"][()].astype(bool), f["surface/areas"][()]
+    top = got["members"][0, -1]
+    assert float(rows[2]["total_photons_per_s"]) == pytest.approx(np.nansum(np.where(top & obs, power, 0.0)), rel=1e-6)
+    assert float(rows[2]["area_mm2"]) == pytest.approx(areas[top].sum(), rel=1e-6)
+    assert 0 < float(rows[2]["sigma_photons_per_s"]) < float(rows[2]["total_photons_per_s"])
+    assert got["status"][1, -1].startswith("mostly unobserved")  # the underside faces the stage
+    assert "MOSTLY" not in r.output
+    s = json.loads((run / "report" / "summary.json").read_text())
+    assert s["rois"]["names"] == ["top", "under", "listed"]
+    assert "Regions of interest" in (run / "report" / "index.html").read_text()
+    m = pv.read(str(run / "reconstruction.vtp"))
+    assert {"roi_top", "roi_under", "roi_listed"} <= set(m.cell_data.keys())
+
+
+@pytest.mark.parametrize("roi, needle", [
+    ({"name": "a", "kind": "sphere", "center_mm": [0, 0, 0]}, "radius_mm"),
+    ({"name": "a", "kind": "box", "min_mm": [0, 0, 0], "max_mm": [1, -1, 1]}, "min_mm"),
+    ({"name": "a", "kind": "cell_array", "array": "region", "value": 2}, "not a mesh file"),
+    ({"name": "joint", "kind": "threshold", "fraction": 0.5}, "joint"),
+])
+def test_bad_rois_exit_2_naming_the_key(tiny_run, tmp_path, roi, needle):
+    from typer.testing import CliRunner
+
+    from fluxcli.cli import app
+
+    p = _copy_run(tiny_run, tmp_path, [roi])
+    r = CliRunner().invoke(app, ["reconstruct", str(p), "--force"])
+    assert r.exit_code == 2, r.output
+    text = " ".join(r.output.split())
+    assert needle in text and "rois" in text
+
+
+def test_cell_array_roi_reads_the_mesh_files_integer_array(tmp_path):
+    """The cell array of a mesh file per element (elements from the file's 'element' array)."""
+    import pyvista as pv
+
+    from fluxcli.config import load_config
+    from fluxcli.scene import SubjectPlacer
+    from fluxcli.stages.rois import cell_array_of_elements
+
+    s = sphere(radius_mm=10, n_latitude=6, n_longitude=8)[0]
+    faces = np.hstack([np.full((len(s.faces), 1), 3), s.faces]).ravel()
+    mesh = pv.PolyData(s.vertices_mm, faces)
+    mesh.cell_data["element"] = s.element_of_face.astype(np.int64)
+    region = (s.element_centroids_mm[:, 2] > 5).astype(np.int64)[s.element_of_face]
+    mesh.cell_data["region"] = region
+    mesh.save(str(tmp_path / "m.vtk"))
+    (tmp_path / "c.yaml").write_text(yaml.safe_dump({
+        "system": {"camera": {"pixels": [8, 8], "pixel_pitch_mm": 0.1,
+                              "lens": {"focal_length_mm": 25.0, "f_number": 4.0, "focus_distance_mm": 300.0},
+                              "pose": {"lens_center_mm": [0, 0, 320.0]}}},
+        "subject": {"surface": {"mesh": "m.vtk"}}}))
+    cfg = load_config(tmp_path / "c.yaml")
+    surf = SubjectPlacer(cfg).surface
+    got = cell_array_of_elements(cfg, surf, "region", "rois[0]")
+    upper = s.element_centroids_mm[:, 2] > 5  # per element of the file, by its ids
+    ids = surf.element_ids if surf.element_ids is not None else np.arange(surf.n_elements)
+    np.testing.assert_array_equal(got, upper[ids].astype(np.int64))
+    r = Q.Region("upper", "cell_array", array="region", value=1)
+    assert np.array_equal(Q.members(r, surf, cell_array=got), got == 1)

@@ -235,7 +235,8 @@ class RoiNumbers:
         if self.n_elements == 0:
             return "empty: no element of the surface lies in it"
         if self.observed_share < MOSTLY:
-            return f"mostly unobserved: {self.observed_share:.0%} of its area is observed; the total covers that part only"
+            return (f"mostly unobserved: {self.observed_share:.0%} of its area is observed; the total counts that part "
+                    "only (a lower bound)")
         if self.well_observed_share < MOSTLY:
             return (f"mostly poorly observed: {self.well_observed_share:.0%} of its area is well observed; "
                     "the total leans on the regulariser")

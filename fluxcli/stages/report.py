@@ -195,8 +195,7 @@ def _rois_section(rec: Path) -> list:
             for m, label in enumerate(r["maps"]):
                 x = {k: r["numbers"][k][i, m] for k in NUMBER_KEYS}
                 st = r["status"][i, m]
-                total = (f"{x['total_photons_per_s']:.4g} ± {x['sigma_photons_per_s']:.2g}" if not st
-                         else f"— {st}")
+                total = f"{x['total_photons_per_s']:.4g} ± {x['sigma_photons_per_s']:.2g}" + (f" — {st}" if st else "")
                 rows.append([name, label, total, f"{x['mean_radiance']:.3g}", f"{x['peak_radiance']:.3g}",
                              f"{x['area_mm2']:.3g}", f"{x['observed_share']:.0%}", f"{x['well_observed_share']:.0%}"])
         page.table(["region", "pose", f"total ({unit})", "mean radiance", "peak radiance", "area (mm²)", "observed",

@@ -143,8 +143,8 @@ class RoiMeter:
         unit = "photons/s" if self.exposure_s is not None else "photons/exposure"
         rows = []
         for name, label, _, _, x in self.rows():
-            rows.append([name, label, f"{x.total_photons_per_s:.4g} ± {x.sigma_photons_per_s:.2g}" if not x.status
-                         else f"({x.total_photons_per_s:.3g}) {x.status.split(':')[0]}",
+            rows.append([name, label, f"{x.total_photons_per_s:.4g} ± {x.sigma_photons_per_s:.2g}"
+                         + (f" [{x.status.split(':')[0].upper()}]" if x.status else ""),
                          f"{x.mean_radiance:.3g}", f"{x.area_mm2:.3g}", f"{x.observed_share:.0%}",
                          f"{x.well_observed_share:.0%}"])
         return ["roi", "pose", f"total ({unit}) ± 1 sd", "mean radiance (ph/s/cm²/sr)", "area mm²", "observed",
