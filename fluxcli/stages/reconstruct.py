@@ -727,6 +727,9 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
             _sweep(cfg, ctx, f.create_group("sweep"), grids, todo)
         if rois:
             rois.write(f.create_group("rois"))
+        from ..artefacts.digest import seal
+
+        seal(f, ("flux", "per_pose", "rois", "surface", "truth"))  # fluxmap study refuses a file changed after this
     header = ["height_mm", "rotation_deg", "total photons", "observed", "lambda"]
     if inp.truth is not None:  # the paper's convention (unobserved elements count as 0) beside the observed ones
         header += ["error all / observed", "total ratio all / observed"]
