@@ -284,3 +284,71 @@ def test_cell_array_roi_reads_the_mesh_files_integer_array(tmp_path):
     np.testing.assert_array_equal(got, upper[ids].astype(np.int64))
     r = Q.Region("upper", "cell_array", array="region", value=1)
     assert np.array_equal(Q.members(r, surf, cell_array=got), got == 1)
+
+
+# ------------------------------------------------------------------ fluxmap study
+def test_study_table_flags_another_calibration_and_refuses_a_changed_artefact(tiny_run, tmp_path):
+    """Two sessions of the tiny run (days 1 and 2) make the table; a third reconstructed with
+    another focal length is flagged naming the key; a copy whose numbers were edited is
+    refused (exit 2) naming the file; one whose input simulation changed is refused too."""
+    import csv
+    import shutil
+
+    import h5py
+    from typer.testing import CliRunner
+
+    from fluxcli.cli import app
+
+    roi = [{"name": "top", "kind": "box", "min_mm": [-20, -20, 12], "max_mm": [20, 20, 40]}]
+    p = _copy_run(tiny_run, tmp_path, roi)
+    assert CliRunner().invoke(app, ["reconstruct", str(p), "-q"]).exit_code == 0
+    run = tmp_path / "run"
+    shutil.copytree(run, tmp_path / "day2")
+    cfg = yaml.safe_load(p.read_text())
+    cfg["system"]["camera"]["lens"]["focal_length_mm"] = 24.0
+    cfg["workdir"] = str(tmp_path / "recal")
+    p2 = tmp_path / "recal.yaml"
+    p2.write_text(yaml.safe_dump(cfg))
+    for stage in ("build-T", "simulate", "reconstruct"):
+        r = CliRunner().invoke(app, [stage, str(p2), "-q"])
+        assert r.exit_code == 0, r.output
+    sessions = [{"artefact": "run/reconstruction.h5", "subject": "a", "day": 1},
+                {"artefact": "day2/reconstruction.h5", "subject": "a", "day": 2},
+                {"artefact": "recal/reconstruction.h5", "subject": "a", "day": 3}]
+    s = tmp_path / "study.yaml"
+    s.write_text(yaml.safe_dump({"output": "out", "sessions": sessions}))
+    r = CliRunner().invoke(app, ["study", str(s)])
+    assert r.exit_code == 0, r.output
+    text = " ".join(r.output.split())
+    assert "focal_length_mm: 24 in reconstruction.h5, 25 in the first session" in text
+    rows = list(csv.DictReader((tmp_path / "out" / "study.csv").open()))
+    assert len(rows) == 3 * 1 * 3  # sessions x ROIs x (2 poses + joint)
+    assert rows[2]["pose"] == "joint" and rows[0]["setup_flag"] == "" and "focal_length_mm" in rows[-1]["setup_flag"]
+    assert float(rows[2]["total_photons_per_s"]) == float(rows[5]["total_photons_per_s"])  # the same artefact twice
+    assert "plotly" in (tmp_path / "out" / "index.html").read_text()[:2_000_000]
+
+    with h5py.File(tmp_path / "day2" / "reconstruction.h5", "r+") as f:
+        f["flux/power"][0] *= 1.01
+    r = CliRunner().invoke(app, ["study", str(s)])
+    assert r.exit_code == 2 and "day2/reconstruction.h5 was changed after it was written" in " ".join(r.output.split())
+
+    shutil.rmtree(tmp_path / "day2")
+    shutil.copytree(run, tmp_path / "day2")
+    with h5py.File(tmp_path / "day2" / "simulation.h5", "r+") as f:
+        f.attrs["note"] = "edited"
+    r = CliRunner().invoke(app, ["study", str(s)])
+    assert r.exit_code == 2 and "day2/simulation.h5 (simulation.h5) changed after" in " ".join(r.output.split())
+
+
+def test_study_file_mistakes_exit_2(tmp_path):
+    from typer.testing import CliRunner
+
+    from fluxcli.cli import app
+
+    s = tmp_path / "s.yaml"
+    s.write_text(yaml.safe_dump({"sessions": [{"artefact": "nowhere.h5", "subject": "a"}]}))
+    r = CliRunner().invoke(app, ["study", str(s)])
+    assert r.exit_code == 2 and "day or a date" in " ".join(r.output.split())
+    s.write_text(yaml.safe_dump({"sessions": [{"artefact": "nowhere.h5", "subject": "a", "day": 1}]}))
+    r = CliRunner().invoke(app, ["study", str(s)])
+    assert r.exit_code == 2 and "nowhere.h5" in " ".join(r.output.split())
