@@ -509,6 +509,21 @@ class CaptureSource(Model):
     capture: Path = Field(description="A capture artefact (capture.h5 of capture-surface): relative to the config file, else to the workdir.")
     filter: str | None = Field(None, description="Whose frames to use, by filter name (default: the capture's only filter).")
     exposure_s: float | None = Field(None, gt=0, description="Which exposure time's frames (s) (default: the capture's only one).")
+    filters: tuple[str, ...] | None = Field(None, min_length=1, description="Several filters, reconstructed one by one with the same T "
+                                             "(the first fills /flux; each its own /filters/<name>; rois_spectrum.csv).")
+    transmissions: dict[str, float] = Field(default_factory=dict, description="Filter name -> the share of the light it passes (0..1]: "
+                                            "its results are divided by it (the light before the filter); default 1.")
+
+    @model_validator(mode="after")
+    def _filters(self) -> "CaptureSource":
+        if self.filters is not None and self.filter is not None:
+            raise ValueError("give filter (one) or filters (several), not both")
+        if self.filters is not None and len(set(self.filters)) != len(self.filters):
+            raise ValueError("filters: list each filter once")
+        bad = {k: v for k, v in self.transmissions.items() if not 0 < v <= 1}
+        if bad:
+            raise ValueError(f"transmissions must lie in (0, 1]; got {bad}")
+        return self
 
 
 class Sweep(Model):

@@ -101,3 +101,13 @@ def parent_map(parent: np.ndarray, n_groups: int) -> sp.csr_array:
     """(n_groups, n_unknowns) 0/1: unknown i belongs to group ``parent[i]``."""
     parent = np.asarray(parent)
     return sp.csr_array((np.ones(parent.size), (parent, np.arange(parent.size))), shape=(n_groups, parent.size))
+
+
+class Scaled:
+    """The covariance of ``c · x``: variances times c² (e.g. a filter's transmission undone)."""
+
+    def __init__(self, inner, factor: float):
+        self.inner, self.factor = inner, float(factor)
+
+    def variance_of(self, weights) -> np.ndarray:
+        return self.inner.variance_of(weights) * self.factor**2

@@ -318,3 +318,27 @@ def read_group(g) -> dict:
             "numbers": {k: g[k][()] for k in NUMBER_KEYS},
             "status": np.array([[x.decode() if isinstance(x, bytes) else str(x) for x in row] for row in g["status"][()]]),
             "members": g["members"][()].astype(bool)}
+
+
+SPECTRUM_COLUMNS = ("roi", "filter", "transmission", "pose", "total_photons_per_s", "sigma_photons_per_s",
+                    "mean_radiance", "observed_share", "well_observed_share")
+
+
+def spectrum_csv_text(per_filter) -> str:
+    """``rois_spectrum.csv``: per ROI, per filter (``(name, transmission, meter)`` with the
+    meter's maps), the numbers of every map (poses and ``joint``) — the per-ROI spectrum."""
+    import csv
+    import io
+
+    out = io.StringIO()
+    w = csv.writer(out, lineterminator="\n")
+    w.writerow(SPECTRUM_COLUMNS)
+    rows = []
+    for name, t, meter in per_filter:
+        for roi, pose, _, _, x in meter.rows():
+            rows.append((roi, name, t, pose, x))
+    order = {n: i for i, (n, _, _) in enumerate(per_filter)}
+    for roi, name, t, pose, x in sorted(rows, key=lambda r: (r[0], r[3], order[r[1]])):
+        w.writerow([roi, name, f"{t:g}", pose, *(f"{v:.8g}" for v in (
+            x.total_photons_per_s, x.sigma_photons_per_s, x.mean_radiance, x.observed_share, x.well_observed_share))])
+    return out.getvalue()

@@ -181,6 +181,12 @@ def _rois_section(rec: Path) -> list:
         if "rois" not in f:
             return []
         r = read_group(f["rois"])
+        spectrum = {}  # filter -> (transmission, ROI numbers) when several filters were reconstructed
+        if "filters" in f:
+            for name in json.loads(f["filters"].attrs["order"]):
+                if "rois" in f[f"filters/{name}"]:
+                    spectrum[name] = (float(f[f"filters/{name}"].attrs["transmission"]),
+                                      read_group(f[f"filters/{name}/rois"]))
 
     def add(page, save):
         unit = "photons/s" if r["exposure_s"] is not None else "photons per exposure"
@@ -200,7 +206,37 @@ def _rois_section(rec: Path) -> list:
                              f"{x['area_mm2']:.3g}", f"{x['observed_share']:.0%}", f"{x['well_observed_share']:.0%}"])
         page.table(["region", "pose", f"total ({unit})", "mean radiance", "peak radiance", "area (mm²)", "observed",
                     "well observed"], rows, left_columns=2)
-        return {"rois": {"names": r["names"], "maps": r["maps"], "unit_total": unit, "exposure_s": r["exposure_s"],
+        out_spec = {}
+        if spectrum:
+            out_spec = _spectrum_part(page, save, r, spectrum, unit)
+        return {"rois_spectrum": out_spec, "rois": {"names": r["names"], "maps": r["maps"], "unit_total": unit, "exposure_s": r["exposure_s"],
                          "definitions": r["definitions"], "status": r["status"].tolist(),
                          **{k: r["numbers"][k].tolist() for k in NUMBER_KEYS}}}
     return [add]
+
+
+def _spectrum_part(page, save, r, spectrum: dict, unit: str) -> dict:
+    """Per region, the joint total per filter (± 1 sd): a table and a bar plot."""
+    from matplotlib.figure import Figure
+
+    names = list(spectrum)
+    tot = np.array([[spectrum[n][1]["numbers"]["total_photons_per_s"][i, -1] for n in names] for i in range(len(r["names"]))])
+    sd = np.array([[spectrum[n][1]["numbers"]["sigma_photons_per_s"][i, -1] for n in names] for i in range(len(r["names"]))])
+    page.text(f"Per region, the light leaving it within each filter's band ({unit}, the last map: joint, or the only "
+              "pose), each filter's images divided by its transmission (the light before the filter). Every number is "
+              "in rois_spectrum.csv.")
+    page.table(["region", *[f"{n} (T {spectrum[n][0]:g})" for n in names]],
+               [[name, *[f"{tot[i, j]:.4g} ± {sd[i, j]:.2g}" for j in range(len(names))]] for i, name in enumerate(r["names"])])
+    fig = Figure(figsize=(7, 3.6))
+    ax = fig.add_subplot()
+    w = 0.8 / max(len(names), 1)
+    x = np.arange(len(r["names"]))
+    for j, n in enumerate(names):
+        ax.bar(x + (j - (len(names) - 1) / 2) * w, tot[:, j], w, yerr=sd[:, j], capsize=3, label=n)
+    ax.set_xticks(x, r["names"])
+    ax.set_ylabel(unit)
+    ax.set_title("per-region spectrum (joint reconstruction)")
+    ax.legend(title="filter")
+    fig.tight_layout()
+    page.figure(save(fig, "rois_spectrum.png"), "Each region's total per filter, ± 1 sd.")
+    return {"filters": names, "transmissions": [spectrum[n][0] for n in names], "total": tot.tolist(), "sigma": sd.tolist()}
