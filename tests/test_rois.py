@@ -405,3 +405,13 @@ def test_filters_reconstructed_one_by_one_in_one_run(tmp_path):
     import pyvista as pv
 
     assert {"filter_open_power_photons", "filter_580nm_power_photons"} <= set(pv.read(str(run / "reconstruction.vtp")).cell_data.keys())
+    # a study of it: a row per filter (session x ROI x filter), the filter named by the artefact
+    (tmp_path / "study.yaml").write_text(yaml.safe_dump({"output": "out", "sessions": [
+        {"artefact": "run/reconstruction.h5", "subject": "a", "day": 1}]}))
+    r = CliRunner().invoke(app, ["study", str(tmp_path / "study.yaml"), "-q"])
+    assert r.exit_code == 0, r.output
+    rows = list(csv.DictReader((tmp_path / "out" / "study.csv").open()))
+    joint = {x["filter"]: float(x["total_photons_per_s"]) for x in rows if x["pose"] == "joint"}
+    assert joint["580nm"] == pytest.approx(got["580nm"], rel=1e-6) and joint["open"] == pytest.approx(got["open"], rel=1e-6)
+    direct = {x["filter"]: float(x["direct_image_photons_per_s"]) for x in rows if x["pose"] == "1"}
+    assert direct["580nm"] == pytest.approx(0.5 * direct["open"], rel=0.1)  # the image through a 0.5 filter

@@ -785,7 +785,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         if rois:
             rois.write(f.create_group("rois"))
         if filters:
-            _write_filters(f.create_group("filters"), cfg, {filters[0]: (inp, per_pose, joint, rois), **others}, areas)
+            _write_filters(f.create_group("filters"), cfg, {filters[0]: (inp, per_pose, joint, rois), **others}, areas,
+                           [pt.path for _, pt in todo])
         from ..artefacts.digest import seal
 
         seal(f, ("flux", "per_pose", "rois", "surface", "truth"))  # fluxmap study refuses a file changed after this
@@ -859,7 +860,7 @@ def _write_flux(g, res, areas) -> None:
     g.attrs["warnings"] = json.dumps(list(res.warnings))
 
 
-def _write_filters(g, cfg: C.LoadedConfig, results: dict, areas) -> None:
+def _write_filters(g, cfg: C.LoadedConfig, results: dict, areas, T_paths) -> None:
     """/filters/<name>: each filter's reconstruction (joint, else the first pose) and its
     per-pose powers, transmission and ROI numbers; g.attrs['order'] the filters in order."""
     g.attrs["order"] = json.dumps(list(results))
@@ -872,6 +873,8 @@ def _write_filters(g, cfg: C.LoadedConfig, results: dict, areas) -> None:
         _write_flux(h.create_group("flux"), main, areas)
         h.create_dataset("per_pose_power", data=np.array([r.power for r, _ in pp])).attrs["unit"] = "photons"
         h.create_dataset("per_pose_total", data=[np.nansum(r.power) for r, _ in pp]).attrs["unit"] = "photons"
+        h.create_dataset("direct_roi_photons", data=[direct_roi(T_paths[k], inp_f.images[k]) for k in range(len(pp))]
+                         ).attrs["meaning"] = "measured photons (through the filter) summed over the pixels the direct view reaches"
         if inp_f.truth is not None:
             h.create_dataset("truth_power", data=inp_f.truth).attrs["unit"] = "photons (before the filter)"
         if meter:

@@ -82,8 +82,9 @@ def load_study(path: Path) -> StudyFile:
         raise UserError(C._format_validation_error(e, path, raw)) from None
 
 
-def read_session(s: StudySession, k: int, base: Path) -> Session:
-    """The session's numbers, refusing an artefact changed after the fact."""
+def read_session(s: StudySession, k: int, base: Path) -> list[Session]:
+    """The session's numbers (one per filter of the artefact), refusing an artefact changed
+    after the fact."""
     path = s.artefact if s.artefact.is_absolute() else (base / s.artefact).resolve()
     where = f"sessions[{k}] ({s.name})"
     with A.open_artefact(path, "reconstruction") as f:
@@ -103,17 +104,27 @@ def read_session(s: StudySession, k: int, base: Path) -> Session:
         if "rois" not in f:
             raise UserError(f"{where}: {path} holds no regions of interest; give rois: in its config and reconstruct "
                             "it again.")
-        rois = Q.read_group(f["rois"])
         pp = f["per_pose"]
-        truth = None
-        if "truth" in f and "power" in f["truth"]:
-            t = rois["exposure_s"] if rois["exposure_s"] is not None else 1.0
-            power = f["truth/power"][()]
-            truth = {n: float(power[rois["members"][i, -1]].sum()) / t for i, n in enumerate(rois["names"])}
-        return Session(label=s.name, subject=s.subject, day=s.day, date=s.date, filter=s.filter, artefact=str(path),
-                       rois=rois, direct_image_photons=pp["direct_roi_photons"][()], heights_mm=pp["heights_mm"][()],
-                       rotations_deg=pp["rotations_deg"][()],
-                       setup=setup_of(prov.config, prov.input_files), truth_rois=truth)
+        # one reconstruct of several filters: a session per filter (the study file's filter is the artefact's)
+        parts = [(s.filter, f["rois"], f["truth/power"][()] if "truth" in f and "power" in f["truth"] else None,
+                  pp["direct_roi_photons"][()])]
+        if "filters" in f:
+            parts = [(name, h["rois"], h["truth_power"][()] if "truth_power" in h else None, h["direct_roi_photons"][()])
+                     for name in json.loads(f["filters"].attrs["order"])
+                     for h in [f[f"filters/{name}"]] if "rois" in h]
+        out = []
+        for filt, g, power, direct in parts:
+            rois = Q.read_group(g)
+            truth = None
+            if power is not None:
+                t = rois["exposure_s"] if rois["exposure_s"] is not None else 1.0
+                truth = {n: float(power[rois["members"][i, -1]].sum()) / t for i, n in enumerate(rois["names"])}
+            label = s.name if len(parts) == 1 else f"{s.label or s.subject + ' ' + ('day ' + format(s.day, 'g') if s.day is not None else s.date)} {filt}"
+            out.append(Session(label=label, subject=s.subject, day=s.day, date=s.date, filter=filt, artefact=str(path),
+                               rois=rois, direct_image_photons=direct, heights_mm=pp["heights_mm"][()],
+                               rotations_deg=pp["rotations_deg"][()],
+                               setup=setup_of(prov.config, prov.input_files), truth_rois=truth))
+        return out
 
 
 def _keep(session: Session, names: tuple[str, ...], where: str) -> Session:
@@ -132,7 +143,7 @@ def run(study_path: Path, ctx: RunContext) -> Path:
     study_path = Path(study_path).resolve()
     st = load_study(study_path)
     base = study_path.parent
-    sessions = [read_session(s, k, base) for k, s in enumerate(st.sessions)]
+    sessions = [x for k, s in enumerate(st.sessions) for x in read_session(s, k, base)]
     names = st.rois or tuple(n for n in sessions[0].rois["names"] if all(n in s.rois["names"] for s in sessions))
     if not names:
         raise UserError(f"{study_path}: the sessions share no region of interest; name them in rois:.")
