@@ -134,6 +134,14 @@ def region_outline_mm(vertices_mm, faces, element_of_face, member) -> np.ndarray
     n_all = np.bincount(inv.ravel(), minlength=len(uniq))
     edge = uniq[(n_in > 0) & (n_in < n_all) | ((n_in == 1) & (n_all == 1))]
     v = np.asarray(vertices_mm, float)
+    # lifted a little along the vertex normals, so the surface does not hide the line
+    t = v[f]
+    fn = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    vn = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(vn, f[:, k], fn)
+    vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
+    v = v + 0.01 * float(np.linalg.norm(np.ptp(v, axis=0))) * vn
     out = np.full((len(edge), 3, 3), np.nan)
     out[:, 0], out[:, 1] = v[edge[:, 0]], v[edge[:, 1]]
     return out.reshape(-1, 3)
