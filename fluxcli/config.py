@@ -513,6 +513,8 @@ class CaptureSource(Model):
                                              "(the first fills /flux; each its own /filters/<name>; rois_spectrum.csv).")
     transmissions: dict[str, float] = Field(default_factory=dict, description="Filter name -> the share of the light it passes (0..1]: "
                                             "its results are divided by it (the light before the filter); default 1.")
+    exposures_s: dict[str, float] = Field(default_factory=dict, description="Filter name -> which exposure time's frames (s) to use "
+                                          "for that filter (default exposure_s): a dim band may need a longer exposure.")
 
     @model_validator(mode="after")
     def _filters(self) -> "CaptureSource":
@@ -520,6 +522,13 @@ class CaptureSource(Model):
             raise ValueError("give filter (one) or filters (several), not both")
         if self.filters is not None and len(set(self.filters)) != len(self.filters):
             raise ValueError("filters: list each filter once")
+        named = set(self.filters or ()) | ({self.filter} if self.filter else set())
+        for key in ("transmissions", "exposures_s"):
+            extra = sorted(set(getattr(self, key)) - named) if named else []
+            if extra:
+                raise ValueError(f"{key} names {', '.join(extra)}, which is not among the filters reconstructed")
+        if any(not v > 0 for v in self.exposures_s.values()):
+            raise ValueError("exposures_s must be positive")
         bad = {k: v for k, v in self.transmissions.items() if not 0 < v <= 1}
         if bad:
             raise ValueError(f"transmissions must lie in (0, 1]; got {bad}")

@@ -372,14 +372,15 @@ def test_filters_reconstructed_one_by_one_in_one_run(tmp_path):
 
     minimal = yaml.safe_load((Path(__file__).parents[1] / "configs" / "minimal.yaml").read_text())
     minimal["workdir"] = "run"
-    cfg = rig_config(minimal, tmp_path / "Tcache", repeats=2)
+    cfg = rig_config(minimal, tmp_path / "Tcache", repeats=2, exposure_s=[0.5, 1.0])
     cfg["rois"] = [{"name": "all", "kind": "box", "min_mm": [-100, -100, -100], "max_mm": [100, 100, 100]}]
     p = tmp_path / "cfg.yaml"
     p.write_text(yaml.safe_dump(cfg))
     r = CliRunner().invoke(app, ["capture-surface", str(p), "-q"])
     assert r.exit_code == 0, r.output
     cfg["reconstruct"] = {"images": {"capture": "capture.h5", "filters": ["open", "580nm"],
-                                     "transmissions": {"580nm": 0.5}}}
+                                     "transmissions": {"580nm": 0.5}, "exposure_s": 1.0,
+                                     "exposures_s": {"580nm": 0.5}}}  # each filter its own exposure
     p.write_text(yaml.safe_dump(cfg))
     r = CliRunner().invoke(app, ["reconstruct", str(p)])
     assert r.exit_code == 0, r.output
@@ -389,9 +390,10 @@ def test_filters_reconstructed_one_by_one_in_one_run(tmp_path):
     with h5py.File(run / "reconstruction.h5") as f:
         assert [*__import__("json").loads(f["filters"].attrs["order"])] == ["open", "580nm"]
         obs = f["filters/580nm/flux/observed"][()].astype(bool)
-        got = {k: float(np.nansum(f[f"filters/{k}/flux/power"][()])) for k in ("open", "580nm")}
+        got = {k: float(np.nansum(f[f"filters/{k}/flux/power"][()])) / t  # photons per exposure -> per s
+               for k, t in (("open", 1.0), ("580nm", 0.5))}
         np.testing.assert_array_equal(f["filters/open/flux/power"][()], f["flux/power"][()])
-    # per second (exposure 1 s); the 580nm light before its filter is truth / 0.5
+    # per second; the 580nm light before its filter is truth / 0.5
     assert got["open"] == pytest.approx(truth["open"][obs].sum(), rel=0.05)
     assert got["580nm"] == pytest.approx(truth["580nm"][obs].sum() / 0.5, rel=0.05)
     rows = list(csv.DictReader((run / "rois_spectrum.csv").open()))

@@ -76,7 +76,7 @@ def _from_capture(cfg: C.LoadedConfig, n_elements: int, filter_name: str | None 
     src = cfg.model.reconstruct.images
     if filter_name is None:
         filter_name = src.filters[0] if src.filters else src.filter
-    cap = read_capture(path, filter_name, src.exposure_s)
+    cap = read_capture(path, filter_name, src.exposures_s.get(filter_name, src.exposure_s) if filter_name else src.exposure_s)
     order = cap.pose_order([p.height_mm for p in poses_from_config(cfg.model.subject)])
     photons, valid = cap.photons(emccd_model(cfg.model.system.camera.sensor, cap.exposure_s))
     nx, ny = cfg.model.system.camera.pixels
@@ -688,7 +688,10 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     from .outputs import reconstruction_exposure_s
     from .rois import RoiMeter
 
-    rois = RoiMeter(cfg, surface, reconstruction_exposure_s(cfg))  # regions of interest (issue 24)
+    def roi_exposure_s(inp_):  # a capture knows its frames' exposure; else as the config states it
+        return inp_.exposure_s if isinstance(rc.images, C.CaptureSource) else reconstruction_exposure_s(cfg)
+
+    rois = RoiMeter(cfg, surface, roi_exposure_s(inp))  # regions of interest (issue 24)
     t0 = time.perf_counter()
     filters = _capture_filters(cfg)
     main_filter = filters[0] if filters else getattr(rc.images, "filter", None)
@@ -702,10 +705,11 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         t_f = _transmission(cfg, name)
         if inp_f.truth is not None and t_f != 1.0:
             inp_f.truth = inp_f.truth / t_f
-        stray_f = [light_outside(Ts[k], inp_f.images[k], inp_f.valid[k], noise, pt.pose.label, surface)
+        noise_f = photon_noise(cfg, inp_f.noise_kind, inp_f.exposure_s, inp_f.frames_averaged)  # its own exposure
+        stray_f = [light_outside(Ts[k], inp_f.images[k], inp_f.valid[k], noise_f, pt.pose.label, surface)
                    for k, (_, pt) in enumerate(todo)]
-        meter = RoiMeter(cfg, surface, reconstruction_exposure_s(cfg))
-        pp_f, joint_f = _solve_poses(gm, inp_f, m, noise, stray_f, todo, (ny, nx), rc.joint, meter, t_f)
+        meter = RoiMeter(cfg, surface, roi_exposure_s(inp_f))
+        pp_f, joint_f = _solve_poses(gm, inp_f, m, noise_f, stray_f, todo, (ny, nx), rc.joint, meter, t_f)
         others[name] = (inp_f, pp_f, joint_f, meter)
     seconds = time.perf_counter() - t0
     main = joint if joint is not None else per_pose[0][0]
