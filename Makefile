@@ -8,6 +8,7 @@
 #   make bench  speed ratios measured in one run (slow checks included)
 #   make accuracy  issue 8's battery: error, totals, chi^2, lambda, warnings per case x method
 #   make paper-2d | paper-3d | heights   the paper's experiments (pipelines/experiments.mk)
+#   make study  issue 24: a simulated study (growing source, 3 days, 2 poses, 2 filters) -> fluxmap study
 
 PYTHON ?= python3
 VENV   ?= .venv

@@ -240,6 +240,25 @@ def capture_surface(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt
     _run("capture-surface", partial(stage.run, resume=resume), config, set_, force, jobs, quiet)
 
 
+@app.command("study")
+def study(study_file: Path = typer.Argument(..., help="A study file: sessions (reconstruction artefacts with subject "
+                                            "and day) and regions of interest.", show_default=False),
+          quiet: bool = QuietOpt) -> None:
+    """Regions of interest over sessions, subjects and filters: study.csv and a page with error bars.
+
+    $ fluxmap study studies/tumour.yaml
+    """
+    def body() -> None:
+        from .stages import study as stage
+        from .stages.context import RunContext
+
+        out = stage.run(study_file, RunContext(quiet=quiet))
+        if not quiet:
+            typer.echo(f"output: {out}")
+
+    _guard(body)
+
+
 @app.command("info")
 def info(artefact: Path = typer.Argument(..., help="An HDF5 artefact (transfer.h5, simulation.h5, a T-cache file, ...).",
                                          show_default=False)) -> None:

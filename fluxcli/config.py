@@ -533,6 +533,30 @@ class CaptureSource(Model):
     capture: Path = Field(description="A capture artefact (capture.h5 of capture-surface): relative to the config file, else to the workdir.")
     filter: str | None = Field(None, description="Whose frames to use, by filter name (default: the capture's only filter).")
     exposure_s: float | None = Field(None, gt=0, description="Which exposure time's frames (s) (default: the capture's only one).")
+    filters: tuple[str, ...] | None = Field(None, min_length=1, description="Several filters, reconstructed one by one with the same T "
+                                             "(the first fills /flux; each its own /filters/<name>; rois_spectrum.csv).")
+    transmissions: dict[str, float] = Field(default_factory=dict, description="Filter name -> the share of the light it passes (0..1]: "
+                                            "its results are divided by it (the light before the filter); default 1.")
+    exposures_s: dict[str, float] = Field(default_factory=dict, description="Filter name -> which exposure time's frames (s) to use "
+                                          "for that filter (default exposure_s): a dim band may need a longer exposure.")
+
+    @model_validator(mode="after")
+    def _filters(self) -> "CaptureSource":
+        if self.filters is not None and self.filter is not None:
+            raise ValueError("give filter (one) or filters (several), not both")
+        if self.filters is not None and len(set(self.filters)) != len(self.filters):
+            raise ValueError("filters: list each filter once")
+        named = set(self.filters or ()) | ({self.filter} if self.filter else set())
+        for key in ("transmissions", "exposures_s"):
+            extra = sorted(set(getattr(self, key)) - named) if named else []
+            if extra:
+                raise ValueError(f"{key} names {', '.join(extra)}, which is not among the filters reconstructed")
+        if any(not v > 0 for v in self.exposures_s.values()):
+            raise ValueError("exposures_s must be positive")
+        bad = {k: v for k, v in self.transmissions.items() if not 0 < v <= 1}
+        if bad:
+            raise ValueError(f"transmissions must lie in (0, 1]; got {bad}")
+        return self
 
 
 class Sweep(Model):
@@ -868,6 +892,53 @@ class Capture(Model):
         return tuple(self.exposure_s) if isinstance(self.exposure_s, tuple) else (float(self.exposure_s),)
 
 
+# --------------------------------------------------------------------------- regions of interest
+_ROI_KEYS = {"sphere": ("center_mm", "radius_mm"), "disc": ("center_mm", "radius_mm"), "box": ("min_mm", "max_mm"),
+             "threshold": ("fraction",), "cell_array": ("array", "value"), "elements": ("ids",)}
+
+
+class Roi(Model):
+    """A region of interest on the surface, in the subject's own frame (at rest, before any pose)."""
+
+    name: str = Field(min_length=1, description="What the region is called in tables, files and plots.")
+    kind: Literal["sphere", "disc", "box", "threshold", "cell_array", "elements"] = Field(
+        description="sphere | disc (geodesic, around the surface point nearest center_mm) | box | threshold "
+                    "(a fraction of the peak, connected to it) | cell_array (an integer cell array of the mesh) | "
+                    "elements (a list).")
+    center_mm: Vec3 | None = Field(None, description="sphere, disc: the centre (mm, subject at rest).")
+    radius_mm: float | None = Field(None, gt=0, description="sphere: the radius; disc: the geodesic radius over the surface (mm).")
+    min_mm: Vec3 | None = Field(None, description="box: the lower corner (mm, subject at rest).")
+    max_mm: Vec3 | None = Field(None, description="box: the upper corner (mm).")
+    fraction: float | None = Field(None, gt=0, le=1, description="threshold: elements at or above this fraction of the peak exitance.")
+    array: str | None = Field(None, min_length=1, description="cell_array: the integer cell array of the mesh file (e.g. region).")
+    value: int | None = Field(None, description="cell_array: the value whose elements form the region.")
+    ids: tuple[int, ...] | None = Field(None, min_length=1, description="elements: element ids (the mesh file's, else indices from 0).")
+
+    @model_validator(mode="after")
+    def _keys_of_kind(self) -> "Roi":
+        need = _ROI_KEYS[self.kind]
+        missing = [k for k in need if getattr(self, k) is None]
+        extra = [k for ks in _ROI_KEYS.values() for k in ks
+                 if k not in need and k in self.model_fields_set and getattr(self, k) is not None]
+        if missing:
+            raise ValueError(f"a {self.kind} ROI needs {', '.join(need)}; missing {', '.join(missing)}")
+        if extra:
+            raise ValueError(f"a {self.kind} ROI takes {', '.join(need)}, not {', '.join(sorted(set(extra)))}")
+        if self.kind == "box" and any(lo >= hi for lo, hi in zip(self.min_mm, self.max_mm)):
+            raise ValueError("box: min_mm must be below max_mm on every axis")
+        return self
+
+
+def _distinct_rois(v: tuple[Roi, ...]) -> tuple[Roi, ...]:
+    names = [r.name for r in v]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ValueError(f"ROI names must be distinct; {', '.join(dup)} is given more than once")
+    if any(n == "joint" or "," in n or "\n" in n for n in names):
+        raise ValueError("an ROI name may not be 'joint' nor hold commas or line breaks (rois.csv)")
+    return v
+
+
 # --------------------------------------------------------------------------- top level
 class Config(Model):
     workdir: Path | None = Field(None, description="Output folder (default runs/<config name>), relative to the config file.")
@@ -883,6 +954,13 @@ class Config(Model):
     calibrate: Calibrate | None = Field(None, description="Settings of 'fluxmap calibrate': grid images, radiometric frames.")
     capture: Capture | None = Field(None, description="The acquisition plan of capture-surface.")
     rig: Rig | None = Field(None, description="The devices of the rig (issue 11).")
+    rois: tuple[Roi, ...] = Field((), description="Regions of interest on the surface (issue 24): their totals per pose and "
+                                                  "jointly, in reconstruction.h5, rois.csv, summary.json and the report.")
+
+    @field_validator("rois")
+    @classmethod
+    def _rois(cls, v):
+        return _distinct_rois(v)
 
 
 class LoadedConfig:

@@ -130,6 +130,22 @@ register(Kind("reconstruction", 2, "fluxmap reconstruct", "surface flux reconstr
     Dataset("per_pose/chi2_per_pixel", "", "chi^2 per pixel under the noise model [pose]", required=False),
     Dataset("per_pose/observation", "", "[pose, element] 0/1/2 as flux/observation", required=False),
     Dataset("warnings", "", "what the solves detected (lambda at an edge, chi^2 far from 1, ...)", required=False),
+    # issue 24: regions of interest, [roi, map] with maps the poses ('1', '2', ...) then 'joint' (attrs names, maps)
+    Dataset("rois/total_photons_per_s", "photons/s (per exposure when no exposure is known)",
+            "total over the region's observed elements [roi, map]", required=False),
+    Dataset("rois/sigma_photons_per_s", "photons/s (1 sd)", "sqrt(w'Cw) from the solve's covariance [roi, map]",
+            required=False),
+    Dataset("rois/mean_radiance", "photons s^-1 cm^-2 sr^-1", "Lambertian L = M/pi over the observed area [roi, map]",
+            required=False),
+    Dataset("rois/peak_radiance", "photons s^-1 cm^-2 sr^-1", "of the brightest observed element [roi, map]",
+            required=False),
+    Dataset("rois/area_mm2", "mm^2", "[roi, map]", required=False),
+    Dataset("rois/observed_share", "", "share of the area observed [roi, map]", required=False),
+    Dataset("rois/well_observed_share", "", "share of the area well observed [roi, map]", required=False),
+    Dataset("rois/status", "", "'' or why the number does not stand for the region [roi, map]", required=False),
+    Dataset("rois/members", "", "elements of each region [roi, map, element]", required=False),
+    Dataset("filters", "", "several filters in one run: /filters/<name>/{flux, per_pose_power, rois, ...}",
+            required=False),
 )))
 
 register(Kind("tetmesh", 1, "fluxmap simulate", "tetrahedral mesh of the subject (cached by content)", (

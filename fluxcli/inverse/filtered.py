@@ -53,6 +53,7 @@ class Filtered:
     weighted: bool = False
     warnings: list = field(default_factory=list)
     sigma_sums: np.ndarray | None = None
+    covariance: S.FilterCovariance | None = None  # variance_of(weights over the observed unknowns)
 
 
 def _provisional_upre(T_obs, a, prior, variance, k, lambdas, gamma, tau) -> S.Choice:
@@ -170,6 +171,9 @@ def filtered_solve(T_obs, a, *, prior=None, k: int = 10, tol: float | None = Non
         sigma = spec.sigma(lam_abs, it, sigma2=s2) * level
         if sums is not None:
             sigma_sums = spec.sigma(lam_abs, it, sigma2=s2, sums=sums) * level
+        covariance = S.FilterCovariance(spec, lam_abs, it, s2, level)
+    else:
+        covariance = None
     totals = (np.nan, np.nan)
     if lam is None and b.sum() > 0:
         def total_at(lam_x):
@@ -189,4 +193,4 @@ def filtered_solve(T_obs, a, *, prior=None, k: int = 10, tol: float | None = Non
     return Filtered(power=b, sigma=sigma, lam=float(lam_p), lam_absolute=float(lam_abs), iterations=int(it),
                     converged=bool(conv), choice=choice, chi2_per_pixel=chi2,
                     total_at_half_and_double_lambda=totals, weighted=weights is not None, warnings=warn,
-                    sigma_sums=sigma_sums)
+                    sigma_sums=sigma_sums, covariance=covariance)

@@ -26,7 +26,7 @@ Regularisation ``lam`` is always given in the paper's relative units:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg as sla
@@ -546,6 +546,8 @@ class Result:
     warnings: tuple = ()
     observation: np.ndarray | None = None
     sigma_groups: np.ndarray | None = None
+    # variance_of(weights over the unknowns): wᵀCw of a linear functional (fluxcli.inverse.covariance)
+    covariance: object = field(default=None, compare=False, repr=False)
 
     @property
     def well_observed(self) -> np.ndarray:
@@ -695,7 +697,8 @@ def _filtered(P, *, prior, k, tol, lam, rule, opts, weighted, free_level=False):
                          variance=P.variance, sigma2=s2, weighted=weighted, free_level=free_level, sums=P.sums())
     return {"sigma_groups": out.sigma_sums, "power": out.power, "sigma": out.sigma, "lam": out.lam, "lam_absolute": out.lam_absolute,
             "iterations": out.iterations, "converged": out.converged, "choice": out.choice,
-            "chi2": out.chi2_per_pixel, "warnings": out.warnings}
+            "chi2": out.chi2_per_pixel, "warnings": out.warnings,
+            "covariance": out.covariance}
 
 
 @register("paper", options=("max_iter", "tol", *_RULE_OPTS), default_lam=10.0, lam_rules=("gcv", "lcurve", "discrepancy"))
@@ -908,6 +911,15 @@ def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | 
                             weighted=weighted, kind="sampling", rel_threshold=rel_threshold)
     else:
         sigma = np.full(power.shape, np.nan)
+    covariance = out.get("covariance")
+    if covariance is None and var is not None and not out.get("no_sigma"):
+        from fluxcli.inverse.covariance import DenseCovariance
+
+        covariance = DenseCovariance(T_obs, var, lam_used if method != "mlem" else 0.0, bool(out.get("weighted")))
+    if covariance is not None:
+        from fluxcli.inverse.covariance import OnObserved
+
+        covariance = OnObserved(covariance, mask)
     if method != "backprojection":
         observation = observation_classes(T, power, sigma, adjacency=adjacency, areas=areas,
                                           rel_threshold=rel_threshold)
@@ -920,4 +932,4 @@ def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | 
                   lam=float(lam_used), lam_absolute=float(out.get("lam_absolute", 0.0)),
                   iterations=int(out.get("iterations", 1)), converged=bool(out.get("converged", True)),
                   lam_choice=out.get("choice"), chi2_per_pixel=float(chi2), warnings=tuple(warnings),
-                  observation=observation, sigma_groups=out.get("sigma_groups"))
+                  observation=observation, sigma_groups=out.get("sigma_groups"), covariance=covariance)

@@ -110,8 +110,20 @@ class Spectrum:
         weights already are ``1/σ²`` (then the covariance is ``V diag(f²/s) Vᵀ``).
         ``sums`` (n_groups, n_obs), optional: the standard deviation of these sums of
         the estimate instead (sub-elements summed per element, covariances included)."""
+        return np.sqrt(np.maximum(self.variance_of(
+            sp.identity(len(self.s), format="csr") if sums is None else sums, lam_abs, k, sigma2), 0.0))
+
+    def variance_of(self, weights, lam_abs: float, k: int = 1, sigma2=None) -> np.ndarray:
+        """Variance ``wᵀ C w`` of linear functionals ``w·b_λ`` of the filtered estimator,
+        photons² (the covariances between unknowns included: a region's total is not the
+        sum of its per-element σ).
+
+        ``weights`` (n_obs,) or (n_functionals, n_obs), dense or sparse; ``sigma2`` as in
+        :meth:`sigma`.  Returns (n_functionals,) (a scalar's shape for one functional)."""
+        one = not sp.issparse(weights) and np.ndim(weights) == 1
+        W = sp.csr_array(weights) if sp.issparse(weights) else np.atleast_2d(np.asarray(weights, float))
         f, fos = self.factors(lam_abs, k)
-        AV = self.V if sums is None else np.asarray(sums @ self.V)
+        AV = np.asarray(W @ self.V)
         if sigma2 is None:
             var = (AV**2) @ (f * fos)
         else:
@@ -119,7 +131,23 @@ class Spectrum:
             TW = self.T if self.weights is None else sp.csr_array(sp.diags_array(self.weights) @ self.T)
             C = TW.T @ sp.csr_array(sp.diags_array(sigma2) @ TW)  # sparse (elements that share pixels), symmetric
             var = np.einsum("ij,ji->i", M, C @ M.T)  # diag(M C Mᵀ): sparse x dense, not a 3-operand O(n³) einsum
-        return np.sqrt(np.maximum(var, 0.0))
+        return var[0] if one else var
+
+
+class FilterCovariance:
+    """The covariance of a filtered estimate as an operator: ``variance_of(weights)``.
+
+    Built by :func:`fluxcli.inverse.filtered.filtered_solve` for the spectrum it solved on;
+    ``weights`` run over the observed unknowns (n_obs,) or (n_functionals, n_obs).  The
+    estimate was multiplied by ``level`` (a free overall level), so its variance is by
+    ``level²``.  The linear approximation: the clipping at zero is ignored (see
+    :meth:`Spectrum.sigma`)."""
+
+    def __init__(self, spec: Spectrum, lam_abs: float, k: int, sigma2=None, level: float = 1.0):
+        self.spec, self.lam_abs, self.k, self.sigma2, self.level = spec, float(lam_abs), int(k), sigma2, float(level)
+
+    def variance_of(self, weights) -> np.ndarray:
+        return self.spec.variance_of(weights, self.lam_abs, self.k, self.sigma2) * self.level**2
 
 
 @dataclass

@@ -147,8 +147,16 @@ def add_3d_view(page, study, *, rig=None, exposure_s: float | None = None) -> No
         layers["ground truth " + ("exitance (photons/s/mm²)" if exposure_s is not None
                                   else "exitance (photons/mm² per exposure)")] = qt[key]
     s = study.surface
+    outlines = None
+    with A.open_artefact(study.reconstruction_path, "reconstruction") as f:
+        if "rois" in f:  # regions of interest on the map shown (the last map: joint, or the only pose)
+            from ..quantify.rois import read_group
+
+            r = read_group(f["rois"])
+            outlines = {n: r["members"][i, -1] for i, n in enumerate(r["names"])}
     fig = view3d.flux_figure(s.vertices_mm, s.faces, s.element_of_face, study.observed, layers, rig=rig,
-                             title="joint reconstruction, subject at rest" if study.joint else "reconstruction")
+                             title="joint reconstruction, subject at rest" if study.joint else "reconstruction",
+                             outlines=outlines)
     page.parts.append(
         "<p>Drag to turn, scroll to zoom, hover for each element's numbers; the menu at the top left switches "
         "between the quantities" + (", the uncertainty maps" if len(layers) > 2 else "") + " and the truth. Axes in "

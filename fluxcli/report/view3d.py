@@ -50,7 +50,7 @@ def _mesh(go, vertices, faces, **kw):
 
 
 def flux_figure(vertices_mm, faces, element_of_face, observed, layers: dict, *, rig: Rig | None = None,
-                title: str = ""):
+                title: str = "", outlines: dict | None = None):
     """A plotly Figure of the surface coloured per face, with the rig.
 
     Parameters
@@ -62,6 +62,8 @@ def flux_figure(vertices_mm, faces, element_of_face, observed, layers: dict, *, 
     layers : dict label -> (n_elements,) float
         The quantities the menu offers, first shown first; labels carry their units.
     rig : Rig, optional
+    outlines : dict name -> (n_elements,) bool, optional
+        Regions of interest, drawn as their boundary lines on the surface.
     """
     import plotly.graph_objects as go
 
@@ -91,6 +93,10 @@ def flux_figure(vertices_mm, faces, element_of_face, observed, layers: dict, *, 
                             name="faces that are no element", showlegend=True, flatshading=True, hoverinfo="name"))
     if rig is not None:
         traces += _rig_traces(go, rig)
+    for k, (name, member) in enumerate((outlines or {}).items()):
+        pts = region_outline_mm(vertices_mm, faces, eof, member)
+        if len(pts):
+            traces.append(_line(go, pts, f"ROI {name}", ROI_COLOURS[k % len(ROI_COLOURS)], width=6))
     fig = go.Figure(traces)
     buttons = []
     if seen.any() and len(labels) > 1:
@@ -108,6 +114,37 @@ def flux_figure(vertices_mm, faces, element_of_face, observed, layers: dict, *, 
         updatemenus=[dict(buttons=buttons, direction="down", x=0.0, y=1.0, xanchor="left", yanchor="top",
                           showactive=True)] if buttons else [])
     return fig
+
+
+ROI_COLOURS = ("#e6194b", "#f58231", "#ffe119", "#3cb44b", "#4363d8", "#911eb4", "#f032e6", "#000000")
+
+
+def region_outline_mm(vertices_mm, faces, element_of_face, member) -> np.ndarray:
+    """The boundary of a region as line segments (each two points then a NaN row, as plotly
+    draws gaps): the edges with a face of the region on one side only."""
+    f = np.asarray(faces)
+    eof = np.asarray(element_of_face, int)
+    inside = (eof >= 0) & np.asarray(member, bool)[np.maximum(eof, 0)]
+    if not inside.any():
+        return np.zeros((0, 3))
+    e = np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    flag = np.repeat(inside, 3)
+    uniq, inv = np.unique(e, axis=0, return_inverse=True)
+    n_in = np.bincount(inv.ravel(), weights=flag, minlength=len(uniq))
+    n_all = np.bincount(inv.ravel(), minlength=len(uniq))
+    edge = uniq[(n_in > 0) & (n_in < n_all) | ((n_in == 1) & (n_all == 1))]
+    v = np.asarray(vertices_mm, float)
+    # lifted a little along the vertex normals, so the surface does not hide the line
+    t = v[f]
+    fn = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    vn = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(vn, f[:, k], fn)
+    vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
+    v = v + 0.01 * float(np.linalg.norm(np.ptp(v, axis=0))) * vn
+    out = np.full((len(edge), 3, 3), np.nan)
+    out[:, 0], out[:, 1] = v[edge[:, 0]], v[edge[:, 1]]
+    return out.reshape(-1, 3)
 
 
 def _scene(vertices_mm: np.ndarray, rig: Rig | None) -> dict:

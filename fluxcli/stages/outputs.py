@@ -61,6 +61,18 @@ def reconstruction_vtp(rec_path: Path, out_path: Path, *, exposure_s: float | No
         pose_obs = pp["observed"][()].astype(bool) if pp is not None and "observed" in pp else None
         method = str(f.attrs.get("method", ""))
         joint = bool(fl.attrs.get("joint_over_poses", False))
+        rois = None
+        if "rois" in f:  # one cell array per region of interest (the last map's: joint, or the only pose)
+            from ..quantify.rois import read_group
+
+            rois = read_group(f["rois"])
+        per_filter = {}
+        if "filters" in f:  # several filters in one reconstruct: each filter's map
+            import json
+
+            for name in json.loads(f["filters"].attrs["order"]):
+                fo = f[f"filters/{name}/flux"]
+                per_filter[name] = np.where(fo["observed"][()].astype(bool), fo["power"][()], np.nan)
     areas = surface.element_areas_mm2
     arrays, units = _quantities("", power, areas, exposure_s, sigma)
     if truth is not None:
@@ -73,6 +85,12 @@ def reconstruction_vtp(rec_path: Path, out_path: Path, *, exposure_s: float | No
             units[f"pose{k + 1}_power_photons"] = f"photons per exposure, pose {k + 1} alone"
             arrays[f"pose{k + 1}_observed_state"] = ob.astype(np.int8)
             units[f"pose{k + 1}_observed_state"] = "1 observed, 0 unobserved in this pose, -1 not an element"
+    for name, pw in per_filter.items():
+        arrays[f"filter_{name}_power_photons"] = pw
+        units[f"filter_{name}_power_photons"] = f"photons per exposure, per element, before filter {name}"
+    for i, name in enumerate(rois["names"] if rois is not None else ()):
+        arrays[f"roi_{name}"] = rois["members"][i, -1].astype(np.int8)
+        units[f"roi_{name}"] = f"1 in region of interest '{name}', 0 outside ({rois['maps'][-1]} map)"
     field = {"method": method, "joint_over_poses": int(joint), "source": rec_path.name,
              "exposure_s": exposure_s if exposure_s is not None else np.nan}
     mesh = X.polydata(surface.vertices_mm, surface.faces, surface.element_of_face, arrays, observed=observed,

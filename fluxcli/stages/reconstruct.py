@@ -66,14 +66,17 @@ def _capture_path(cfg: C.LoadedConfig) -> Path:
     return first if first.is_file() or p.is_absolute() else cfg.workdir / p
 
 
-def _from_capture(cfg: C.LoadedConfig, n_elements: int) -> Inputs:
-    """One image per pose (= stage height) from a capture: darks subtracted, counts -> photons."""
+def _from_capture(cfg: C.LoadedConfig, n_elements: int, filter_name: str | None = None) -> Inputs:
+    """One image per pose (= stage height) from a capture: darks subtracted, counts -> photons
+    (``filter_name``: this filter's frames; default the first of reconstruct.images.filters, else .filter)."""
     from ..acquisition import read_capture
     from ..scene import poses_from_config
 
     path = _capture_path(cfg)
     src = cfg.model.reconstruct.images
-    cap = read_capture(path, src.filter, src.exposure_s)
+    if filter_name is None:
+        filter_name = src.filters[0] if src.filters else src.filter
+    cap = read_capture(path, filter_name, src.exposures_s.get(filter_name, src.exposure_s) if filter_name else src.exposure_s)
     order = cap.pose_order([p.height_mm for p in poses_from_config(cfg.model.subject)])
     photons, valid = cap.photons(emccd_model(cfg.model.system.camera.sensor, cap.exposure_s))
     nx, ny = cfg.model.system.camera.pixels
@@ -433,6 +436,11 @@ def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSe
         res, keep = _solve(T, a, valid, m, noise, adjacency, areas, groups=groups)
     if parent is None:
         return res, keep
+    from ..inverse.covariance import Mapped, parent_map
+
+    if res.covariance is not None:  # variance_of(weights over the elements) (ROI totals)
+        res = replace(res, covariance=Mapped(res.covariance, parent.to_elements if isinstance(parent, ElementMap)
+                                             else parent_map(parent, n_elements)))
     if isinstance(parent, ElementMap):
         return _on_elements(res, keep, parent), keep
     obs = res.observed
@@ -495,6 +503,68 @@ def _solve(T, a, valid, m, noise, adjacency, areas, groups=None):
                               ("n_iter", "reconstruct.n_iter"), ("transfer matrix T", "T")):
             msg = re.sub(rf"\b{internal}\b", key, msg)
         raise UserError(f"reconstruct.method {m.method}: {msg}") from None
+
+
+def _solve_poses(gm, inp, m, noise, stray, todo, shape, joint_too: bool, rois, scale: float = 1.0):
+    """Each pose on its own (isolated spikes left out and solved again), then all jointly;
+    every region of interest measured on each result while its covariance is alive.
+    ``scale`` divides the results (a filter's transmission: the light before the filter).
+    Returns [(Result, fitted image)] per pose and the joint Result (or None)."""
+    ny, nx = shape
+    P = len(todo)
+    per_pose = []
+    for k in range(P):
+        def solve_pose():
+            res, keep = run_method(gm.Ts[k], inp.images[k], inp.valid[k], m, noise, gm.adjacency,
+                                   gm.parts(k), gm.n_elements, gm.areas)
+            fitted = np.full(nx * ny, np.nan)
+            fitted[keep] = res.fitted
+            return res, fitted.reshape(ny, nx)
+        res, fitted = solve_pose()
+        valid_k, spiked = reject_spikes(inp.images[k], fitted, inp.valid[k], noise)
+        if valid_k is not inp.valid[k]:  # solved again without them; the joint solve leaves them out too
+            inp.valid[k] = valid_k
+            res, fitted = solve_pose()
+        res = _scaled(replace(res, warnings=tuple(w for w in (stray[k], spiked) if w) + tuple(res.warnings)), scale)
+        if rois:
+            rois.measure(str(k + 1), todo[k][1].pose.height_mm, todo[k][1].pose.rotation_deg, res)
+        per_pose.append((replace(res, covariance=None), fitted))  # the covariance is n x n: measured, dropped
+    joint = None
+    if joint_too and P > 1:
+        Tj = sp.vstack(gm.Ts).tocsr()
+        joint, _ = run_method(Tj, inp.images, inp.valid, m, noise, gm.adjacency, gm.parts(),
+                              gm.n_elements, gm.areas)
+        joint = _scaled(joint, scale)
+        if rois:
+            rois.measure("joint", None, None, joint)
+        joint = replace(joint, covariance=None)
+    return per_pose, joint
+
+
+def _scaled(res, scale: float):
+    """The result divided by ``scale`` (power, σ; the covariance by scale²)."""
+    if scale == 1.0:
+        return res
+    from ..inverse.covariance import Scaled
+
+    return replace(res, power=res.power / scale, sigma=res.sigma / scale,
+                   sigma_groups=None if res.sigma_groups is None else res.sigma_groups / scale,
+                   covariance=None if res.covariance is None else Scaled(res.covariance, 1.0 / scale))
+
+
+def _capture_filters(cfg: C.LoadedConfig) -> tuple[str, ...]:
+    """The filters a capture source reconstructs, in order (empty: not a capture, or its one filter)."""
+    src = cfg.model.reconstruct.images
+    if isinstance(src, C.CaptureSource) and src.filters:
+        return tuple(src.filters)
+    return ()
+
+
+def _transmission(cfg: C.LoadedConfig, name: str | None) -> float:
+    src = cfg.model.reconstruct.images
+    if name is None or not isinstance(src, C.CaptureSource):
+        return 1.0
+    return float(src.transmissions.get(name, 1.0))
 
 
 MAX_AUTO_SUB_ELEMENTS = 6000  # dense solves: 6000² doubles is 0.29 GB a matrix (a 5880-vertex pose took 14 s)
@@ -589,7 +659,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     digest = A.inputs_digest(system=m_.system.model_dump(mode="json"), subject=geometry_of(cfg)["subject"],
                              transfer=m_.transfer.model_dump(mode="json"),
                              reconstruct=rc.model_dump(mode="json", by_alias=True), images=sources,
-                             solver=SOLVER_VERSION)
+                             solver=SOLVER_VERSION,
+                             **({"rois": [r.model_dump(mode="json") for r in m_.rois]} if m_.rois else {}))
     if not ctx.force and A.is_up_to_date(out, "reconstruction", digest):
         ctx.say(f"reconstruct: {out} is up to date (--force to redo)")
         with A.open_artefact(out, "reconstruction") as f:
@@ -617,27 +688,32 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     stray = [light_outside(Ts[k], inp.images[k], inp.valid[k], noise, pt.pose.label, surface)
              for k, (_, pt) in enumerate(todo)]
     ctx.say(f"reconstruct: {inp.source}; {describe(m)}, {P} pose(s); {noise.kind} noise model")
+    from .outputs import reconstruction_exposure_s
+    from .rois import RoiMeter
+
+    def roi_exposure_s(inp_):  # a capture knows its frames' exposure; else as the config states it
+        return inp_.exposure_s if isinstance(rc.images, C.CaptureSource) else reconstruction_exposure_s(cfg)
+
+    rois = RoiMeter(cfg, surface, roi_exposure_s(inp))  # regions of interest (issue 24)
     t0 = time.perf_counter()
-    per_pose = []
-    for k in range(P):
-        def solve_pose():
-            res, keep = run_method(gm.Ts[k], inp.images[k], inp.valid[k], m, noise, gm.adjacency,
-                                   gm.parts(k), gm.n_elements, gm.areas)
-            fitted = np.full(nx * ny, np.nan)
-            fitted[keep] = res.fitted
-            return res, fitted.reshape(ny, nx)
-        res, fitted = solve_pose()
-        valid_k, spiked = reject_spikes(inp.images[k], fitted, inp.valid[k], noise)
-        if valid_k is not inp.valid[k]:  # solved again without them; the joint solve leaves them out too
-            inp.valid[k] = valid_k
-            res, fitted = solve_pose()
-        res = replace(res, warnings=tuple(w for w in (stray[k], spiked) if w) + tuple(res.warnings))
-        per_pose.append((res, fitted))
-    joint = None
-    if rc.joint and P > 1:
-        Tj = sp.vstack(gm.Ts).tocsr()
-        joint, _ = run_method(Tj, inp.images, inp.valid, m, noise, gm.adjacency, gm.parts(),
-                              gm.n_elements, gm.areas)
+    filters = _capture_filters(cfg)
+    main_filter = filters[0] if filters else getattr(rc.images, "filter", None)
+    scale = _transmission(cfg, main_filter)
+    if inp.truth is not None and scale != 1.0:
+        inp.truth = inp.truth / scale  # the truth through the filter, as the results: before it
+    per_pose, joint = _solve_poses(gm, inp, m, noise, stray, todo, (ny, nx), rc.joint, rois, scale)
+    others = {}  # filter -> (inputs, per pose, joint, ROI meter): one T per pose for every filter
+    for name in filters[1:]:
+        inp_f = _from_capture(cfg, surface.n_elements, name)
+        t_f = _transmission(cfg, name)
+        if inp_f.truth is not None and t_f != 1.0:
+            inp_f.truth = inp_f.truth / t_f
+        noise_f = photon_noise(cfg, inp_f.noise_kind, inp_f.exposure_s, inp_f.frames_averaged)  # its own exposure
+        stray_f = [light_outside(Ts[k], inp_f.images[k], inp_f.valid[k], noise_f, pt.pose.label, surface)
+                   for k, (_, pt) in enumerate(todo)]
+        meter = RoiMeter(cfg, surface, roi_exposure_s(inp_f))
+        pp_f, joint_f = _solve_poses(gm, inp_f, m, noise_f, stray_f, todo, (ny, nx), rc.joint, meter, t_f)
+        others[name] = (inp_f, pp_f, joint_f, meter)
     seconds = time.perf_counter() - t0
     main = joint if joint is not None else per_pose[0][0]
     areas = surface.element_areas_mm2
@@ -714,11 +790,32 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         pp.create_dataset("observation", data=np.array([r.observation for r, _ in per_pose]))
         if rc.sweep is not None:
             _sweep(cfg, ctx, f.create_group("sweep"), grids, todo)
+        if rois:
+            rois.write(f.create_group("rois"))
+        if filters:
+            _write_filters(f.create_group("filters"), cfg, {filters[0]: (inp, per_pose, joint, rois), **others}, areas,
+                           [pt.path for _, pt in todo])
+        from ..artefacts.digest import seal
+
+        seal(f, ("flux", "per_pose", "rois", "surface", "truth"))  # fluxmap study refuses a file changed after this
     header = ["height_mm", "rotation_deg", "total photons", "observed", "lambda"]
     if inp.truth is not None:  # the paper's convention (unobserved elements count as 0) beside the observed ones
         header += ["error all / observed", "total ratio all / observed"]
     ctx.table(header, rows)
     ctx.say(f"{seconds:.2f} s of solving")
+    if filters and rois:
+        from ..quantify.rois import spectrum_csv_text
+
+        A.write_text(cfg.workdir / "rois_spectrum.csv", spectrum_csv_text(
+            [(nm, _transmission(cfg, nm), mt) for nm, mt in [(filters[0], rois)] + [(k, v[3]) for k, v in others.items()]]))
+        ctx.say(f"ROI spectrum over {len(filters)} filters: {cfg.workdir / 'rois_spectrum.csv'}")
+    if rois:
+        ctx.table(*rois.table())
+        for name, label, _, _, x in rois.rows():
+            if x.status:
+                ctx.warn(f"ROI {name}, {label}: {x.status}")
+        ctx.say(f"ROI numbers for other tools: {rois.write_csv(cfg.workdir / 'rois.csv')}"
+                + ("" if rois.exposure_s is not None else " (no exposure time given: per exposure, not per second)"))
     export_3d(cfg, ctx, out)  # <workdir>/*.vtp for ParaView/pyvista, from the artefact
     for line in summary + emission_lines:
         ctx.say(line)
@@ -866,6 +963,27 @@ def _write_flux(g, res, areas) -> None:
     g.attrs["iterations"] = res.iterations
     g.attrs["lambda"] = res.lam
     g.attrs["warnings"] = json.dumps(list(res.warnings))
+
+
+def _write_filters(g, cfg: C.LoadedConfig, results: dict, areas, T_paths) -> None:
+    """/filters/<name>: each filter's reconstruction (joint, else the first pose) and its
+    per-pose powers, transmission and ROI numbers; g.attrs['order'] the filters in order."""
+    g.attrs["order"] = json.dumps(list(results))
+    g.attrs["meaning"] = "the light leaving the surface within each filter's band, before the filter (divided by its transmission)"
+    for name, (inp_f, pp, joint, meter) in results.items():
+        h = g.create_group(name)
+        h.attrs["transmission"] = _transmission(cfg, name)
+        h.attrs["source"] = inp_f.source
+        main = joint if joint is not None else pp[0][0]
+        _write_flux(h.create_group("flux"), main, areas)
+        h.create_dataset("per_pose_power", data=np.array([r.power for r, _ in pp])).attrs["unit"] = "photons"
+        h.create_dataset("per_pose_total", data=[np.nansum(r.power) for r, _ in pp]).attrs["unit"] = "photons"
+        h.create_dataset("direct_roi_photons", data=[direct_roi(T_paths[k], inp_f.images[k]) for k in range(len(pp))]
+                         ).attrs["meaning"] = "measured photons (through the filter) summed over the pixels the direct view reaches"
+        if inp_f.truth is not None:
+            h.create_dataset("truth_power", data=inp_f.truth).attrs["unit"] = "photons (before the filter)"
+        if meter:
+            meter.write(h.create_group("rois"))
 
 
 def _warnings(ctx: RunContext, f, per_pose, joint, todo) -> list[str]:

@@ -80,7 +80,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     index, summary = R.make_report(study, out_dir, title=rs.title or cfg.path.stem, geometry=geometry,
                                    slice_axial_mm=rs.slice_axial_mm, surface_views=rs.surface_views,
                                    extra={"provenance": {"inputs": inputs, "settings": settings}},
-                                   sections=([_calibration_section(cal)] if cal.is_file() else [])
+                                   sections=_rois_section(rec) + ([_calibration_section(cal)] if cal.is_file() else [])
                                    + ([_surface_section(surf, plotly_loaded=True)] if surf is not None else []),
                                    record=record_of(cfg, inputs), rig=rig_of(cfg), exposure_s=reconstruction_exposure_s(cfg))
     for note in summary["notes"]:
@@ -171,3 +171,72 @@ def _sections_only(cfg: C.LoadedConfig, cal: Path | None, surf: Path | None, ctx
                                        extra={"provenance": {"inputs": inputs}})
     ctx.say(f"report: {' and '.join(k.split('.')[0] for k in inputs)}, {len(summary['figures'])} figure(s); open {index}")
     return index
+
+
+def _rois_section(rec: Path) -> list:
+    """The regions of interest (issue 24): a table per region and map, numbers into summary.json."""
+    from ..quantify.rois import NUMBER_KEYS, read_group
+
+    with A.open_artefact(rec, "reconstruction") as f:
+        if "rois" not in f:
+            return []
+        r = read_group(f["rois"])
+        spectrum = {}  # filter -> (transmission, ROI numbers) when several filters were reconstructed
+        if "filters" in f:
+            for name in json.loads(f["filters"].attrs["order"]):
+                if "rois" in f[f"filters/{name}"]:
+                    spectrum[name] = (float(f[f"filters/{name}"].attrs["transmission"]),
+                                      read_group(f[f"filters/{name}/rois"]))
+
+    def add(page, save):
+        unit = "photons/s" if r["exposure_s"] is not None else "photons per exposure"
+        page.section("rois", "Regions of interest")
+        page.text(f"Per region and pose (and all poses jointly): the total light leaving the region's observed elements "
+                  f"({unit}) ± 1 sd from the reconstruction's covariance (the elements' covariances included, not a sum "
+                  "of their σ), the mean and peak Lambertian radiance L = M/π (photons s⁻¹ cm⁻² sr⁻¹), the area and the "
+                  "shares of it that are observed and well observed. A region mostly unobserved or poorly observed shows "
+                  "why instead of a number. The regions are outlined in the 3-D view. Every number is in rois.csv.")
+        rows = []
+        for i, name in enumerate(r["names"]):
+            for m, label in enumerate(r["maps"]):
+                x = {k: r["numbers"][k][i, m] for k in NUMBER_KEYS}
+                st = r["status"][i, m]
+                total = f"{x['total_photons_per_s']:.4g} ± {x['sigma_photons_per_s']:.2g}" + (f" — {st}" if st else "")
+                rows.append([name, label, total, f"{x['mean_radiance']:.3g}", f"{x['peak_radiance']:.3g}",
+                             f"{x['area_mm2']:.3g}", f"{x['observed_share']:.0%}", f"{x['well_observed_share']:.0%}"])
+        page.table(["region", "pose", f"total ({unit})", "mean radiance", "peak radiance", "area (mm²)", "observed",
+                    "well observed"], rows, left_columns=2)
+        out_spec = {}
+        if spectrum:
+            out_spec = _spectrum_part(page, save, r, spectrum, unit)
+        return {"rois_spectrum": out_spec, "rois": {"names": r["names"], "maps": r["maps"], "unit_total": unit, "exposure_s": r["exposure_s"],
+                         "definitions": r["definitions"], "status": r["status"].tolist(),
+                         **{k: r["numbers"][k].tolist() for k in NUMBER_KEYS}}}
+    return [add]
+
+
+def _spectrum_part(page, save, r, spectrum: dict, unit: str) -> dict:
+    """Per region, the joint total per filter (± 1 sd): a table and a bar plot."""
+    from matplotlib.figure import Figure
+
+    names = list(spectrum)
+    tot = np.array([[spectrum[n][1]["numbers"]["total_photons_per_s"][i, -1] for n in names] for i in range(len(r["names"]))])
+    sd = np.array([[spectrum[n][1]["numbers"]["sigma_photons_per_s"][i, -1] for n in names] for i in range(len(r["names"]))])
+    page.text(f"Per region, the light leaving it within each filter's band ({unit}, the last map: joint, or the only "
+              "pose), each filter's images divided by its transmission (the light before the filter). Every number is "
+              "in rois_spectrum.csv.")
+    page.table(["region", *[f"{n} (T {spectrum[n][0]:g})" for n in names]],
+               [[name, *[f"{tot[i, j]:.4g} ± {sd[i, j]:.2g}" for j in range(len(names))]] for i, name in enumerate(r["names"])])
+    fig = Figure(figsize=(7, 3.6))
+    ax = fig.add_subplot()
+    w = 0.8 / max(len(names), 1)
+    x = np.arange(len(r["names"]))
+    for j, n in enumerate(names):
+        ax.bar(x + (j - (len(names) - 1) / 2) * w, tot[:, j], w, yerr=sd[:, j], capsize=3, label=n)
+    ax.set_xticks(x, r["names"])
+    ax.set_ylabel(unit)
+    ax.set_title("per-region spectrum (joint reconstruction)")
+    ax.legend(title="filter")
+    fig.tight_layout()
+    page.figure(save(fig, "rois_spectrum.png"), "Each region's total per filter, ± 1 sd.")
+    return {"filters": names, "transmissions": [spectrum[n][0] for n in names], "total": tot.tolist(), "sigma": sd.tolist()}

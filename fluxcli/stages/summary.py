@@ -38,6 +38,11 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> None:
         joint = bool(f["flux"].attrs.get("joint_over_poses", False))
         truth = f["truth/power"][()] if "truth" in f else None
         error = float(f["truth"].attrs["error"]) if truth is not None and "error" in f["truth"].attrs else None
+        rois = None
+        if "rois" in f:
+            from ..quantify.rois import read_group
+
+            rois = read_group(f["rois"])
     t = reconstruction_exposure_s(cfg)
     rate, unit = (1.0 / t, "photons/s") if t is not None else (1.0, "photons per exposure")
     share = observed_share(pose_obs, truth if truth is not None else power)
@@ -64,6 +69,16 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> None:
     if truth is not None:
         ctx.say(f"ground truth {truth.sum() * rate:.4g} {unit}: the joint reconstruction finds "
                 f"{joint_total / truth.sum():.3f} of it" + (f", error sum|b' - b| / sum b = {error:.1%}" if error is not None else ""))
+    if rois is not None:  # regions of interest: the last map (joint, or the only pose)
+        r_unit = "photons/s" if rois["exposure_s"] is not None else "photons per exposure"
+        for i, name in enumerate(rois["names"]):
+            n = rois["numbers"]
+            st = rois["status"][i, -1]
+            ctx.say(f"ROI {name} ({rois['maps'][-1]}): " + (
+                f"{n['total_photons_per_s'][i, -1]:.4g} ± {n['sigma_photons_per_s'][i, -1]:.2g} {r_unit}, "
+                f"{n['area_mm2'][i, -1]:.3g} mm², {n['observed_share'][i, -1]:.0%} observed")
+                + (f" — {st}" if st else ""))
+        ctx.say(f"ROI numbers per pose: {cfg.workdir / 'rois.csv'}")
     report = cfg.workdir / "report" / "index.html"
     vtp = cfg.workdir / "reconstruction.vtp"
     if vtp.is_file():

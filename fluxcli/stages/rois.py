@@ -1,0 +1,151 @@
+"""The ``rois:`` of a config measured on the reconstructions of one ``reconstruct`` run.
+
+reconstruct calls :meth:`RoiMeter.measure` right after each solve (each pose, then the
+joint solve), while the solve's covariance is alive, then drops the covariance; at the end
+:meth:`RoiMeter.write` puts the numbers into ``/rois`` of reconstruction.h5 and
+:meth:`RoiMeter.write_csv` writes ``<workdir>/rois.csv`` (the contract other tools read).
+The science is in :mod:`fluxcli.quantify.rois`.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from .. import artefacts as A
+from .. import config as C
+from ..errors import UserError
+from ..quantify import rois as Q
+
+
+def regions(cfg: C.LoadedConfig) -> list[Q.Region]:
+    return [Q.Region(name=r.name, kind=r.kind, center_mm=r.center_mm, radius_mm=r.radius_mm, min_mm=r.min_mm,
+                     max_mm=r.max_mm, fraction=r.fraction, array=r.array, value=r.value, ids=r.ids)
+            for r in cfg.model.rois]
+
+
+def cell_array_of_elements(cfg: C.LoadedConfig, surface, name: str, where: str) -> np.ndarray:
+    """(n_elements,) int: the mesh file's integer cell array ``name`` per element (the value
+    of most of its area where its triangles disagree)."""
+    s = cfg.model.subject.surface
+    if not isinstance(s, C.MeshSurface):
+        raise UserError(f"{where}: a cell_array ROI reads an integer cell array of the mesh file; subject.surface "
+                        "is not a mesh file (give subject.surface.mesh, or use a sphere, box, disc or elements ROI).")
+    import pyvista as pv
+
+    path = cfg.resolve(s.mesh)
+    mesh = pv.read(str(path))
+    if isinstance(mesh, pv.MultiBlock):
+        mesh = mesh.combine()
+    if not isinstance(mesh, pv.PolyData):
+        mesh = mesh.extract_surface(algorithm=None)
+    if name not in mesh.cell_data:
+        have = ", ".join(sorted(mesh.cell_data.keys())) or "none"
+        raise UserError(f"{where}: {path} has no cell array '{name}' (its cell arrays: {have}).")
+    if not np.issubdtype(np.asarray(mesh.cell_data[name]).dtype, np.integer):
+        raise UserError(f"{where}: the cell array '{name}' of {path} is not integer.")
+    mesh.cell_data["_roi"] = mesh.cell_data[name]
+    values = np.asarray(mesh.triangulate().cell_data["_roi"]).ravel()
+    if len(values) != len(surface.faces):
+        raise UserError(f"{where}: {path} has {len(values)} triangles but the subject's surface {len(surface.faces)} "
+                        "(it was repaired on reading); the cell array cannot be matched to the elements.")
+    ok = surface.element_of_face >= 0
+    el, val, area = surface.element_of_face[ok], values[ok], surface.face_areas_mm2[ok]
+    pairs, inv = np.unique(np.stack([el, val], axis=1), axis=0, return_inverse=True)
+    weight = np.bincount(inv.ravel(), weights=area)
+    order = np.lexsort((-weight, pairs[:, 0]))  # per element, the value with most area first
+    first = np.unique(pairs[order, 0], return_index=True)[1]
+    out = np.full(surface.n_elements, np.iinfo(np.int64).min, np.int64)
+    out[pairs[order[first], 0]] = pairs[order[first], 1]
+    return out
+
+
+class RoiMeter:
+    """Measures the config's regions on each reconstruction of a run."""
+
+    def __init__(self, cfg: C.LoadedConfig, surface, exposure_s: float | None):
+        self.regions = regions(cfg)
+        self.surface = surface
+        self.areas = surface.element_areas_mm2
+        self.exposure_s = exposure_s
+        self.fixed = {}
+        for k, r in enumerate(self.regions):
+            where = f"rois[{k}] ({r.name})"
+            if r.needs_map:
+                continue
+            cells = cell_array_of_elements(cfg, surface, r.array, where) if r.kind == "cell_array" else None
+            self.fixed[r.name] = Q.members(r, surface, cell_array=cells)
+        self.labels: list[str] = []
+        self.poses: list[tuple] = []
+        self.numbers: list[list[Q.RoiNumbers]] = []  # [map][roi]
+        self.members: list[np.ndarray] = []  # [map] (n_roi, n_elements)
+
+    def __bool__(self) -> bool:
+        return bool(self.regions)
+
+    def measure(self, label: str, height_mm, rotation_deg, res) -> None:
+        """Measure every region on one reconstruction (``res``: power, observed, well_observed,
+        covariance in element space or None)."""
+        power = np.asarray(res.power, float)
+        observed = np.asarray(res.observed, bool)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            exitance = np.where(observed, power / self.areas, np.nan)
+        M = np.array([self.fixed[r.name] if not r.needs_map else Q.members(r, self.surface, exitance=exitance)
+                      for r in self.regions], bool).reshape(len(self.regions), -1)
+        W = (M & observed).astype(float)
+        var = np.full(len(self.regions), np.nan)
+        cov = getattr(res, "covariance", None)
+        if cov is not None and W.any():
+            var = np.asarray(cov.variance_of(W), float).reshape(-1)
+        t = self.exposure_s if self.exposure_s is not None else 1.0
+        self.labels.append(label)
+        self.poses.append((height_mm, rotation_deg))
+        self.members.append(M)
+        self.numbers.append([Q.measure(M[i], power, observed, res.well_observed, self.areas, exposure_s=t,
+                                       variance=var[i]) for i in range(len(self.regions))])
+
+    # ---------------------------------------------------------------- outputs
+    def rows(self):
+        return [(r.name, label, h, rot, self.numbers[m][i])
+                for i, r in enumerate(self.regions) for m, (label, (h, rot)) in enumerate(zip(self.labels, self.poses))]
+
+    def write(self, g) -> None:
+        """``/rois`` of reconstruction.h5: one column per number, [roi, map]."""
+        g.attrs["names"] = json.dumps([r.name for r in self.regions])
+        g.attrs["definitions"] = json.dumps([{k: v for k, v in r.__dict__.items() if v is not None} for r in self.regions])
+        g.attrs["maps"] = json.dumps(self.labels)
+        g.attrs["exposure_s"] = self.exposure_s if self.exposure_s is not None else np.nan
+        g.attrs["frame"] = "the subject at rest (before any pose): element centroids, area-weighted"
+        g.attrs["radiance"] = "Lambertian radiance L = M / pi of the exitance M, photons s^-1 cm^-2 sr^-1"
+        g.attrs["sigma"] = "sqrt(w' C w) from the reconstruction's covariance (linear approximation), not a sum of per-element sigma"
+        units = {"total_photons_per_s": "photons/s" if self.exposure_s is not None else "photons per exposure",
+                 "sigma_photons_per_s": "photons/s (1 sd)" if self.exposure_s is not None else "photons per exposure (1 sd)",
+                 "mean_radiance": "photons s^-1 cm^-2 sr^-1", "peak_radiance": "photons s^-1 cm^-2 sr^-1",
+                 "area_mm2": "mm^2", "observed_share": "of the area", "well_observed_share": "of the area"}
+        for key, unit in units.items():
+            d = g.create_dataset(key, data=np.array([[getattr(self.numbers[m][i], key) for m in range(len(self.labels))]
+                                                     for i in range(len(self.regions))], float).reshape(len(self.regions), -1))
+            d.attrs["unit"] = unit
+        g.create_dataset("status", data=np.array([[self.numbers[m][i].status for m in range(len(self.labels))]
+                                                 for i in range(len(self.regions))], dtype=object),
+                         dtype=h5py.string_dtype())
+        g.create_dataset("members", data=np.array(self.members, bool).transpose(1, 0, 2), compression="gzip"
+                         ).attrs["layout"] = "members[roi, map, element]"
+
+    def write_csv(self, path: Path) -> Path:
+        A.write_text(path, Q.csv_text([(n, lab, h, r, x) for n, lab, h, r, x in self.rows()]))
+        return path
+
+    def table(self) -> tuple[list[str], list[list]]:
+        unit = "photons/s" if self.exposure_s is not None else "photons/exposure"
+        rows = []
+        for name, label, _, _, x in self.rows():
+            rows.append([name, label, f"{x.total_photons_per_s:.4g} ± {x.sigma_photons_per_s:.2g}"
+                         + (f" [{x.status.split(':')[0].upper()}]" if x.status else ""),
+                         f"{x.mean_radiance:.3g}", f"{x.area_mm2:.3g}", f"{x.observed_share:.0%}",
+                         f"{x.well_observed_share:.0%}"])
+        return ["roi", "pose", f"total ({unit}) ± 1 sd", "mean radiance (ph/s/cm²/sr)", "area mm²", "observed",
+                "well observed"], rows

@@ -1,0 +1,182 @@
+"""``fluxmap study STUDY.yaml``: regions of interest over sessions, subjects and filters.
+
+Examples
+--------
+$ fluxmap study studies/tumour.yaml
+
+STUDY.yaml lists sessions, each a reconstruction artefact with the subject and a day (or a
+date), optionally its filter, and which regions of interest to report (default: every
+region the sessions share)::
+
+    title: tumour growth
+    output: out/tumour          # folder, relative to this file (default study/<name>)
+    rois: [tumour]
+    sessions:
+      - {artefact: ../runs/m1-d3/reconstruction.h5, subject: m1, day: 3, filter: GFP}
+      - {artefact: ../runs/m1-d7/reconstruction.h5, subject: m1, day: 7, filter: GFP}
+
+Writes ``study.csv`` (one row per session x region x pose, the joint reconstruction as pose
+``joint``, with σ) and ``index.html`` (totals over time per subject with error bars, next to
+the direct-view image sum of each pose).  Sessions whose set-up (camera, calibration,
+emission model, units) differs from the first one's are flagged, naming what differs.  An
+artefact whose results changed after it was written (its recorded digest), or whose input
+files changed since, is refused (exit 2), naming the file.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import yaml
+from pydantic import Field, ValidationError, model_validator
+
+from .. import artefacts as A
+from .. import config as C
+from ..artefacts.digest import unchanged
+from ..errors import UserError
+from ..quantify import rois as Q
+from ..quantify.study import Session, setup_differences, setup_of, study_rows
+from .context import RunContext
+
+
+class StudySession(C.Model):
+    """One reconstruction of the study."""
+
+    artefact: Path = Field(description="A reconstruction.h5, relative to the study file.")
+    subject: str = Field(min_length=1, description="The animal or phantom (its id).")
+    day: float | None = Field(None, description="Day of the session (e.g. days after implantation).")
+    date: str | None = Field(None, description="Date of the session (ISO, e.g. 2026-11-20), when no day is given.")
+    filter: str = Field("-", description="The emission filter of the images (free text).")
+    label: str | None = Field(None, description="Name of the session in tables (default subject/day/filter).")
+
+    @model_validator(mode="after")
+    def _when(self) -> "StudySession":
+        if self.day is None and self.date is None:
+            raise ValueError("a session needs a day or a date")
+        return self
+
+    @property
+    def name(self) -> str:
+        return self.label or f"{self.subject} {'day ' + format(self.day, 'g') if self.day is not None else self.date} {self.filter}"
+
+
+class StudyFile(C.Model):
+    title: str | None = Field(None, description="Page title (default: the study file's name).")
+    output: Path | None = Field(None, description="Output folder, relative to the study file (default study/<name>).")
+    rois: tuple[str, ...] | None = Field(None, min_length=1, description="Regions to report (default: all the sessions share).")
+    sessions: tuple[StudySession, ...] = Field(min_length=1, description="The sessions.")
+
+
+def load_study(path: Path) -> StudyFile:
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"study file {path} does not exist.")
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise UserError(f"study file {path} is not valid YAML: {C._yaml_problem(e)}.") from None
+    try:
+        return StudyFile.model_validate(raw if raw is not None else {})
+    except ValidationError as e:
+        raise UserError(C._format_validation_error(e, path, raw)) from None
+
+
+def read_session(s: StudySession, k: int, base: Path) -> list[Session]:
+    """The session's numbers (one per filter of the artefact), refusing an artefact changed
+    after the fact."""
+    path = s.artefact if s.artefact.is_absolute() else (base / s.artefact).resolve()
+    where = f"sessions[{k}] ({s.name})"
+    with A.open_artefact(path, "reconstruction") as f:
+        same = unchanged(f)
+        if same is None:
+            raise UserError(f"{where}: {path} records no digest of its results (made by an older fluxmap), so it "
+                            "cannot be checked; reconstruct it again.")
+        if not same:
+            raise UserError(f"{where}: {path} was changed after it was written: its results no longer match the "
+                            "digest recorded when reconstruct made it. Refusing it; reconstruct it again from its images.")
+        prov = A.read_provenance(f)
+        for name, rec in prov.input_files.items():
+            p = path.parent / rec.get("path", "")
+            if p.is_file() and A.file_sha256(p) != rec.get("sha256"):
+                raise UserError(f"{where}: {p} ({name}) changed after {path} was made from it; the reconstruction no "
+                                "longer matches its input. Refusing it; reconstruct it again.")
+        if "rois" not in f:
+            raise UserError(f"{where}: {path} holds no regions of interest; give rois: in its config and reconstruct "
+                            "it again.")
+        pp = f["per_pose"]
+        # one reconstruct of several filters: a session per filter (the study file's filter is the artefact's)
+        parts = [(s.filter, f["rois"], f["truth/power"][()] if "truth" in f and "power" in f["truth"] else None,
+                  pp["direct_roi_photons"][()])]
+        if "filters" in f:
+            parts = [(name, h["rois"], h["truth_power"][()] if "truth_power" in h else None, h["direct_roi_photons"][()])
+                     for name in json.loads(f["filters"].attrs["order"])
+                     for h in [f[f"filters/{name}"]] if "rois" in h]
+        out = []
+        for filt, g, power, direct in parts:
+            rois = Q.read_group(g)
+            truth = None
+            if power is not None:
+                t = rois["exposure_s"] if rois["exposure_s"] is not None else 1.0
+                truth = {n: float(power[rois["members"][i, -1]].sum()) / t for i, n in enumerate(rois["names"])}
+            label = s.name if len(parts) == 1 else f"{s.label or s.subject + ' ' + ('day ' + format(s.day, 'g') if s.day is not None else s.date)} {filt}"
+            out.append(Session(label=label, subject=s.subject, day=s.day, date=s.date, filter=filt, artefact=str(path),
+                               rois=rois, direct_image_photons=direct, heights_mm=pp["heights_mm"][()],
+                               rotations_deg=pp["rotations_deg"][()],
+                               setup=setup_of(prov.config, prov.input_files), truth_rois=truth))
+        return out
+
+
+def _keep(session: Session, names: tuple[str, ...], where: str) -> Session:
+    r = session.rois
+    missing = [n for n in names if n not in r["names"]]
+    if missing:
+        raise UserError(f"{where}: {session.artefact} has no region {', '.join(missing)} (it has "
+                        f"{', '.join(r['names'])}).")
+    idx = [r["names"].index(n) for n in names]
+    sub = dict(r, names=list(names), definitions=[r["definitions"][i] for i in idx] if r["definitions"] else [],
+               numbers={k: v[idx] for k, v in r["numbers"].items()}, status=r["status"][idx], members=r["members"][idx])
+    return Session(**{**session.__dict__, "rois": sub})
+
+
+def run(study_path: Path, ctx: RunContext) -> Path:
+    study_path = Path(study_path).resolve()
+    st = load_study(study_path)
+    base = study_path.parent
+    sessions = [x for k, s in enumerate(st.sessions) for x in read_session(s, k, base)]
+    names = st.rois or tuple(n for n in sessions[0].rois["names"] if all(n in s.rois["names"] for s in sessions))
+    if not names:
+        raise UserError(f"{study_path}: the sessions share no region of interest; name them in rois:.")
+    sessions = [_keep(s, names, f"sessions[{k}] ({s.label})") for k, s in enumerate(sessions)]
+    ref = sessions[0]
+    flags = {}
+    for s in sessions[1:]:
+        diffs = setup_differences(ref.setup, s.setup, Path(s.artefact).name)
+        if diffs:
+            flags[s.label] = "set-up differs from the first session (" + ref.label + "): " + "; ".join(diffs[:6]) + (
+                f" (and {len(diffs) - 6} more)" if len(diffs) > 6 else "")
+    notes = [f"session {s.label}: totals per exposure (no exposure time recorded)" for s in sessions
+             if s.rois["exposure_s"] is None]
+    header, rows = study_rows(sessions, flags)
+    out = (base / st.output) if st.output is not None else base / "study" / study_path.stem
+    out.mkdir(parents=True, exist_ok=True)
+    import csv
+    import io
+
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(header)
+    w.writerows(rows)
+    A.write_text(out / "study.csv", buf.getvalue())
+    from ..report.study_page import study_page
+
+    A.write_text(out / "index.html", study_page(st.title or study_path.stem, header, rows, flags, notes))
+    A.write_text(out / "flags.json", json.dumps(flags, indent=1))
+    for label, text in flags.items():
+        ctx.warn(f"{label}: {text}")
+    joint = [r for r in rows if r[header.index("pose")] == "joint"]
+    ctx.table(["subject", "day/date", "filter", "roi", "total (photons/s) ± 1 sd", "status"],
+              [[r[0], r[1] or r[2], r[3], r[5], f"{float(r[header.index('total_photons_per_s')]):.4g} ± "
+                f"{float(r[header.index('sigma_photons_per_s')]):.2g}", r[header.index("status")]] for r in joint])
+    ctx.say(f"study: {len(sessions)} session(s), {len(names)} region(s): {out / 'study.csv'}")
+    return out / "index.html"
