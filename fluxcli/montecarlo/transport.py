@@ -82,6 +82,14 @@ class Shape:
             return np.all(np.abs(p) < h, axis=1)
         return (np.abs(p[:, 0]) < h[0]) & (p[:, 1] ** 2 + p[:, 2] ** 2 < h[1] ** 2)
 
+    def depth_mm(self, p_mm: np.ndarray) -> np.ndarray:
+        """Distance from points to the nearest face (negative outside)."""
+        p = np.atleast_2d(np.asarray(p_mm, float))
+        h = np.asarray(self.half_mm)
+        if self.kind == BOX:
+            return np.min(h - np.abs(p), axis=1)
+        return np.minimum(h[0] - np.abs(p[:, 0]), h[1] - np.hypot(p[:, 1], p[:, 2]))
+
     def outward_normals(self, p_mm: np.ndarray) -> np.ndarray:
         """Unit outward normal at points on the surface (the face the point is nearest to)."""
         p = np.atleast_2d(np.asarray(p_mm, float))
@@ -363,7 +371,7 @@ def transport(medium: Medium, shape: Shape, source_mm, n_photons: int, *, seed: 
     same seed; ``tally`` (updated in place) counts launched, escaped, absorbed and lost
     photons and the total path length."""
     src = np.asarray(source_mm, float)
-    if not shape.contains(src[None])[0]:
+    if shape.depth_mm(src[None])[0] <= source_radius_mm:
         raise ValueError(f"the source {src.tolist()} mm is not inside the body")
     n = int(n_photons)
     beam = np.zeros(3) if beam_direction is None else np.asarray(beam_direction, float) / np.linalg.norm(beam_direction)
