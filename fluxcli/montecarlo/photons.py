@@ -51,14 +51,17 @@ def exit_angle_histogram(normal: np.ndarray, direction: np.ndarray, weight: np.n
 
 
 def radiance_profile(histogram: np.ndarray, edges_deg: np.ndarray = ANGLE_EDGES_DEG,
-                     fit_below_deg: float = 40.0) -> tuple[np.ndarray, np.ndarray]:
+                     fit_below_deg: float = 50.0) -> tuple[np.ndarray, np.ndarray]:
     """Radiance relative to its value along the normal, L(θ)/L(0), from an exit-angle
     histogram: photons per bin / (solid angle × cos θ), i.e. per Δ(sin²θ); L(0) from a
-    fit quadratic in (1 − cos θ) to the bins below ``fit_below_deg``. Returns bin-centre
+    quadratic in (1 − cos θ) fitted to the bins below ``fit_below_deg``, each weighted by its
+    Poisson variance (the bins near the normal hold few photons). Returns bin-centre
     angles (deg) and the profile."""
     e = np.radians(edges_deg)
-    per_proj_solid_angle = histogram / np.diff(np.sin(e) ** 2)  # dΩ cosθ = π d(sin²θ)
+    width = np.diff(np.sin(e) ** 2)
+    per_proj_solid_angle = histogram / width  # dΩ cosθ = π d(sin²θ)
+    sigma = np.sqrt(np.maximum(histogram, 1.0)) / width
     mid = np.degrees(np.arcsin(np.sqrt((np.sin(e[1:]) ** 2 + np.sin(e[:-1]) ** 2) / 2)))
     sel = mid < fit_below_deg
-    coef = np.polyfit(1 - np.cos(np.radians(mid[sel])), per_proj_solid_angle[sel], 2)
+    coef = np.polyfit(1 - np.cos(np.radians(mid[sel])), per_proj_solid_angle[sel], 2, w=1 / sigma[sel])
     return mid, per_proj_solid_angle / coef[-1]
