@@ -2,9 +2,10 @@
 analytic body) each one left through, and the angular distribution of the light.
 
 The mesh approximates the analytic body (a box exactly, a cylinder by an inscribed
-prism). A photon's exit point is carried onto the mesh by central projection from inside
-the body (convex: one crossing), keeping its position along a cylinder's axis, and the
-triangle met there is its face; Embree finds it.
+prism). A photon's exit point is carried onto the mesh along a ray from inside the body (convex:
+one crossing): from the centre for a box (whose mesh it lies on already), radially from
+the axis for a cylinder's side (keeping its position along the axis), along the axis for
+a cap; the triangle met is its face. Embree finds it.
 """
 
 from __future__ import annotations
@@ -23,13 +24,16 @@ def faces_of_exits(shape: Shape, vertices_mm: np.ndarray, faces: np.ndarray, pos
     scene = scene or OcclusionScene(vertices_mm, faces)
     if shape.kind == BOX:
         origin = np.zeros_like(p)
+        d = p - origin
     else:
+        # the side radially from the axis (keeps the position along it); a cap along the axis
+        # from a point pulled halfway to the axis (inside the inscribed prism for any n >= 3)
         hx, r = shape.half_mm[0], shape.half_mm[1]
         rho = np.hypot(p[:, 1], p[:, 2])
         side = (hx - np.abs(p[:, 0])) >= (r - rho)
-        origin = np.where(side[:, None], np.stack([p[:, 0], 0 * rho, 0 * rho], axis=1), 0.0)
-    d = p - origin
-    d /= np.linalg.norm(d, axis=1)[:, None]
+        origin = np.where(side[:, None], p * [1.0, 0.0, 0.0], p * [0.0, 0.49, 0.49])
+        d = np.where(side[:, None], p - origin, np.sign(p[:, :1]) * [1.0, 0.0, 0.0])
+    d = d / np.linalg.norm(d, axis=1)[:, None]
     _, face = scene.first_hit_face(origin, d)
     return face
 
