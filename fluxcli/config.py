@@ -328,11 +328,35 @@ class Poses(Model):
     rotations_deg: tuple[float, ...] = Field((0.0,), min_length=1, description="Rotations about the subject axis (deg).")
 
 
+class LambertianEmission(Model):
+    """Radiance the same in every direction (p = 1/pi): the paper's model, right for a matt painted or paper surface."""
+
+    model: Literal["lambertian"]
+
+
+class DiffuseEmission(Model):
+    """Light diffused through a turbid medium (tissue, a phantom) leaving through its smooth, refracting surface into air: diffusion theory with a Fresnel boundary (docs/design.md, Emission)."""
+
+    model: Literal["diffuse"]
+    refractive_index: float = Field(1.40, ge=1.0, le=3.0, description="Refractive index of the medium (tissue ~1.37-1.40; 1 = no Fresnel).")
+
+
+class TableEmission(Model):
+    """A measured or computed curve: a CSV with a header row 'angle_deg,radiance' (angle from the normal, 0-90 deg) or 'cos_theta,radiance'."""
+
+    model: Literal["table"]
+    file: Path = Field(description="The CSV (relative to the config file); radiance relative, any scale.")
+
+
+Emission = Annotated[Union[LambertianEmission, DiffuseEmission, TableEmission], Field(discriminator="model")]
+
+
 class Subject(Model):
     surface: Union[Phantom, MeshSurface, ArtefactSurface] = Field(
         description="The subject's surface: a phantom, a mesh file, or a surface artefact (one of the variants below).")
     poses: Poses | None = Field(None, description="Heights x rotations; without it the subject stays put (height 0).")
     rotation_axis: RotationAxis | None = Field(None, description="Axis for rotations (default: the phantom's own axis).")
+    emission: Emission | None = Field(None, description="How light leaves the surface (its angular profile), in every stage that models light. Absent: lambertian, with a notice; tissue and turbid phantoms are better described by {model: diffuse, refractive_index: 1.40}.")
 
 
 # --------------------------------------------------------------------------- transfer
@@ -1126,6 +1150,29 @@ def require(cfg: "LoadedConfig", stage: str, keys: tuple[str, ...] | list[str]) 
                 raise UserError(f"config {cfg.path}: '{stage}' needs '{key}', which the config does not give.")
 
 
+def emission_profile(cfg: "LoadedConfig"):
+    """The subject's emission profile (:class:`fluxcli.optics.emission.Profile`); Lambertian when
+    ``subject.emission`` is absent.  A table file that cannot be read or is not a valid profile is
+    a UserError naming it."""
+    from .optics import emission as E
+
+    em = cfg.model.subject.emission if cfg.model.subject is not None else None
+    if em is None:
+        return E.lambertian()
+    if isinstance(em, TableEmission):
+        f = cfg.resolve(em.file)
+        if not f.is_file():
+            raise UserError(f"config {cfg.path}: 'subject.emission.file': {f} does not exist.")
+        try:
+            return E.profile({"model": "table", "file": f})
+        except (ValueError, OSError, UnicodeDecodeError) as e:
+            raise UserError(f"config {cfg.path}: 'subject.emission.file': {f} {e}.") from None
+    try:
+        return E.profile(em)
+    except ValueError as e:
+        raise UserError(f"config {cfg.path}: 'subject.emission': {e}.") from None
+
+
 def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -> LoadedConfig:
     """Read, override and validate a config; raise UserError with one clear paragraph."""
     path = Path(path)
@@ -1151,6 +1198,7 @@ def load_config(path: Path | str, overrides: list[str] | tuple[str, ...] = ()) -
     except ValidationError as e:
         raise UserError(_format_validation_error(e, path, raw)) from None
     loaded = LoadedConfig(model, path.resolve(), raw)
+    emission_profile(loaded)  # a table file that is missing or malformed exits 2 now, naming it
     surf = model.subject.surface if model.subject is not None else None
     for attr in ("mesh", "artefact"):
         p = getattr(surf, attr, None)

@@ -117,6 +117,12 @@ def geometry_of(cfg: LoadedConfig, surface_sha256: str | None = None) -> dict:
     m = cfg.model
     g = {"system": m.system.model_dump(mode="json") if m.system is not None else None,
          "subject": m.subject.model_dump(mode="json") if m.subject is not None else None}
+    if g["subject"] is not None:  # Lambertian (absent or explicit): the digest of before emission profiles
+        em = g["subject"].pop("emission", None)
+        if em is not None and em.get("model") != "lambertian":
+            from .config import emission_profile
+
+            g["subject"]["emission"] = emission_profile(cfg).key()  # a table by its numbers, not its path
     if surface_sha256 is not None:
         g["surface_sha256"] = surface_sha256
     return g
@@ -125,6 +131,20 @@ def geometry_of(cfg: LoadedConfig, surface_sha256: str | None = None) -> dict:
 def provenance(cfg: LoadedConfig, surface_sha256: str | None = None) -> A.Provenance:
     return A.Provenance(config=cfg.model.model_dump(mode="json", by_alias=True),
                         geometry=geometry_of(cfg, surface_sha256))
+
+
+EMISSION_NOTICE = ("subject.emission is not set: the surface is taken as Lambertian. Light leaving tissue or a turbid "
+                   "phantom is better described by subject.emission: {model: diffuse, refractive_index: 1.40} (read as "
+                   "Lambertian it is ~10 % too bright head-on and ~40 % too dim at 80 deg from the normal; "
+                   "docs/design.md, Emission).")
+
+
+def emission_notice(cfg: LoadedConfig, ctx) -> None:
+    """One short notice per run when ``subject.emission`` is absent (Lambertian is assumed)."""
+    if cfg.model.subject is None or cfg.model.subject.emission is not None or EMISSION_NOTICE in ctx.warned:
+        return
+    ctx.warned.add(EMISSION_NOTICE)
+    ctx.say(EMISSION_NOTICE)
 
 
 def announce(ctx, placer: SubjectPlacer) -> None:
@@ -168,7 +188,8 @@ def key_parts(scene: PlacedScene, views: list[View], tr: Transfer) -> dict:
         "estimator": tr.estimator,
         "sampling": sampling,
         "ray_offset_mm": tr.ray_offset_mm,
-    })
+    } | ({"emission": scene.emission.key()} if scene.emission is not None and not scene.emission.is_lambertian
+         else {}))  # Lambertian: no entry, so that its keys are those made before emission profiles
 
 
 def plan(cfg: LoadedConfig, transfer: Transfer | None = None, unknowns: str = "elements"
@@ -186,11 +207,11 @@ def plan(cfg: LoadedConfig, transfer: Transfer | None = None, unknowns: str = "e
     for pose in poses_from_config(cfg.model.subject):
         scene = placer.scene(pose, cfg.model.system)
         if unknowns == "sub_elements":
-            scene = PlacedScene(scene.pose, scene.surface.unknowns()[0], scene.occluders)
+            scene = PlacedScene(scene.pose, scene.surface.unknowns()[0], scene.occluders, scene.emission)
         elif unknowns.startswith("refined:"):  # simulate: columns per face of the refined surface
             levels = int(unknowns.split(":")[1])
             if levels > 0:
-                scene = PlacedScene(scene.pose, scene.surface.refined(levels)[0], scene.occluders)
+                scene = PlacedScene(scene.pose, scene.surface.refined(levels)[0], scene.occluders, scene.emission)
         key = A.cache_key(key_parts(scene, views, tr))
         out.append((scene, PoseT(pose, key, AT.entry_path(cdir, key))))
     return views, placer, out
@@ -292,7 +313,7 @@ def _build_and_store(scene: PlacedScene, views: list[View], tr: Transfer, target
         lens_sampling=LensSampling(**tr.lens.model_dump()),
         pairwise_sampling=PairwiseSampling(**tr.pairwise.model_dump()),
         ray_offset_mm=tr.ray_offset_mm, rays_per_batch=tr.rays_per_batch, progress=progress,
-        threads=threads, checkpoint=partial,
+        threads=threads, checkpoint=partial, emission=scene.emission,
     )
     seconds = time.perf_counter() - t0
     cam = res.views[0].camera
@@ -344,7 +365,8 @@ def _worker_scene(scene_file: Path, views: list[View], tr: Transfer, view: int):
         scene, occ, plans = entry
         if (view, tr.rays_per_batch) not in plans:
             plans[view, tr.rays_per_batch] = lens_plan(scene.surface, views[view], LensSampling(**tr.lens.model_dump()),
-                                                       tr.rays_per_batch, scene.occluders, tr.ray_offset_mm)
+                                                       tr.rays_per_batch, scene.occluders, tr.ray_offset_mm,
+                                                       emission=scene.emission)
         return occ, plans[view, tr.rays_per_batch]
 
 
@@ -413,7 +435,7 @@ def _build_on_cluster(client, need: list, views: list[View], tr: Transfer, confi
     # needs (one pose's: memory); the other merges make their own
     merging = [i for i, c in enumerate(cut) if c is not None]
     ahead = ThreadPoolExecutor(1)
-    plans = {i: ahead.submit(_plans_of, need[i][0].surface, views, tr) for i in merging[:1]}
+    plans = {i: ahead.submit(_plans_of, need[i][0].surface, views, tr, need[i][0].emission) for i in merging[:1]}
     try:
         done = run_tasks(_call, tasks, label=label, quiet=quiet, remote=True, pool=pool)
         whole = iter(r for r, t in zip(done, tasks) if t[0] is _build_and_store)
@@ -432,9 +454,9 @@ def _build_on_cluster(client, need: list, views: list[View], tr: Transfer, confi
     return [next(whole) if c is None else next(merged) for c in cut]
 
 
-def _plans_of(surface, views: list[View], tr: Transfer) -> dict:
+def _plans_of(surface, views: list[View], tr: Transfer, emission=None) -> dict:
     sampling = LensSampling(**tr.lens.model_dump())
-    return {k: lens_plan(surface, v, sampling, tr.rays_per_batch) for k, v in enumerate(views)}
+    return {k: lens_plan(surface, v, sampling, tr.rays_per_batch, emission=emission) for k, v in enumerate(views)}
 
 
 def _merge(*args, progress=None) -> dict:
@@ -462,6 +484,7 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
     tr = transfer or cfg.model.transfer
     views, placer, todo = plan(cfg, tr, unknowns)
     announce(ctx, placer)
+    emission_notice(cfg, ctx)
     A.clean_stale_temps(cache_dir(cfg))  # what killed runs left, even when nothing is rebuilt
     nx, ny = cfg.model.system.camera.pixels
     n_el = todo[0][0].surface.n_elements if todo else 0
@@ -527,7 +550,7 @@ def ensure_pose_T(cfg: LoadedConfig, pose: Pose, transfer: Transfer | None = Non
     views = views_from_config(cfg.model.system)
     scene = (placer or SubjectPlacer(cfg)).scene(pose, cfg.model.system)
     if refine > 0:
-        scene = PlacedScene(scene.pose, scene.surface.refined(refine)[0], scene.occluders)
+        scene = PlacedScene(scene.pose, scene.surface.refined(refine)[0], scene.occluders, scene.emission)
     path = AT.entry_path(cache_dir(cfg), A.cache_key(key_parts(scene, views, tr)))
     if not path.is_file():
         _build_and_store(scene, views, tr, path, cfg.sha256, provenance(cfg))

@@ -17,6 +17,7 @@ import numpy as np
 from . import config as C
 from .errors import UserError
 from .optics.camera import Aperture, PlaneMirror, ThinLensCamera
+from .optics.emission import Profile
 from .optics.transfer import View, views_for
 from .surface import phantoms
 from .surface.mesh import Surface, box, read_mesh_checked, rectangle, validated
@@ -37,6 +38,7 @@ class PlacedScene:
     pose: Pose
     surface: Surface
     occluders: list[Surface]
+    emission: Profile | None = None  # how the surface emits (None: Lambertian); part of T's cache key
 
 
 def camera_from_config(cam: C.Camera) -> ThinLensCamera:
@@ -90,6 +92,7 @@ class SubjectPlacer:
         self.stage = model.system.stage
         self.rests_on_stage = isinstance(s, (C.CylinderPhantom, C.BoxPhantom, C.RingPhantom, C.SpherePhantom))
         self.notes: list[str] = []  # what a mesh file yielded and what was repaired in it
+        self.emission: Profile = C.emission_profile(cfg)  # Lambertian when subject.emission is absent
         if isinstance(s, C.CylinderPhantom):
             surf, point, axis = phantoms.cylinder(radius_mm=s.radius_mm, length_mm=s.length_mm, n_angular=s.n_angular,
                                                   n_axial=s.n_axial, cap_elements=s.cap_elements)
@@ -184,4 +187,4 @@ class SubjectPlacer:
         return occ
 
     def scene(self, pose: Pose, system: C.System) -> PlacedScene:
-        return PlacedScene(pose, self.place(pose), self.occluders(pose, system))
+        return PlacedScene(pose, self.place(pose), self.occluders(pose, system), self.emission)

@@ -1,7 +1,9 @@
 """The free-space transfer matrix T (pixels x elements, dimensionless).
 
-``T[i, j]`` is the fraction of the power emitted (Lambertian, uniform over the element)
-by surface element j that lands in pixel i, so images are ``a = T b`` with b in photons.
+``T[i, j]`` is the fraction of the power emitted (uniform over the element, with the angular
+profile of :mod:`fluxcli.optics.emission`, Lambertian by default) by surface element j that
+lands in pixel i, so images are ``a = T b`` with b in photons.  A non-Lambertian profile
+multiplies each ray's weight below by ``pi p(theta_s)``.
 Two estimators of the same integral (DESIGN.md section 3):
 
 ``lens`` (default)
@@ -38,6 +40,7 @@ import scipy.sparse as sp
 from ..surface.mesh import Surface, merge
 from . import visibility
 from .camera import PlaneMirror, ThinLensCamera, sunflower_disk
+from .emission import Profile
 from .raycast import OcclusionScene
 
 ALGORITHM_VERSION = "transfer-3"  # bump whenever the numbers an estimator gives change
@@ -314,11 +317,12 @@ class _LensPlan:
     margin_mm: float  # a mirror segment is known clear only this far (x2) in front of the mirror
     target: float  # adaptive rounds: the column error target (0: one round)
     n_cap: int  # adaptive rounds: lens samples per surface sample, at most
+    emis: np.ndarray = field(default_factory=lambda: np.zeros(0))  # ray weights pi p on cos theta (empty: Lambertian)
 
 
 def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: int,
                tree: "visibility.LazyTree | None" = None, ray_offset_mm: float = 1e-3,
-               turn_patterns: bool = True) -> _LensPlan | None:
+               turn_patterns: bool = True, emission: Profile | None = None) -> _LensPlan | None:
     """Surface samples, their lens-sampling regions and counts (vectorised over samples,
     O(samples) work); the per-ray work is :func:`fluxcli.optics.transfer_kernel.lens_columns`.
     With ``tree`` (the occluders), the faces whose every segment is clear are found
@@ -390,7 +394,14 @@ def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: in
                      np.ascontiguousarray(disk_unit), np.ascontiguousarray(square_unit), np.ascontiguousarray(jitter),
                      chunks, int(n_lens.sum()), clear, _spins(E, turn_patterns),
                      margin, float(s.target_column_error),
-                     int(s.lens_samples_max))
+                     int(s.lens_samples_max), _emission_table(emission))
+
+
+def _emission_table(emission: Profile | None) -> np.ndarray:
+    """The kernel's ray-weight table: empty (Lambertian, weight 1) or pi p on the cos grid."""
+    if emission is None or emission.is_lambertian:
+        return np.zeros(0)
+    return np.ascontiguousarray(emission.table, np.float64)
 
 
 def _spins(elem: np.ndarray, turn: bool = True) -> np.ndarray:
@@ -431,14 +442,14 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
                rays_per_batch: int, threads: int, progress: Callable[[float], None] | None,
                checkpoint: "Checkpoint | None", view_index: int,
                tree: "visibility.LazyTree | None" = None,
-               turn_patterns: bool = True) -> tuple[sp.csr_matrix, np.ndarray, dict]:
+               turn_patterns: bool = True, emission: Profile | None = None) -> tuple[sp.csr_matrix, np.ndarray, dict]:
     """One view's T by the lens estimator: chunks of whole elements cast on ``threads``
     threads, columns placed by element (independent of which thread finished first)."""
     cam = view.camera
     n_pix = cam.nx * cam.ny
     shape = (n_pix, surface.n_elements)
     plan = ((checkpoint.plan(view_index) if checkpoint is not None else None)
-            or _lens_plan(surface, view, s, rays_per_batch, tree, eps, turn_patterns))
+            or _lens_plan(surface, view, s, rays_per_batch, tree, eps, turn_patterns, emission))
     err = np.zeros(surface.n_elements)
     if plan is None or not plan.chunks or scene.native is None:
         if plan is not None and plan.chunks and scene.native is None:
@@ -515,14 +526,14 @@ def _lens_runner(view: View, scene: OcclusionScene, plan: _LensPlan, eps: float)
             plan.elem, plan.lo, plan.hi, plan.dc, plan.disk_r, plan.use_box, plan.n_lens, plan.pat_off, plan.disk_unit,
             plan.square_unit, plan.jitter, chunk[0], chunk[1], n_pix, cam.nx, cam.ny,
             scratch.even, scratch.odd, scratch.mark, scratch.touched, _NO_RECORD, plan.clear, plan.margin_mm,
-            plan.target, plan.n_cap, plan.spin)
+            plan.target, plan.n_cap, plan.spin, plan.emis)
 
     return run
 
 
 # ------------------------------------------------------------------ one block at a time (cluster tasks)
 def lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: int, occluders: list[Surface] | None = None,
-              ray_offset_mm: float = 1e-3) -> _LensPlan | None:
+              ray_offset_mm: float = 1e-3, emission: Profile | None = None) -> _LensPlan | None:
     """One view's lens-estimator plan (surface samples, their lens regions, the chunks of whole
     elements), the same :func:`build_transfer` makes; None when no face can reach the lens.
     With ``occluders`` (the scene's other blocking geometry) it also marks the faces whose
@@ -531,7 +542,7 @@ def lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: int
     if occluders is not None:
         v, f = merge(surface, *occluders)
         tree = visibility.LazyTree(v, f, _piece_mm(surface, v)) if len(f) else None
-    return _lens_plan(surface, view, s, rays_per_batch, tree, ray_offset_mm)
+    return _lens_plan(surface, view, s, rays_per_batch, tree, ray_offset_mm, emission=emission)
 
 
 def lens_chunks(plan: _LensPlan | None) -> tuple[list[tuple[int, int]], list[int]]:
@@ -586,7 +597,8 @@ def _blocks(rays_of: list[int], rays_per_block: int) -> list[list[int]]:
     return out
 
 
-def _pairwise_pairs(surface: Surface, view: View, s: PairwiseSampling, rays_per_batch: int) -> Iterator[tuple]:
+def _pairwise_pairs(surface: Surface, view: View, s: PairwiseSampling, rays_per_batch: int,
+                    emission: Profile | None = None) -> Iterator[tuple]:
     cam = view.camera
     faces = _candidate_faces(surface, view)
     if len(faces) == 0:
@@ -646,6 +658,8 @@ def _pairwise_pairs(surface: Surface, view: View, s: PairwiseSampling, rays_per_
             dv = X - p
             r2 = np.einsum("ij,ij->i", dv, dv)
             w = np.where(in_lens & (cos_s > 0), cos_s * cos_d / (np.pi * r2), 0.0) * dA_vd * W[ii]
+            if emission is not None and not emission.is_lambertian:  # theta_s at the real surface, both views
+                w = w * emission.weight(np.where(in_lens, cos_s, 0.0))
         pix = (rr // k) * cam.nx + (cc // k)
         pix = np.where(inbox, pix, -1)
         yield p, nn, L, pix, w, E[ii], zz, len(i), len(ii)
@@ -698,6 +712,7 @@ def build_transfer(
     checkpoint: Checkpoint | None = None,
     skip_clear: bool = True,
     turn_patterns: bool = True,
+    emission: Profile | None = None,
 ) -> TransferResult:
     """Compute T for ``surface`` seen by ``views``, with ``surface`` and ``occluders`` blocking.
 
@@ -715,6 +730,8 @@ def build_transfer(
     turn_patterns : lens estimator: turn each surface sample's lens pattern by its own angle
         (False: the same lens points for every sample, as transfer-2 did; for the benchmark's
         before/after figures).
+    emission : the surface's angular emission profile (:mod:`fluxcli.optics.emission`); None or
+        Lambertian leaves every ray's weight (and T's bytes) as without one.
 
     Returns
     -------
@@ -739,10 +756,10 @@ def build_transfer(
 
         if estimator == "lens":
             T, err, st = _lens_view(surface, view, scene, lens_sampling, ray_offset_mm, rays_per_batch, threads,
-                                    sub, checkpoint, k, tree, turn_patterns)
+                                    sub, checkpoint, k, tree, turn_patterns, emission)
         else:
             T, st = _pairwise_view(surface, view, scene, pairwise_sampling, ray_offset_mm, rays_per_batch, shape,
-                                   sub)
+                                   sub, emission)
             err = np.full(surface.n_elements, np.nan)
         per_view.append(T)
         errors.append(err)
@@ -766,9 +783,10 @@ def _piece_mm(surface: Surface, vertices_mm: np.ndarray) -> float:
 
 
 def _pairwise_view(surface: Surface, view: View, scene: OcclusionScene, s: PairwiseSampling, eps: float,
-                   rays_per_batch: int, shape: tuple[int, int], progress) -> tuple[sp.csr_matrix, dict]:
+                   rays_per_batch: int, shape: tuple[int, int], progress,
+                   emission: Profile | None = None) -> tuple[sp.csr_matrix, dict]:
     filt = _PairFilter(view, scene, eps)
-    gen = _pairwise_pairs(surface, view, s, rays_per_batch)
+    gen = _pairwise_pairs(surface, view, s, rays_per_batch, emission)
     todo = next(gen, 0)  # the generator announces how many pairs it will evaluate
     done, n_samples = 0, 0
     parts = []

@@ -30,7 +30,8 @@ _QUEUE = 64  # rays queued before a flush (known-clear ones need no packet slot)
 def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
                  P, N, G, dA, elem, lo, hi, dc, disk_r, use_box, n_lens, pat_off,
                  disk_unit, square_unit, jitter, s0, s1, n_pix, nx, ny,
-                 acc_even, acc_odd, mark, touched, record, clear, margin, target, n_cap, spin):
+                 acc_even, acc_odd, mark, touched, record, clear, margin, target, n_cap, spin,
+                 emis):
     """Columns of the elements whose samples are ``[s0, s1)`` (whole elements, sorted).
 
     Parameters
@@ -61,6 +62,11 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
     spin : float64 (S, 4): per sample, the cosine and sine of the turn given to its disk
         pattern and the shift (mod 1) given to its square pattern, so that the samples of an
         element do not all use the same lens points (their lens errors then average out).
+    emis : float64 (M,): the emission profile's ray weights pi p(theta_s) on cos theta_s =
+        k / (M - 1) (:class:`fluxcli.optics.emission.Profile`), or (0,) for Lambertian (weight 1:
+        no multiplication, the arithmetic of a Lambertian T is unchanged).  theta_s is the
+        angle at the real surface between its normal and the ray leaving it (for a mirror view
+        the ray towards the virtual lens point runs along the real surface -> mirror segment).
     target, n_cap : adaptive sampling.  An element's samples are cast in rounds: round 0
         takes lens samples ``[0, n_lens)`` of each sample's nested pattern, round p
         ``[n_lens 2^(p-1), n_lens 2^p)`` (the weights of all rounds so far halved, exactly);
@@ -172,6 +178,8 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
                         continue
                     cos_l = -(vx * ax + vy * ay + vz * az) * inv
                     w = cos_s * cos_l / (math.pi * r2) * dA_s
+                    if len(emis) > 0:
+                        w *= emission_weight(emis, cos_s)
                     if not w > 0:
                         continue
                     # the pixel: where the line meets the front focal plane
@@ -306,6 +314,16 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
         n_touched = 0
         e0 = e1
     return elements, starts, out_pix[:nnz].copy(), out_val[:nnz].copy(), col_err, cast, n_rays, n_rec
+
+
+@nb.njit(nogil=True, cache=True, inline="always")
+def emission_weight(emis, cos_s):
+    """Linear interpolation of the ray-weight table ``emis`` at ``cos_s`` in (0, 1] (the same
+    arithmetic as :func:`fluxcli.optics.emission.interp_weight`)."""
+    t = min(cos_s, 1.0) * (len(emis) - 1)
+    i = min(int(t), len(emis) - 2)
+    f = t - i
+    return emis[i] + (emis[i + 1] - emis[i]) * f
 
 
 @nb.njit(nogil=True, cache=True, inline="always")

@@ -88,6 +88,7 @@ class Study:
     pose_poorly: np.ndarray | None = None  # (P, n)
     warnings: list[str] = field(default_factory=list)  # /warnings of the reconstruction
     total_well_observed: float | None = None
+    emission: dict | None = None  # /emission and the grazing shares of the reconstruction (issue 21)
 
     @property
     def n_poses(self) -> int:
@@ -157,6 +158,8 @@ def load(reconstruction: Path, *, t_cache_dir: Path | None = None, simulation: P
             st.pose_poorly = pp["observation"][()] == 1
         if "warnings" in f:
             st.warnings = [w.decode() if isinstance(w, bytes) else str(w) for w in f["warnings"][()]]
+        if "emission" in f:
+            st.emission = _load_emission(f)
         if "truth" in f:
             t = f["truth"]
             st.truth_power = t["power"][()]
@@ -193,6 +196,20 @@ def load(reconstruction: Path, *, t_cache_dir: Path | None = None, simulation: P
         st.transfer = _load_transfer(st, t_files)
     _fill_gaps(st)
     return st
+
+
+def _load_emission(f) -> dict:
+    """The emission model a reconstruction used, its curve and the grazing shares (issue 21)."""
+    g, pp = f["emission"], f["per_pose"]
+    ri = float(g.attrs.get("refractive_index", np.nan))
+    return {"model": str(g.attrs.get("model", "")), "description": str(g.attrs.get("description", "")),
+            "refractive_index": ri if np.isfinite(ri) else None,
+            "table_file": str(g.attrs.get("table_file", "")) or None,
+            "angle_deg": g["angle_deg"][()], "relative_radiance": g["relative_radiance"][()],
+            "bands_deg": pp["light_beyond_deg"].attrs["bands_deg"] if "light_beyond_deg" in pp else None,
+            "light_beyond_per_pose": _opt(pp, "light_beyond_deg"),
+            "light_beyond_joint": _opt(g, "joint_light_beyond_deg"),
+            "residual_vs_angle_per_pose": _opt(pp, "residual_vs_angle")}
 
 
 def _load_transfer(st: Study, paths: list[Path]) -> list[PoseTransfer] | None:
@@ -550,6 +567,8 @@ def make_report(study: Study, out_dir: Path, *, title: str, geometry: Geometry, 
                                           if study.truth_power is not None else None))
     page.figure(save(fig, "totals.png"), "Total flux per pose.")
     page.pose_table(summary)
+    if study.emission is not None:
+        _emission_section(page, save, study, summary, labels)
 
     # ---------------------------------------------------------------- 5. the study
     if study.snr is not None or study.sweep is not None or study.transfer is not None:
@@ -583,6 +602,46 @@ def make_report(study: Study, out_dir: Path, *, title: str, geometry: Geometry, 
     page.notes(study.notes)
     summary["notes"] = list(study.notes)
     return _finish(out_dir, page, summary, figures, extra)
+
+
+def _emission_section(page, save, study: Study, summary: dict, labels: list[str]) -> None:
+    """Which emission model T was built with, its curve beside Lambertian, and how much of the
+    observed light was seen at grazing angles (where the model matters most)."""
+    from . import figures as F
+
+    em = study.emission
+    page.section("emission", "Emission model")
+    ang, rad = np.asarray(em["angle_deg"], float), np.asarray(em["relative_radiance"], float)
+    at = [30.0, 60.0, 75.0, 80.0]
+    vals = np.interp(at, ang, rad)
+    page.text(
+        f"T was built with the emission model '{em['description']}': radiance leaving the surface is its exitance "
+        "times p(θ), p normalised so that an element's power is the same whatever the model "
+        "(docs/design.md, Emission). Relative to the normal it is "
+        + ", ".join(f"{v:.2f} at {a:g}°" for a, v in zip(at, vals))
+        + (" (Lambertian: 1 everywhere)." if em["model"] != "lambertian" else ".")
+        + (" Light leaving tissue or a turbid phantom is better described by {model: diffuse, refractive_index: "
+           "1.40}: read as Lambertian it is ~10 % too bright head-on and ~40 % too dim at 80°."
+           if em["model"] == "lambertian" else ""))
+    fig = F.emission_figure(ang, rad, em["description"])
+    page.figure(save(fig, "emission.png"), "The emission profile used, beside Lambertian.")
+    out = {k: em[k] for k in ("model", "description", "refractive_index", "table_file")}
+    out["relative_radiance"] = {"angle_deg": ang[::10], "value": rad[::10]}
+    if em["light_beyond_per_pose"] is not None:
+        bands = [float(b) for b in em["bands_deg"]]
+        shares = np.asarray(em["light_beyond_per_pose"], float)
+        rows = [[labels[k]] + [f"{s:.1%}" for s in shares[k]] for k in range(len(shares))]
+        if em["light_beyond_joint"] is not None:
+            rows.append(["joint"] + [f"{s:.1%}" for s in em["light_beyond_joint"]])
+        page.text("Share of the light in each pose's model image (T b̃) that left the surface beyond these angles "
+                  "from its normal: the larger it is, the more the total rests on the emission model at grazing "
+                  "angles (a warning above 25 % beyond 75°).")
+        page.table(["pose"] + [f"beyond {b:g}°" for b in bands], rows)
+        out["bands_deg"] = bands
+        out["light_beyond_per_pose"] = shares
+        out["light_beyond_joint"] = em["light_beyond_joint"]
+        out["residual_vs_angle_per_pose"] = em["residual_vs_angle_per_pose"]
+    summary["emission"] = jsonable(out)
 
 
 def _finish(out_dir: Path, page, summary: dict, figures: list[str], extra: dict | None) -> tuple[Path, dict]:

@@ -646,3 +646,34 @@ def sensitivity_figure(angles_deg, per_pose, per_view, view_names, labels) -> Fi
         ax.set_xlabel(ANGLE_LABEL, fontsize=8)
         ax.set_ylim(bottom=0)
     return fig
+
+
+def emission_figure(angle_deg, relative_radiance, label: str) -> Figure:
+    """The emission profile used, L(theta)/L(0), beside Lambertian (1 everywhere), and the ray
+    weight pi p(theta) of both (what each estimator multiplies a ray by, power kept per element)."""
+    fig = _figure(9.0, 3.6)
+    ax, ax2 = fig.subplots(1, 2)
+    a = np.asarray(angle_deg, float)
+    r = np.asarray(relative_radiance, float)
+    ax.plot(a, np.ones_like(a), "--", color="0.4", label="lambertian")
+    ax.plot(a, r, "-", color=JOINT_COLOUR, label=label)
+    ax.set_xlabel("emission angle from the surface normal (°)")
+    ax.set_ylabel("L(θ) / L(0)")
+    ax.set_xlim(0, 90)
+    ax.set_ylim(0, 1.1)
+    ax.xaxis.set_major_locator(MultipleLocator(15))
+    ax.set_title("radiance relative to the normal")
+    ax.legend(fontsize=8)
+    # pi p = r / (2 int r mu dmu): normalised so each element emits the same power
+    mu = np.cos(np.radians(a))
+    order = np.argsort(mu)
+    norm = 2 * np.trapezoid(r[order] * mu[order], mu[order])
+    ax2.plot(a, np.ones_like(a), "--", color="0.4", label="lambertian")
+    ax2.plot(a, r / norm if norm > 0 else r, "-", color=JOINT_COLOUR, label=label)
+    ax2.set_xlabel("emission angle from the surface normal (°)")
+    ax2.set_ylabel("π p(θ): radiance per unit exitance, × π")
+    ax2.set_xlim(0, 90)
+    ax2.set_ylim(0, None)
+    ax2.xaxis.set_major_locator(MultipleLocator(15))
+    ax2.set_title("the same power per element")
+    return fig

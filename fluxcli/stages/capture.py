@@ -94,8 +94,10 @@ class SimulatedScene:
 
     @property
     def digest(self) -> str:
+        from ..pipeline import geometry_of
+
         m = self.cfg.model
-        return A.inputs_digest(system=m.system.model_dump(mode="json"), subject=m.subject.model_dump(mode="json"),
+        return A.inputs_digest(system=m.system.model_dump(mode="json"), subject=geometry_of(self.cfg)["subject"],
                                simulate=m.simulate.model_dump(mode="json"), renderer=self.RENDERER,
                                camera=self.camera_settings.model_dump(mode="json"),
                                projectors={k: v.model_dump(mode="json") for k, v in m.rig.projectors.items()})

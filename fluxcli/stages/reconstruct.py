@@ -583,7 +583,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     out = cfg.workdir / "reconstruction.h5"
     m_ = cfg.model
     sources = _image_sources(cfg)
-    digest = A.inputs_digest(system=m_.system.model_dump(mode="json"), subject=m_.subject.model_dump(mode="json"),
+    digest = A.inputs_digest(system=m_.system.model_dump(mode="json"), subject=geometry_of(cfg)["subject"],
                              transfer=m_.transfer.model_dump(mode="json"),
                              reconstruct=rc.model_dump(mode="json", by_alias=True), images=sources,
                              solver=SOLVER_VERSION)
@@ -703,6 +703,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
             if inp.truth is not None:
                 row += _vs_truth(joint.power, joint.observed, inp.truth)
             rows.append(row)
+        per_pose, joint, emission_lines = _emission_checks(f, placer, views, todo, per_pose, joint, inp, noise)
         _warnings(ctx, f, per_pose, joint, todo)
         summary = _total_summary(per_pose, joint, todo)
         f.attrs["totals_summary"] = json.dumps(summary)
@@ -716,9 +717,70 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     ctx.table(header, rows)
     ctx.say(f"{seconds:.2f} s of solving")
     export_3d(cfg, ctx, out)  # <workdir>/*.vtp for ParaView/pyvista, from the artefact
-    for line in summary:
+    for line in summary + emission_lines:
         ctx.say(line)
     return out
+
+
+def _emission_checks(f, placer, views, todo, per_pose, joint, inp, noise) -> tuple[list, object, list[str]]:
+    """Issue 21, item 2: per pose (and jointly) the share of the observed light seen beyond 60 and
+    75 deg from the normal, and whether the residual is structured by viewing angle
+    (:mod:`fluxcli.inverse.diagnostics`); stored under /emission, warnings added to the poses'."""
+    from ..inverse import diagnostics as D
+    from ..optics.emission import CHECK_DEG
+
+    prof = placer.emission
+    g = f.create_group("emission")
+    g.attrs["model"] = prof.model
+    g.attrs["description"] = prof.describe()
+    g.attrs["refractive_index"] = np.nan if prof.refractive_index is None else prof.refractive_index
+    g.attrs["table_file"] = prof.source or ""
+    deg = np.linspace(0.0, 90.0, 181)
+    g.create_dataset("angle_deg", data=deg)
+    g.create_dataset("relative_radiance", data=prof.radiance(np.radians(deg))).attrs["meaning"] = "L(theta) / L(0)"
+    weights = [v.weight for v in views]
+    centres = [v.camera.center_mm for v in views]
+    shares, slopes, out, seen_joint = [], [], [], []
+    for k, ((res, fitted), (scene, pt)) in enumerate(zip(per_pose, todo)):
+        Tv = [load_view(pt.path, v) for v in range(len(views))]
+        ang = D.element_angles(scene.surface, centres, prof.weight)
+        sh = D.grazing_shares(Tv, weights, res.power, ang)
+        px = D.pixel_angles(Tv, weights, res.power, ang)
+        model = np.nan_to_num(fitted.ravel())
+        st = D.angle_structure(inp.images[k].ravel(), model, noise.variance(model), px, inp.valid[k].ravel())
+        warns = tuple(w for w in (D.grazing_warning(sh), D.structure_warning(st, prof.describe())) if w)
+        out.append((replace(res, warnings=tuple(res.warnings) + warns), fitted) if warns else (res, fitted))
+        shares.append(sh)
+        slopes.append([np.nan, np.nan] if st is None else [st.slope_per_10deg, st.t])
+        if joint is not None:
+            seen_joint.append((Tv, ang))
+    pp = f["per_pose"]
+    pp.create_dataset("light_beyond_deg", data=np.array(shares)).attrs["bands_deg"] = np.array(D.BANDS_DEG)
+    pp["light_beyond_deg"].attrs["meaning"] = "share of the model image's light that left the surface beyond each angle"
+    pp.create_dataset("residual_vs_angle", data=np.array(slopes)).attrs["meaning"] = \
+        "relative residual change per 10 deg of emission angle, and its t value (NaN: not testable)"
+    lines = [f"emission model: {prof.describe()}"
+             + ("" if prof.is_lambertian else " (L/L0 " + ", ".join(
+                 f"{r:.2f} at {a:g} deg" for a, r in zip(CHECK_DEG[::2], prof.radiance(np.radians(CHECK_DEG[::2]))))
+                + ")")]
+    lines += [f"light seen at grazing angles, pose {pt.pose.label}: {D.describe_shares(sh)}"
+              for sh, (_, pt) in zip(shares, todo)]
+    if joint is not None:
+        tot = np.zeros(len(D.BANDS_DEG))
+        norm = 0.0
+        for Tv, ang in seen_joint:
+            one = D.grazing_shares(Tv, weights, joint.power, ang)
+            light = sum(w * float(np.asarray(T.sum(axis=0)).ravel() @ np.nan_to_num(joint.power)) for w, T in zip(weights, Tv))
+            if np.all(np.isfinite(one)):
+                tot += one * light
+                norm += light
+        js = tot / norm if norm > 0 else np.full(len(D.BANDS_DEG), np.nan)
+        g.create_dataset("joint_light_beyond_deg", data=js)
+        lines.append(f"light seen at grazing angles, all poses jointly: {D.describe_shares(js)}")
+        w = D.grazing_warning(js)
+        if w:
+            joint = replace(joint, warnings=tuple(joint.warnings) + (w,))
+    return out, joint, lines
 
 
 def _vs_truth(power, observed, truth) -> list[str]:

@@ -26,7 +26,8 @@ from ..imaging import noise as N
 from ..imaging.imagefiles import write_image
 from ..optics.transfer import ALGORITHM_VERSION
 from ..artefacts.transfer import load_T
-from ..pipeline import cache_dir, check_folders, check_memory, emccd_model, ensure_T, plan, provenance
+from ..pipeline import (cache_dir, check_folders, check_memory, emccd_model, ensure_T, geometry_of, plan,
+                        provenance)
 from .context import RunContext
 from .outputs import export_3d
 
@@ -73,7 +74,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     surface = placer.surface
     out = cfg.workdir / "simulation.h5"
     m = cfg.model
-    digest = A.inputs_digest(system=m.system.model_dump(mode="json"), subject=m.subject.model_dump(mode="json"),
+    digest = A.inputs_digest(system=m.system.model_dump(mode="json"), subject=geometry_of(cfg)["subject"],
                              surface=surface.digest(), transfer_fwd=tr_fwd.model_dump(mode="json"),
                              simulate=sim.model_dump(mode="json"), version=ALGORITHM_VERSION)
     if not ctx.force and A.is_up_to_date(out, "simulation", digest):

@@ -1,0 +1,178 @@
+"""Knowing when the emission model matters (issue 21, item 2): how much of the observed light
+was seen at grazing angles, and whether the fit's residual is structured by viewing angle.
+
+Emission angles come from the surface's geometry, not from the rays: per view and face, the
+angle between the face's outward normal and the line from its centroid to the (real or, for a
+mirror view, virtual) lens centre, which is the direction of the real ray leaving the face.
+Over the lens the angle varies by about atan(R / distance) (~1.5 deg for a 17 mm aperture at
+317 mm), well inside the 15 deg bands used here.  An element's column is split between angle
+bands by its faces' projected areas times the profile's weight (what each face sends to the
+lens, occlusion within the element neglected).
+
+Arrays and numbers only (no config, no printing).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+BANDS_DEG = (60.0, 75.0)
+# A warning when more than this share of a total's light was seen beyond 75 deg.  There the
+# emission model is least certain: Lambertian and diffuse(1.40) differ by 20-35 % per unit of
+# exitance (75-80 deg), diffusion theory and Monte Carlo by a few %, and surface roughness or a
+# wrong mesh normal moves the angle most where the profile is steepest.  A 20 % error on a 25 %
+# share moves the total by 5 %, the error budget of a reconstruction.
+GRAZING_SHARE_WARN = 0.25
+# The residual test warns only when the trend is both significant and large enough to matter:
+# |t| > 4 happens by chance in ~1 fit in 16000 (the t uses the chi-square-inflated error, so it is
+# conservative when the misfit has other causes too); 3 % is below what a wrong profile gives.
+STRUCTURE_T_WARN = 4.0
+STRUCTURE_EFFECT_WARN = 0.03  # relative residual change across the observed angle range
+
+
+def face_emission_cos(surface, center_mm: np.ndarray) -> np.ndarray:
+    """Cosine of the angle between each face's normal and the line from its centroid to
+    ``center_mm`` (a lens centre; for a mirror view the virtual one), shape (F,)."""
+    cen = surface.face_vertices_mm.mean(axis=1)
+    d = np.asarray(center_mm, float) - cen
+    return np.einsum("ij,ij->i", surface.face_normals, d) / np.linalg.norm(d, axis=1)
+
+
+@dataclass
+class ElementAngles:
+    """Per view and element: the power-weighted mean emission angle (deg, NaN when no face of
+    the element faces the lens) and the fraction of what it sends beyond each band."""
+
+    mean_deg: np.ndarray  # (V, E)
+    beyond: np.ndarray  # (V, E, len(BANDS_DEG))
+
+
+def element_angles(surface, centers_mm: list[np.ndarray], weight=None) -> ElementAngles:
+    """:class:`ElementAngles` of ``surface`` for lens centres ``centers_mm`` (one per view);
+    ``weight(cos)`` is the emission profile's ray weight (default Lambertian)."""
+    eof = surface.element_of_face
+    ok_face = eof >= 0
+    n_el = surface.n_elements
+    V = len(centers_mm)
+    mean = np.full((V, n_el), np.nan)
+    beyond = np.zeros((V, n_el, len(BANDS_DEG)))
+    area = surface.face_areas_mm2
+    for v, c in enumerate(centers_mm):
+        cs = face_emission_cos(surface, c)
+        front = ok_face & (cs > 0)
+        w_profile = weight(np.clip(cs, 0, 1)) if weight is not None else 1.0
+        w = np.where(front, area * np.clip(cs, 0, None) * w_profile, 0.0)
+        e = np.where(ok_face, eof, 0)
+        tot = np.bincount(e, weights=w, minlength=n_el)
+        deg = np.degrees(np.arccos(np.clip(cs, -1, 1)))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean[v] = np.where(tot > 0, np.bincount(e, weights=w * np.where(front, deg, 0.0), minlength=n_el) / tot,
+                               np.nan)
+            for b, lim in enumerate(BANDS_DEG):
+                beyond[v, :, b] = np.where(tot > 0, np.bincount(e, weights=w * (deg > lim), minlength=n_el) / tot, 0.0)
+    return ElementAngles(mean, beyond)
+
+
+def grazing_shares(T_views: list[sp.spmatrix], view_weights: list[float], power: np.ndarray,
+                   angles: ElementAngles) -> np.ndarray:
+    """Share of the light in the model image ``sum_v w_v T_v b`` that left its element beyond
+    each band angle (len(BANDS_DEG),); NaN when the model image is dark."""
+    b = np.nan_to_num(np.asarray(power, float), nan=0.0)
+    b = np.clip(b, 0.0, None)
+    tot = 0.0
+    beyond = np.zeros(len(BANDS_DEG))
+    for v, (Tv, wv) in enumerate(zip(T_views, view_weights)):
+        seen = wv * np.asarray(Tv.sum(axis=0)).ravel() * b  # per element, photons reaching the sensor
+        tot += seen.sum()
+        beyond += seen @ angles.beyond[v]
+    return beyond / tot if tot > 0 else np.full(len(BANDS_DEG), np.nan)
+
+
+def pixel_angles(T_views: list[sp.spmatrix], view_weights: list[float], power: np.ndarray,
+                 angles: ElementAngles) -> np.ndarray:
+    """Per pixel, the mean emission angle (deg) of the light the model image puts there
+    (weighted by that light); NaN where the model is dark."""
+    b = np.clip(np.nan_to_num(np.asarray(power, float), nan=0.0), 0.0, None)
+    num = 0.0
+    den = 0.0
+    for v, (Tv, wv) in enumerate(zip(T_views, view_weights)):
+        th = np.nan_to_num(angles.mean_deg[v], nan=0.0)
+        num = num + wv * (Tv @ (b * th))
+        den = den + wv * (Tv @ b)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 0, num / den, np.nan)
+
+
+@dataclass
+class AngleStructure:
+    """A weighted regression of the relative residual (measured - model) / model on the pixel's
+    emission angle: ``slope_per_10deg`` (relative), its t value, the change across the 10th-90th
+    percentile of the angles (``effect``, relative), that range (deg) and the pixels used."""
+
+    slope_per_10deg: float
+    t: float
+    effect: float
+    range_deg: tuple[float, float]
+    n_pixels: int
+
+    @property
+    def significant(self) -> bool:
+        return abs(self.t) > STRUCTURE_T_WARN and abs(self.effect) > STRUCTURE_EFFECT_WARN
+
+
+def angle_structure(measured: np.ndarray, model: np.ndarray, variance: np.ndarray, angle_deg: np.ndarray,
+                    valid: np.ndarray | None = None) -> AngleStructure | None:
+    """Is the residual structured by viewing angle?  Relative residuals ``e = (a - m) / m`` with
+    weights ``m^2 / var`` (their inverse variance) regressed on the angle; the slope's standard
+    error is inflated by the reduced chi-square when above 1, so that misfit not tied to the angle
+    (regularisation, a wrong noise model) does not read as structure.  None when too few pixels
+    or angles are too alike to test."""
+    a, m, var, x = (np.asarray(z, float).ravel() for z in (measured, model, variance, angle_deg))
+    ok = np.isfinite(a) & np.isfinite(m) & np.isfinite(var) & np.isfinite(x) & (m > 0) & (var > 0)
+    if valid is not None:
+        ok &= np.asarray(valid, bool).ravel()
+    if ok.sum() < 10:
+        return None
+    a, m, var, x = a[ok], m[ok], var[ok], x[ok]
+    e = (a - m) / m
+    w = m * m / var
+    order = np.argsort(x)
+    cw = np.cumsum(w[order]) / w.sum()
+    lo, hi = float(x[order][np.searchsorted(cw, 0.1)]), float(x[order][min(np.searchsorted(cw, 0.9), len(x) - 1)])
+    if hi - lo < 2.0:  # all the light seen from about one angle: nothing to regress on
+        return None
+    xm = np.sum(w * x) / w.sum()
+    em = np.sum(w * e) / w.sum()
+    sxx = np.sum(w * (x - xm) ** 2)
+    beta = np.sum(w * (x - xm) * (e - em)) / sxx
+    resid = e - em - beta * (x - xm)
+    chi2_red = max(1.0, float(np.sum(w * resid**2)) / max(len(x) - 2, 1))
+    se = np.sqrt(chi2_red / sxx)
+    return AngleStructure(float(10 * beta), float(beta / se), float(beta * (hi - lo)), (lo, hi), int(len(x)))
+
+
+def describe_shares(shares: np.ndarray) -> str:
+    return ", ".join(f"{s:.0%} beyond {b:g} deg" for s, b in zip(shares, BANDS_DEG))
+
+
+def grazing_warning(shares: np.ndarray) -> str | None:
+    """A warning when a large share of the observed light was seen beyond 75 deg."""
+    s75 = float(shares[BANDS_DEG.index(75.0)])
+    if np.isfinite(s75) and s75 > GRAZING_SHARE_WARN:
+        return (f"{s75:.0%} of the observed light left the surface beyond 75 deg from its normal, where the emission "
+                "model is least certain (Lambertian and diffuse differ by 20-35 % there): the total rests on grazing "
+                "views; add a pose or a mirror that sees the subject more head-on, or check subject.emission.")
+    return None
+
+
+def structure_warning(st: AngleStructure | None, emission_name: str) -> str | None:
+    if st is None or not st.significant:
+        return None
+    lo, hi = st.range_deg
+    more = "more" if st.effect > 0 else "less"
+    return (f"the fit's residual is structured by viewing angle: the images hold {abs(st.effect):.1%} {more} light "
+            f"at {hi:.0f} deg from the normal than at {lo:.0f} deg, relative to the model (t = {st.t:.1f}); the "
+            f"emission model ({emission_name}) may not describe this surface (subject.emission).")

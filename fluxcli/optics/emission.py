@@ -1,0 +1,281 @@
+"""How light leaves the surface: the angular emission profile p(theta) of the forward model.
+
+Radiance leaving a surface point is ``L(r, theta) = M(r) p(theta)`` (M the exitance), with p
+normalised so that ``integral of p(theta) cos(theta) dOmega = 1`` over the outer hemisphere
+(Lambertian: p = 1/pi).  An element's power is then unchanged, and a column of T stays the
+fraction of the element's power that reaches each pixel; every ray of the T estimators is
+weighted by ``pi p(theta_s)`` (:meth:`Profile.weight`), theta_s the angle at the real surface
+between its outward normal and the ray leaving it.
+
+Profiles (docs/design.md, "Emission"):
+
+``lambertian``
+    p = 1/pi, ray weight 1 (the estimators keep their old arithmetic: T to the bit).
+``diffuse(n)``
+    a turbid medium of refractive index n behind a smooth surface, into air: the diffusion-theory
+    radiance at the boundary inside, ``L_in(mu') ~ phi/4pi + 3 J mu'/4pi`` with the Robin
+    (partial-current) boundary ``J = phi / 2A``, A from the exact partial-current integrals of the
+    unpolarised Fresnel reflectance (Haskell et al. 1994), carried out through the surface by
+    Fresnel transmission at the internal angle theta' (sin theta = n sin theta') and the n^2
+    change of radiance; then normalised.
+``table``
+    a measured or computed curve (angle from the normal in degrees, or cos theta) -> relative
+    radiance, interpolated linearly and normalised.
+
+Arrays and numbers only: no config, no files, no printing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+N_TABLE = 4097  # ray weights are tabulated on mu = cos(theta) = k / (N_TABLE - 1), linear in between
+CHECK_DEG = (30.0, 45.0, 60.0, 70.0, 75.0, 80.0)  # where reports and notices quote the curve
+
+
+# ------------------------------------------------------------------ Fresnel and the boundary
+def fresnel_reflectance(cos_inside: np.ndarray, n: float) -> np.ndarray:
+    """Unpolarised Fresnel reflectance of light inside a medium of index ``n`` meeting its
+    boundary with air at the angle whose cosine is ``cos_inside`` (1 beyond the critical angle)."""
+    ci = np.clip(np.asarray(cos_inside, float), 0.0, 1.0)
+    if n == 1.0:  # no interface (even at grazing incidence)
+        return np.zeros_like(ci)
+    st = n * np.sqrt(np.maximum(1.0 - ci * ci, 0.0))  # sine of the refracted angle, in air
+    out = np.ones_like(ci)
+    ok = st < 1.0
+    ct = np.sqrt(1.0 - st[ok] ** 2)
+    c = ci[ok]
+    rs = (n * c - ct) / (n * c + ct)
+    rp = (n * ct - c) / (n * ct + c)
+    out[ok] = 0.5 * (rs * rs + rp * rp)
+    return out
+
+
+def _gauss_legendre(a: float, b: float, m: int = 200) -> tuple[np.ndarray, np.ndarray]:
+    x, w = np.polynomial.legendre.leggauss(m)
+    return 0.5 * (b - a) * x + 0.5 * (b + a), 0.5 * (b - a) * w
+
+
+def boundary_A(n: float) -> float:
+    """The Robin boundary coefficient A of diffusion theory (``phi = 2 A J_n`` at the surface)
+    from the exact partial-current integrals of the Fresnel reflectance (Haskell et al. 1994,
+    JOSA A 11:2727, eqs. 2.9-2.13): ``R_phi = int_0^1 2 mu R(mu) dmu``, ``R_J = int_0^1 3 mu^2
+    R(mu) dmu``, ``R_eff = (R_phi + R_J) / (2 - R_phi + R_J)``, ``A = (1 + R_eff) / (1 - R_eff)``.
+    R jumps to 1 at the critical angle, so each side of it is integrated by Gauss-Legendre
+    (exact to ~1e-12).  A = 1 for n = 1."""
+    if not n >= 1.0:
+        raise ValueError(f"refractive index must be >= 1, got {n}")
+    if n == 1.0:
+        return 1.0
+    mu_c = np.sqrt(1.0 - 1.0 / n**2)  # cosine of the critical angle
+    r_phi = r_j = 0.0
+    for a, b in ((0.0, mu_c), (mu_c, 1.0)):
+        x, w = _gauss_legendre(a, b)
+        r = fresnel_reflectance(x, n)
+        r_phi += float(np.sum(w * 2 * x * r))
+        r_j += float(np.sum(w * 3 * x * x * r))
+    r_eff = (r_phi + r_j) / (2 - r_phi + r_j)
+    return (1 + r_eff) / (1 - r_eff)
+
+
+def diffuse_radiance(cos_theta: np.ndarray, n: float) -> np.ndarray:
+    """Radiance leaving a diffusive medium of index ``n`` into air at the angle whose cosine is
+    ``cos_theta`` (outside), unnormalised: ``T_F(theta') (1 + 3 mu' / 2A)`` with
+    ``cos theta' = mu' = sqrt(1 - sin^2 theta / n^2)``; the constant factors (phi/4pi, 1/n^2)
+    drop out when normalised."""
+    mu = np.clip(np.asarray(cos_theta, float), 0.0, 1.0)
+    mu_in = np.sqrt(1.0 - (1.0 - mu * mu) / n**2)
+    return (1.0 - fresnel_reflectance(mu_in, n)) * (1.0 + 3.0 * mu_in / (2.0 * boundary_A(n)))
+
+
+# ------------------------------------------------------------------ the profile
+@dataclass(frozen=True)
+class Profile:
+    """An emission profile: ray weights ``pi p`` tabulated on mu = cos(theta) in [0, 1].
+
+    ``table`` is empty for ``lambertian`` (weight 1 exactly: the estimators skip the
+    multiplication); else (N_TABLE,) float64, ``table[k] = pi p(mu_k)``, mu_k = k/(N_TABLE-1),
+    normalised so that ``2 int_0^1 weight(mu) mu dmu = 1`` (the trapezoid rule on the table's
+    own linear interpolant: the estimators integrate exactly that function).
+    """
+
+    model: str
+    table: np.ndarray = field(repr=False)
+    refractive_index: float | None = None
+    source: str | None = None  # a table's file name, for reports
+
+    @property
+    def is_lambertian(self) -> bool:
+        return len(self.table) == 0
+
+    def weight(self, cos_theta) -> np.ndarray:
+        """The ray weight ``pi p(theta)`` at ``cos_theta`` (0 for cos <= 0, behind the surface)."""
+        mu = np.asarray(cos_theta, float)
+        if self.is_lambertian:
+            return np.where(mu > 0, 1.0, 0.0)
+        return np.where(mu > 0, interp_weight(self.table, np.clip(mu, 0.0, 1.0)), 0.0)
+
+    def radiance(self, theta_rad) -> np.ndarray:
+        """Radiance relative to its value along the normal, L(theta)/L(0)."""
+        return self.weight(np.cos(np.asarray(theta_rad, float))) / float(self.weight(1.0))
+
+    def p(self, cos_theta) -> np.ndarray:
+        """p(theta) itself (1/sr): ``weight / pi``."""
+        return self.weight(cos_theta) / np.pi
+
+    def key(self) -> dict | None:
+        """What the T cache key and the geometry digest record: None for Lambertian (their keys
+        are then what they were before emission profiles existed), else the model and the
+        SHA-256 of the weight table (a table file is keyed by its numbers, not its path)."""
+        if self.is_lambertian:
+            return None
+        import hashlib
+
+        out = {"model": self.model, "weights_sha256": hashlib.sha256(self.table.tobytes()).hexdigest()}
+        if self.refractive_index is not None:
+            out["refractive_index"] = float(self.refractive_index)
+        return out
+
+    def describe(self) -> str:
+        if self.model == "diffuse":
+            return f"diffuse (refractive index {self.refractive_index:g})"
+        if self.model == "table":
+            return f"table ({self.source})" if self.source else "table"
+        return "lambertian"
+
+
+def interp_weight(table: np.ndarray, mu: np.ndarray) -> np.ndarray:
+    """Linear interpolation of a weight table at mu in [0, 1], the same arithmetic the numba
+    kernel uses (:func:`fluxcli.optics.transfer_kernel.emission_weight`)."""
+    n = len(table)
+    t = np.asarray(mu, float) * (n - 1)
+    i = np.minimum(t.astype(np.int64), n - 2)
+    f = t - i
+    return table[i] + (table[i + 1] - table[i]) * f
+
+
+def _normalised(values: np.ndarray) -> np.ndarray:
+    """Scale a non-negative curve on the mu grid so that ``2 int_0^1 f(mu) mu dmu = 1`` for its
+    linear interpolant (exact: per interval, int of a linear f times mu)."""
+    mu = np.linspace(0.0, 1.0, len(values))
+    h = mu[1] - mu[0]
+    a, b = values[:-1], values[1:]
+    m0, m1 = mu[:-1], mu[1:]
+    # int over [m0, m1] of (a (m1 - x) + b (x - m0)) / h * x dx
+    integral = np.sum(h * (a * (2 * m0 + m1) + b * (m0 + 2 * m1)) / 6.0)
+    if not integral > 0:
+        raise ValueError("the profile emits nothing (zero everywhere)")
+    return np.ascontiguousarray(values / (2.0 * integral))
+
+
+def lambertian() -> Profile:
+    return Profile("lambertian", np.zeros(0))
+
+
+def diffuse(refractive_index: float = 1.40) -> Profile:
+    n = float(refractive_index)
+    if not (np.isfinite(n) and n >= 1.0):
+        raise ValueError(f"refractive index must be a number >= 1, got {refractive_index}")
+    mu = np.linspace(0.0, 1.0, N_TABLE)
+    return Profile("diffuse", _normalised(diffuse_radiance(mu, n)), refractive_index=n)
+
+
+def table(x, radiance, *, unit: str = "deg", source: str | None = None) -> Profile:
+    """A tabulated profile: ``x`` angles from the normal in degrees (``unit="deg"``) or cos theta
+    (``unit="cos"``), ``radiance`` relative radiance (any scale).  Linear in the given variable
+    between points, constant beyond the first and last.  ValueError says what is wrong."""
+    x = np.asarray(x, float)
+    r = np.asarray(radiance, float)
+    if x.ndim != 1 or r.shape != x.shape or len(x) < 2:
+        raise ValueError("needs at least two rows of (angle, radiance)")
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(r))):
+        raise ValueError("holds a value that is not a finite number")
+    if np.any(r < 0):
+        raise ValueError(f"holds a negative radiance ({r.min():g})")
+    if unit == "deg":
+        if x.min() < 0 or x.max() > 90:
+            raise ValueError(f"angles must lie in 0..90 degrees from the normal (got {x.min():g}..{x.max():g})")
+        if not np.all(np.diff(x) > 0):
+            raise ValueError("angles must increase strictly from row to row")
+    elif unit == "cos":
+        if x.min() < 0 or x.max() > 1:
+            raise ValueError(f"cos theta must lie in 0..1 (got {x.min():g}..{x.max():g})")
+        if not (np.all(np.diff(x) > 0) or np.all(np.diff(x) < 0)):
+            raise ValueError("cos theta must be strictly monotone from row to row")
+        order = np.argsort(x)
+        x, r = x[order], r[order]
+    else:
+        raise ValueError(f"unit must be 'deg' or 'cos', got {unit!r}")
+    mu = np.linspace(0.0, 1.0, N_TABLE)
+    if unit == "deg":  # linear in the angle, as given
+        vals = np.interp(np.degrees(np.arccos(mu)), x, r)
+    else:
+        vals = np.interp(mu, x, r)
+    if not vals[-1] > 0:
+        raise ValueError("the radiance along the normal (0 degrees) must be > 0")
+    return Profile("table", _normalised(vals), source=source)
+
+
+def read_table_csv(path) -> tuple[np.ndarray, np.ndarray, str]:
+    """Read a profile CSV: a header row whose first column is ``angle_deg`` (angle from the normal,
+    degrees) or ``cos_theta``, second the relative radiance; then one row per angle.  Returns
+    (x, radiance, unit); ValueError says what is wrong (the caller names the file)."""
+    import csv
+
+    with open(path, newline="") as fh:
+        rows = [row for row in csv.reader(fh) if row and not row[0].lstrip().startswith("#")]
+    if not rows:
+        raise ValueError("is empty")
+    head = [c.strip().lower() for c in rows[0]]
+    if len(head) < 2 or head[0] not in ("angle_deg", "cos_theta"):
+        raise ValueError("must start with a header row 'angle_deg,radiance' or 'cos_theta,radiance'")
+    unit = "deg" if head[0] == "angle_deg" else "cos"
+    x, r = [], []
+    for k, row in enumerate(rows[1:], start=2):
+        if len(row) < 2:
+            raise ValueError(f"row {k} has {len(row)} column(s); two are needed")
+        try:
+            x.append(float(row[0]))
+            r.append(float(row[1]))
+        except ValueError:
+            raise ValueError(f"row {k} holds {row[0]!r}, {row[1]!r}, which are not both numbers") from None
+    return np.array(x), np.array(r), unit
+
+
+def profile(model) -> Profile:
+    """The profile of an emission setting: None (Lambertian), a mapping or an object with
+    ``model`` ('lambertian', 'diffuse' with ``refractive_index``, 'table' with ``file`` (a path
+    already resolved) or ``angles``/``radiance`` arrays)."""
+    if model is None:
+        return lambertian()
+    if isinstance(model, Profile):
+        return model
+
+    def get(key, default=None):
+        return model.get(key, default) if isinstance(model, dict) else getattr(model, key, default)
+
+    kind = get("model", "lambertian")
+    if kind == "lambertian":
+        return lambertian()
+    if kind == "diffuse":
+        return diffuse(get("refractive_index", 1.40))
+    if kind == "table":
+        f = get("file")
+        if f is not None:
+            x, r, unit = read_table_csv(f)
+            from pathlib import Path
+
+            return table(x, r, unit=unit, source=Path(f).name)
+        return table(get("angles"), get("radiance"), unit=get("unit", "deg"))
+    raise ValueError(f"unknown emission model {kind!r} (lambertian, diffuse or table)")
+
+
+def share_beyond(weights: np.ndarray, cos_theta: np.ndarray, degrees: float) -> float:
+    """The share of ``weights`` whose emission angle exceeds ``degrees`` (NaN when none)."""
+    w = np.asarray(weights, float)
+    tot = float(np.sum(w))
+    if not tot > 0:
+        return float("nan")
+    return float(np.sum(w[np.asarray(cos_theta) < np.cos(np.radians(degrees))])) / tot
