@@ -31,7 +31,7 @@ from ..imaging import noise as N
 from ..imaging.imagefiles import read_image, sample_type
 from ..artefacts.transfer import load_T, load_view
 from ..inverse import backprojection, error_l1, reconstruct as solve, total_ratio
-from ..pipeline import check_folders, check_memory, emccd_model, ensure_T, geometry_of, plan, provenance
+from ..pipeline import check_folders, check_memory, emccd_model, ensure_T, geometry_of, plan, provenance, without_emission
 from ..workers import blas_threads, pool_for
 from ..imaging.sensor_maps import counts_to_photons_with_maps
 from ._radiometric import read_radiometric_maps
@@ -112,7 +112,10 @@ def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int, surface_sha2
         return _image_files(cfg, n_poses, poses)
     path = _simulation(cfg)
     with A.open_artefact(path, "simulation") as f:
-        A.check_geometry(path, A.read_provenance(f), geometry_of(cfg, surface_sha256),
+        now = geometry_of(cfg, surface_sha256)
+        if f["truth"].attrs.get("kind") == "montecarlo":  # photons assume no emission model: any one may read them
+            now = without_emission(now)
+        A.check_geometry(path, A.read_provenance(f), now,
                          remedy=f"Run 'fluxmap simulate {cfg.path}' again, or reconstruct with the config it was made with")
         power = f["truth/power"][()]
         if len(power) != n_elements:

@@ -27,7 +27,7 @@ from ..imaging.imagefiles import write_image
 from ..optics.transfer import ALGORITHM_VERSION
 from ..artefacts.transfer import load_T
 from ..pipeline import (cache_dir, check_folders, check_memory, emccd_model, ensure_T, geometry_of, plan,
-                        provenance)
+                        provenance, without_emission)
 from .context import RunContext
 from .outputs import export_3d
 
@@ -198,7 +198,8 @@ def _run_montecarlo(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     scenes = [placer.scene(p, m.system) for p in poses]
     surface = placer.surface
     out = cfg.workdir / "simulation.h5"
-    digest = A.inputs_digest(system=m.system.model_dump(mode="json"), subject=m.subject.model_dump(mode="json"),
+    digest = A.inputs_digest(system=m.system.model_dump(mode="json"),
+                             subject=m.subject.model_dump(mode="json", exclude={"emission"}),
                              surface=surface.digest(), simulate=sim.model_dump(mode="json"),
                              transfer_offset=m.transfer.ray_offset_mm, version=ALGORITHM_VERSION, montecarlo=1)
     if not ctx.force and A.is_up_to_date(out, "simulation", digest):
@@ -215,6 +216,7 @@ def _run_montecarlo(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     P, ny, nx = mc.images.shape
     clean = mc.images.astype(np.float32)[None]
     prov = provenance(cfg, surface.digest())
+    prov.geometry = without_emission(prov.geometry)  # the photons assume no emission model
     with A.write_artefact(out, "simulation", config_sha256=cfg.sha256, inputs={}, provenance=prov) as f:
         f.attrs["inputs_digest"] = digest
         A.write_surface(f.create_group("surface"), surface)
