@@ -77,7 +77,7 @@ def config(name: str, model: str, n_photons: int, seed: int) -> dict:
     surface, n, src, rotations, mirrors = CASES[name]
     emission = {"model": "diffuse", "refractive_index": n} if model == "diffuse" else {"model": "lambertian"}
     return {
-        "workdir": f"../../runs/accuracy_mc/{name}",
+        "workdir": f"../{name}",  # beside configs/
         "system": {"camera": copy.deepcopy(CAMERA), "mirrors": copy.deepcopy(MIRRORS) if mirrors else [],
                    "stage": {"top_z_mm": STAGE_TOP_MM, "size_mm": [100, 34], "thickness_mm": 5}},
         "subject": {"surface": dict(surface), "poses": {"rotations_deg": list(rotations)}, "emission": emission},
