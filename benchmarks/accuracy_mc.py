@@ -110,6 +110,20 @@ def summarise(path: Path) -> dict:
     return out
 
 
+def forward_check(cfg_path: Path, sim_path: Path) -> list[float]:
+    """Per pose: the photons in the Monte Carlo image over the image the model predicts from the
+    true power per element, sum(T b_true) with the T that reconstruct used (this config's
+    emission model). Near 1 for the right emission model, whatever the reconstruction does."""
+    from fluxcli.artefacts.transfer import load_T
+    from fluxcli.config import load_config
+    from fluxcli.pipeline import plan
+
+    _, _, todo = plan(load_config(cfg_path))
+    with h5py.File(sim_path) as f:
+        truth, img = f["truth/power"][()], f["images/noisy"][0, 0]
+    return [float(img[k].sum() / (load_T(pt.path) @ truth).sum()) for k, (_, pt) in enumerate(todo)]
+
+
 def run_case(name: str, n_photons: int, seed: int) -> dict:
     folder = OUT / "configs"
     folder.mkdir(parents=True, exist_ok=True)
@@ -126,6 +140,7 @@ def run_case(name: str, n_photons: int, seed: int) -> dict:
         kept = OUT / name / f"reconstruction-{model}.h5"
         (OUT / name / "reconstruction.h5").replace(kept)
         res = summarise(kept)
+        res["image_over_model"] = forward_check(p, OUT / name / "simulation.h5")
         res["warnings"] = [ln for ln in text.splitlines() if "warning" in ln.lower()]
         res["photons_in_images"] = imaged.tolist()
         results[model] = res
@@ -153,6 +168,9 @@ def report(name: str, res: dict) -> bool:
             ok &= bars
             print(f"{'':<11} issue bars over observed elements (totals within 2 %, spread <= 2 %, error <= 5 %, "
                   f"each pose and joint): {'MET' if bars else 'NOT MET'}")
+    for model in MODELS:
+        print(f"{model:<11} photons imaged / sum(T b_true) per pose: "
+              + " ".join(f"{x:.3f}" for x in res[model]["image_over_model"]))
     for model in MODELS:
         for w in res[model]["warnings"][:6]:
             print(f"  [{model}] {w.strip()}")
