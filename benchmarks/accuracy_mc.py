@@ -51,6 +51,7 @@ MIRRORS = [  # two 45-degree mirrors beside the subject, as in the paper's rig
 ]
 BOX = {"phantom": "box", "size_mm": [30, 40, 20], "element_mm": 4.0}
 CYLINDER = {"phantom": "cylinder", "radius_mm": 12.5, "length_mm": 50, "n_angular": 20, "n_axial": 12}
+CYLINDER_FINE = {**CYLINDER, "n_angular": 40}  # facets half as wide: the mesh's normals nearer the true ones
 TISSUE = {"mua_per_mm": 0.01, "mus_per_mm": 1.0, "g": 0.0}
 
 # name -> (surface, refractive index, source in the phantom's own frame (mm), rotations, mirrors)
@@ -62,6 +63,7 @@ CASES = {
     "box-n1.56-shallow2": (BOX, 1.56, [-4.0, 3.0, 8.0], [-45, 0, 45], False),
     "cylinder-direct": (CYLINDER, 1.40, [5.0, 0.0, 7.5], [-90, -45, 0, 45, 90], False),
     "cylinder-mirrors-deep8": (CYLINDER, 1.37, [0.0, 0.0, 4.5], [-60, 0, 60], True),
+    "cylinder-direct-40-facets": (CYLINDER_FINE, 1.40, [5.0, 0.0, 7.5], [-90, -45, 0, 45, 90], False),
 }
 MODELS = ("diffuse", "lambertian")
 
