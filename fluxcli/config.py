@@ -1058,7 +1058,7 @@ def _format_validation_error(err: ValidationError, path: Path, raw: Any = None) 
 # pydantic puts union member names into error locations; they are not keys the user wrote.
 _UNION_TAGS = {"cylinder", "ring", "sphere", "patch", "MeshSurface", "ArtefactSurface",
                "gaussian", "uniform", "file", "diffusion", "float", "literal['auto']",
-               "function-after[_check(), Lens]", "ImageFiles", "CaptureSource", "tagged-union[CylinderPhantom,RingPhantom,SpherePhantom,PatchPhantom]"}
+               "function-after[_check(), Lens]", "ImageFiles", "CaptureSource", "tagged-union[CylinderPhantom,BoxPhantom,RingPhantom,SpherePhantom,PatchPhantom]"}
 
 
 def _camera_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
