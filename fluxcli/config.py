@@ -1164,7 +1164,7 @@ def emission_profile(cfg: "LoadedConfig"):
         if not f.is_file():
             raise UserError(f"config {cfg.path}: 'subject.emission.file': {f} does not exist.")
         try:
-            return E.profile({"model": "table", "file": f})
+            return E.table_from_csv(f.read_text(), source=f.name)
         except (ValueError, OSError, UnicodeDecodeError) as e:
             raise UserError(f"config {cfg.path}: 'subject.emission.file': {f} {e}.") from None
     try:

@@ -144,7 +144,7 @@ def provenance(cfg: LoadedConfig, surface_sha256: str | None = None) -> A.Proven
 
 EMISSION_NOTICE = ("subject.emission is not set: the surface is taken as Lambertian. Light leaving tissue or a turbid "
                    "phantom is better described by subject.emission: {model: diffuse, refractive_index: 1.40} (read as "
-                   "Lambertian it is ~10 % too bright head-on and ~40 % too dim at 80 deg from the normal; "
+                   "Lambertian it is ~11 % too bright head-on and ~37 % too dim at 80 deg from the normal; "
                    "docs/design.md, Emission).")
 
 

@@ -84,4 +84,11 @@ def test_grazing_shares_follow_the_geometry(rig):
     T80 = build_transfer(patch, cam_views).T_per_view
     s80 = D.grazing_shares(T80, [1.0], np.ones(1), a80)
     assert s80 == pytest.approx([1.0, 1.0])
+    assert D.total_shares(T80, [1.0], np.ones(1), a80) == pytest.approx([1.0, 1.0])
+    # the cylinder's total: elements weighted by the grazing share of their own collected light
+    tot = D.total_shares(res.T_per_view, [v.weight for v in views], np.ones(surf.n_elements), ang)
+    col = np.array([w * np.asarray(T.sum(axis=0)).ravel() for w, T in zip([v.weight for v in views], res.T_per_view)])
+    seen = col.sum(axis=0) > 0
+    f75 = (col * ang.beyond[:, :, 1]).sum(axis=0)[seen] / col.sum(axis=0)[seen]
+    assert tot[1] == pytest.approx(f75.mean(), rel=1e-12)  # equal powers: the plain mean over seen elements
     assert D.grazing_warning(s80) is not None and D.grazing_warning(np.array([0.5, 0.2])) is None

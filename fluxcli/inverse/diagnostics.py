@@ -20,11 +20,14 @@ import numpy as np
 import scipy.sparse as sp
 
 BANDS_DEG = (60.0, 75.0)
-# A warning when more than this share of a total's light was seen beyond 75 deg.  There the
-# emission model is least certain: Lambertian and diffuse(1.40) differ by 20-35 % per unit of
-# exitance (75-80 deg), diffusion theory and Monte Carlo by a few %, and surface roughness or a
-# wrong mesh normal moves the angle most where the profile is steepest.  A 20 % error on a 25 %
-# share moves the total by 5 %, the error budget of a reconstruction.
+# A warning when more than this share of a total rests on elements seen beyond 75 deg.  There
+# the emission model is least certain even when it is the right one: diffuse(1.40) falls by
+# ~5 % per degree at 80 deg, so a mesh normal off by 2-3 deg (a captured surface, a faceted
+# phantom) moves an element's value by 10-15 %, and diffusion theory itself is 2-4 % off the
+# Monte Carlo photons there; Lambertian and diffuse differ by 20-60 % (75-85 deg).  With 25 %
+# of the total resting there, a 15-20 % error moves the total by 4-5 %, the error budget of a
+# reconstruction.  The share is computed with the model's own b: a wrong model that underrates
+# grazing light (Lambertian on tissue) understates it too.
 GRAZING_SHARE_WARN = 0.25
 # The residual test warns only when the trend is both significant and large enough to matter:
 # |t| > 4 happens by chance in ~1 fit in 16000 (the t uses the chi-square-inflated error, so it is
@@ -89,6 +92,26 @@ def grazing_shares(T_views: list[sp.spmatrix], view_weights: list[float], power:
         tot += seen.sum()
         beyond += seen @ angles.beyond[v]
     return beyond / tot if tot > 0 else np.full(len(BANDS_DEG), np.nan)
+
+
+def total_shares(T_views: list[sp.spmatrix], view_weights: list[float], power: np.ndarray,
+                 angles: ElementAngles) -> np.ndarray:
+    """Share of the reconstructed total ``sum_j b_j`` that rests on grazing views: each element's
+    power weighted by the fraction of its collected light (all views) that left it beyond each
+    band angle, (len(BANDS_DEG),).  An element seen only at 80 deg counts whole: its value comes
+    from the emission model at 80 deg alone, however little light reached the camera."""
+    b = np.clip(np.nan_to_num(np.asarray(power, float), nan=0.0), 0.0, None)
+    seen = np.zeros(len(b))
+    beyond = np.zeros((len(b), len(BANDS_DEG)))
+    for v, (Tv, wv) in enumerate(zip(T_views, view_weights)):
+        col = wv * np.asarray(Tv.sum(axis=0)).ravel()
+        seen += col
+        beyond += col[:, None] * angles.beyond[v]
+    ok = seen > 0
+    tot = b[ok].sum()
+    if not tot > 0:
+        return np.full(len(BANDS_DEG), np.nan)
+    return (b[ok] @ (beyond[ok] / seen[ok, None])) / tot
 
 
 def pixel_angles(T_views: list[sp.spmatrix], view_weights: list[float], power: np.ndarray,
@@ -158,13 +181,14 @@ def describe_shares(shares: np.ndarray) -> str:
     return ", ".join(f"{s:.0%} beyond {b:g} deg" for s, b in zip(shares, BANDS_DEG))
 
 
-def grazing_warning(shares: np.ndarray) -> str | None:
-    """A warning when a large share of the observed light was seen beyond 75 deg."""
-    s75 = float(shares[BANDS_DEG.index(75.0)])
+def grazing_warning(total_shares: np.ndarray) -> str | None:
+    """A warning when a large share of the total rests on views beyond 75 deg
+    (:func:`total_shares`)."""
+    s75 = float(total_shares[BANDS_DEG.index(75.0)])
     if np.isfinite(s75) and s75 > GRAZING_SHARE_WARN:
-        return (f"{s75:.0%} of the observed light left the surface beyond 75 deg from its normal, where the emission "
-                "model is least certain (Lambertian and diffuse differ by 20-35 % there): the total rests on grazing "
-                "views; add a pose or a mirror that sees the subject more head-on, or check subject.emission.")
+        return (f"{s75:.0%} of the total rests on elements seen beyond 75 deg from their normal, where the emission "
+                "model is least certain (Lambertian and diffuse differ by 20-35 % there): add a pose or a mirror "
+                "that sees them more head-on, or check subject.emission.")
     return None
 
 

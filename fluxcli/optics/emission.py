@@ -91,7 +91,7 @@ def diffuse_radiance(cos_theta: np.ndarray, n: float) -> np.ndarray:
 
 
 # ------------------------------------------------------------------ the profile
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # eq would compare arrays
 class Profile:
     """An emission profile: ray weights ``pi p`` tabulated on mu = cos(theta) in [0, 1].
 
@@ -208,6 +208,9 @@ def table(x, radiance, *, unit: str = "deg", source: str | None = None) -> Profi
         x, r = x[order], r[order]
     else:
         raise ValueError(f"unit must be 'deg' or 'cos', got {unit!r}")
+    if not r.max() > 0:
+        raise ValueError("the profile emits nothing (zero everywhere)")
+    r = r / r.max()  # any scale: 1e-320 or 1e308 as well as 1
     mu = np.linspace(0.0, 1.0, N_TABLE)
     if unit == "deg":  # linear in the angle, as given
         vals = np.interp(np.degrees(np.arccos(mu)), x, r)
@@ -218,20 +221,20 @@ def table(x, radiance, *, unit: str = "deg", source: str | None = None) -> Profi
     return Profile("table", _normalised(vals), source=source)
 
 
-def read_table_csv(path) -> tuple[np.ndarray, np.ndarray, str]:
-    """Read a profile CSV: a header row whose first column is ``angle_deg`` (angle from the normal,
-    degrees) or ``cos_theta``, second the relative radiance; then one row per angle.  Returns
-    (x, radiance, unit); ValueError says what is wrong (the caller names the file)."""
+def table_from_csv(text: str, source: str | None = None) -> Profile:
+    """A tabulated profile from the text of a CSV: a header row whose first column is
+    ``angle_deg`` (angle from the normal, degrees) or ``cos_theta``, the second the relative
+    radiance; then one row per angle (lines starting with # are skipped).  ValueError says
+    what is wrong (the caller names the file)."""
     import csv
+    import io
 
-    with open(path, newline="") as fh:
-        rows = [row for row in csv.reader(fh) if row and not row[0].lstrip().startswith("#")]
+    rows = [row for row in csv.reader(io.StringIO(text)) if row and not row[0].lstrip().startswith("#")]
     if not rows:
         raise ValueError("is empty")
     head = [c.strip().lower() for c in rows[0]]
     if len(head) < 2 or head[0] not in ("angle_deg", "cos_theta"):
         raise ValueError("must start with a header row 'angle_deg,radiance' or 'cos_theta,radiance'")
-    unit = "deg" if head[0] == "angle_deg" else "cos"
     x, r = [], []
     for k, row in enumerate(rows[1:], start=2):
         if len(row) < 2:
@@ -241,13 +244,14 @@ def read_table_csv(path) -> tuple[np.ndarray, np.ndarray, str]:
             r.append(float(row[1]))
         except ValueError:
             raise ValueError(f"row {k} holds {row[0]!r}, {row[1]!r}, which are not both numbers") from None
-    return np.array(x), np.array(r), unit
+    return table(x, r, unit="deg" if head[0] == "angle_deg" else "cos", source=source)
 
 
 def profile(model) -> Profile:
     """The profile of an emission setting: None (Lambertian), a mapping or an object with
-    ``model`` ('lambertian', 'diffuse' with ``refractive_index``, 'table' with ``file`` (a path
-    already resolved) or ``angles``/``radiance`` arrays)."""
+    ``model`` ('lambertian', 'diffuse' with ``refractive_index``, 'table' with ``angles`` (deg,
+    or cos theta with ``unit: cos``) and ``radiance`` arrays; a table file is read by the
+    caller, :func:`table_from_csv`)."""
     if model is None:
         return lambertian()
     if isinstance(model, Profile):
@@ -262,12 +266,6 @@ def profile(model) -> Profile:
     if kind == "diffuse":
         return diffuse(get("refractive_index", 1.40))
     if kind == "table":
-        f = get("file")
-        if f is not None:
-            x, r, unit = read_table_csv(f)
-            from pathlib import Path
-
-            return table(x, r, unit=unit, source=Path(f).name)
         return table(get("angles"), get("radiance"), unit=get("unit", "deg"))
     raise ValueError(f"unknown emission model {kind!r} (lambertian, diffuse or table)")
 

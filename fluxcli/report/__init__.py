@@ -209,6 +209,8 @@ def _load_emission(f) -> dict:
             "bands_deg": pp["light_beyond_deg"].attrs["bands_deg"] if "light_beyond_deg" in pp else None,
             "light_beyond_per_pose": _opt(pp, "light_beyond_deg"),
             "light_beyond_joint": _opt(g, "joint_light_beyond_deg"),
+            "total_beyond_per_pose": _opt(pp, "total_beyond_deg"),
+            "total_beyond_joint": _opt(g, "joint_total_beyond_deg"),
             "residual_vs_angle_per_pose": _opt(pp, "residual_vs_angle")}
 
 
@@ -621,7 +623,7 @@ def _emission_section(page, save, study: Study, summary: dict, labels: list[str]
         + ", ".join(f"{v:.2f} at {a:g}°" for a, v in zip(at, vals))
         + (" (Lambertian: 1 everywhere)." if em["model"] != "lambertian" else ".")
         + (" Light leaving tissue or a turbid phantom is better described by {model: diffuse, refractive_index: "
-           "1.40}: read as Lambertian it is ~10 % too bright head-on and ~40 % too dim at 80°."
+           "1.40}: read as Lambertian it is ~11 % too bright head-on and ~37 % too dim at 80° (Monte Carlo photons, n 1.40)."
            if em["model"] == "lambertian" else ""))
     fig = F.emission_figure(ang, rad, em["description"])
     page.figure(save(fig, "emission.png"), "The emission profile used, beside Lambertian.")
@@ -629,17 +631,24 @@ def _emission_section(page, save, study: Study, summary: dict, labels: list[str]
     out["relative_radiance"] = {"angle_deg": ang[::10], "value": rad[::10]}
     if em["light_beyond_per_pose"] is not None:
         bands = [float(b) for b in em["bands_deg"]]
-        shares = np.asarray(em["light_beyond_per_pose"], float)
-        rows = [[labels[k]] + [f"{s:.1%}" for s in shares[k]] for k in range(len(shares))]
+        light = np.asarray(em["light_beyond_per_pose"], float)
+        total = (np.asarray(em["total_beyond_per_pose"], float) if em["total_beyond_per_pose"] is not None
+                 else np.full_like(light, np.nan))
+        rows = [[labels[k]] + [f"{s:.1%}" for s in (*light[k], *total[k])] for k in range(len(light))]
         if em["light_beyond_joint"] is not None:
-            rows.append(["joint"] + [f"{s:.1%}" for s in em["light_beyond_joint"]])
-        page.text("Share of the light in each pose's model image (T b̃) that left the surface beyond these angles "
-                  "from its normal: the larger it is, the more the total rests on the emission model at grazing "
-                  "angles (a warning above 25 % beyond 75°).")
-        page.table(["pose"] + [f"beyond {b:g}°" for b in bands], rows)
+            jt = em["total_beyond_joint"] if em["total_beyond_joint"] is not None else [np.nan] * len(bands)
+            rows.append(["joint"] + [f"{s:.1%}" for s in (*em["light_beyond_joint"], *jt)])
+        page.text("Where the emission model matters: per pose, the share of the light in the model image (T b̃) that "
+                  "left the surface beyond these angles from its normal, and the share of the reconstructed total "
+                  "resting on such views (each element weighted by the share of its collected light seen from "
+                  "there; an element seen only at grazing angles counts whole). Reconstruct warns when more than "
+                  "25 % of a total rests beyond 75°.")
+        page.table(["pose"] + [f"light beyond {b:g}°" for b in bands] + [f"total beyond {b:g}°" for b in bands], rows)
         out["bands_deg"] = bands
-        out["light_beyond_per_pose"] = shares
+        out["light_beyond_per_pose"] = light
         out["light_beyond_joint"] = em["light_beyond_joint"]
+        out["total_beyond_per_pose"] = total
+        out["total_beyond_joint"] = em["total_beyond_joint"]
         out["residual_vs_angle_per_pose"] = em["residual_vs_angle_per_pose"]
     summary["emission"] = jsonable(out)
 

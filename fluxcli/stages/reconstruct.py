@@ -31,7 +31,7 @@ from ..imaging import noise as N
 from ..imaging.imagefiles import read_image, sample_type
 from ..artefacts.transfer import load_T, load_view
 from ..inverse import backprojection, error_l1, reconstruct as solve, total_ratio
-from ..pipeline import check_folders, check_memory, emccd_model, ensure_T, geometry_of, plan, provenance, without_emission
+from ..pipeline import check_folders, check_memory, emccd_model, ensure_T, geometry_of, plan, provenance
 from ..workers import blas_threads, pool_for
 from ..imaging.sensor_maps import counts_to_photons_with_maps
 from ._radiometric import read_radiometric_maps
@@ -112,10 +112,10 @@ def load_inputs(cfg: C.LoadedConfig, n_poses: int, n_elements: int, surface_sha2
         return _image_files(cfg, n_poses, poses)
     path = _simulation(cfg)
     with A.open_artefact(path, "simulation") as f:
-        now = geometry_of(cfg, surface_sha256)
-        if f["truth"].attrs.get("kind") == "montecarlo":  # photons assume no emission model: any one may read them
-            now = without_emission(now)
-        A.check_geometry(path, A.read_provenance(f), now,
+        # images simulated under another emission model are a model-mismatch experiment, not other
+        # geometry: reconstructed, with a warning (_emission_checks); T itself is always this config's
+        stored, now = _without_emission(A.read_provenance(f)), _without_emission(geometry_of(cfg, surface_sha256))
+        A.check_geometry(path, stored, now,
                          remedy=f"Run 'fluxmap simulate {cfg.path}' again, or reconstruct with the config it was made with")
         power = f["truth/power"][()]
         if len(power) != n_elements:
@@ -706,7 +706,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
             if inp.truth is not None:
                 row += _vs_truth(joint.power, joint.observed, inp.truth)
             rows.append(row)
-        per_pose, joint, emission_lines = _emission_checks(f, placer, views, todo, per_pose, joint, inp, noise)
+        per_pose, joint, emission_lines = _emission_checks(f, placer, views, todo, per_pose, joint, inp, noise, cfg)
         _warnings(ctx, f, per_pose, joint, todo)
         summary = _total_summary(per_pose, joint, todo)
         f.attrs["totals_summary"] = json.dumps(summary)
@@ -725,10 +725,45 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     return out
 
 
-def _emission_checks(f, placer, views, todo, per_pose, joint, inp, noise) -> tuple[list, object, list[str]]:
+def _without_emission(x):
+    """A provenance (or a geometry dict) without ``subject.emission``."""
+    import copy
+
+    geo = copy.deepcopy(x.geometry if isinstance(x, A.Provenance) else x)
+    if isinstance(geo.get("subject"), dict):
+        geo["subject"].pop("emission", None)
+    return replace(x, geometry=geo) if isinstance(x, A.Provenance) else geo
+
+
+def _simulated_emission(cfg: C.LoadedConfig) -> str | None:
+    """How the images were simulated, when they come from simulation.h5 under another emission
+    model than this config's: a warning (None when the same, or not simulated)."""
+    rc = cfg.model.reconstruct
+    if rc.images is not None:
+        return None
+    path = _simulation(cfg)
+    try:
+        with A.open_artefact(path, "simulation") as f:
+            then = (A.read_provenance(f).geometry.get("subject") or {}).get("emission")
+            if f["truth"].attrs.get("kind") == "montecarlo":  # photons: no emission model to mismatch
+                return None
+    except UserError:
+        return None
+    now = (geometry_of(cfg).get("subject") or {}).get("emission")
+    if then == now:
+        return None
+    what = lambda e: "lambertian" if e is None else e.get("model", "?") + (  # noqa: E731
+        f" (refractive index {e['refractive_index']:g})" if "refractive_index" in e else "")
+    return (f"the images were simulated with the emission model {what(then)} and are reconstructed with "
+            f"{what(now)} (subject.emission): a model-mismatch experiment, unless the simulation's light does not "
+            "depend on it (Monte Carlo photons).")
+
+
+def _emission_checks(f, placer, views, todo, per_pose, joint, inp, noise, cfg=None) -> tuple[list, object, list[str]]:
     """Issue 21, item 2: per pose (and jointly) the share of the observed light seen beyond 60 and
-    75 deg from the normal, and whether the residual is structured by viewing angle
-    (:mod:`fluxcli.inverse.diagnostics`); stored under /emission, warnings added to the poses'."""
+    75 deg from the normal and the share of the total resting on such views, and whether the
+    residual is structured by viewing angle (:mod:`fluxcli.inverse.diagnostics`); stored under
+    /emission and /per_pose, warnings added to the poses' (and the joint solve's)."""
     from ..inverse import diagnostics as D
     from ..optics.emission import CHECK_DEG
 
@@ -741,46 +776,49 @@ def _emission_checks(f, placer, views, todo, per_pose, joint, inp, noise) -> tup
     deg = np.linspace(0.0, 90.0, 181)
     g.create_dataset("angle_deg", data=deg)
     g.create_dataset("relative_radiance", data=prof.radiance(np.radians(deg))).attrs["meaning"] = "L(theta) / L(0)"
+    mismatch = _simulated_emission(cfg) if cfg is not None else None
     weights = [v.weight for v in views]
     centres = [v.camera.center_mm for v in views]
-    shares, slopes, out, seen_joint = [], [], [], []
+    light, totals, slopes, out, all_T, all_ang = [], [], [], [], [], []
     for k, ((res, fitted), (scene, pt)) in enumerate(zip(per_pose, todo)):
         Tv = [load_view(pt.path, v) for v in range(len(views))]
         ang = D.element_angles(scene.surface, centres, prof.weight)
-        sh = D.grazing_shares(Tv, weights, res.power, ang)
+        light.append(D.grazing_shares(Tv, weights, res.power, ang))
+        totals.append(D.total_shares(Tv, weights, res.power, ang))
         px = D.pixel_angles(Tv, weights, res.power, ang)
         model = np.nan_to_num(fitted.ravel())
         st = D.angle_structure(inp.images[k].ravel(), model, noise.variance(model), px, inp.valid[k].ravel())
-        warns = tuple(w for w in (D.grazing_warning(sh), D.structure_warning(st, prof.describe())) if w)
+        warns = tuple(w for w in (D.grazing_warning(totals[-1]), D.structure_warning(st, prof.describe()),
+                                  mismatch if k == 0 else None) if w)
         out.append((replace(res, warnings=tuple(res.warnings) + warns), fitted) if warns else (res, fitted))
-        shares.append(sh)
         slopes.append([np.nan, np.nan] if st is None else [st.slope_per_10deg, st.t])
         if joint is not None:
-            seen_joint.append((Tv, ang))
+            all_T += Tv
+            all_ang.append(ang)
     pp = f["per_pose"]
-    pp.create_dataset("light_beyond_deg", data=np.array(shares)).attrs["bands_deg"] = np.array(D.BANDS_DEG)
+    bands = np.array(D.BANDS_DEG)
+    pp.create_dataset("light_beyond_deg", data=np.array(light)).attrs["bands_deg"] = bands
     pp["light_beyond_deg"].attrs["meaning"] = "share of the model image's light that left the surface beyond each angle"
+    pp.create_dataset("total_beyond_deg", data=np.array(totals)).attrs["bands_deg"] = bands
+    pp["total_beyond_deg"].attrs["meaning"] = ("share of the reconstructed total resting on views beyond each angle "
+                                               "(each element weighted by the share of its collected light from there)")
     pp.create_dataset("residual_vs_angle", data=np.array(slopes)).attrs["meaning"] = \
         "relative residual change per 10 deg of emission angle, and its t value (NaN: not testable)"
     lines = [f"emission model: {prof.describe()}"
              + ("" if prof.is_lambertian else " (L/L0 " + ", ".join(
                  f"{r:.2f} at {a:g} deg" for a, r in zip(CHECK_DEG[::2], prof.radiance(np.radians(CHECK_DEG[::2]))))
                 + ")")]
-    lines += [f"light seen at grazing angles, pose {pt.pose.label}: {D.describe_shares(sh)}"
-              for sh, (_, pt) in zip(shares, todo)]
+    lines += [f"seen at grazing angles, pose {pt.pose.label}: light {D.describe_shares(li)}; "
+              f"total {D.describe_shares(to)}" for li, to, (_, pt) in zip(light, totals, todo)]
     if joint is not None:
-        tot = np.zeros(len(D.BANDS_DEG))
-        norm = 0.0
-        for Tv, ang in seen_joint:
-            one = D.grazing_shares(Tv, weights, joint.power, ang)
-            light = sum(w * float(np.asarray(T.sum(axis=0)).ravel() @ np.nan_to_num(joint.power)) for w, T in zip(weights, Tv))
-            if np.all(np.isfinite(one)):
-                tot += one * light
-                norm += light
-        js = tot / norm if norm > 0 else np.full(len(D.BANDS_DEG), np.nan)
-        g.create_dataset("joint_light_beyond_deg", data=js)
-        lines.append(f"light seen at grazing angles, all poses jointly: {D.describe_shares(js)}")
-        w = D.grazing_warning(js)
+        ang = D.ElementAngles(np.concatenate([a.mean_deg for a in all_ang]), np.concatenate([a.beyond for a in all_ang]))
+        jl = D.grazing_shares(all_T, weights * len(todo), joint.power, ang)
+        jt = D.total_shares(all_T, weights * len(todo), joint.power, ang)
+        g.create_dataset("joint_light_beyond_deg", data=jl)
+        g.create_dataset("joint_total_beyond_deg", data=jt)
+        lines.append(f"seen at grazing angles, all poses jointly: light {D.describe_shares(jl)}; "
+                     f"total {D.describe_shares(jt)}")
+        w = D.grazing_warning(jt)
         if w:
             joint = replace(joint, warnings=tuple(joint.warnings) + (w,))
     return out, joint, lines
