@@ -6,7 +6,8 @@
 #   make structured-light   structured-light surface capture on the simulated rig, against the truth
 #   make test   create .venv if needed, install with test extras, run the test suite
 #   make bench  speed ratios measured in one run (slow checks included)
-#   make accuracy  issue 8's battery: error, totals, chi^2, lambda, warnings per case x method
+#   make accuracy  issue 8's battery: error, totals, chi^2, lambda, warnings per case x method;
+#                  then issue 21's on Monte Carlo phantoms (benchmarks/accuracy_mc.py)
 #   make paper-2d | paper-3d | heights   the paper's experiments (pipelines/experiments.mk)
 #   make study  issue 24: a simulated study (growing source, 3 days, 2 poses, 2 filters) -> fluxmap study
 
@@ -46,6 +47,7 @@ check-report: $(VENV)/.installed
 # issue 8: realistic, honestly simulated cases x methods (a benchmark, ~15 min on 2 cores)
 accuracy: $(VENV)/.installed
 	$(PY) benchmarks/accuracy.py --draws 5
+	$(PY) benchmarks/accuracy_mc.py
 
 demo-rig: $(VENV)/.installed  # issue 12: build-T and reconstruct on the surface capture-surface measured
 	$(FLUXMAP) capture-surface configs/demo-rig.yaml --resume

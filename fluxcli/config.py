@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, ValidationError, field_validator, model_validator
 
 from .errors import UserError
 
@@ -229,6 +229,26 @@ class CylinderPhantom(Model):
         return _not_too_fine(v, info, "n_angular")
 
 
+class BoxPhantom(Model):
+    """A closed box centred at the origin (its own frame), resting on the stage; each face is split
+    into elements of about ``element_mm`` a side. It turns about the x axis through its centre."""
+
+    phantom: Literal["box"]
+    size_mm: tuple[PositiveFloat, PositiveFloat, PositiveFloat] = Field((30.0, 40.0, 20.0), description="Side lengths along x, y, z (mm).")
+    element_mm: float = Field(2.0, gt=0, description="Target element side (mm): each face gets round(side / element_mm) elements along each side.")
+
+    @field_validator("element_mm")
+    @classmethod
+    def _fine(cls, v, info):
+        size = info.data.get("size_mm")
+        if size is not None:
+            n = 2 * sum(max(1, round(a / v)) * max(1, round(b / v)) for a, b in ((size[0], size[1]), (size[1], size[2]), (size[0], size[2])))
+            if n > MAX_PHANTOM_PIECES:
+                raise ValueError(f"{n:.3g} elements; at most {MAX_PHANTOM_PIECES:.0e} (no camera resolves more, and "
+                                 "building them would exhaust the memory)")
+        return v
+
+
 class RingPhantom(Model):
     """A thin ring (the paper's 2-D study) seen by a line detector."""
 
@@ -289,7 +309,7 @@ class ArtefactSurface(Model):
     artefact: Path = Field(description="A surface artefact (HDF5 with /surface) from capture-surface.")
 
 
-Phantom = Annotated[Union[CylinderPhantom, RingPhantom, SpherePhantom, PatchPhantom], Field(discriminator="phantom")]
+Phantom = Annotated[Union[CylinderPhantom, BoxPhantom, RingPhantom, SpherePhantom, PatchPhantom], Field(discriminator="phantom")]
 
 
 class RotationAxis(Model):
@@ -443,7 +463,26 @@ class DiffusionFlux(Model):
         return self
 
 
-Flux = Annotated[Union[GaussianFlux, UniformFlux, FileFlux, DiffusionFlux], Field(discriminator="kind")]
+class MonteCarloFlux(Model):
+    """Photons transported through a box or cylinder phantom by Monte Carlo (MCML-style, Fresnel at
+    every face); the truth is the photons that left through each element, and the images are those
+    photons traced through the lens and mirrors (no emission model is assumed)."""
+
+    kind: Literal["montecarlo"]
+    mua_per_mm: float = Field(ge=0, le=1e3, description="Absorption coefficient mu_a (1/mm).")
+    mus_per_mm: float = Field(gt=0, le=1e3, description="Scattering coefficient mu_s (1/mm); mu_s' = mu_s (1 - g).")
+    g: float = Field(0.0, ge=-0.99, le=0.99, description="Henyey-Greenstein anisotropy.")
+    refractive_index: float = Field(1.4, ge=1, le=3, description="Refractive index n of the phantom (outside is air).")
+    position_mm: Vec3 = Field(description="Isotropic point source, in the phantom's own frame (centred at the origin, "
+                              "before it is placed on the stage and posed).")
+    radius_mm: float = Field(0.0, ge=0, description="0 for a point source, else a uniform ball of this radius.")
+    n_photons: int = Field(gt=0, le=10**11, description="Photons launched (the source power, photons per exposure).")
+    seed: int = Field(0, ge=0, le=2**63 - 1, description="Seed of the photon streams; the same seed gives the same photons.")
+    batch_photons: int = Field(2_000_000, ge=1000, le=10**8, description="Photons transported at a time (memory).")
+    keep_photons: bool = Field(False, description="Also store every escaping photon (exit point, direction) in the artefact; for small runs.")
+
+
+Flux = Annotated[Union[GaussianFlux, UniformFlux, FileFlux, DiffusionFlux, MonteCarloFlux], Field(discriminator="kind")]
 
 
 class Noise(Model):
@@ -467,7 +506,7 @@ class Export(Model):
 
 
 class Simulate(Model):
-    flux: Flux = Field(description="The ground truth on the surface: kind gaussian, uniform, file or diffusion.")
+    flux: Flux = Field(description="The ground truth on the surface: kind gaussian, uniform, file, diffusion or montecarlo.")
     transfer: "Transfer | None" = Field(None, description="Sampling of the forward T (default: twice as fine as 'transfer').")
     allow_inverse_crime: bool = Field(False, description="Allow the forward T to equal reconstruction's T.")
     truth_refinement: int | None = Field(None, ge=0, le=3, description="The truth lives on the surface with each "
@@ -1097,7 +1136,7 @@ def _format_validation_error(err: ValidationError, path: Path, raw: Any = None) 
 # pydantic puts union member names into error locations; they are not keys the user wrote.
 _UNION_TAGS = {"cylinder", "ring", "sphere", "patch", "MeshSurface", "ArtefactSurface",
                "gaussian", "uniform", "file", "diffusion", "float", "literal['auto']",
-               "function-after[_check(), Lens]", "ImageFiles", "CaptureSource", "tagged-union[CylinderPhantom,RingPhantom,SpherePhantom,PatchPhantom]"}
+               "function-after[_check(), Lens]", "ImageFiles", "CaptureSource", "tagged-union[CylinderPhantom,BoxPhantom,RingPhantom,SpherePhantom,PatchPhantom]"}
 
 
 def _camera_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:

@@ -128,6 +128,15 @@ def geometry_of(cfg: LoadedConfig, surface_sha256: str | None = None) -> dict:
     return g
 
 
+def without_emission(geometry: dict) -> dict:
+    """The geometry with no emission model: what a Monte Carlo simulation is made for (its photons
+    assume none, so its images serve a reconstruction under any ``subject.emission``)."""
+    g = dict(geometry)
+    if g.get("subject") is not None:
+        g["subject"] = {k: v for k, v in g["subject"].items() if k != "emission"}
+    return g
+
+
 def provenance(cfg: LoadedConfig, surface_sha256: str | None = None) -> A.Provenance:
     return A.Provenance(config=cfg.model.model_dump(mode="json", by_alias=True),
                         geometry=geometry_of(cfg, surface_sha256))

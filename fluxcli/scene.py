@@ -90,12 +90,14 @@ class SubjectPlacer:
         model = cfg.model
         s = model.subject.surface
         self.stage = model.system.stage
-        self.rests_on_stage = isinstance(s, (C.CylinderPhantom, C.RingPhantom, C.SpherePhantom))
+        self.rests_on_stage = isinstance(s, (C.CylinderPhantom, C.BoxPhantom, C.RingPhantom, C.SpherePhantom))
         self.notes: list[str] = []  # what a mesh file yielded and what was repaired in it
         self.emission: Profile = C.emission_profile(cfg)  # Lambertian when subject.emission is absent
         if isinstance(s, C.CylinderPhantom):
             surf, point, axis = phantoms.cylinder(radius_mm=s.radius_mm, length_mm=s.length_mm, n_angular=s.n_angular,
                                                   n_axial=s.n_axial, cap_elements=s.cap_elements)
+        elif isinstance(s, C.BoxPhantom):
+            surf, point, axis = phantoms.box(size_mm=s.size_mm, element_mm=s.element_mm)
         elif isinstance(s, C.RingPhantom):
             surf, point, axis = phantoms.ring(radius_mm=s.radius_mm, thickness_mm=s.thickness_mm, n_elements=s.n_elements,
                                               strips_per_element=s.strips_per_element)
@@ -133,8 +135,11 @@ class SubjectPlacer:
             point, axis = (lo + hi) / 2, np.array([1.0, 0, 0])
         if surf.n_elements == 0:
             raise UserError("subject.surface: the surface has no elements.")
+        self.own_surface = surf  # in the generator's own frame (what a Monte Carlo truth is computed in)
+        self.rest_shift_mm = np.zeros(3)
         if self.rests_on_stage:
             surf, point = self._rest(surf, point, 0.0)
+            self.rest_shift_mm = surf.vertices_mm[0] - self.own_surface.vertices_mm[0]
         ra = model.subject.rotation_axis
         if ra is not None:
             axis = np.asarray(ra.direction, float)
@@ -150,6 +155,15 @@ class SubjectPlacer:
         lo, hi = surf.bounds_mm()
         shift = np.array([cxy[0] - (lo[0] + hi[0]) / 2, cxy[1] - (lo[1] + hi[1]) / 2, self._stage_top(h) - lo[2]])
         return surf.transformed(np.eye(3), shift), point + shift
+
+    def placement(self, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+        """(R, t): the pose places a point x of ``self.surface`` at R x + t."""
+        R = _rotation(self.axis, pose.rotation_deg)
+        t = self.axis_point - R @ self.axis_point + np.array([0, 0, pose.height_mm])
+        if self.rests_on_stage:  # a faceted phantom turned by an odd angle must still sit on the stage
+            lo = (self.surface.vertices_mm @ R.T + t)[:, 2].min()
+            t = t + np.array([0, 0, self._stage_top(pose.height_mm) - lo])
+        return R, t
 
     def place(self, pose: Pose) -> Surface:
         R = _rotation(self.axis, pose.rotation_deg)

@@ -9,6 +9,7 @@ stage imports another.
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -232,3 +233,112 @@ def _diffusion_truth(flux: C.DiffusionFlux, surface: Surface, mesh_cache: Path, 
     info["mesh_cached"] = not made
     info["mesh_key"] = key
     return power, info
+
+
+# ------------------------------------------------------------------ Monte Carlo truth
+def montecarlo_shape(surface_cfg) -> "Shape":
+    """The analytic body of a box or cylinder phantom (its own frame); a :class:`UserError`
+    for any subject the photon transport cannot model."""
+    from .montecarlo.transport import Shape
+
+    if isinstance(surface_cfg, C.BoxPhantom):
+        return Shape.box(surface_cfg.size_mm)
+    if isinstance(surface_cfg, C.CylinderPhantom):
+        return Shape.cylinder(surface_cfg.radius_mm, surface_cfg.length_mm)
+    what = (f"a {surface_cfg.phantom} phantom" if hasattr(surface_cfg, "phantom")
+            else "a mesh file" if isinstance(surface_cfg, C.MeshSurface) else "a captured surface")
+    raise UserError(f"simulate.flux: kind montecarlo transports photons through an analytic box or cylinder; "
+                    f"subject.surface is {what}, which it cannot model. Use subject.surface.phantom: box or cylinder.")
+
+
+@dataclass
+class MonteCarloTruth:
+    """One photon run serving every pose: the truth per fine face (photons that left through
+    it), the photon images per pose and what the photons say about the light."""
+
+    fine_power: np.ndarray  # (n_fine,) photons
+    parent: np.ndarray  # (n_fine,) element of each fine face
+    images: np.ndarray  # (P, ny, nx) whole photons
+    reached_lens: np.ndarray  # (P, V) photons that crossed each view's lens unobstructed
+    on_sensor: np.ndarray  # (P, V) ... and landed on a pixel
+    angle_histogram: np.ndarray  # photons per exit-angle bin (montecarlo.photons.ANGLE_EDGES_DEG)
+    tally: object
+    not_on_elements: float  # photons that left through faces of no element (cylinder caps)
+    photons: dict | None  # every escaping photon (own frame) when simulate.flux.keep_photons
+    seconds: float
+    notes: dict
+
+
+def montecarlo_truth(cfg: C.LoadedConfig, placer, scenes: list, views: list, say=lambda s: None) -> MonteCarloTruth:
+    """Transport ``simulate.flux.n_photons`` photons once through the phantom (its own frame)
+    and make, batch by batch, the truth per fine face and the image of every pose (``scenes``:
+    :class:`fluxcli.scene.PlacedScene` per pose; ``views``: direct first, then mirrors)."""
+    import time
+
+    from .montecarlo import camera as MC_cam
+    from .montecarlo import photons as MC_ph
+    from .montecarlo import transport as MC
+    from .surface.mesh import merge
+
+    flux = cfg.model.simulate.flux
+    shape = montecarlo_shape(cfg.model.subject.surface)
+    medium = MC.Medium(flux.mua_per_mm, flux.mus_per_mm, flux.g, flux.refractive_index)
+    src = np.asarray(flux.position_mm, float)
+    if shape.depth_mm(src[None])[0] <= flux.radius_mm:
+        raise UserError(f"simulate.flux.position_mm: the source {src.tolist()} mm (radius {flux.radius_mm:g} mm) is not "
+                        f"inside the phantom (its own frame: centred at the origin, half sizes "
+                        f"{list(shape.half_mm)} mm along x, y, z).")
+    levels = truth_refinement(cfg.model.simulate)
+    fine, parent = placer.own_surface.refined(levels)
+    fine_scene = OcclusionScene(fine.vertices_mm, fine.faces)
+    cam = views[0].camera
+    P, V = len(scenes), len(views)
+    check_memory(8.0 * cam.nx * cam.ny * P * 2 + 120.0 * min(flux.batch_photons, flux.n_photons) * (1 + P / 4),
+                 f"{P} photon image(s) of {cam.nx} x {cam.ny} pixels and batches of {flux.batch_photons:.3g} photons",
+                 "simulate.flux.batch_photons, subject.poses or system.camera.pixels")
+    placements = [placer.placement(s.pose) for s in scenes]
+    occl = [OcclusionScene(*merge(s.surface, *s.occluders)) for s in scenes]
+    offset = cfg.model.transfer.ray_offset_mm
+    images = np.zeros((P, cam.nx * cam.ny), np.int64)
+    reached, on_sensor = np.zeros((P, V), np.int64), np.zeros((P, V), np.int64)
+    fine_power = np.zeros(fine.n_elements)
+    hist = np.zeros(len(MC_ph.ANGLE_EDGES_DEG) - 1)
+    off_elements = 0.0
+    kept = {"position_mm": [], "direction": [], "face": []} if flux.keep_photons else None
+    tally = MC.Tally()
+    t0 = time.perf_counter()
+    n_batches = -(-flux.n_photons // flux.batch_photons)
+    for b in range(n_batches):
+        n = min(flux.batch_photons, flux.n_photons - b * flux.batch_photons)
+        esc = MC.transport(medium, shape, src, n, seed=flux.seed, batch=b, source_radius_mm=flux.radius_mm, tally=tally)
+        normal = shape.outward_normals(esc.position_mm)
+        face = MC_ph.faces_of_exits(shape, fine.vertices_mm, fine.faces, esc.position_mm, scene=fine_scene)
+        el = np.where(face >= 0, fine.element_of_face[np.maximum(face, 0)], -1)
+        on = el >= 0
+        fine_power += np.bincount(el[on], weights=esc.weight[on], minlength=fine.n_elements)
+        off_elements += float(esc.weight[~on].sum())
+        hist += MC_ph.exit_angle_histogram(normal, esc.direction, esc.weight)
+        if kept is not None:
+            kept["position_mm"].append(esc.position_mm)
+            kept["direction"].append(esc.direction)
+            kept["face"].append(face)
+        for k, (R, t) in enumerate(placements):
+            pos_w = (esc.position_mm + placer.rest_shift_mm) @ R.T + t
+            img = MC_cam.image_photons(views, occl[k], pos_w, esc.direction @ R.T, normal @ R.T,
+                                       np.random.default_rng([flux.seed, b, k]), ray_offset_mm=offset)
+            images[k] += img.counts_per_pixel
+            reached[k] += [img.reached_lens[v.name] for v in views]
+            on_sensor[k] += [img.on_sensor[v.name] for v in views]
+        say(f"simulate: photons {tally.launched:.3g} / {flux.n_photons:.3g} transported "
+            f"({tally.launched / max(time.perf_counter() - t0, 1e-9):.3g} photons/s)")
+    seconds = time.perf_counter() - t0
+    photons = None
+    if kept is not None:
+        photons = {k: np.concatenate(v) if v else np.zeros((0, 3)) for k, v in kept.items()}
+    notes = {"launched": tally.launched, "escaped": tally.escaped, "absorbed": tally.absorbed, "lost": tally.lost,
+             "path_mm": tally.path_mm, "photons_per_s": tally.launched / max(seconds, 1e-9),
+             "not_on_elements": off_elements, "source_mm": src.tolist(), "truth_refinement": levels,
+             "transport": "MCML-style, analogue absorption, probabilistic Fresnel, Henyey-Greenstein",
+             "seconds": seconds}
+    return MonteCarloTruth(fine_power, parent, images.reshape(P, cam.ny, cam.nx), reached, on_sensor, hist, tally,
+                           off_elements, photons, seconds, notes)

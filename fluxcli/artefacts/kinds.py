@@ -97,6 +97,18 @@ register(Kind("simulation", 2, "fluxmap simulate", "ground-truth surface flux an
     Dataset("images/noisy", "photons", "noisy[level, repeat, pose, row, col]"),
     Dataset("images/counts", "ADC counts", "EMCCD counts[level, repeat, pose, row, col]", required=False),
     Dataset("images/max_snr", "", "sqrt(max a) per level and pose (the paper's Table 1)"),
+    Dataset("montecarlo/photons_per_element", "photons", "Monte Carlo truth: photons that left through each element",
+            required=False),
+    Dataset("montecarlo/exit_angle_histogram", "photons", "escaped photons per bin of angle from the normal (in air)",
+            required=False),
+    Dataset("montecarlo/exit_angle_edges_deg", "deg", "bin edges of the exit-angle histogram", required=False),
+    Dataset("montecarlo/reached_lens", "photons", "[pose, view] photons that crossed the lens unobstructed",
+            required=False),
+    Dataset("montecarlo/on_sensor", "photons", "[pose, view] ... and landed on a pixel", required=False),
+    Dataset("montecarlo/photons/position_mm", "mm", "exit point of every escaping photon, phantom's own frame",
+            required=False),
+    Dataset("montecarlo/photons/direction", "", "its unit direction in air, phantom's own frame", required=False),
+    Dataset("montecarlo/photons/face", "", "face of the refined surface it left through (-1: none)", required=False),
 )))
 
 register(Kind("reconstruction", 2, "fluxmap reconstruct", "surface flux reconstructed from images", (

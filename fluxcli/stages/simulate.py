@@ -27,12 +27,12 @@ from ..imaging.imagefiles import write_image
 from ..optics.transfer import ALGORITHM_VERSION
 from ..artefacts.transfer import load_T
 from ..pipeline import (cache_dir, check_folders, check_memory, emccd_model, ensure_T, geometry_of, plan,
-                        provenance)
+                        provenance, without_emission)
 from .context import RunContext
 from .outputs import export_3d
 
 
-from ..truth import forward_transfer, truth_fine, truth_refinement
+from ..truth import forward_transfer, montecarlo_shape, montecarlo_truth, truth_fine, truth_refinement
 
 
 # ------------------------------------------------------------------ images
@@ -59,6 +59,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     if sim is None:
         raise UserError(f"config {cfg.path}: 'simulate': section is missing (flux, noise, ...); see the README.")
     check_folders(cfg)
+    if isinstance(sim.flux, C.MonteCarloFlux):
+        return _run_montecarlo(cfg, ctx)
     tr_fwd = forward_transfer(cfg)
     views, placer, todo = plan(cfg, tr_fwd, unknowns=f"refined:{truth_refinement(sim)}")
     _, _, todo_rec = plan(cfg)
@@ -173,3 +175,90 @@ def export_images(cfg: C.LoadedConfig, folder: Path, noisy, counts, todo, lv) ->
                     write_image(name, counts[li, r, k], metadata=meta | {"fluxmap:units": "counts"})
                 else:
                     write_image(name, noisy[li, r, k].astype(np.float32), metadata=meta | {"fluxmap:units": "photons"})
+
+
+def _run_montecarlo(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
+    """``simulate.flux.kind: montecarlo``: one photon run through the phantom; the truth is the
+    photons that left through each element, the images those photons through lens and mirrors
+    (no forward T, no emission model)."""
+    from ..scene import SubjectPlacer, poses_from_config, views_from_config
+    from ..montecarlo.photons import ANGLE_EDGES_DEG
+
+    sim, m = cfg.model.simulate, cfg.model
+    montecarlo_shape(m.subject.surface)  # refuse what it cannot model before anything else
+    if sim.noise.model not in ("none", "poisson"):
+        raise UserError(f"simulate.noise.model: {sim.noise.model!r} with simulate.flux.kind montecarlo; the photons are "
+                        "whole photons and their count is the shot noise: use poisson (or none, the same here).")
+    if sim.noise.peaks_photons is not None or sim.noise.repeats != 1:
+        raise UserError("simulate.noise.peaks_photons / repeats: a Monte Carlo run has one level (simulate.flux.n_photons "
+                        "sets it) and one draw (another simulate.flux.seed is another draw); remove them.")
+    placer = SubjectPlacer(cfg)
+    views = views_from_config(m.system)
+    poses = poses_from_config(m.subject)
+    scenes = [placer.scene(p, m.system) for p in poses]
+    surface = placer.surface
+    out = cfg.workdir / "simulation.h5"
+    digest = A.inputs_digest(system=m.system.model_dump(mode="json"),
+                             subject=m.subject.model_dump(mode="json", exclude={"emission"}),
+                             surface=surface.digest(), simulate=sim.model_dump(mode="json"),
+                             transfer_offset=m.transfer.ray_offset_mm, version=ALGORITHM_VERSION, montecarlo=1)
+    if not ctx.force and A.is_up_to_date(out, "simulation", digest):
+        ctx.say(f"simulate: {out} is up to date (--force to redo)")
+        return out
+    mc = montecarlo_truth(cfg, placer, scenes, views, say=ctx.say)
+    power = np.bincount(mc.parent, weights=mc.fine_power, minlength=surface.n_elements)
+    if power.max() <= 0:
+        raise UserError("simulate.flux: no photon left through an element (too few photons or too much absorption).")
+    t = mc.tally
+    ctx.say(f"simulate: {t.launched:.4g} photons launched, {t.escaped:.4g} escaped ({t.escaped / t.launched:.1%}), "
+            f"{t.absorbed:.4g} absorbed, {t.lost} lost; {power.sum():.4g} through the {surface.n_elements} elements "
+            f"({mc.seconds:.1f} s, {mc.notes['photons_per_s']:.3g} photons/s)")
+    P, ny, nx = mc.images.shape
+    clean = mc.images.astype(np.float32)[None]
+    prov = provenance(cfg, surface.digest())
+    prov.geometry = without_emission(prov.geometry)  # the photons assume no emission model
+    with A.write_artefact(out, "simulation", config_sha256=cfg.sha256, inputs={}, provenance=prov) as f:
+        f.attrs["inputs_digest"] = digest
+        A.write_surface(f.create_group("surface"), surface)
+        A.put(f, "truth/power", power)
+        A.put(f, "truth/exitance", power / surface.element_areas_mm2)
+        A.put(f, "truth/power_fine", mc.fine_power)
+        A.put(f, "truth/fine_parent", mc.parent)
+        g = f["truth"]
+        g.attrs["kind"] = sim.flux.kind
+        g.attrs["notes"] = json.dumps({k: (A.recorded_seconds(v) if k.endswith("seconds") else v)
+                                       for k, v in mc.notes.items()})
+        A.put(f, "truth/levels_peak_photons", [power.max()])
+        A.put(f, "truth/level_scale", [1.0])
+        A.put(f, "poses/heights_mm", [p.height_mm for p in poses])
+        A.put(f, "poses/rotations_deg", [p.rotation_deg for p in poses])
+        A.put(f, "poses/T_fwd_keys", np.array([b"montecarlo"] * P, dtype="S64"))
+        packed = dict(compression="gzip", fletcher32=True)
+        A.put(f, "images/noiseless", clean, chunks=(1, 1, ny, nx), **packed)
+        A.put(f, "images/noisy", clean[:, None], chunks=(1, 1, 1, ny, nx), **packed)
+        A.put(f, "images/max_snr", np.sqrt(clean.reshape(1, P, -1).max(axis=2)))
+        ig = f["images"]
+        ig.attrs["layout"] = "noisy[level, repeat, pose, row, col]; noiseless[level, pose, row, col]"
+        ig.attrs["noise_model"] = "photons (Monte Carlo: whole photons; noisy and noiseless hold the same image)"
+        ig.attrs["seed"] = sim.flux.seed
+        ig.attrs["exposure_s"] = sim.noise.exposure_s
+        mg = f.create_group("montecarlo")
+        A.put(f, "montecarlo/photons_per_element", power)
+        A.put(f, "montecarlo/exit_angle_histogram", mc.angle_histogram)
+        A.put(f, "montecarlo/exit_angle_edges_deg", ANGLE_EDGES_DEG)
+        A.put(f, "montecarlo/reached_lens", mc.reached_lens)
+        A.put(f, "montecarlo/on_sensor", mc.on_sensor)
+        mg.attrs["views"] = json.dumps([v.name for v in views])
+        for k in ("launched", "escaped", "absorbed", "lost"):
+            mg.attrs[k] = int(getattr(t, k))
+        mg.attrs["not_on_elements"] = mc.not_on_elements
+        mg.attrs["rest_shift_mm"] = placer.rest_shift_mm
+        if mc.photons is not None:
+            for k, v in mc.photons.items():
+                A.put(f, f"montecarlo/photons/{k}", v, **packed)
+        f.attrs["truth_seconds"] = A.recorded_seconds(mc.seconds)
+    rows = [[p.height_mm, p.rotation_deg, int(mc.images[k].sum()), *[int(x) for x in mc.reached_lens[k]]]
+            for k, p in enumerate(poses)]
+    ctx.table(["height_mm", "rotation_deg", "photons in image", *[f"reached lens: {v.name}" for v in views]], rows)
+    export_3d(cfg, ctx, out)
+    return out

@@ -58,6 +58,34 @@ def cylinder(*, radius_mm: float, length_mm: float, n_angular: int, n_axial: int
     return surf, np.zeros(3), np.array([1.0, 0, 0])
 
 
+def box(*, size_mm, element_mm: float) -> tuple[Surface, np.ndarray, np.ndarray]:
+    """Closed box centred at the origin, sides ``size_mm`` along x, y, z; each face split into a
+    grid of ``round(side / element_mm)`` elements per side (two triangles each). Turns about x."""
+    size = np.asarray(size_mm, float)
+    verts, faces, elem = [], [], []
+    n_v = n_el = 0
+    for axis in range(3):
+        a, b = [k for k in range(3) if k != axis]
+        na, nb = (max(1, int(round(size[k] / element_mm))) for k in (a, b))
+        ua = np.linspace(-size[a] / 2, size[a] / 2, na + 1)
+        ub = np.linspace(-size[b] / 2, size[b] / 2, nb + 1)
+        for sign in (-1.0, 1.0):
+            v = np.zeros(((na + 1) * (nb + 1), 3))
+            gb, ga = np.meshgrid(ub, ua, indexing="ij")
+            v[:, a], v[:, b], v[:, axis] = ga.ravel(), gb.ravel(), sign * size[axis] / 2
+            f, e = _split(_grid_quads(na, nb, wrap_a=False), n_el + np.arange(na * nb))
+            verts.append(v)
+            faces.append(f + n_v)
+            elem.append(e)
+            n_v += len(v)
+            n_el += na * nb
+    # one vertex where the grids of two faces meet along an edge: a closed surface
+    v_all = np.concatenate(verts)
+    uniq, inv = np.unique(np.round(v_all, 9), axis=0, return_inverse=True)
+    surf = Surface(uniq, inv.ravel()[np.concatenate(faces)], np.concatenate(elem), n_el)
+    return _orient_outward(surf, np.zeros(3)), np.zeros(3), np.array([1.0, 0, 0])
+
+
 def ring(*, radius_mm: float, thickness_mm: float, n_elements: int,
          strips_per_element: int = 1) -> tuple[Surface, np.ndarray, np.ndarray]:
     """The paper's 2-D slice: an open cylindrical band of ``n_elements`` around the y axis.
