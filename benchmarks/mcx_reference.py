@@ -133,6 +133,7 @@ class Tally:
         self.n_launched = 0
         self.n_detected = 0
         self.n_unplaced = 0
+        self.n_top_down = 0
         self.face_w = np.zeros(len(FACES))
         self.face_w2 = np.zeros(len(FACES))
         self.band_w = np.zeros(len(BAND_EDGES_DEG) - 1)
@@ -165,16 +166,19 @@ class Tally:
             (x >= self.edge_mm) & (x <= SIZE_MM[0] - self.edge_mm)
             & (y >= self.edge_mm) & (y <= SIZE_MM[1] - self.edge_mm)
         )
-        wt = w[top][inner]
         cos_t = np.clip(v[2, top][inner], -1.0, 1.0)
+        # A photon on the top face must be going up; MCX (float32) lets about one in 10^7 out
+        # going down.  They are counted, left out, and must stay that rare.
+        down = cos_t < 0
+        self.n_top_down += int(np.sum(down))
+        wt, cos_t = w[top][inner][~down], cos_t[~down]
         theta_deg = np.degrees(np.arccos(cos_t))
         band = np.clip(np.searchsorted(BAND_EDGES_DEG, theta_deg, side="right") - 1, 0, len(self.band_w) - 1)
         self.band_w += np.bincount(band, weights=wt, minlength=len(self.band_w))
         self.band_w2 += np.bincount(band, weights=wt * wt, minlength=len(self.band_w))
         self.band_n += np.bincount(band, minlength=len(self.band_w))
-        # Outward directions only: a photon on the top face must be going up.
-        if np.any(cos_t < 0):
-            raise RuntimeError(f"{int(np.sum(cos_t < 0))} photons leave the top face going down")
+        if self.n_top_down > 1e-5 * max(self.band_n.sum(), 1e5):
+            raise RuntimeError(f"{self.n_top_down} photons leave the top face going down")
 
     # ---------------------------------------------------------------- results
     def inner_area_mm2(self) -> float:
@@ -286,7 +290,8 @@ def main(argv=None) -> int:
         f"{DEPTH_MM} mm under the top face z={SIZE_MM[2]}, {OFFSET_MM} mm off centre in x",
         f"settings: issrcfrom0=1 bc='______111111' savedetflag='dpxvw' tend={TEND_S} s, one time gate, "
         f"{len(seeds)} runs of <= {chunk} photons, seeds {seeds[0]}..{seeds[-1]}",
-        f"photons launched {n}, detected {tally.n_detected} (on no face: {tally.n_unplaced}); "
+        f"photons launched {n}, detected {tally.n_detected} (on no face: {tally.n_unplaced}; "
+        f"left out, on the top face going down: {tally.n_top_down}); "
         f"wall {wall:.0f} s on 2 shared CPU cores",
         f"escaped fraction {esc:.5f} +- {esc_se:.5f} (MCX's own energy balance: "
         f"{tally.mcx_escaped / n:.5f})",
