@@ -39,7 +39,8 @@ MCX reads ``srcpos`` as 1-based unless ``issrcfrom0=1``: by default this source 
 (19, 19, 13), 7 mm deep.  The script sets ``issrcfrom0=1`` and checks that the top-face exits
 centre on the source's y (the box is symmetric about it); without the flag they centre on 19.08.
 
-    $ nice -n 5 .venv/bin/python benchmarks/mcx_reference.py --nphoton 6e6
+    $ nice -n 5 .venv/bin/python benchmarks/mcx_reference.py                 # n 1.40, ~15 min
+    $ nice -n 5 .venv/bin/python benchmarks/mcx_reference.py --refractive-index 1.33
 """
 
 from __future__ import annotations
@@ -238,8 +239,8 @@ def write_csv(path: Path, tally: Tally, meta: list[str]) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--nphoton", type=float, default=6e6, help="photons launched in all")
-    ap.add_argument("--chunk", type=float, default=1e6, help="photons per MCX run")
+    ap.add_argument("--nphoton", type=float, default=1.2e7, help="photons launched in all")
+    ap.add_argument("--chunk", type=float, default=2e6, help="photons per MCX run")
     ap.add_argument("--seed", type=int, default=20261125, help="seed of the first run (+1 per run)")
     ap.add_argument("--edge-mm", type=float, default=5.0, help="margin from the top face's edges")
     ap.add_argument("--refractive-index", type=float, default=N_MEDIUM, help="of the box (in air)")
