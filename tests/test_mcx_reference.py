@@ -170,7 +170,8 @@ def _live_mcx_or_skip():
 @needs_table
 def test_live_mcx_run_reproduces_the_table(tmp_path):
     """Where pmcxcl and an OpenCL device exist: a fresh, small MCX run (other seeds) agrees with
-    the committed table within its own noise (escaped fraction, per face, and the curve)."""
+    the committed table within its own noise (escaped fraction, its share through the top face,
+    and the curve)."""
     ref, pmcxcl = _live_mcx_or_skip()
     out = tmp_path / "live.csv"
     assert ref.main(["--nphoton", "1.5e5", "--chunk", "1.5e5", "--seed", "7", "--out", str(out)]) == 0
@@ -178,6 +179,9 @@ def test_live_mcx_run_reproduces_the_table(tmp_path):
     esc = [float(re.search(r"escaped fraction ([\d.]+) \+- ([\d.]+)", header(p)).group(g))
            for p in (out, TABLE) for g in (1, 2)]
     assert abs(esc[0] - esc[2]) < 4 * np.hypot(esc[1], esc[3])
+    top = [float(re.search(r"z20_top ([\d.]+)\+-([\d.]+)", header(p)).group(g))
+           for p in (out, TABLE) for g in (1, 2)]
+    assert abs(top[0] - top[2]) < 4 * np.hypot(top[1], top[3])
     use = (small["theta_centre_deg"] >= 20) & (small["theta_centre_deg"] <= 80)
     se = np.hypot(small["L_rel_se"][use], table["L_rel_se"][use])
     assert np.all(np.abs(small["L_rel"][use] - table["L_rel"][use]) < 4 * se)
