@@ -686,13 +686,14 @@ def _run_backprojection(P, lam, rule, opts):
     return {"power": _backprojection(P.T_obs, P.a)[0], "no_sigma": True}
 
 
-def _filtered(P, *, prior, k, tol, lam, rule, opts, weighted, free_level=False):
+def _filtered(P, *, prior, k, tol, lam, rule, opts, weighted, free_level=False, exact=False):
     from fluxcli.inverse.filtered import filtered_solve
 
     s2 = None if P.sigma2 is None else P.sigma2[P.rows]
     out = filtered_solve(P.T_cov, P.a[P.rows], prior=prior, k=k, tol=tol, lam=lam, rule=rule or "gcv",
                          gamma=opts.get("gamma", 1.0), tau=opts.get("tau", 1.0), lambdas=opts.get("lambdas"),
-                         variance=P.variance, sigma2=s2, weighted=weighted, free_level=free_level, sums=P.sums())
+                         variance=P.variance, sigma2=s2, weighted=weighted, free_level=free_level, sums=P.sums(),
+                         exact=exact)
     return {"sigma_groups": out.sigma_sums, "power": out.power, "sigma": out.sigma, "lam": out.lam, "lam_absolute": out.lam_absolute,
             "iterations": out.iterations, "converged": out.converged, "choice": out.choice,
             "chi2": out.chi2_per_pixel, "warnings": out.warnings}
@@ -717,7 +718,7 @@ def _run_smooth(P, lam, rule, opts):
     opts = {"gamma": 1.0} | opts
     R = exitance_prior(P.adjacency, P.mask, P.areas)
     return _filtered(P, prior=R, k=c.check_positive_int(opts.get("n_iter", 10), "n_iter"), tol=None, lam=lam,
-                     rule=rule, opts=opts, weighted=True, free_level=True)
+                     rule=rule, opts=opts, weighted=True, free_level=True, exact=True)
 
 
 def _lam_from_rule(P, lam, rule, opts, weighted):
