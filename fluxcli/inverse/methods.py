@@ -39,6 +39,8 @@ __all__ = [
     "METHODS",
     "REGISTRY",
     "observation_classes",
+    "headline_total",
+    "Headline",
     "register",
     "Result",
     "backprojection",
@@ -922,3 +924,54 @@ def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | 
                   iterations=int(out.get("iterations", 1)), converged=bool(out.get("converged", True)),
                   lam_choice=out.get("choice"), chi2_per_pixel=float(chi2), warnings=tuple(warnings),
                   observation=observation, sigma_groups=out.get("sigma_groups"))
+
+
+# Warnings that say the total over observed elements is not pinned down by the data (their texts
+# are written in poor_share_warning, filtered.filtered_solve and spectral.choose).
+UNTRUSTED_TOTAL_MARKERS = (POOR_SHARE_TEXT, "when lambda is halved or doubled", "edge of the search range")
+
+
+@dataclass(frozen=True)
+class Headline:
+    """The one total to print first: over the observed elements, or, when a warning says that
+    total is not pinned down, over the well-observed ones, with the reason."""
+
+    photons: float
+    over: str  # "observed elements" | "well-observed elements"
+    reason: str | None  # why the total over observed elements is not the headline (None: it is)
+    total_observed_photons: float
+
+    def line(self, what: str = "total flux") -> str:
+        """One console line: the number, what it sums, and (when not the observed total) why."""
+        head = f"{what}: {self.photons:.4g} photons over {self.over}"
+        if self.reason is None:
+            return head
+        return (f"{head} (the total over all observed elements, {self.total_observed_photons:.4g}, "
+                f"is not pinned down by the data: {self.reason})")
+
+
+def headline_total(power, observed, well_observed, warnings) -> Headline:
+    """The trustworthy total of a reconstruction (issue 25: a plausible wrong total was printed
+    first while the warnings below it said it was not determined).
+
+    Parameters
+    ----------
+    power : (n_elements,) photons, NaN where unobserved.
+    observed, well_observed : (n_elements,) bool.
+    warnings : the reconstruction's warnings (strings).
+    """
+    p = np.asarray(power, float)
+    total = float(np.nansum(np.where(observed, p, 0.0)))
+    well = float(np.nansum(np.where(well_observed, p, 0.0)))
+    hits = [w for w in warnings if any(m in w for m in UNTRUSTED_TOTAL_MARKERS)]
+    if not hits or not np.any(well_observed):
+        return Headline(total, "observed elements", None, total)
+    reasons = []
+    for w in hits:
+        if POOR_SHARE_TEXT in w:
+            reasons.append(w.split(" (")[0])  # "26% of the total over observed elements lies in poorly ..."
+        elif "halved or doubled" in w:
+            reasons.append(w.split(" (")[0].replace("the total changes", "it changes"))
+        else:
+            reasons.append("lambda sat at the edge of its search range")
+    return Headline(well, "well-observed elements", "; ".join(dict.fromkeys(reasons)), total)

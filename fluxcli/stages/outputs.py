@@ -61,6 +61,9 @@ def reconstruction_vtp(rec_path: Path, out_path: Path, *, exposure_s: float | No
         pose_obs = pp["observed"][()].astype(bool) if pp is not None and "observed" in pp else None
         method = str(f.attrs.get("method", ""))
         joint = bool(fl.attrs.get("joint_over_poses", False))
+        head = fl["headline_total"] if "headline_total" in fl else None
+        headline = (float(head[()]), str(head.attrs.get("over", "")), str(head.attrs.get("reason", ""))) \
+            if head is not None else None
     areas = surface.element_areas_mm2
     arrays, units = _quantities("", power, areas, exposure_s, sigma)
     if truth is not None:
@@ -75,6 +78,9 @@ def reconstruction_vtp(rec_path: Path, out_path: Path, *, exposure_s: float | No
             units[f"pose{k + 1}_observed_state"] = "1 observed, 0 unobserved in this pose, -1 not an element"
     field = {"method": method, "joint_over_poses": int(joint), "source": rec_path.name,
              "exposure_s": exposure_s if exposure_s is not None else np.nan}
+    if headline is not None:  # the total to read first, and why when it is not over all observed elements
+        field |= {"headline_total_photons": headline[0], "headline_over": headline[1],
+                  "headline_reason": headline[2] or "-"}
     mesh = X.polydata(surface.vertices_mm, surface.faces, surface.element_of_face, arrays, observed=observed,
                       units=units, field=field)
     return X.write_vtp(out_path, mesh)
