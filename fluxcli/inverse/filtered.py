@@ -24,6 +24,7 @@ import numpy as np
 from fluxcli.inverse import spectral as S
 
 CHI2_RANGE = (0.5, 2.0)
+NNLS_LAMBDA = 1e-12  # relative: "no prior" for guard_lambda's reference fit, yet a non-singular system
 TOTAL_JUMP = 0.05
 
 
@@ -100,7 +101,7 @@ def guard_lambda(spec: S.Spectrum, choice: S.Choice, b, it: int, conv: bool, k: 
     lam0 = choice.lam
     if not choice.at_edge and rho(b) / m <= CHI2_RANGE[1]:
         return b, lam0, it, conv, None
-    b_nn = S.nonneg_quadratic(spec.G, spec.g, passive=b > 0)
+    b_nn = S.iterated_exact(spec, NNLS_LAMBDA * spec.scale, 1, start=b)[0]  # NNLS; λ below any pick
     rho_nn, free_nn = rho(b_nn), int(np.count_nonzero(b_nn > 0))
     phi = max(1.0, rho_nn / max(m - free_nn, 1))
     grid = choice.lambdas
