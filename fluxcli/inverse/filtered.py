@@ -116,14 +116,14 @@ def guard_lambda(spec: S.Spectrum, choice: S.Choice, b, it: int, conv: bool, k: 
         x, it, conv = S.iterated_exact(spec, lam_c * spec.scale, k, tol=tol)
         df = float(spec.curves([lam_c * spec.scale], k)[2][0])
         scores[lam_c] = (rho(x) / phi + 2 * df - m, x, it, conv)
-    scores[0.0] = (rho_nn / phi + 2 * free_nn - m, b_nn, 1, True)
+    scores[NNLS_LAMBDA] = (rho_nn / phi + 2 * free_nn - m, b_nn, 1, True)
     best = min(scores, key=lambda x: scores[x][0])
     _, x, it_c, conv_c = scores[best]
     why = (f"at the edge of its range ({lam0:.3g})" if choice.at_edge else
            f"at {lam0:.3g} with chi^2/pixel {rho(b) / m:.3g}")
     if best == lam0:
         return b, lam0, it, conv, None
-    what = "the plain non-negative fit (no prior)" if best == 0.0 else f"lambda {best:.3g}"
+    what = "the plain non-negative fit (no prior)" if best == NNLS_LAMBDA else f"lambda {best:.3g}"
     return x, best, it_c, conv_c, (
         f"lambda ({choice.rule}) sat {why}; chose {what} by the fit of the non-negative estimator itself "
         f"(UPRE with the noise variance x{phi:.3g}, the misfit the best non-negative fit leaves per degree of "
