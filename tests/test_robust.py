@@ -228,3 +228,18 @@ def test_a_lambda_pick_that_leaves_chi2_far_from_one_is_checked_on_the_estimator
     T, a, adj, truth = _model_error_chain(shift=0.0, peak=2e5)
     ok = reconstruct(T, a, method="smooth", variance=POISSON, adjacency=adj)
     assert not ok.warnings and ok.lam == pytest.approx(ok.lam_choice.lam)
+
+
+def test_a_replaced_lambda_pick_does_not_move_the_headline_but_a_final_edge_pick_does():
+    """Only warnings that say the total is not pinned down move the headline: a pick that sat on
+    the edge and was replaced (widened range, L-curve fallback, the estimator's own fit) does
+    not; a final pick on the edge does."""
+    p = np.array([5.0, 3.0, 2.0])
+    obs, well = np.ones(3, bool), np.array([True, True, False])
+    replaced = ["lambda (gcv) was at the edge of the search range; the range was widened 1x (3 decades each) to 1e-12..1e+06.",
+                "lambda (gcv) sat at 1.68e-12 with chi^2/pixel 3.81; chose lambda 1 by the fit of the non-negative "
+                "estimator itself (...)"]
+    assert headline_total(p, obs, well, replaced).reason is None
+    final = ["lambda (lcurve) sits at the edge of the search range (1e-15, range 1e-15..1e+09, widened 2x): ..."]
+    h = headline_total(p, obs, well, final)
+    assert h.photons == 8.0 and h.over == "well-observed elements" and "edge" in h.reason

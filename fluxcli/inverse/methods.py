@@ -928,7 +928,9 @@ def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | 
 
 # Warnings that say the total over observed elements is not pinned down by the data (their texts
 # are written in poor_share_warning, filtered.filtered_solve and spectral.choose).
-UNTRUSTED_TOTAL_MARKERS = (POOR_SHARE_TEXT, "when lambda is halved or doubled", "edge of the search range")
+# ("sits at the edge" is a final pick on the edge; "was at the edge ... widened" and "sat at the edge ... fell back" /
+# "sat ...; chose" are picks that were replaced and say so)
+UNTRUSTED_TOTAL_MARKERS = (POOR_SHARE_TEXT, "when lambda is halved or doubled", "sits at the edge of the search range")
 
 
 @dataclass(frozen=True)
