@@ -584,7 +584,7 @@ def write_vtp_mesh(path, verts, faces, element):
 
 
 def scene25(folder, *, mirrors: bool, peak_photons: float = 2e4, noise_draw: int | None = 0, seed: int = 25,
-            blob_centre_mm=(0.0, 4.0, 12.5), width_mm: float = 8.0, perturbation=SCENE25_PERTURBATION,
+            blob_centre_mm=(0.0, 4.0, 12.5), width_mm: float = 6.0, perturbation=SCENE25_PERTURBATION,
             n_phi: int = 768, n_y: int = 384, K: int = 16, mesh=None, camera=None):
     """Issue 25's scene as a user's files: ``cylinder.vtp`` (96-gon prism, 1168 elements),
     ``image.tif`` (float32 photons, Poisson at a ``peak_photons`` brightest pixel; noiseless
