@@ -112,10 +112,10 @@ def guard_lambda(spec: S.Spectrum, choice: S.Choice, b, it: int, conv: bool, k: 
     if not lc.at_edge:
         cands[lc.lam] = None
     scores = {}
-    for lam_c in cands:
-        x, it, conv = S.iterated_exact(spec, lam_c * spec.scale, k, tol=tol)
+    for lam_c in cands:  # the first pick's estimate is b: not solved again
+        x, it_x, conv_x = (b, it, conv) if lam_c == lam0 else S.iterated_exact(spec, lam_c * spec.scale, k, tol=tol)
         df = float(spec.curves([lam_c * spec.scale], k)[2][0])
-        scores[lam_c] = (rho(x) / phi + 2 * df - m, x, it, conv)
+        scores[lam_c] = (rho(x) / phi + 2 * df - m, x, it_x, conv_x)
     scores[NNLS_LAMBDA] = (rho_nn / phi + 2 * free_nn - m, b_nn, 1, True)
     best = min(scores, key=lambda x: scores[x][0])
     _, x, it_c, conv_c = scores[best]
