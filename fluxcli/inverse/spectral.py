@@ -285,7 +285,7 @@ def nonneg_quadratic(H: np.ndarray, rhs: np.ndarray, *, passive=None, max_iter: 
     ``inverse``, optional: ``(H⁻¹ rhs, cols)`` with ``cols(idx)`` the columns ``H⁻¹[:, idx]``
     (e.g. from an eigendecomposition). With few unknowns at zero (set A) the solution with
     ``x_A = 0`` is then ``H⁻¹rhs − H⁻¹[:, A] (H⁻¹[A, A])⁻¹ (H⁻¹rhs)_A``: O(n²|A|) instead of a
-    Cholesky of the free block, O(n³/3).
+    Cholesky of the free block, O((n − |A|)³/3); used while |A| ≤ n/8.
     """
     n = len(rhs)
     F = np.zeros(n, bool) if passive is None else np.asarray(passive, bool).copy()
@@ -296,7 +296,9 @@ def nonneg_quadratic(H: np.ndarray, rhs: np.ndarray, *, passive=None, max_iter: 
     for _ in range(max_iter):
         x = np.zeros(n)
         A = np.flatnonzero(~F)
-        if inverse is not None and 4 * A.size <= n:
+        # Schur on the zero set costs n²|A|, a Cholesky of the free block (n − |A|)³/3: the
+        # former wins below |A| ≈ n/6
+        if inverse is not None and 8 * A.size <= n:
             full, cols = inverse
             if A.size:
                 C = cols(A)  # (n, |A|)
