@@ -293,6 +293,7 @@ def nonneg_quadratic(H: np.ndarray, rhs: np.ndarray, *, passive=None, max_iter: 
     scale_h = float(np.abs(np.diag(H)).max()) if n else 0.0
     best, alpha = n + 1, 3
     x = np.zeros(n)
+    best_x = x
     for _ in range(max_iter):
         x = np.zeros(n)
         A = np.flatnonzero(~F)
@@ -317,7 +318,7 @@ def nonneg_quadratic(H: np.ndarray, rhs: np.ndarray, *, passive=None, max_iter: 
         if nb == 0:
             return np.maximum(x, 0.0)
         if nb < best:
-            best, alpha = nb, 3
+            best, alpha, best_x = nb, 3, x
             F ^= bad
         elif alpha > 0:
             alpha -= 1
@@ -325,7 +326,15 @@ def nonneg_quadratic(H: np.ndarray, rhs: np.ndarray, *, passive=None, max_iter: 
         else:  # Murty's rule: the last violating index alone (finite termination)
             j = int(np.flatnonzero(bad)[-1])
             F[j] = not F[j]
-    return _nonneg_quadratic_lawson_hanson(H, rhs)
+    if n <= MAX_LAWSON_HANSON:
+        return _nonneg_quadratic_lawson_hanson(H, rhs)
+    # Lawson-Hanson on thousands of unknowns takes hours (issue 25's direct scene, 5666 vertices:
+    # the pivoting did not settle in 50 rounds in the λ/2, 2λ check and scipy's NNLS ran on):
+    # the pivoting's best iterate (fewest KKT violations), clipped, is what is left
+    return np.maximum(best_x, 0.0)
+
+
+MAX_LAWSON_HANSON = 2000  # unknowns; beyond, nonneg_quadratic keeps its best pivoting iterate
 
 
 def _nonneg_quadratic_lawson_hanson(H, rhs):
