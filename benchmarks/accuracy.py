@@ -282,6 +282,28 @@ def independent_case(name: str, mirrors: bool, snr: float, **scene):
     return run
 
 
+def scene25_case(name: str, mirrors: bool, peak_photons: float, camera: dict | None = None):
+    """Issue 25's scene from tests/independent_renderer.py: a 96-gon cylinder mesh of 1168
+    elements (VTP, integer `element` cell array) whose images come from the smooth cylinder
+    seen by a camera displaced within calibration errors; Poisson at ``peak_photons`` in the
+    brightest pixel; the noiseless rendering is shared by the draws (cached in the case's
+    folder). ``camera`` overrides pixels and pitch (the pixels-per-element cases)."""
+    def run(draw=0, methods=METHODS):
+        sys.path.insert(0, str(ROOT / "tests"))
+        import independent_renderer as ir
+
+        cam = None
+        if camera is not None:
+            cam = copy.deepcopy(ir.SCENE25_CAMERA) | dict(camera)
+        folder = OUT / name
+        p, truth, clean = ir.scene25(folder, mirrors=mirrors, peak_photons=peak_photons, noise_draw=draw, camera=cam)
+        write(folder, yaml.safe_load(p.read_text()))  # the shared T cache
+        p = folder / "case.yaml"
+        fluxmap("build-T", p, "--quiet", "--jobs", "2")
+        return float(np.sqrt(peak_photons)), reconstruct_all(p, lambda rec: truth, methods)
+    return run
+
+
 def ring_case(name: str, snr: float):
     cfg = {"system": {"camera": {"pixels": [512, 1], "pixel_pitch_mm": 0.013,
                                  "lens": {"focal_length_mm": 23.9, "f_number": 1.4, "focus_distance_mm": 317.0},
@@ -323,6 +345,15 @@ def cases() -> dict:
         # a finer mesh: 120 x 48 quads in 2 x 2 elements, 5880 vertices, 0.3 pixels per quad
         "indep-direct-fine": independent_case("indep-direct-fine", False, 30, n_angular=120, n_axial=48),
     }
+    # issue 25's scene: 1168 elements, smooth truth, perturbed camera; Poisson peaks 2e3..2e5
+    for mirrors in (False, True):
+        for peak in (2e3, 2e4, 2e5):
+            name = f"scene25-{'mirrors' if mirrors else 'direct'}-peak{peak:.0e}".replace("+0", "")
+            c[name] = scene25_case(name, mirrors, peak)
+    # the same scene from 0.5 to ~150 pixels per element (top elements; ~4 at the issue's camera)
+    for ppe, pixels, pitch_mm in ((0.5, 90, 0.148), (16, 512, 0.026), (150, 640, 0.0085)):
+        name = f"scene25-direct-{ppe:g}px-per-element"
+        c[name] = scene25_case(name, False, 2e4, {"pixels": [pixels, pixels], "pixel_pitch_mm": pitch_mm})
     return c
 
 

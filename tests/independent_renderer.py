@@ -353,3 +353,282 @@ def blob_scene(folder, *, mirrors: bool, max_snr: float = 30.0, n_angular=48, n_
     path = folder / "fluxmap.yaml"
     path.write_text(yaml.safe_dump(cfg, sort_keys=False))
     return path, truth, clean
+
+
+# ------------------------------------------------------------------ issue 25's scene
+# A cylinder r 12.5 mm x 50 mm with its axis along y (centred at the origin), a thin lens
+# 317 mm above the axis, optionally two 45-degree mirrors at x = +-40 mm. The reconstruction
+# mesh is a 96-gon prism (the user's file); the images come from the *true* cylinder (a
+# smooth surface, normals radial) seen by a camera displaced within calibration errors:
+# the model fluxmap inverts is never the one that made the images.
+SCENE25_CAMERA = {"pixels": [256, 256], "pixel_pitch_mm": 0.052,
+                  "lens": {"focal_length_mm": 23.9, "aperture_diameter_mm": 10.0, "focus_distance_mm": 317.0},
+                  "pose": {"lens_center_mm": [0.0, 0.0, 317.0], "look": [0, 0, -1], "up": [0, 1, 0]}}
+SCENE25_MIRRORS = [
+    {"name": "right", "center_mm": [40.0, 0.0, 0.0], "normal": [-0.7071067811865476, 0.0, 0.7071067811865476],
+     "axis": [0, 1, 0], "size_mm": [80, 50], "reflectance": 1.0},
+    {"name": "left", "center_mm": [-40.0, 0.0, 0.0], "normal": [0.7071067811865476, 0.0, 0.7071067811865476],
+     "axis": [0, 1, 0], "size_mm": [80, 50], "reflectance": 1.0},
+]
+# What the renderer's camera differs by from the config's (within what a grid calibration
+# leaves, DESIGN §6: lens centre to ~0.1 mm across, ~0.5 mm along the axis, f to ~0.2 %,
+# the in-plane rotation to ~0.1 degree).
+SCENE25_PERTURBATION = {"lens_center_mm": [0.08, -0.06, 0.4], "focal_length_factor": 1.002, "roll_deg": 0.1}
+
+
+def cylinder_y(*, radius_mm=12.5, length_mm=50.0, n_angular=96, n_axial=48, cap_bands=6, group=2,
+               cap_sectors=4, cap_rings=2):
+    """The issue-25 reconstruction mesh: a closed ``n_angular``-gon prism along y, centred at
+    the origin; side quads grouped ``group`` x ``group`` into elements, each cap ``cap_bands``
+    rings of triangles grouped into ``cap_sectors`` x ``cap_rings`` elements.
+
+    Angle φ is measured from +z towards +x (a vertex on top); side element
+    ``(ia // group) * (n_axial // group) + iy // group``; then per cap (−y, +y)
+    ``sector * cap_rings + ring``. Defaults: 5666 vertices, 11328 triangles, 1168 elements.
+
+    Returns vertices (V, 3), faces (F, 3) wound outward, element (F,) int.
+    """
+    R, L = float(radius_mm), float(length_mm)
+    phi = 2 * np.pi * np.arange(n_angular) / n_angular
+    ys = np.linspace(-L / 2, L / 2, n_axial + 1)
+    verts = [[R * np.sin(p), y, R * np.cos(p)] for y in ys for p in phi]
+    faces, elem = [], []
+    ne_y = n_axial // group
+    for iy in range(n_axial):
+        for ia in range(n_angular):
+            a, b = iy * n_angular + ia, iy * n_angular + (ia + 1) % n_angular
+            c, d = a + n_angular, b + n_angular
+            e = (ia // group) * ne_y + iy // group
+            faces += [[a, b, c], [b, d, c]]
+            elem += [e, e]
+    n_side = (n_angular // group) * ne_y
+    per_sector = n_angular // cap_sectors
+    per_ring = cap_bands // cap_rings
+    for k, (iy_edge, y) in enumerate(((0, -L / 2), (n_axial, L / 2))):
+        base = len(verts)
+        verts.append([0.0, y, 0.0])
+        # interior rings 1..cap_bands-1; ring cap_bands is the side's edge ring
+        for band in range(1, cap_bands):
+            r = R * band / cap_bands
+            verts += [[r * np.sin(p), y, r * np.cos(p)] for p in phi]
+
+        def ring_vertex(band, ia):
+            if band == cap_bands:
+                return iy_edge * n_angular + ia % n_angular
+            return base + 1 + (band - 1) * n_angular + ia % n_angular
+
+        for ia in range(n_angular):
+            e0 = n_side + k * cap_sectors * cap_rings + (ia // per_sector) * cap_rings
+            faces.append([base, ring_vertex(1, ia), ring_vertex(1, ia + 1)])
+            elem.append(e0)
+            for band in range(1, cap_bands):
+                e = e0 + band // per_ring
+                a, b = ring_vertex(band, ia), ring_vertex(band, ia + 1)
+                c, d = ring_vertex(band + 1, ia), ring_vertex(band + 1, ia + 1)
+                faces += [[a, b, c], [b, d, c]]
+                elem += [e, e]
+    verts, faces = np.array(verts, float), np.array(faces)
+    cen = verts[faces].mean(axis=1)
+    nrm = np.cross(verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]])
+    out = np.c_[cen[:, 0], np.zeros(len(cen)), cen[:, 2]]
+    cap = np.arange(len(faces)) >= 2 * n_axial * n_angular
+    out[cap] = np.c_[np.zeros(cap.sum()), np.sign(cen[cap, 1]), np.zeros(cap.sum())]
+    flip = np.einsum("ij,ij->i", nrm, out) < 0
+    faces[flip] = faces[flip][:, ::-1]
+    return verts, faces, np.array(elem)
+
+
+def true_cylinder_samples(*, radius_mm=12.5, length_mm=50.0, n_el_angular=48, n_el_axial=24, cap_sectors=4,
+                          cap_rings=2, n_phi=768, n_y=384, n_theta=768, n_r=96, rng=None):
+    """Jittered stratified points on the *smooth* cylinder (axis y), with their outward
+    normals, the area each stands for (mm²) and the element of :func:`cylinder_y` whose
+    angular / axial / radial range holds them (elements are bins of φ, y and r, so the
+    truth per element is an integral over the true surface, not over the prism's facets)."""
+    rng = rng or np.random.default_rng(0)
+    R, L = float(radius_mm), float(length_mm)
+    i, j = np.meshgrid(np.arange(n_phi), np.arange(n_y), indexing="ij")
+    phi = 2 * np.pi * (i.ravel() + rng.random(i.size)) / n_phi
+    y = -L / 2 + L * (j.ravel() + rng.random(j.size)) / n_y
+    side_p = np.c_[R * np.sin(phi), y, R * np.cos(phi)]
+    side_n = np.c_[np.sin(phi), np.zeros(phi.size), np.cos(phi)]
+    side_w = np.full(phi.size, 2 * np.pi * R * L / phi.size)
+    ia = np.minimum((phi / (2 * np.pi) * n_el_angular).astype(int), n_el_angular - 1)
+    iy = np.minimum(((y + L / 2) / L * n_el_axial).astype(int), n_el_axial - 1)
+    side_e = ia * n_el_axial + iy
+    n_side = n_el_angular * n_el_axial
+    pts, nrm, w, el = [side_p], [side_n], [side_w], [side_e]
+    for k, sign in enumerate((-1.0, 1.0)):
+        i, j = np.meshgrid(np.arange(n_theta), np.arange(n_r), indexing="ij")
+        th = 2 * np.pi * (i.ravel() + rng.random(i.size)) / n_theta
+        r = R * np.sqrt((j.ravel() + rng.random(j.size)) / n_r)  # equal-area rings
+        pts.append(np.c_[r * np.sin(th), np.full(th.size, sign * L / 2), r * np.cos(th)])
+        nrm.append(np.tile([0.0, sign, 0.0], (th.size, 1)))
+        w.append(np.full(th.size, np.pi * R * R / th.size))
+        sector = np.minimum((th / (2 * np.pi) * cap_sectors).astype(int), cap_sectors - 1)
+        ring = np.minimum((r / R * cap_rings).astype(int), cap_rings - 1)
+        el.append(n_side + k * cap_sectors * cap_rings + sector * cap_rings + ring)
+    return np.concatenate(pts), np.concatenate(nrm), np.concatenate(w), np.concatenate(el)
+
+
+def segment_hits_cylinder_y(p0, p1, radius_mm, length_mm, eps=1e-6):
+    """Bool (N,): the open segment p0 → p1 passes through the inside of the solid cylinder
+    |(x, z)| < r, |y| < L/2."""
+    d = p1 - p0
+    a = d[:, 0] ** 2 + d[:, 2] ** 2
+    b = 2 * (p0[:, 0] * d[:, 0] + p0[:, 2] * d[:, 2])
+    c = p0[:, 0] ** 2 + p0[:, 2] ** 2 - radius_mm**2
+    disc = b * b - 4 * a * c
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sq = np.sqrt(np.maximum(disc, 0.0))
+        t_in, t_out = (-b - sq) / (2 * a), (-b + sq) / (2 * a)
+        # parallel to the axis: inside the infinite cylinder for all t or for none
+        t_in = np.where(a > 0, t_in, np.where(c < 0, -np.inf, np.inf))
+        t_out = np.where(a > 0, t_out, np.where(c < 0, np.inf, -np.inf))
+        ty0, ty1 = (-length_mm / 2 - p0[:, 1]) / d[:, 1], (length_mm / 2 - p0[:, 1]) / d[:, 1]
+    ylo = np.where(d[:, 1] != 0, np.minimum(ty0, ty1), np.where(np.abs(p0[:, 1]) < length_mm / 2, -np.inf, np.inf))
+    yhi = np.where(d[:, 1] != 0, np.maximum(ty0, ty1), np.where(np.abs(p0[:, 1]) < length_mm / 2, np.inf, -np.inf))
+    lo = np.maximum(np.maximum(t_in, ylo), eps)
+    hi = np.minimum(np.minimum(t_out, yhi), 1 - eps)
+    return (disc > 0) & (lo < hi)
+
+
+def render_points(p, nrm, w_area, exitance, camera, *, mirrors=(), blocks_subject=None, K=16, seed=0,
+                  chunk=400_000):
+    """Noiseless image (ny, nx) in photons of surface points ``p`` (N, 3) with outward
+    normals ``nrm`` each standing for ``w_area`` mm² of a *convex* subject (a point sees
+    every direction its normal faces). ``blocks_subject(a0, a1)`` tells whether a segment
+    from a mirror to the lens passes through the subject; mirrors are thin occluders."""
+    rng = np.random.default_rng(seed)
+    image = np.zeros(camera.nx * camera.ny)
+    lens_area = np.pi * camera.R**2
+    views = [(None, 1.0)] + [(m, m.rho) for m in mirrors]
+    step = max(chunk // K, 1)
+    for start in range(0, len(p), step):
+        ps = np.repeat(p[start:start + step], K, axis=0)
+        ns = np.repeat(nrm[start:start + step], K, axis=0)
+        w_src = np.repeat(exitance(p[start:start + step]) * w_area[start:start + step], K)
+        lens = camera.lens_points(len(ps) // K, K, rng)
+        for mirror, rho in views:
+            src = ps if mirror is None else mirror.reflect(ps)
+            d = lens - src
+            dist = np.linalg.norm(d, axis=1)
+            cos_l = -((d / dist[:, None]) @ camera.n)
+            if mirror is None:
+                first_end, ok = lens, np.ones(len(ps), bool)
+            else:
+                _, first_end, ok = mirror.crossing(src, lens)
+            out_dir = first_end - ps
+            cos_s = np.einsum("ij,ij->i", ns, out_dir) / np.linalg.norm(out_dir, axis=1)
+            pix = camera.pixel(src, lens)
+            ok &= (cos_s > 0) & (cos_l > 0) & (pix >= 0)
+            idx = np.flatnonzero(ok)
+            blocked = np.zeros(idx.size, bool)
+            for other in mirrors:
+                if other is not mirror:
+                    blocked |= other.crossing(ps[idx], first_end[idx])[2]
+                    if mirror is not None:
+                        blocked |= other.crossing(first_end[idx], lens[idx])[2]
+            if mirror is not None and blocks_subject is not None:
+                blocked |= blocks_subject(first_end[idx], lens[idx])
+            idx = idx[~blocked]
+            wt = rho * w_src[idx] * cos_s[idx] * cos_l[idx] * lens_area / (np.pi * dist[idx] ** 2 * K)
+            image += np.bincount(pix[idx], weights=wt, minlength=image.size)
+    return image.reshape(camera.ny, camera.nx)
+
+
+def perturbed_camera(cam_cfg, perturbation=None) -> "Camera":
+    """The renderer's camera: ``cam_cfg`` (a ``system.camera`` block) displaced by
+    ``perturbation`` (lens centre offset mm, focal-length factor, roll about the look
+    direction in degrees); None: exactly the config's camera."""
+    pert = perturbation or {}
+    lens = cam_cfg["lens"]
+    f = lens["focal_length_mm"] * pert.get("focal_length_factor", 1.0)
+    f_number = lens["f_number"] if "f_number" in lens else lens["focal_length_mm"] / lens["aperture_diameter_mm"]
+    pose = cam_cfg["pose"]
+    look = np.asarray(pose["look"], float)
+    look /= np.linalg.norm(look)
+    up = np.asarray(pose["up"], float)
+    a = np.deg2rad(pert.get("roll_deg", 0.0))
+    up = up * np.cos(a) + np.cross(look, up) * np.sin(a) + look * np.dot(look, up) * (1 - np.cos(a))
+    # the aperture diameter is what a calibration measures; keep it, not the f-number
+    return Camera(lens_center_mm=np.asarray(pose["lens_center_mm"], float) + np.asarray(pert.get("lens_center_mm", 0.0)),
+                  look=look, up=up, focal_length_mm=f, f_number=f_number * f / lens["focal_length_mm"],
+                  focus_distance_mm=lens["focus_distance_mm"], pixels=cam_cfg["pixels"],
+                  pixel_pitch_mm=cam_cfg["pixel_pitch_mm"], apertures=cam_cfg.get("apertures", ()))
+
+
+def write_vtp_mesh(path, verts, faces, element):
+    """A VTK XML PolyData file (ASCII) with an integer cell array ``element``."""
+    def block(values, fmt):
+        return "\n".join(fmt.format(*row) if np.ndim(row) else fmt.format(row) for row in values)
+
+    offsets = 3 * np.arange(1, len(faces) + 1)
+    text = f"""<?xml version="1.0"?>
+<VTKFile type="PolyData" version="0.1" byte_order="LittleEndian">
+<PolyData><Piece NumberOfPoints="{len(verts)}" NumberOfPolys="{len(faces)}">
+<Points><DataArray type="Float64" NumberOfComponents="3" format="ascii">
+{block(verts, "{:.12g} {:.12g} {:.12g}")}
+</DataArray></Points>
+<Polys><DataArray type="Int64" Name="connectivity" format="ascii">
+{block(faces, "{} {} {}")}
+</DataArray><DataArray type="Int64" Name="offsets" format="ascii">
+{block(offsets, "{}")}
+</DataArray></Polys>
+<CellData Scalars="element"><DataArray type="Int32" Name="element" format="ascii">
+{block(element, "{}")}
+</DataArray></CellData>
+</Piece></PolyData></VTKFile>
+"""
+    with open(path, "w") as fh:
+        fh.write(text)
+
+
+def scene25(folder, *, mirrors: bool, peak_photons: float = 2e4, noise_draw: int | None = 0, seed: int = 25,
+            blob_centre_mm=(0.0, 4.0, 12.5), width_mm: float = 6.0, perturbation=SCENE25_PERTURBATION,
+            n_phi: int = 768, n_y: int = 384, K: int = 16, mesh=None, camera=None):
+    """Issue 25's scene as a user's files: ``cylinder.vtp`` (96-gon prism, 1168 elements),
+    ``image.tif`` (float32 photons, Poisson at a ``peak_photons`` brightest pixel; noiseless
+    when ``noise_draw`` is None), ``fluxmap.yaml``. Rendered on the smooth cylinder with a
+    perturbed camera. Returns (config path, truth per element in photons, noiseless image).
+    The noiseless rendering is cached in the folder (``clean.npz``) so that noise draws of
+    the same scene cost nothing."""
+    from pathlib import Path
+
+    import yaml
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    cam_cfg = dict(camera or SCENE25_CAMERA)
+    verts, faces, element = mesh or cylinder_y()
+    cache = folder / f"clean_{'mirrors' if mirrors else 'direct'}.npz"
+    if cache.exists():
+        z = np.load(cache)
+        clean, truth = z["clean"], z["truth"]
+    else:
+        rng = np.random.default_rng(seed)
+        p, nrm, w, el = true_cylinder_samples(n_phi=n_phi, n_y=n_y, rng=rng)
+
+        def exitance(q):
+            return gaussian_exitance(q, blob_centre_mm, width_mm)
+
+        truth = np.bincount(el, weights=exitance(p) * w, minlength=int(element.max()) + 1)
+        cam = perturbed_camera(cam_cfg, perturbation)
+        mir = [Mirror(**m) for m in SCENE25_MIRRORS] if mirrors else []
+        clean = render_points(p, nrm, w, exitance, cam, mirrors=mir, K=K, seed=seed + 1,
+                              blocks_subject=lambda a0, a1: segment_hits_cylinder_y(a0, a1, 12.5, 50.0))
+        scale = peak_photons / clean.max()
+        clean, truth = clean * scale, truth * scale
+        np.savez(cache, clean=clean, truth=truth)
+    scale = peak_photons / clean.max()
+    clean, truth = clean * scale, truth * scale
+    image = clean if noise_draw is None else np.random.default_rng(
+        seed + 1000 + 7919 * noise_draw).poisson(clean).astype(np.float32)
+    write_vtp_mesh(folder / "cylinder.vtp", verts, faces, element)
+    write_float_tiff(folder / "image.tif", image)
+    cfg = {"workdir": "run",
+           "system": {"camera": cam_cfg, "mirrors": SCENE25_MIRRORS if mirrors else []},
+           "subject": {"surface": {"mesh": "cylinder.vtp"}},
+           "reconstruct": {"images": {"files": ["image.tif"], "units": "photons"}}}
+    path = folder / "fluxmap.yaml"
+    path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return path, truth, clean

@@ -2,15 +2,14 @@
 
 A tiny pipeline (cylinder phantom of 16 x 6 elements, 40 x 40 px camera, two stage
 heights, Gaussian flux, seeded Poisson noise, a two-method sweep) runs once per module;
-its summary is compared with ``tests/data/report_expectations.json`` so that a change
-which worsens the reconstruction fails here.  To refresh the stored values after an
-intended improvement: ``FLUXMAP_WRITE_EXPECTATIONS=1 pytest tests/test_report.py``.
+its reconstruction is judged against the simulation's truth with fixed bars, on the
+elements whose column sum is at least 5 % of the largest (a set fixed by T, not by the
+reconstruction).
 """
 
 from __future__ import annotations
 
 import json
-import os
 import re
 from pathlib import Path
 
@@ -29,16 +28,15 @@ from fluxcli.stages.build_t import cache_dir
 from fluxcli.stages.context import RunContext
 
 ROOT = Path(__file__).resolve().parents[1]
-EXPECTATIONS = ROOT / "tests" / "data" / "report_expectations.json"
 QUIET = RunContext(quiet=True)
 
 
 def small_config(minimal: dict) -> dict:
-    """test_simulate's cylinder, with the method pinned so that the regression check
-    follows one method, not whatever the default becomes."""
+    """test_simulate's cylinder, reconstructed by the default method (judged against the
+    truth below), with a two-method sweep."""
     cfg = cylinder_sim_config(minimal, peaks_photons=(1e7, 1e5))
     wlsq = {"method": "weighted_lsq", "lambda": "auto", "lambda_rule": "discrepancy"}
-    cfg["reconstruct"] = dict(wlsq, sweep={"methods": [{"method": "backprojection"}, wlsq]})
+    cfg["reconstruct"] = {"sweep": {"methods": [{"method": "backprojection"}, wlsq]}}  # the default method
     return cfg
 
 
@@ -218,55 +216,52 @@ def test_line_detector_plots_curves_and_flux_around_the_ring(write_config, tmp_p
     assert "snr_table" in s and "sweep" not in s
 
 
-# ------------------------------------------------------------------ science regression
-def _get(d, dotted: str):
-    for part in dotted.split("."):
-        d = d[int(part)] if isinstance(d, list) else d[part]
-    return d
+# ------------------------------------------------------------------ science against the truth
+def _judged_set(index: Path):
+    """Per pose: (power, truth, set) with the set fixed by the truth's T alone: elements whose
+    column sum is at least 5 % of the largest (not the reconstruction's own σ or classes)."""
+    from fluxcli.artefacts.transfer import load_T
+
+    rec = index.parent.parent / "reconstruction.h5"
+    with h5py.File(rec) as f:
+        truth = f["truth/power"][()]
+        power = f["per_pose/power"][()]
+        T_files = json.loads(f["geometry"].attrs["T_files"])
+    out = []
+    for k, name in enumerate(T_files):
+        sums = np.asarray(load_T(rec.parent / name).sum(axis=0)).ravel()
+        out.append((power[k], truth, sums >= 0.05 * sums.max()))
+    return out
 
 
-def test_science_does_not_get_worse(small_run):
-    """Errors may not grow by more than 20 % (+0.01), total ratios may not move by more
-    than 0.05, the spread of the totals over poses may not grow by more than 20 % (+0.02)."""
+def test_science_against_the_simulated_truth(small_run):
+    """Fixed bars against the simulation's truth (issue 25: this test used to compare the
+    summary with a file it could rewrite itself, with bars of stored value x 1.2 + slack).
+
+    Per pose, over the elements whose column sum is >= 5 % of the largest (a set fixed by T):
+    the share of the true light outside that set is bounded, and the L1 error, the total ratio
+    and the agreement of the two poses meet fixed bars (peak 1e7 photons: the noise alone is
+    far below them; what is left is the model error of a 40 x 40 camera on 96 elements). The figures the old file pinned as "expected" (11 % error, total 0.91)
+    are over all elements, unobserved ones counted as zero."""
     _, index = small_run
+    figures = []
+    for power, truth, judged in _judged_set(index):
+        assert np.all(np.isfinite(power[judged]))
+        left_out = truth[~judged].sum() / truth.sum()
+        err = np.abs(power[judged] - truth[judged]).sum() / truth[judged].sum()
+        ratio = power[judged].sum() / truth[judged].sum()
+        figures.append((left_out, err, ratio))
+    for left_out, err, ratio in figures:
+        assert left_out < BAR_LEFT_OUT, figures
+        assert err < BAR_ERROR, figures
+        assert abs(ratio - 1) < BAR_TOTAL, figures
+    totals = [r for _, _, r in figures]
+    assert max(totals) - min(totals) < BAR_SPREAD, figures
     s = _summary(index)
-    if os.environ.get("FLUXMAP_WRITE_EXPECTATIONS"):
-        _write_expectations(s)
-    stored = json.loads(EXPECTATIONS.read_text())
-    failures = []
-    for check in stored["checks"]:
-        got, want = _get(s, check["key"]), check["value"]
-        if got is None:
-            failures.append(f"{check['key']}: missing")
-        elif check["rule"] == "at_most" and got > want * (1 + check["rel"]) + check["abs"]:
-            failures.append(f"{check['key']}: {got:.4g} > {want:.4g} x {1 + check['rel']} + {check['abs']}")
-        elif check["rule"] == "within" and abs(got - want) > check["abs"]:
-            failures.append(f"{check['key']}: {got:.4g} not within ±{check['abs']} of {want:.4g}")
-        elif check["rule"] == "at_least" and got < want - check["abs"]:
-            failures.append(f"{check['key']}: {got:.4g} < {want:.4g} − {check['abs']}")
-    assert not failures, "the reconstruction got worse than tests/data/report_expectations.json:\n" + "\n".join(failures)
+    sw = s["sweep"]  # backprojection is wrong in scale by orders of magnitude: its error is ~1
+    assert all(e > 0.99 for e in np.ravel(sw["mean_error"][0])), sw["mean_error"][0]
 
 
-def _write_expectations(s: dict) -> None:
-    checks = [{"key": "error", "rule": "at_most", "rel": 0.2, "abs": 0.01},
-              {"key": "total_ratio", "rule": "within", "abs": 0.05},
-              {"key": "spreads.reconstruction", "rule": "at_most", "rel": 0.2, "abs": 0.02},
-              {"key": "flux_observed_fraction", "rule": "at_least", "abs": 0.05}]
-    for k in range(len(s["poses"])):
-        checks += [{"key": f"poses.{k}.error", "rule": "at_most", "rel": 0.2, "abs": 0.01},
-                   {"key": f"poses.{k}.total_ratio", "rule": "within", "abs": 0.05}]
-    sw = s["sweep"]
-    for i, name in enumerate(sw["methods"]):
-        for li in range(len(sw["levels_peak_photons"])):
-            for k in range(len(s["poses"])):
-                checks.append({"key": f"sweep.mean_error.{i}.{li}.{k}", "rule": "at_most", "rel": 0.2, "abs": 0.01,
-                               "what": f"{name}, level {li}, pose {k}"})
-    for c in checks:
-        c["value"] = _get(s, c["key"])
-    EXPECTATIONS.parent.mkdir(exist_ok=True)
-    EXPECTATIONS.write_text(json.dumps({
-        "about": "Summary values of tests/test_report.py's small pipeline (cylinder 16 x 6 elements, 40 x 40 px, "
-                 "heights 0 and 5 mm, Gaussian flux, Poisson noise seed 5, weighted_lsq with lambda by the "
-                 "discrepancy principle). at_most: got <= value x (1 + rel) + abs; within: |got - value| <= abs; "
-                 "at_least: got >= value - abs. Regenerate with FLUXMAP_WRITE_EXPECTATIONS=1 after an intended change.",
-        "checks": checks}, indent=1) + "\n")
+# Measured (default smooth on vertices): light left out 1.1 %, errors 12.8 % / 5.4 %, totals 1.017 / 0.979.
+# The clipped iterated solve this replaced gave 81 % and a total of 1.355 on the first pose.
+BAR_LEFT_OUT, BAR_ERROR, BAR_TOTAL, BAR_SPREAD = 0.02, 0.15, 0.03, 0.05

@@ -66,8 +66,10 @@ def test_gaussian_truth_images_and_determinism(write_config, sim_config, tmp_pat
         assert max(spread) > 0.01
         assert np.allclose(clean[1], clean[0] * 1e-2, rtol=1e-6)  # levels scale the truth
         assert np.allclose(snr, np.sqrt(clean.reshape(2, 2, -1).max(axis=2)))
-        # Poisson: the mean over repeats and pixels follows the noiseless image
-        assert noisy[0].sum() / 3 == pytest.approx(clean[0].sum(), rel=0.01)
+        # Poisson: the mean over the 3 repeats of the photons summed over poses and pixels
+        # follows the noiseless image to within 5 of its standard deviations, sqrt(sum/3) (a
+        # bar of 1 % was ~100 sd here and could not fail)
+        assert abs(noisy[0].sum() / 3 - clean[0].sum()) < 5 * np.sqrt(clean[0].sum() / 3)
     first = noisy.copy()
     r = run("simulate", p)
     assert r.exit_code == 0 and "up to date" in r.output  # nothing to redo

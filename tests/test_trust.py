@@ -209,6 +209,7 @@ def test_reconstruct_stage_reports_classes_totals_and_warnings(write_config, min
         assert f["flux/total"][()] == pytest.approx(np.nansum(power[observed]))
         assert "warnings" in f and np.isfinite(f["per_pose/chi2_per_pixel"][()]).all()
         truth = f["truth/power"][()]
-        assert abs(np.nansum(power[observed]) / truth[observed].sum() - 1) < 0.1
+        ratio = np.nansum(power[observed]) / truth[observed].sum()
+        assert abs(ratio - 1) < 0.05  # measured 1.036 (peak 1e6: the rest is model error); was < 0.1
     again = runner.invoke(app, ["reconstruct", str(p)])
     assert "up to date" in again.output and "total flux, all poses jointly" in again.output

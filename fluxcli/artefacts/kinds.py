@@ -139,6 +139,11 @@ register(Kind("reconstruction", 2, "fluxmap reconstruct", "surface flux reconstr
     Dataset("flux/well_observed", "", "observed and pinned down by the data", required=False),
     Dataset("flux/total_well_observed", "photons", "sum of power over well-observed elements", required=False),
     Dataset("flux/total_poorly_observed", "photons", "sum of power over poorly observed elements", required=False),
+    Dataset("flux/headline_total", "photons", "the total to read first: over observed elements, or over well-observed "
+            "ones when the warnings say the former is not pinned down (attrs over, reason)", required=False),
+    Dataset("per_pose/headline_total", "photons", "flux/headline_total per pose [pose]", required=False),
+    Dataset("per_pose/headline_reason", "", "why a pose's headline is over well-observed elements ('' if not) [pose]",
+            required=False),
     Dataset("per_pose/chi2_per_pixel", "", "chi^2 per pixel under the noise model [pose]", required=False),
     Dataset("per_pose/observation", "", "[pose, element] 0/1/2 as flux/observation", required=False),
     Dataset("warnings", "", "what the solves detected (lambda at an edge, chi^2 far from 1, ...)", required=False),

@@ -24,6 +24,7 @@ import numpy as np
 from fluxcli.inverse import spectral as S
 
 CHI2_RANGE = (0.5, 2.0)
+NNLS_LAMBDA = 1e-12  # relative: "no prior" for guard_lambda's reference fit, yet a non-singular system
 TOTAL_JUMP = 0.05
 
 
@@ -72,9 +73,68 @@ def _provisional_upre(T_obs, a, prior, variance, k, lambdas, gamma, tau) -> S.Ch
     return S.choose(spec, "gcv", k=k, lambdas=lambdas, gamma=gamma, tau=tau)
 
 
+def guard_lambda(spec: S.Spectrum, choice: S.Choice, b, it: int, conv: bool, k: int, *, tol=None):
+    """Check a λ picked on the linear filter against the non-negative estimator that runs,
+    and pick again by that estimator's fit when the check fails.
+
+    UPRE takes the noise model's variance as the whole misfit. When the images hold more
+    than noise (a finer true surface, a camera a calibration error away: χ²/pixel ≫ 1 even
+    for the best non-negative fit), fitting that model error lowers ‖W^½r‖² faster than 2Σf
+    grows and the pick runs towards λ → 0 (issue 25: to the edge of a widened range, 2.4e-10).
+    The check: the pick is trusted when it is inside the range and the estimator's own
+    χ²/pixel is within :data:`CHI2_RANGE`. Otherwise the variance is scaled by ``φ``, what the
+    plain non-negative least-squares fit (no prior) leaves per degree of freedom,
+    ``φ = max(1, ‖W^½r₀‖² / (m − n_free))`` (the divergence of NNLS is its number of free
+    unknowns), and the candidates — the first pick, UPRE with variance ``φσ²``, the L-curve's
+    corner, and NNLS itself — are scored on the estimator that actually runs:
+    ``‖W^½r(b_λ)‖²/φ + 2 df − m``, df = Σf of the filter at λ (NNLS: n_free). The lowest wins.
+
+    Returns b, λ (relative), iterations, converged, and a warning (None when the first pick
+    stands).
+    """
+    m = spec.m
+    w = spec.weights
+
+    def rho(x):
+        r = spec.a - spec.T @ x
+        return float(np.sum(w * r * r))
+
+    lam0 = choice.lam
+    if not choice.at_edge and rho(b) / m <= CHI2_RANGE[1]:
+        return b, lam0, it, conv, None
+    b_nn = S.iterated_exact(spec, NNLS_LAMBDA * spec.scale, 1, start=b)[0]  # NNLS; λ below any pick
+    rho_nn, free_nn = rho(b_nn), int(np.count_nonzero(b_nn > 0))
+    phi = max(1.0, rho_nn / max(m - free_nn, 1))
+    grid = choice.lambdas
+    r_lin, _, dof = spec.curves(grid * spec.scale, k)
+    cands = {lam0: None}
+    cands[float(grid[int(np.argmin(r_lin / phi + 2 * dof - m))])] = None
+    lc = S._pick(spec, "lcurve", k, grid, 1.0, 1.0, None)
+    if not lc.at_edge:
+        cands[lc.lam] = None
+    scores = {}
+    for lam_c in cands:  # the first pick's estimate is b: not solved again
+        x, it_x, conv_x = (b, it, conv) if lam_c == lam0 else S.iterated_exact(spec, lam_c * spec.scale, k, tol=tol)
+        df = float(spec.curves([lam_c * spec.scale], k)[2][0])
+        scores[lam_c] = (rho(x) / phi + 2 * df - m, x, it_x, conv_x)
+    scores[NNLS_LAMBDA] = (rho_nn / phi + 2 * free_nn - m, b_nn, 1, True)
+    best = min(scores, key=lambda x: scores[x][0])
+    _, x, it_c, conv_c = scores[best]
+    why = (f"at the edge of its range ({lam0:.3g})" if choice.at_edge else
+           f"at {lam0:.3g} with chi^2/pixel {rho(b) / m:.3g}")
+    if best == lam0:
+        return b, lam0, it, conv, None
+    what = "the plain non-negative fit (no prior)" if best == NNLS_LAMBDA else f"lambda {best:.3g}"
+    return x, best, it_c, conv_c, (
+        f"lambda ({choice.rule}) sat {why}; chose {what} by the fit of the non-negative estimator itself "
+        f"(UPRE with the noise variance x{phi:.3g}, the misfit the best non-negative fit leaves per degree of "
+        f"freedom: the images hold more than the noise model's noise)")
+
+
 def filtered_solve(T_obs, a, *, prior=None, k: int = 10, tol: float | None = None, lam: float | None = None,
                    rule: str = "gcv", gamma: float = 1.0, tau: float = 1.0, lambdas=None, variance=None,
-                   sigma2=None, weighted: bool = True, passes: int = 2, free_level: bool = False, sums=None) -> Filtered:
+                   sigma2=None, weighted: bool = True, passes: int = 2, free_level: bool = False, sums=None,
+                   exact: bool = False) -> Filtered:
     """Solve ``min ‖W^½(a − Tb)‖² + λ̃ bᵀRb, b ≥ 0`` by ``k`` iterated clipped solves.
 
     Parameters
@@ -94,6 +154,11 @@ def filtered_solve(T_obs, a, *, prior=None, k: int = 10, tol: float | None = Non
     sums : sparse (n_groups, n_obs), optional: also the σ of these sums of the estimate.
     free_level : bool, leave the overall level to the data (one unpenalised scale factor
         fitted last), so the prior cannot shrink the total.
+    exact : bool, solve every step of the iterated scheme exactly under ``b ≥ 0``
+        (:func:`~fluxcli.inverse.spectral.iterated_exact`; ``smooth``) instead of clipping
+        the unconstrained step (:func:`~fluxcli.inverse.spectral.iterated_clipped`, the
+        paper's); an automatic λ is then also checked on the estimator that runs
+        (:func:`guard_lambda`).
 
     Returns
     -------
@@ -107,6 +172,7 @@ def filtered_solve(T_obs, a, *, prior=None, k: int = 10, tol: float | None = Non
     if rule == "discrepancy" and variance is not None and n_pass == 1:
         n_pass = 2  # the unweighted discrepancy target needs σ² of a model image first
     var_model = sigma2
+    run = S.iterated_exact if exact else S.iterated_clipped
     choice = None
     warn: list[str] = []
     for p in range(n_pass):
@@ -128,12 +194,16 @@ def filtered_solve(T_obs, a, *, prior=None, k: int = 10, tol: float | None = Non
                     and (choice.widened or choice.at_edge)):
                 choice = _provisional_upre(T_obs, a, prior, variance, k, lambdas, gamma, tau)
             lam_p = choice.lam
-        b, it, conv = S.iterated_clipped(spec, lam_p * spec.scale, k, tol=tol)
+        b, it, conv = run(spec, lam_p * spec.scale, k, tol=tol)
         if lam is None and tol is not None and it < k:
             choice = S.choose(spec, choice.rule, k=it, lambdas=lambdas, gamma=gamma, tau=tau,
                               noise_total=noise_total)
             lam_p = choice.lam
-            b, it, conv = S.iterated_clipped(spec, lam_p * spec.scale, k, tol=tol)
+            b, it, conv = run(spec, lam_p * spec.scale, k, tol=tol)
+        if lam is None and exact and spec.noise_weighted and p == n_pass - 1:
+            b, lam_p, it, conv, note = guard_lambda(spec, choice, b, it, conv, k, tol=tol)
+            if note:
+                warn.append(note)
         if variance is not None:
             var_model = variance(T_obs @ b)
             if p < n_pass - 1 and weighted:
@@ -177,7 +247,7 @@ def filtered_solve(T_obs, a, *, prior=None, k: int = 10, tol: float | None = Non
     totals = (np.nan, np.nan)
     if lam is None and b.sum() > 0:
         def total_at(lam_x):
-            bx = S.iterated_clipped(spec, lam_x, k, tol=tol)[0]
+            bx = run(spec, lam_x, k, tol=tol)[0]
             if not free_level:
                 return float(bx.sum())
             fx = T_obs @ bx

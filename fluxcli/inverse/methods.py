@@ -39,6 +39,8 @@ __all__ = [
     "METHODS",
     "REGISTRY",
     "observation_classes",
+    "headline_total",
+    "Headline",
     "register",
     "Result",
     "backprojection",
@@ -688,13 +690,14 @@ def _run_backprojection(P, lam, rule, opts):
     return {"power": _backprojection(P.T_obs, P.a)[0], "no_sigma": True}
 
 
-def _filtered(P, *, prior, k, tol, lam, rule, opts, weighted, free_level=False):
+def _filtered(P, *, prior, k, tol, lam, rule, opts, weighted, free_level=False, exact=False):
     from fluxcli.inverse.filtered import filtered_solve
 
     s2 = None if P.sigma2 is None else P.sigma2[P.rows]
     out = filtered_solve(P.T_cov, P.a[P.rows], prior=prior, k=k, tol=tol, lam=lam, rule=rule or "gcv",
                          gamma=opts.get("gamma", 1.0), tau=opts.get("tau", 1.0), lambdas=opts.get("lambdas"),
-                         variance=P.variance, sigma2=s2, weighted=weighted, free_level=free_level, sums=P.sums())
+                         variance=P.variance, sigma2=s2, weighted=weighted, free_level=free_level, sums=P.sums(),
+                         exact=exact)
     return {"sigma_groups": out.sigma_sums, "power": out.power, "sigma": out.sigma, "lam": out.lam, "lam_absolute": out.lam_absolute,
             "iterations": out.iterations, "converged": out.converged, "choice": out.choice,
             "chi2": out.chi2_per_pixel, "warnings": out.warnings,
@@ -720,7 +723,7 @@ def _run_smooth(P, lam, rule, opts):
     opts = {"gamma": 1.0} | opts
     R = exitance_prior(P.adjacency, P.mask, P.areas)
     return _filtered(P, prior=R, k=c.check_positive_int(opts.get("n_iter", 10), "n_iter"), tol=None, lam=lam,
-                     rule=rule, opts=opts, weighted=True, free_level=True)
+                     rule=rule, opts=opts, weighted=True, free_level=True, exact=True)
 
 
 def _lam_from_rule(P, lam, rule, opts, weighted):
@@ -933,3 +936,56 @@ def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | 
                   iterations=int(out.get("iterations", 1)), converged=bool(out.get("converged", True)),
                   lam_choice=out.get("choice"), chi2_per_pixel=float(chi2), warnings=tuple(warnings),
                   observation=observation, sigma_groups=out.get("sigma_groups"), covariance=covariance)
+
+
+# Warnings that say the total over observed elements is not pinned down by the data (their texts
+# are written in poor_share_warning, filtered.filtered_solve and spectral.choose).
+# ("sits at the edge" is a final pick on the edge; "was at the edge ... widened" and "sat at the edge ... fell back" /
+# "sat ...; chose" are picks that were replaced and say so)
+UNTRUSTED_TOTAL_MARKERS = (POOR_SHARE_TEXT, "when lambda is halved or doubled", "sits at the edge of the search range")
+
+
+@dataclass(frozen=True)
+class Headline:
+    """The one total to print first: over the observed elements, or, when a warning says that
+    total is not pinned down, over the well-observed ones, with the reason."""
+
+    photons: float
+    over: str  # "observed elements" | "well-observed elements"
+    reason: str | None  # why the total over observed elements is not the headline (None: it is)
+    total_observed_photons: float
+
+    def line(self, what: str = "total flux") -> str:
+        """One console line: the number, what it sums, and (when not the observed total) why."""
+        head = f"{what}: {self.photons:.4g} photons over {self.over}"
+        if self.reason is None:
+            return head
+        return (f"{head} (the total over all observed elements, {self.total_observed_photons:.4g}, "
+                f"is not pinned down by the data: {self.reason})")
+
+
+def headline_total(power, observed, well_observed, warnings) -> Headline:
+    """The trustworthy total of a reconstruction (issue 25: a plausible wrong total was printed
+    first while the warnings below it said it was not determined).
+
+    Parameters
+    ----------
+    power : (n_elements,) photons, NaN where unobserved.
+    observed, well_observed : (n_elements,) bool.
+    warnings : the reconstruction's warnings (strings).
+    """
+    p = np.asarray(power, float)
+    total = float(np.nansum(np.where(observed, p, 0.0)))
+    well = float(np.nansum(np.where(well_observed, p, 0.0)))
+    hits = [w for w in warnings if any(m in w for m in UNTRUSTED_TOTAL_MARKERS)]
+    if not hits or not np.any(well_observed):
+        return Headline(total, "observed elements", None, total)
+    reasons = []
+    for w in hits:
+        if POOR_SHARE_TEXT in w:
+            reasons.append(w.split(" (")[0])  # "26% of the total over observed elements lies in poorly ..."
+        elif "halved or doubled" in w:
+            reasons.append(w.split(" (")[0].replace("the total changes", "it changes"))
+        else:
+            reasons.append("lambda sat at the edge of its search range")
+    return Headline(well, "well-observed elements", "; ".join(dict.fromkeys(reasons)), total)

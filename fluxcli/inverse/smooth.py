@@ -117,7 +117,7 @@ def smooth_iterated(T, a, *, adjacency, lam: float | None = None, n_iter: int = 
         s2 = c.as_pixels(sigma2, T.shape[0], "sigma2", positive=True, allow_scalar=True)[rows]
     R = exitance_prior(adjacency, mask, areas)
     out = filtered_solve(Tc, ac, prior=R, k=n_iter, lam=lam, rule=rule, gamma=gamma, lambdas=lambdas,
-                         variance=variance, sigma2=s2, weighted=variance is not None, free_level=True)
+                         variance=variance, sigma2=s2, weighted=variance is not None, free_level=True, exact=True)
     sigma = np.full(mask.size, np.nan)
     sigma[mask] = out.sigma
     ch = out.choice

@@ -89,6 +89,7 @@ class Study:
     warnings: list[str] = field(default_factory=list)  # /warnings of the reconstruction
     total_well_observed: float | None = None
     emission: dict | None = None  # /emission and the grazing shares of the reconstruction (issue 21)
+    headline: tuple | None = None  # (photons, over what, why not over all observed elements or "")
 
     @property
     def n_poses(self) -> int:
@@ -154,6 +155,9 @@ def load(reconstruction: Path, *, t_cache_dir: Path | None = None, simulation: P
         if "observation" in flux:  # issue 8: poorly observed elements are shown hatched, summed apart
             st.poorly = flux["observation"][()] == 1
             st.total_well_observed = float(flux["total_well_observed"][()])
+        if "headline_total" in flux:
+            st.headline = (float(flux["headline_total"][()]), str(flux["headline_total"].attrs.get("over", "")),
+                           str(flux["headline_total"].attrs.get("reason", "")))
         if "observation" in pp:
             st.pose_poorly = pp["observation"][()] == 1
         if "warnings" in f:
@@ -362,6 +366,9 @@ def summarise(st: Study, *, title: str, slice_axial_mm: float, view_names: list[
         "flux_total_photons": float(np.nansum(st.power)),
         "flux_observed_fraction": float(st.observed.mean()),
         "flux_total_well_observed_photons": st.total_well_observed,
+        "flux_headline_total_photons": st.headline[0] if st.headline else float(np.nansum(st.power)),
+        "flux_headline_over": st.headline[1] if st.headline else "observed elements",
+        "flux_headline_reason": (st.headline[2] or None) if st.headline else None,
         "flux_poorly_observed_fraction": float(st.poorly.mean()) if st.poorly is not None else None,
         "warnings": st.warnings,
         "totals_normalised_by_mean": normalised,

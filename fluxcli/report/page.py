@@ -69,8 +69,11 @@ class Page:
                 ("method", _method(s.get("method"), s.get("settings") or {})), ("λ used (joint or first pose)", fmt(s.get("lambda_used"))),
                 ("elements", fmt(s.get("n_elements"), "int")), ("pixels (nx × ny)", " × ".join(str(p) for p in s.get("pixels", []))),
                 ("views", ", ".join(s.get("views", []))),
-                ("total flux, " + ("joint over poses" if s.get("joint_over_poses") else "first pose") + " (photons)",
-                 fmt(s.get("flux_total_photons"))),
+                ("total flux, " + ("joint over poses" if s.get("joint_over_poses") else "first pose") + " (photons"
+                 + (", over well-observed elements" if s.get("flux_headline_reason") else "") + ")",
+                 fmt(s.get("flux_headline_total_photons", s.get("flux_total_photons")))
+                 + (f" — the total over all observed elements ({fmt(s.get('flux_total_photons'))}) is not pinned down "
+                    f"by the data: {s['flux_headline_reason']}" if s.get("flux_headline_reason") else "")),
                 ("observed elements", fmt(s.get("flux_observed_fraction"), "%"))]
         if s.get("flux_total_well_observed_photons") is not None:
             rows += [("total over well-observed elements (photons)", fmt(s["flux_total_well_observed_photons"])),

@@ -73,6 +73,9 @@ def reconstruction_vtp(rec_path: Path, out_path: Path, *, exposure_s: float | No
             for name in json.loads(f["filters"].attrs["order"]):
                 fo = f[f"filters/{name}/flux"]
                 per_filter[name] = np.where(fo["observed"][()].astype(bool), fo["power"][()], np.nan)
+        head = fl["headline_total"] if "headline_total" in fl else None
+        headline = (float(head[()]), str(head.attrs.get("over", "")), str(head.attrs.get("reason", ""))) \
+            if head is not None else None
     areas = surface.element_areas_mm2
     arrays, units = _quantities("", power, areas, exposure_s, sigma)
     if truth is not None:
@@ -93,6 +96,9 @@ def reconstruction_vtp(rec_path: Path, out_path: Path, *, exposure_s: float | No
         units[f"roi_{name}"] = f"1 in region of interest '{name}', 0 outside ({rois['maps'][-1]} map)"
     field = {"method": method, "joint_over_poses": int(joint), "source": rec_path.name,
              "exposure_s": exposure_s if exposure_s is not None else np.nan}
+    if headline is not None:  # the total to read first, and why when it is not over all observed elements
+        field |= {"headline_total_photons": headline[0], "headline_over": headline[1],
+                  "headline_reason": headline[2] or "-"}
     mesh = X.polydata(surface.vertices_mm, surface.faces, surface.element_of_face, arrays, observed=observed,
                       units=units, field=field)
     return X.write_vtp(out_path, mesh)

@@ -647,7 +647,7 @@ def _describe(m: C.MethodSettings) -> str:
 
 
 # what `unknowns: auto` and the solvers do; a reconstruction made by an older version is redone
-SOLVER_VERSION = "2026-11 vertex basis, cotangent prior, provisional UPRE, isolated spikes left out"
+SOLVER_VERSION = "2026-11 vertex basis, cotangent prior, provisional UPRE, isolated spikes left out, exact non-negative steps"
 
 
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
@@ -771,13 +771,13 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
                     t.attrs[f"total_ratio_{name}"] = total_ratio(only, inp.truth, observed_only=True)
         for k, (_, pt) in enumerate(todo):
             r = per_pose[k][0]
-            row = [pt.pose.height_mm, pt.pose.rotation_deg, f"{np.nansum(r.power):.4g}",
+            row = [pt.pose.height_mm, pt.pose.rotation_deg, _headline_cell(r),
                    f"{r.observed.mean():.0%}", f"{r.lam:.3g}" if r.lam is not None else "-"]
             if inp.truth is not None:
                 row += _vs_truth(r.power, r.observed, inp.truth)
             rows.append(row)
         if joint is not None:
-            row = ["joint", "", f"{np.nansum(joint.power):.4g}", f"{joint.observed.mean():.0%}",
+            row = ["joint", "", _headline_cell(joint), f"{joint.observed.mean():.0%}",
                    f"{joint.lam:.3g}" if joint.lam is not None else "-"]
             if inp.truth is not None:
                 row += _vs_truth(joint.power, joint.observed, inp.truth)
@@ -787,6 +787,11 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         summary = _total_summary(per_pose, joint, todo)
         f.attrs["totals_summary"] = json.dumps(summary)
         pp.create_dataset("chi2_per_pixel", data=[r.chi2_per_pixel for r, _ in per_pose])
+        heads = [headline_of(r) for r, _ in per_pose]
+        pp.create_dataset("headline_total", data=[h.photons for h in heads]).attrs["unit"] = \
+            "photons: the total over observed elements, or over well-observed ones where headline_reason says why"
+        pp.create_dataset("headline_reason", data=np.array([h.reason or "" for h in heads], dtype=object),
+                          dtype=h5py.string_dtype())
         pp.create_dataset("observation", data=np.array([r.observation for r, _ in per_pose]))
         if rc.sweep is not None:
             _sweep(cfg, ctx, f.create_group("sweep"), grids, todo)
@@ -960,6 +965,12 @@ def _write_flux(g, res, areas) -> None:
         "photons over well-observed elements"
     g.create_dataset("total_poorly_observed", data=np.nansum(np.where(res.observed & ~well, res.power, 0.0))
                      ).attrs["unit"] = "photons over poorly observed elements"
+    # issue 25: the number to read first; the total over observed elements when it is pinned down
+    h = headline_of(res)
+    d = g.create_dataset("headline_total", data=h.photons)
+    d.attrs["unit"] = f"photons over {h.over}"
+    d.attrs["over"] = h.over
+    d.attrs["reason"] = h.reason or ""
     g.attrs["chi2_per_pixel"] = res.chi2_per_pixel
     g.attrs["converged"] = res.converged
     g.attrs["iterations"] = res.iterations
@@ -988,6 +999,18 @@ def _write_filters(g, cfg: C.LoadedConfig, results: dict, areas, T_paths) -> Non
             meter.write(h.create_group("rois"))
 
 
+def headline_of(res):
+    """The trustworthy total of one solve (:func:`fluxcli.inverse.methods.headline_total`)."""
+    from ..inverse.methods import headline_total
+
+    return headline_total(res.power, res.observed, res.well_observed, res.warnings)
+
+
+def _headline_cell(res) -> str:
+    h = headline_of(res)
+    return f"{h.photons:.4g}" if h.reason is None else f"{h.photons:.4g} over well-observed (see below)"
+
+
 def _warnings(ctx: RunContext, f, per_pose, joint, todo) -> list[str]:
     """Every warning of every solve: to the console and to /warnings (never silent)."""
     out = [f"pose {pt.pose.label}: {w}" for (r, _), (_, pt) in zip(per_pose, todo) for w in r.warnings]
@@ -1003,14 +1026,19 @@ def _total_summary(per_pose, joint, todo) -> list[str]:
     """The number the mission is about: the total per pose and jointly, with its spread."""
     tot = np.array([np.nansum(r.power) for r, _ in per_pose])
     well = np.array([np.nansum(np.where(r.well_observed, r.power, 0.0)) for r, _ in per_pose])
-    lines = [f"total flux, pose {pt.pose.label}: {t:.4g} photons over observed elements ({w:.4g} over well-observed)"
-             for (_, pt), t, w in zip(todo, tot, well)]
+    lines = []
+    for (r, _), (_, pt), t, w in zip(per_pose, todo, tot, well):
+        h = headline_of(r)
+        lines.append(h.line(f"total flux, pose {pt.pose.label}") if h.reason else
+                     f"total flux, pose {pt.pose.label}: {t:.4g} photons over observed elements ({w:.4g} over well-observed)")
     if len(tot) > 1:
         spread = (tot.max() - tot.min()) / tot.mean() if tot.mean() > 0 else np.nan
         lines.append(f"total flux over {len(tot)} poses: mean {tot.mean():.4g} photons, spread (max-min)/mean "
                      f"{spread:.1%}, sd/mean {tot.std(ddof=1) / tot.mean():.1%}")
     if joint is not None:
-        lines.append(f"total flux, all poses jointly: {np.nansum(joint.power):.4g} photons over observed elements "
+        h = headline_of(joint)
+        lines.append(h.line("total flux, all poses jointly") if h.reason else
+                     f"total flux, all poses jointly: {np.nansum(joint.power):.4g} photons over observed elements "
                      f"({np.nansum(np.where(joint.well_observed, joint.power, 0.0)):.4g} over well-observed)")
     return lines
 

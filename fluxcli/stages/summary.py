@@ -33,6 +33,10 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> None:
         heights, rots = pp["heights_mm"][()], pp["rotations_deg"][()]
         roi = pp["direct_roi_photons"][()] if "direct_roi_photons" in pp else None
         totals = pp["total"][()]
+        # issue 25: where the observed total is not pinned down, the headline is over well-observed elements
+        heads = pp["headline_total"][()] if "headline_total" in pp else totals
+        why = [w.decode() if isinstance(w, bytes) else str(w) for w in pp["headline_reason"][()]] \
+            if "headline_reason" in pp else [""] * len(totals)
         pose_obs = pp["observed"][()].astype(bool)
         power = np.where(f["flux/observed"][()].astype(bool), f["flux/power"][()], np.nan)
         joint = bool(f["flux"].attrs.get("joint_over_poses", False))
@@ -50,7 +54,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> None:
     rows = []
     for k in range(len(heights)):
         rows.append([k + 1, f"{heights[k]:g}", f"{rots[k]:g}", f"{roi[k]:.4g}" if roi is not None else "-",
-                     f"{totals[k] * rate:.4g}", f"{share[k]:.0%}"])
+                     f"{heads[k] * rate:.4g}" + (" (well-observed elements: " + why[k] + ")" if why[k] else ""),
+                     f"{share[k]:.0%}"])
     joint_total = float(np.nansum(power))
     if joint and len(heights) > 1:
         rows.append(["joint", "", "", "", f"{joint_total * rate:.4g}", f"{np.isfinite(power).mean():.0%} of elements"])
