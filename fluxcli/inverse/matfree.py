@@ -24,17 +24,22 @@ engine reads off the eigenvalues is estimated instead:
   engine), by Hutchinson's estimator in the prior's metric, ``E[uᵀRF u]`` with
   ``u = R⁻¹Eᵀξ`` (``Cov u = R⁻¹``; Rademacher ξ): its eigenvalues are the filter factors
   ``f ∈ [0, 1]``, so with ``p`` probes the relative standard error is at most
-  ``√(2/(p·tr F))`` (3 % at tr F = 200, p = 12).  The same probes are used at every λ, so the
+  ``√(2/(p·tr F))`` (2.5 % at tr F = 200, p = 16).  The same probes are used at every λ, so the
   criterion is a smooth curve and its minimum is found by a walk over decades and Brent's method;
 - **σ** per unknown (and per group): the covariance of the linear estimator under the noise is
   ``M TᵀWΣWT Mᵀ``; its diagonal is estimated from ``N`` exact samples ``M TᵀWΣ^½ξ`` (the same
-  ``k``-step recursion), relative standard error of σ ``1/√(2N)`` (6 % at N = 128).
+  ``k``-step recursion), relative standard error of σ ``1/√(2N)`` (6 % at N = 128, the default up
+  to the dense limit; 9 % at N = 64 beyond it, where each sample costs ``k`` large solves).
 
 Where both run (tests/test_matfree.py, ~1000 unknowns) the two paths agree: λ within ×1.5,
 totals within 0.3 %, per-element values within 1 % of the peak, σ within 15 %.
 """
 
 from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import scipy.optimize as sopt
@@ -45,8 +50,10 @@ from fluxcli.inverse import spectral as S
 from fluxcli.inverse.filtered import CHI2_RANGE, TOTAL_JUMP, Filtered, chi2_per_pixel
 
 DENSE_MAX_UNKNOWNS = 6000  # auto: the dense engine up to here (exact, ~14 s at 5880), this path beyond
-TRACE_PROBES = 12
+TRACE_PROBES = 16
 SIGMA_SAMPLES = 128
+LU_CACHE = 2  # factorisations kept (the λ search revisits its bracket)
+SOLVE_THREADS = min(2, os.cpu_count() or 1)  # the issue's budget: 2 cores
 SEED = 22  # probes and samples are seeded: the same inputs give the same bytes
 GRID = (1e-9, 1e3)  # the dense engine's relative λ range ...
 WIDE = (1e-15, 1e9)  # ... and how far it widens it
@@ -100,6 +107,28 @@ def sparse_exitance_prior(adjacency, mask: np.ndarray, areas=None, ridge: float 
 # ------------------------------------------------------------------ the normal operator
 
 
+def _factor(H):
+    """SuperLU of the SPD ``H`` (fill-reducing symmetric ordering, no pivoting), computed on a
+    daemon thread while this one waits in short joins: SuperLU releases the GIL, so Ctrl-C and
+    SIGTERM reach the main thread within ~0.1 s even when a factorisation takes seconds."""
+    out: dict = {}
+
+    def work():
+        try:
+            out["lu"] = spla.splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                  options={"SymmetricMode": True})
+        except BaseException as e:  # noqa: BLE001 - re-raised in the caller's thread
+            out["error"] = e
+
+    th = threading.Thread(target=work, daemon=True, name="fluxmap-splu")
+    th.start()
+    while th.is_alive():
+        th.join(0.05)
+    if "error" in out:
+        raise out["error"]
+    return out["lu"]
+
+
 class Pencil:
     """``G = TᵀWT`` (sparse), ``g = TᵀWa``, the prior ``R`` and factorisations of ``G + λ̃R``.
 
@@ -131,15 +160,33 @@ class Pencil:
         key = float(lam_abs)
         if key not in self._lu:
             self.check()
-            if len(self._lu) >= 3:
+            if len(self._lu) >= LU_CACHE:
                 self._lu.pop(next(iter(self._lu)))
-            H = sp.csc_array(self.G + key * self.R)
-            self._lu[key] = spla.splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                                      options={"SymmetricMode": True})
+            self._lu[key] = _factor(sp.csc_array(self.G + key * self.R))
         return self._lu[key]
 
     def solve(self, lam_abs: float, X):
-        return self.lu(lam_abs).solve(np.asarray(X, dtype=np.float64))
+        """``H⁻¹X`` column by column (SuperLU's own multi-column solve is 2-3x slower than its
+        columns one at a time), on :data:`SOLVE_THREADS` threads (SuperLU releases the GIL)."""
+        lu = self.lu(lam_abs)
+        X = np.asarray(X, dtype=np.float64)
+        if X.ndim == 1:
+            return lu.solve(X)
+        out = np.empty_like(X)
+
+        def one(j):
+            out[:, j] = lu.solve(np.ascontiguousarray(X[:, j]))
+
+        if SOLVE_THREADS > 1 and X.shape[1] > 1:
+            ex = ThreadPoolExecutor(SOLVE_THREADS)
+            try:
+                list(ex.map(one, range(X.shape[1])))
+            finally:  # Ctrl-C / SIGTERM: drop the queued columns, wait only for the running ones
+                ex.shutdown(wait=True, cancel_futures=True)
+        else:
+            for j in range(X.shape[1]):
+                one(j)
+        return out
 
     def iterate(self, lam_abs: float, C, k: int, X0=None):
         """``X ← λ̃H⁻¹RX + C`` ``k`` times (from ``X0``, default 0): the ``k``-step filter."""
@@ -173,8 +220,8 @@ class _Curve:
         if self._U is None:
             xi = self._rng.choice([-1.0, 1.0], size=(E.shape[0], self.probes))
             self._EtXi = np.asarray(E.T @ xi)
-            self._U = spla.splu(self.P.R, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                                options={"SymmetricMode": True}).solve(self._EtXi)
+            lu = _factor(sp.csc_array(self.P.R))
+            self._U = np.column_stack([lu.solve(np.ascontiguousarray(c)) for c in self._EtXi.T])
         return self._U, self._EtXi
 
     def at(self, lam_rel: float, E):
@@ -209,7 +256,7 @@ def _criterion(rule, rho, tr, m, gamma, mean_var=None, target=None):
 
 
 def _choose(curve: _Curve, E, rule: str, *, m: int, gamma: float, mean_var=None, target=None,
-            start: float = 1e-4, bounds=None) -> S.Choice:
+            start: float = 1e-4, bounds=None, finest: float = 0.125) -> S.Choice:
     """Minimise the criterion over log λ: decades downhill from ``start``, then Brent in the bracket
     (discrepancy: the zero crossing, by Brent's root finder). The dense engine's range and its
     widening (3 decades each side, twice) bound the walk."""
@@ -252,11 +299,28 @@ def _choose(curve: _Curve, E, rule: str, *, m: int, gamma: float, mean_var=None,
             x, f = xn, fn
         lam = 10**x
         if not at_edge:
-            res = sopt.minimize_scalar(lambda t: crit(10**t), method="bounded",
-                                       bounds=(max(x - 1, lo), min(x + 1, hi)),
-                                       options={"xatol": 0.02})
-            if res.success and crit(10**res.x) <= f:
-                lam = float(10**res.x)
+            # the minimum lies within a decade of x: halve the step around the best point down to
+            # ``finest`` (the probes are fixed, so the curve is smooth), then the vertex of the parabola
+            # through the best point and its neighbours
+            best, fb, h = x, f, 0.5
+            while h >= finest:
+                for t in (best - h, best + h):
+                    if lo <= t <= hi:
+                        ft = crit(10**t)
+                        if ft < fb:
+                            best, fb = t, ft
+                            break
+                h /= 2
+            h *= 2
+            t0, t2 = best - h, best + h
+            if lo <= t0 and t2 <= hi:
+                f0, f2 = crit(10**t0), crit(10**t2)
+                den = f0 - 2 * fb + f2
+                if den > 0 and np.isfinite(den):
+                    tv = best + 0.5 * h * (f0 - f2) / den
+                    if crit(10**tv) <= fb:
+                        best = tv
+            lam = float(10**best)
     lams = np.array(sorted(curve.cache))
     vals = np.array([curve.cache[v] for v in lams])
     critv = np.array([_criterion(rule, r, t, m, gamma, mean_var, target) for r, _, t in vals])
@@ -330,7 +394,7 @@ def _sigma(P: Pencil, lam_abs: float, k: int, sigma2, n_samples: int, rng, sums=
 def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rule: str = "gcv",
                   gamma: float = 1.0, tau: float = 1.0, lambdas=None, variance=None, sigma2=None, weighted: bool = True,
                   passes: int = 2, free_level: bool = True, sums=None, check=None,
-                  probes: int = TRACE_PROBES, samples: int = SIGMA_SAMPLES) -> Filtered:
+                  probes: int = TRACE_PROBES, samples: int | None = None) -> Filtered:
     """:func:`fluxcli.inverse.filtered.filtered_solve` (``tol=None``) on sparse matrices.
 
     Parameters
@@ -344,7 +408,9 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
     lambdas : relative λ values whose range bounds the search (not widened); default the dense
         engine's 1e-9..1e3, widened to 1e-15..1e9 when the criterion runs off it.
     check : callable or None, called between factorisations and solves (raise there to stop).
-    probes, samples : Hutchinson probes for tr F, and noise samples for σ.
+    probes, samples : Hutchinson probes for tr F (a first, unweighted pass uses a quarter), and
+        noise samples for σ (default :data:`SIGMA_SAMPLES`, half that beyond :data:`DENSE_MAX_UNKNOWNS`:
+        σ to 1/√(2N), 6 % then 9 %).
 
     Returns
     -------
@@ -375,23 +441,26 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
         P = Pencil(T_obs, a, weights, R, check)
         lam_p = lam
         if lam is None:
-            curve = _Curve(P, k, probes, np.random.default_rng(SEED + p))
+            last = p == n_pass - 1
+            # a first pass only sets the weights: fewer probes, a coarser λ
+            curve = _Curve(P, k, probes if last else max(probes // 4, 2), np.random.default_rng(SEED + p))
+            fine = 0.125 if last else 0.5
             noise_weighted = weights is not None
             if rule == "discrepancy":
                 if weights is not None:
-                    choice = _choose(curve, E, "discrepancy", m=m, gamma=gamma, target=tau * m, start=start, bounds=bounds)
+                    choice = _choose(curve, E, "discrepancy", m=m, gamma=gamma, target=tau * m, start=start, bounds=bounds, finest=fine)
                 elif var_model is not None:
                     choice = _choose(curve, E, "discrepancy", m=m, gamma=gamma, target=tau * float(np.sum(var_model)),
-                                     start=start, bounds=bounds)
+                                     start=start, bounds=bounds, finest=fine)
                 else:
-                    choice = _choose(curve, E, "gcv", m=m, gamma=gamma, start=start, bounds=bounds)
+                    choice = _choose(curve, E, "gcv", m=m, gamma=gamma, start=start, bounds=bounds, finest=fine)
             else:
-                choice = _choose(curve, E, "upre" if noise_weighted else "gcv", m=m, gamma=gamma, start=start, bounds=bounds)
+                choice = _choose(curve, E, "upre" if noise_weighted else "gcv", m=m, gamma=gamma, start=start, bounds=bounds, finest=fine)
                 if (not noise_weighted and variance is not None and weighted
                         and (choice.widened or choice.at_edge)):
                     mean_var = float(np.mean(variance(np.maximum(a, 0.0))))
                     choice = _choose(curve, E, "upre_uniform", m=m, gamma=gamma, mean_var=max(mean_var, 1e-300),
-                                     start=start, bounds=bounds)
+                                     start=start, bounds=bounds, finest=fine)
             lam_p = choice.lam
             start = lam_p
         b, it, conv = _clipped(P, lam_p * P.scale, k)
@@ -424,7 +493,8 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
     sigma_sums = None if sums is None else np.full(sums.shape[0], np.nan)
     if weights is not None or var_model is not None:
         s2 = None if weights is not None else var_model
-        sg, sgs = _sigma(P, lam_abs, it, s2, samples, np.random.default_rng(SEED + 100), sums)
+        n_s = samples if samples is not None else (SIGMA_SAMPLES if len(b) <= DENSE_MAX_UNKNOWNS else SIGMA_SAMPLES // 2)
+        sg, sgs = _sigma(P, lam_abs, it, s2, n_s, np.random.default_rng(SEED + 100), sums)
         sigma = sg * level
         if sums is not None:
             sigma_sums = sgs * level
@@ -450,20 +520,21 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
                     sigma_sums=sigma_sums)
 
 
-def memory_estimate_bytes(n_unknowns: int, nnz_T: int | None = None, n_pixels: int = 0) -> float:
+def memory_estimate_bytes(n_unknowns: int, n_poses: int = 1, n_pixels: int = 0) -> float:
     """What :func:`matfree_solve` holds at its peak, in bytes, before anything is allocated.
 
-    ``T`` and its weighted copy (12 bytes per nonzero each), ``G`` and two LU factors of
-    ``G + λ̃R`` (measured fill: about ``FILL`` × nnz(G), nnz(G) ≈ ``G_PER_UNKNOWN`` per unknown),
-    the probe and sample blocks (n × (1 + probes) and n × 32, a few copies), and the pixel
-    vectors.  Without ``nnz_T`` it is taken as ``T_PER_UNKNOWN`` per unknown."""
-    n = float(n_unknowns)
-    nnz_T = T_PER_UNKNOWN * n if nnz_T is None else float(nnz_T)
-    nnz_G = G_PER_UNKNOWN * n
-    return (2 * 12 * nnz_T + 12 * nnz_G + 3 * LU_BYTES_PER_UNKNOWN * n
-            + 8 * n * (4 * (1 + TRACE_PROBES) + 4 * 32) + 8 * 8 * n_pixels + 32 * 8 * n_pixels)
+    Calibrated on issue 22's scene (1024², three views, one pose): per unknown and pose ~40
+    nonzeros of T (three copies: T, its observed part, the weighted copy) and ~85 of ``G``
+    (``G`` and ``H``), ~650 of the LU factors of ``H`` at 45 568 unknowns, growing like ``log n``
+    (fill of a nested-dissection-like ordering of a surface mesh; two factors cached and one
+    being built), the probe and sample blocks, and ~12 copies of the pixel vectors. At 50 018
+    elements it says 1.5 GB; the solve's peak resident memory was 1.6 GB (with T and images)."""
+    n = float(max(n_unknowns, 1))
+    fill = LU_PER_UNKNOWN * max(np.log(n) / np.log(45568.0), 0.5) * np.sqrt(n_poses)
+    return (12.0 * n * n_poses * (3 * T_PER_UNKNOWN + 2 * G_PER_UNKNOWN) + 12.0 * n * fill * (LU_CACHE + 1)
+            + 8.0 * n * (1 + TRACE_PROBES + 32) * 3 + 12 * 8.0 * n_pixels)
 
 
-T_PER_UNKNOWN = 60.0
-G_PER_UNKNOWN = 60.0
-LU_BYTES_PER_UNKNOWN = 6000.0
+T_PER_UNKNOWN = 40.0
+G_PER_UNKNOWN = 85.0
+LU_PER_UNKNOWN = 650.0
