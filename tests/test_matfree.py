@@ -161,11 +161,12 @@ SIGTERM_SCRIPT = textwrap.dedent("""
     from test_matfree import grid_problem, _variance
     from fluxcli.inverse import reconstruct
     cli._signals()
-    T, a, adj, areas, _ = grid_problem(nx=150, ny=100, px=2)
+    n = int(sys.argv[2])
+    T, a, adj, areas, _ = grid_problem(nx=n, ny=n * 2 // 3, px=2)
     print("solving", flush=True)
     try:
         while True:
-            reconstruct(T, a, method="smooth", variance=_variance, adjacency=adj, areas=areas, solver="matfree")
+            reconstruct(T, a, method="smooth", variance=_variance, adjacency=adj, areas=areas, solver=sys.argv[1])
     except (KeyboardInterrupt, cli.Terminated):
         sys.stdout.write("stopped\\n")
         sys.stdout.flush()
@@ -173,19 +174,21 @@ SIGTERM_SCRIPT = textwrap.dedent("""
 """)
 
 
-def test_sigterm_stops_a_matrix_free_solve_within_2_s():
-    """The CLI turns SIGTERM into an exception (cli._on_sigterm); a solve of 15 000 unknowns
-    (every call into SuperLU short) must let it through within 2 s."""
+@pytest.mark.parametrize("solver, nx", [("matfree", 150)])
+def test_sigterm_stops_a_smooth_solve_within_2_s(solver, nx):
+    """The CLI turns SIGTERM into an exception (cli._on_sigterm); a solve must let it through
+    within 2 s: matrix-free at 15 000 unknowns. (Not the dense engine: its LAPACK calls hold the
+    GIL; at 2 400 unknowns it took 45 s under load — issue 22, not solved there.)"""
     tests = os.path.dirname(os.path.abspath(__file__))
-    p = subprocess.Popen([sys.executable, "-c", SIGTERM_SCRIPT.format(tests=tests)], stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
+    p = subprocess.Popen([sys.executable, "-c", SIGTERM_SCRIPT.format(tests=tests), solver, str(nx)],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert p.stdout.readline().strip() == "solving"
         time.sleep(4.0)
         assert p.poll() is None
         t0 = time.perf_counter()
         p.send_signal(signal.SIGTERM)
-        p.wait(timeout=30)
+        p.wait(timeout=60)
         dt = time.perf_counter() - t0
     finally:
         if p.poll() is None:
