@@ -170,7 +170,7 @@ SIGTERM_SCRIPT = textwrap.dedent("""
     except (KeyboardInterrupt, cli.Terminated):
         sys.stdout.write("stopped\\n")
         sys.stdout.flush()
-        os._exit(143)
+        sys.exit(143)
 """)
 
 

@@ -37,9 +37,10 @@ totals within 0.3 %, per-element values within 1 % of the peak, σ within 15 %.
 
 from __future__ import annotations
 
+import atexit
 import os
+import queue
 import threading
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import scipy.optimize as sopt
@@ -108,7 +109,7 @@ def sparse_exitance_prior(adjacency, mask: np.ndarray, areas=None, ridge: float 
 
 
 def interruptible(fn, *args, **kw):
-    """``fn(*args, **kw)`` on a daemon thread while the calling thread waits in 50 ms joins.
+    """``fn(*args, **kw)`` on a persistent daemon thread while the calling thread waits in 50 ms steps.
 
     A long call into C (a SuperLU factorisation: ~3 s of CPU at 50 000 elements) otherwise holds
     the main thread, where Python runs its signal handlers, for its whole length. SuperLU releases
@@ -125,13 +126,81 @@ def interruptible(fn, *args, **kw):
         except BaseException as e:  # noqa: BLE001 - re-raised in the caller's thread
             out["error"] = e
 
-    th = threading.Thread(target=work, daemon=True, name="fluxmap-solve")
-    th.start()
-    while th.is_alive():
-        th.join(0.05)
+    done = _worker().submit(work)
+    try:
+        while not done.wait(0.05):
+            pass
+    except BaseException:
+        # Ctrl-C / SIGTERM: give a factorisation in flight up to 1 s to end, so that the interpreter
+        # does not finalise under a busy thread (that made the exit status 120, not 130/143)
+        done.wait(1.0)
+        raise
     if "error" in out:
         raise out["error"]
     return out["value"]
+
+
+_POOLS: dict = {}
+
+
+class _Daemons:
+    """A few persistent daemon threads taking tasks from a queue: persistent, because glibc gives
+    each new thread its own malloc arena and a factorisation on a fresh thread each time left every
+    freed factor's memory behind in another arena (the 20 000-element stage grew to 3.3 GB, a
+    factor at a time); daemons, because the interpreter would otherwise wait at exit for a
+    factorisation nobody wants any more (Ctrl-C, SIGTERM)."""
+
+    def __init__(self, n: int, name: str):
+        self.q: queue.SimpleQueue = queue.SimpleQueue()
+        self.threads = [threading.Thread(target=self._loop, daemon=True, name=f"fluxmap-{name}-{i}")
+                        for i in range(n)]
+        for t in self.threads:
+            t.start()
+        atexit.register(self.close)
+
+    def _loop(self):
+        while True:
+            task = self.q.get()
+            if task is None:
+                return
+            task()
+
+    def close(self):
+        """At exit: idle threads end (a daemon thread still waiting on its queue when the
+        interpreter finalises made it exit 120); a busy one is left to die with the process."""
+        for _ in self.threads:
+            self.q.put(None)
+        for t in self.threads:
+            t.join(0.2)
+
+    def submit(self, fn) -> threading.Event:
+        """Run ``fn()`` (it must not raise); the returned event is set when it has run."""
+        done = threading.Event()
+
+        def task():
+            try:
+                fn()
+            finally:
+                done.set()
+
+        self.q.put(task)
+        return done
+
+
+def _worker(name: str = "factor", threads: int = 1) -> _Daemons:
+    if name not in _POOLS:
+        _POOLS[name] = _Daemons(threads, name)
+    return _POOLS[name]
+
+
+def _trim() -> None:
+    """Hand freed factor memory back to the system (glibc); nothing elsewhere."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 def _factor(H):
@@ -173,6 +242,7 @@ class Pencil:
             self.check()
             if len(self._lu) >= LU_CACHE:
                 self._lu.pop(next(iter(self._lu)))
+                _trim()
             self._lu[key] = _factor(sp.csc_array(self.G + key * self.R))
         return self._lu[key]
 
@@ -184,16 +254,31 @@ class Pencil:
         if X.ndim == 1:
             return lu.solve(X)
         out = np.empty_like(X)
+        errors: list = []
+        stop = threading.Event()
 
         def one(j):
-            out[:, j] = lu.solve(np.ascontiguousarray(X[:, j]))
+            if stop.is_set():
+                return
+            try:
+                out[:, j] = lu.solve(np.ascontiguousarray(X[:, j]))
+            except BaseException as e:  # noqa: BLE001 - re-raised below
+                errors.append(e)
 
         if SOLVE_THREADS > 1 and X.shape[1] > 1:
-            ex = ThreadPoolExecutor(SOLVE_THREADS)
+            pool = _worker("solve", SOLVE_THREADS)
+            events = [pool.submit(lambda j=j: one(j)) for j in range(X.shape[1])]
             try:
-                list(ex.map(one, range(X.shape[1])))
-            finally:  # Ctrl-C / SIGTERM: drop the queued columns, wait only for the running ones
-                ex.shutdown(wait=True, cancel_futures=True)
+                for ev in events:
+                    while not ev.wait(0.05):
+                        pass
+            except BaseException:  # Ctrl-C / SIGTERM: the queued columns are skipped, the running ones end
+                stop.set()
+                for ev in events:
+                    ev.wait(1.0)
+                raise
+            if errors:
+                raise errors[0]
         else:
             for j in range(X.shape[1]):
                 one(j)
