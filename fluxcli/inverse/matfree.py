@@ -37,10 +37,6 @@ totals within 0.3 %, per-element values within 1 % of the peak, σ within 15 %.
 
 from __future__ import annotations
 
-import atexit
-import os
-import queue
-import threading
 
 import numpy as np
 import scipy.optimize as sopt
@@ -54,7 +50,6 @@ DENSE_MAX_UNKNOWNS = 6000  # auto: the dense engine up to here (exact, ~14 s at 
 TRACE_PROBES = 16
 SIGMA_SAMPLES = 128
 LU_CACHE = 2  # factorisations kept (the λ search revisits its bracket)
-SOLVE_THREADS = min(2, os.cpu_count() or 1)  # the issue's budget: 2 cores
 SEED = 22  # probes and samples are seeded: the same inputs give the same bytes
 GRID = (1e-9, 1e3)  # the dense engine's relative λ range ...
 WIDE = (1e-15, 1e9)  # ... and how far it widens it
@@ -108,89 +103,15 @@ def sparse_exitance_prior(adjacency, mask: np.ndarray, areas=None, ridge: float 
 # ------------------------------------------------------------------ the normal operator
 
 
-def interruptible(fn, *args, **kw):
-    """``fn(*args, **kw)`` on a persistent daemon thread while the calling thread waits in 50 ms steps.
+def _factor(H):
+    """SuperLU of the SPD ``H`` (fill-reducing symmetric ordering, no pivoting).
 
-    A long call into C (a SuperLU factorisation: ~3 s of CPU at 50 000 elements) otherwise holds
-    the main thread, where Python runs its signal handlers, for its whole length. SuperLU releases
-    the GIL, so Ctrl-C and SIGTERM now reach the caller within ~0.1 s; the abandoned computation
-    ends with the process. (The dense engine's LAPACK calls do not release it: wrapping them gains
-    nothing, measured: a 2 400-unknown dense solve still held SIGTERM for 45 s under load.)"""
-    if threading.current_thread() is not threading.main_thread():
-        return fn(*args, **kw)
-    out: dict = {}
-
-    def work():
-        try:
-            out["value"] = fn(*args, **kw)
-        except BaseException as e:  # noqa: BLE001 - re-raised in the caller's thread
-            out["error"] = e
-
-    done = _worker().submit(work)
-    try:
-        while not done.wait(0.05):
-            pass
-    except BaseException:
-        # Ctrl-C / SIGTERM: give a factorisation in flight up to 1 s to end, so that the interpreter
-        # does not finalise under a busy thread (that made the exit status 120, not 130/143)
-        done.wait(1.0)
-        raise
-    if "error" in out:
-        raise out["error"]
-    return out["value"]
-
-
-_POOLS: dict = {}
-
-
-class _Daemons:
-    """A few persistent daemon threads taking tasks from a queue: persistent, because glibc gives
-    each new thread its own malloc arena and a factorisation on a fresh thread each time left every
-    freed factor's memory behind in another arena (the 20 000-element stage grew to 3.3 GB, a
-    factor at a time); daemons, because the interpreter would otherwise wait at exit for a
-    factorisation nobody wants any more (Ctrl-C, SIGTERM)."""
-
-    def __init__(self, n: int, name: str):
-        self.q: queue.SimpleQueue = queue.SimpleQueue()
-        self.threads = [threading.Thread(target=self._loop, daemon=True, name=f"fluxmap-{name}-{i}")
-                        for i in range(n)]
-        for t in self.threads:
-            t.start()
-        atexit.register(self.close)
-
-    def _loop(self):
-        while True:
-            task = self.q.get()
-            if task is None:
-                return
-            task()
-
-    def close(self):
-        """At exit: idle threads end (a daemon thread still waiting on its queue when the
-        interpreter finalises made it exit 120); a busy one is left to die with the process."""
-        for _ in self.threads:
-            self.q.put(None)
-        for t in self.threads:
-            t.join(0.2)
-
-    def submit(self, fn) -> threading.Event:
-        """Run ``fn()`` (it must not raise); the returned event is set when it has run."""
-        done = threading.Event()
-
-        def task():
-            try:
-                fn()
-            finally:
-                done.set()
-
-        self.q.put(task)
-        return done
-
-
-def _worker(name: str = "factor", threads: int = 1) -> _Daemons:
-    if name not in _POOLS:
-        _POOLS[name] = _Daemons(threads, name)
-    return _POOLS[name]
+    On the calling thread: Python runs signal handlers only between calls into C, so Ctrl-C and
+    SIGTERM wait for the factorisation in progress (0.3 s of CPU at 20 000 elements, ~3 s at
+    50 000). Running it on a helper thread (SuperLU releases the GIL) answered at once, but the
+    interpreter then finalised under a busy thread: exit status 120 or a segmentation fault
+    instead of 143, one run in three under load."""
+    return spla.splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
 
 
 def _trim() -> None:
@@ -201,12 +122,6 @@ def _trim() -> None:
         ctypes.CDLL("libc.so.6").malloc_trim(0)
     except (OSError, AttributeError):
         pass
-
-
-def _factor(H):
-    """SuperLU of the SPD ``H`` (fill-reducing symmetric ordering, no pivoting), interruptible."""
-    return interruptible(spla.splu, H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                         options={"SymmetricMode": True})
 
 
 class Pencil:
@@ -247,41 +162,15 @@ class Pencil:
         return self._lu[key]
 
     def solve(self, lam_abs: float, X):
-        """``H⁻¹X`` column by column (SuperLU's own multi-column solve is 2-3x slower than its
-        columns one at a time), on :data:`SOLVE_THREADS` threads (SuperLU releases the GIL)."""
+        """``H⁻¹X``, column by column: SuperLU's own multi-column solve is 2-3x slower than its
+        columns one at a time."""
         lu = self.lu(lam_abs)
         X = np.asarray(X, dtype=np.float64)
         if X.ndim == 1:
             return lu.solve(X)
         out = np.empty_like(X)
-        errors: list = []
-        stop = threading.Event()
-
-        def one(j):
-            if stop.is_set():
-                return
-            try:
-                out[:, j] = lu.solve(np.ascontiguousarray(X[:, j]))
-            except BaseException as e:  # noqa: BLE001 - re-raised below
-                errors.append(e)
-
-        if SOLVE_THREADS > 1 and X.shape[1] > 1:
-            pool = _worker("solve", SOLVE_THREADS)
-            events = [pool.submit(lambda j=j: one(j)) for j in range(X.shape[1])]
-            try:
-                for ev in events:
-                    while not ev.wait(0.05):
-                        pass
-            except BaseException:  # Ctrl-C / SIGTERM: the queued columns are skipped, the running ones end
-                stop.set()
-                for ev in events:
-                    ev.wait(1.0)
-                raise
-            if errors:
-                raise errors[0]
-        else:
-            for j in range(X.shape[1]):
-                one(j)
+        for j in range(X.shape[1]):
+            out[:, j] = lu.solve(np.ascontiguousarray(X[:, j]))
         return out
 
     def iterate(self, lam_abs: float, C, k: int, X0=None):
