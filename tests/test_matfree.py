@@ -196,3 +196,33 @@ def test_sigterm_stops_a_smooth_solve_within_2_s(solver, nx):
             p.kill()
     assert p.returncode == 143, p.stderr.read()
     assert dt < 2.0
+
+
+def test_reconstruct_no_longer_refuses_a_large_mesh_for_smooth(write_config, minimal_config, monkeypatch):
+    """62 500 elements were refused as needing 125 GB (8·n²·4 bytes of dense normal matrices);
+    the stage now estimates the matrix-free solve instead, says so, and a dense method is still
+    refused (its matrices are still n²)."""
+    import copy
+
+    from fluxcli import pipeline
+    from fluxcli.config import load_config
+    from fluxcli.errors import UserError
+    from fluxcli.stages import reconstruct as R
+    from fluxcli.stages.context import RunContext
+
+    cfg = copy.deepcopy(minimal_config)
+    cfg["subject"]["surface"] = {"phantom": "cylinder", "radius_mm": 12.5, "length_mm": 50,
+                                 "n_angular": 250, "n_axial": 250}
+    said = []
+    ctx = RunContext(quiet=True)
+    monkeypatch.setattr(ctx, "say", said.append)
+    monkeypatch.setattr(pipeline, "available_memory_bytes", lambda: 16e9)
+    loaded = load_config(write_config(cfg), [])
+    _, placer, todo = pipeline.plan(loaded)
+    R._check_solver_size(loaded, ctx, placer.surface, len(todo))
+    assert any("matrix-free" in s for s in said)
+    need = float(said[-1].split("about ")[1].split(" GB")[0])
+    assert 0.5 < need < 4  # ~2 GB at 62 500 elements, against 125 GB dense
+    cfg["reconstruct"] = {"method": "nnls"}
+    with pytest.raises(UserError, match="would need about"):
+        R._check_solver_size(load_config(write_config(cfg), []), ctx, placer.surface, len(todo))
