@@ -712,18 +712,41 @@ def _run_paper(P, lam, rule, opts):
                      weighted=False)
 
 
-@register("smooth", options=("adjacency", "n_iter", *_RULE_OPTS), default_lam=None,
+SMOOTH_SOLVERS = ("auto", "dense", "matfree")
+
+
+@register("smooth", options=("adjacency", "n_iter", "solver", *_RULE_OPTS), default_lam=None,
           lam_rules=("gcv", "lcurve", "discrepancy"))
 def _run_smooth(P, lam, rule, opts):
+    from fluxcli.inverse.matfree import DENSE_MAX_UNKNOWNS
     from fluxcli.inverse.smooth import exitance_prior
 
     if P.adjacency is None:
         raise ValueError("method 'smooth' needs the element adjacency (adjacency=...).")
     # gamma 1: with weights 1/σ² of the noise model the rule is UPRE, unbiased as it stands
     opts = {"gamma": 1.0} | opts
+    solver = opts.get("solver", "auto")
+    if solver not in SMOOTH_SOLVERS:
+        raise ValueError(f"solver must be one of {', '.join(SMOOTH_SOLVERS)}; got {solver!r}.")
+    if solver == "matfree" or (solver == "auto" and int(P.mask.sum()) > DENSE_MAX_UNKNOWNS):
+        return _run_smooth_matfree(P, lam, rule, opts)
     R = exitance_prior(P.adjacency, P.mask, P.areas)
     return _filtered(P, prior=R, k=c.check_positive_int(opts.get("n_iter", 10), "n_iter"), tol=None, lam=lam,
                      rule=rule, opts=opts, weighted=True, free_level=True, exact=True)
+
+
+def _run_smooth_matfree(P, lam, rule, opts):
+    """``smooth`` on sparse matrices only (:mod:`fluxcli.inverse.matfree`): beyond the dense limit."""
+    from fluxcli.inverse.matfree import matfree_solve, sparse_exitance_prior
+
+    s2 = None if P.sigma2 is None else P.sigma2[P.rows]
+    out = matfree_solve(P.T_cov, P.a[P.rows], prior=sparse_exitance_prior(P.adjacency, P.mask, P.areas),
+                        k=c.check_positive_int(opts.get("n_iter", 10), "n_iter"), lam=lam, rule=rule or "gcv",
+                        gamma=opts.get("gamma", 1.0), tau=opts.get("tau", 1.0), lambdas=opts.get("lambdas"),
+                        variance=P.variance, sigma2=s2, weighted=True, free_level=True, sums=P.sums())
+    return {"sigma_groups": out.sigma_sums, "power": out.power, "sigma": out.sigma, "lam": out.lam,
+            "lam_absolute": out.lam_absolute, "iterations": out.iterations, "converged": out.converged,
+            "choice": out.choice, "chi2": out.chi2_per_pixel, "warnings": out.warnings}
 
 
 def _lam_from_rule(P, lam, rule, opts, weighted):

@@ -31,6 +31,7 @@ from ..imaging import noise as N
 from ..imaging.imagefiles import read_image, sample_type
 from ..artefacts.transfer import load_T, load_view
 from ..inverse import backprojection, error_l1, reconstruct as solve, total_ratio
+from ..inverse.matfree import DENSE_MAX_UNKNOWNS, memory_estimate_bytes as matfree_bytes
 from ..pipeline import check_folders, check_memory, emccd_model, ensure_T, geometry_of, plan, provenance
 from ..workers import blas_threads, pool_for
 from ..imaging.sensor_maps import counts_to_photons_with_maps
@@ -622,8 +623,15 @@ def _check_solver_size(cfg: C.LoadedConfig, ctx: RunContext, surface, n_poses: i
     nx, ny = cfg.model.system.camera.pixels
     need = 8.0 * nx * ny * n_poses * 8  # images, masks, fits and residuals
     for s in methods:
-        if s.method in DENSE:
-            need = max(need, 8.0 * n_sub[s.unknowns] ** 2 * 4 * (ctx.jobs if rc.sweep else 1))
+        n = n_sub[s.unknowns]
+        if s.method == "smooth" and n > DENSE_MAX_UNKNOWNS:  # the matrix-free path (fluxcli.inverse.matfree)
+            need = max(need, matfree_bytes(n, n_poses=n_poses, n_pixels=nx * ny * n_poses)
+                       * (ctx.jobs if rc.sweep else 1))
+        elif s.method in DENSE:
+            need = max(need, 8.0 * n ** 2 * 4 * (ctx.jobs if rc.sweep else 1))
+    if any(s.method == "smooth" and n_sub[s.unknowns] > DENSE_MAX_UNKNOWNS for s in methods):
+        ctx.say(f"reconstruct: more than {DENSE_MAX_UNKNOWNS} unknowns: the matrix-free solve (sparse T'WT and "
+                f"Laplacian); about {need / 1e9:.2g} GB of memory at its peak")
     check_memory(need, f"reconstructing {surface.n_elements} elements ({', '.join(sorted({s.method for s in methods}))})",
                  "the elements of subject.surface, use reconstruct.unknowns: elements, or choose "
                  "reconstruct.method: mlem or backprojection (no dense normal matrix)")
