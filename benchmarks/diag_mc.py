@@ -46,26 +46,6 @@ def make_config(tag, rotations, photons, element_mm, camera, reconstruct, seed=0
     return p
 
 
-def sample_directions(normal, n_index, rng):
-    """Directions in air drawn from the diffuse profile about each outward normal: the exit
-    cosine has density 2 w(mu) mu on [0, 1] (w = pi p, the profile's ray weight)."""
-    from fluxcli.optics.emission import diffuse
-
-    prof = diffuse(n_index)
-    mu = np.linspace(0.0, 1.0, len(prof.table))
-    dens = 2 * prof.table * mu
-    cdf = np.concatenate([[0.0], np.cumsum(0.5 * (dens[1:] + dens[:-1]) * np.diff(mu))])
-    cdf /= cdf[-1]
-    c = np.interp(rng.random(len(normal)), cdf, mu)
-    s = np.sqrt(np.maximum(1 - c * c, 0))
-    phi = rng.random(len(normal)) * 2 * np.pi
-    a = np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
-    t1 = np.cross(normal, a)
-    t1 /= np.linalg.norm(t1, axis=1)[:, None]
-    t2 = np.cross(normal, t1)
-    return c[:, None] * normal + s[:, None] * (np.cos(phi)[:, None] * t1 + np.sin(phi)[:, None] * t2)
-
-
 def reimage(cfg_path, pos, dirn, batch=1_000_000):
     """Images (P, ny, nx) of the given photons (own frame), as simulate makes them."""
     from fluxcli.config import load_config
@@ -221,7 +201,9 @@ def main(argv=None):
             from fluxcli.truth import montecarlo_shape
             from fluxcli.config import load_config
             shape = montecarlo_shape(load_config(p).model.subject.surface)
-            d2 = sample_directions(shape.outward_normals(pos), 1.40, np.random.default_rng(11))
+            from fluxcli.montecarlo.photons import redraw_directions
+            from fluxcli.optics.emission import diffuse
+            d2 = redraw_directions(shape.outward_normals(pos), diffuse(1.40).table, np.random.default_rng(11))
             imgs = reimage(p, pos, d2)
             print("redrawn photons per image:", imgs.reshape(len(rot), -1).sum(1))
             reconstruct(p, tag, "redrawn", images=imgs)
