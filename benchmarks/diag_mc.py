@@ -10,6 +10,8 @@ error split by viewing angle of the element (<= 60 deg / > 60 deg) and by the di
 element centre to the nearest box edge (< 4 mm / >= 4 mm).
 
     $ nice -n 5 .venv/bin/python benchmarks/diag_mc.py --photons 1e7 --rotations 0,30,60
+    $ ... --skip-sim --variants drift,lamx0.1,lamx10,elements     # on the same photons
+    $ ... --photons 2e7 --rotations 0,30 --camera issue-wide --element-mm 2
 """
 
 from __future__ import annotations
@@ -168,6 +170,25 @@ def reconstruct(cfg_path, tag, label, overrides=None, images=None):
     return rows
 
 
+def tangential_drift(sim_path, source_xy=(5.0, 0.0), top_z=10.0):
+    """Over the top face: the mean tangential component of the exit directions away from the
+    source's foot, and the photons leaving 25-35 deg from the normal heading away from it over
+    those heading towards it (|tangential cosine| > 0.25), by distance from the foot."""
+    with h5py.File(sim_path) as f:
+        p, d = f["montecarlo/photons/position_mm"][()], f["montecarlo/photons/direction"][()]
+    top = p[:, 2] > top_z - 1e-6
+    p, d = p[top], d[top]
+    r = p[:, :2] - np.asarray(source_xy)
+    rho = np.linalg.norm(r, axis=1)
+    dt = np.einsum("ij,ij->i", d[:, :2], r / np.maximum(rho, 1e-9)[:, None])
+    band = (d[:, 2] > np.cos(np.radians(35))) & (d[:, 2] < np.cos(np.radians(25)))
+    for lo, hi in ((0, 2), (2, 4), (4, 6), (6, 9), (9, 13), (13, 20)):
+        s = (rho >= lo) & (rho < hi)
+        away, toward = (s & band & (dt > 0.25)).sum(), (s & band & (dt < -0.25)).sum()
+        print(f"top face, {lo:>2}-{hi:<2} mm from the source's foot: {s.sum():8d} photons, <d_t> {dt[s].mean():+.4f}, "
+              f"25-35 deg away/towards {away / max(toward, 1):.3f}", flush=True)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--photons", type=float, default=1e7)
@@ -193,7 +214,9 @@ def main(argv=None):
     with h5py.File(sim) as f:
         print("photons per image:", f["images/noisy"][0, 0].reshape(len(rot), -1).sum(1))
     for v in a.variants.split(","):
-        if v == "mc":
+        if v == "drift":
+            tangential_drift(sim)
+        elif v == "mc":
             reconstruct(p, tag, "mc")
         elif v == "redrawn":
             with h5py.File(sim) as f:
