@@ -69,3 +69,30 @@ def radiance_profile(histogram: np.ndarray, edges_deg: np.ndarray = ANGLE_EDGES_
     sel = mid < fit_below_deg
     coef = np.polyfit(1 - np.cos(np.radians(mid[sel])), per_proj_solid_angle[sel], 2, w=1 / sigma[sel])
     return mid, per_proj_solid_angle / coef[-1]
+
+
+def redraw_directions(normal: np.ndarray, weight_table: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Directions in air drawn afresh about each outward normal (n, 3) from an emission profile
+    given by its ray-weight table ``pi p(mu)`` on mu = k/(len-1) (:class:`fluxcli.optics.emission.
+    Profile`.table; empty for Lambertian): the exit cosine has density ``2 w(mu) mu`` on [0, 1]
+    (inverse CDF of the table's linear interpolant, by the trapezoid rule), the azimuth is uniform.
+    The issue-21 control: the same exit points and weights with the angular law the model assumes."""
+    normal = np.asarray(normal, float)
+    table = np.asarray(weight_table, float)
+    if table.size == 0:
+        table = np.ones(2)
+    mu = np.linspace(0.0, 1.0, table.size)
+    if table.size < 1025:  # the density 2 w mu is quadratic per interval: a fine grid for the trapezoid CDF
+        fine = np.linspace(0.0, 1.0, 4097)
+        table, mu = np.interp(fine, mu, table), fine
+    dens = 2.0 * table * mu
+    cdf = np.concatenate([[0.0], np.cumsum(0.5 * (dens[1:] + dens[:-1]) * np.diff(mu))])
+    cdf /= cdf[-1]
+    c = np.interp(rng.random(len(normal)), cdf, mu)
+    s = np.sqrt(np.maximum(1.0 - c * c, 0.0))
+    phi = rng.random(len(normal)) * 2.0 * np.pi
+    helper = np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = np.cross(normal, helper)
+    t1 /= np.linalg.norm(t1, axis=1)[:, None]
+    t2 = np.cross(normal, t1)
+    return c[:, None] * normal + s[:, None] * (np.cos(phi)[:, None] * t1 + np.sin(phi)[:, None] * t2)
