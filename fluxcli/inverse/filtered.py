@@ -211,29 +211,8 @@ def filtered_solve(T_obs, a, *, prior=None, k: int = 10, tol: float | None = Non
     if choice is not None:
         warn += choice.warnings
     lam_abs = lam_p * spec.scale
-    fitted = T_obs @ b
-    level = 1.0
-    if free_level and fitted.any():
-        # Any quadratic penalty shrinks the overall level (b → cb lowers bᵀRb by c²), so
-        # the level is left to the data: the c minimising ‖W^½(a − c T b)‖² (with Poisson
-        # model weights, Σa / ΣTb: MLEM's count conservation). The prior shapes; the data
-        # set the total.
-        w = np.ones(m) if (weights is None and var_model is None) else (
-            1.0 / var_model if var_model is not None else weights)
-        level = float((fitted * w) @ a / ((fitted * w) @ fitted))
-        if level > 0:
-            b, fitted = b * level, fitted * level
-            if var_model is not None and variance is not None:
-                var_model = variance(fitted)
-    chi2 = np.nan
-    if var_model is not None:
-        chi2 = chi2_per_pixel(a, fitted, var_model)
-        lo, hi = CHI2_RANGE
-        if np.isfinite(chi2) and not lo <= chi2 <= hi:
-            warn.append(f"chi^2 per pixel is {chi2:.3g} (expected about 1 under the noise model): "
-                        + ("the model does not explain the data to the noise (model error, a wrong noise model, "
-                           "or too much regularisation)" if chi2 > hi else
-                           "the fit follows the noise (too little regularisation, or the noise model overstates it)"))
+    b, fitted, var_model, level, chi2 = level_and_fit(a, b, T_obs @ b, weights=weights, var_model=var_model,
+                                                      variance=variance, free_level=free_level, warnings=warn)
     sigma = np.full(len(b), np.nan)
     sigma_sums = None if sums is None else np.full(sums.shape[0], np.nan)
     if weights is not None or var_model is not None:
@@ -264,3 +243,33 @@ def filtered_solve(T_obs, a, *, prior=None, k: int = 10, tol: float | None = Non
                     converged=bool(conv), choice=choice, chi2_per_pixel=chi2,
                     total_at_half_and_double_lambda=totals, weighted=weights is not None, warnings=warn,
                     sigma_sums=sigma_sums, covariance=covariance)
+
+
+def level_and_fit(a, b, fitted, *, weights, var_model, variance, free_level: bool, warnings: list):
+    """The overall level left to the data, then χ² per pixel (a warning appended when out of range).
+
+    Any quadratic penalty shrinks the overall level (b → cb lowers bᵀRb by c²), so the level is
+    left to the data: the c minimising ‖W^½(a − c T b)‖² (with Poisson model weights, Σa / ΣTb:
+    MLEM's count conservation). The prior shapes; the data set the total.
+
+    Returns (b, fitted, var_model, level, chi2_per_pixel) with b and fitted scaled by the level.
+    """
+    level = 1.0
+    if free_level and fitted.any():
+        w = np.ones(len(a)) if (weights is None and var_model is None) else (
+            1.0 / var_model if var_model is not None else weights)
+        level = float((fitted * w) @ a / ((fitted * w) @ fitted))
+        if level > 0:
+            b, fitted = b * level, fitted * level
+            if var_model is not None and variance is not None:
+                var_model = variance(fitted)
+    chi2 = np.nan
+    if var_model is not None:
+        chi2 = chi2_per_pixel(a, fitted, var_model)
+        lo, hi = CHI2_RANGE
+        if np.isfinite(chi2) and not lo <= chi2 <= hi:
+            warnings.append(f"chi^2 per pixel is {chi2:.3g} (expected about 1 under the noise model): "
+                            + ("the model does not explain the data to the noise (model error, a wrong noise model, "
+                               "or too much regularisation)" if chi2 > hi else
+                               "the fit follows the noise (too little regularisation, or the noise model overstates it)"))
+    return b, fitted, var_model, level, chi2

@@ -44,7 +44,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from fluxcli.inverse import spectral as S
-from fluxcli.inverse.filtered import CHI2_RANGE, TOTAL_JUMP, Filtered, chi2_per_pixel
+from fluxcli.inverse.filtered import TOTAL_JUMP, Filtered, level_and_fit
 
 DENSE_MAX_UNKNOWNS = 6000  # auto: the dense engine up to here (exact, ~14 s at 5880), this path beyond
 TRACE_PROBES = 16
@@ -455,25 +455,8 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
                 weights = 1.0 / var_model
     warn: list[str] = list(choice.warnings) if choice is not None else []
     lam_abs = lam_p * P.scale
-    fitted = P.T @ b
-    level = 1.0
-    if free_level and fitted.any():
-        w = np.ones(m) if (weights is None and var_model is None) else (
-            1.0 / var_model if var_model is not None else weights)
-        level = float((fitted * w) @ a / ((fitted * w) @ fitted))
-        if level > 0:
-            b, fitted = b * level, fitted * level
-            if var_model is not None and variance is not None:
-                var_model = variance(fitted)
-    chi2 = np.nan
-    if var_model is not None:
-        chi2 = chi2_per_pixel(a, fitted, var_model)
-        lo, hi = CHI2_RANGE
-        if np.isfinite(chi2) and not lo <= chi2 <= hi:
-            warn.append(f"chi^2 per pixel is {chi2:.3g} (expected about 1 under the noise model): "
-                        + ("the model does not explain the data to the noise (model error, a wrong noise model, "
-                           "or too much regularisation)" if chi2 > hi else
-                           "the fit follows the noise (too little regularisation, or the noise model overstates it)"))
+    b, fitted, var_model, level, chi2 = level_and_fit(a, b, P.T @ b, weights=weights, var_model=var_model,
+                                                      variance=variance, free_level=free_level, warnings=warn)
     sigma = np.full(len(b), np.nan)
     sigma_sums = None if sums is None else np.full(sums.shape[0], np.nan)
     if weights is not None or var_model is not None:
