@@ -266,3 +266,36 @@ def test_cotangent_weights_clip_negative_and_never_leave_a_vertex_untied():
     assert W[4, 5] == W[5, 6] == W[4, 6] == median
     K = np.diag(W.sum(axis=1)) - W
     assert np.linalg.eigvalsh(K).min() > -1e-12
+
+
+def test_rates_are_fixed_at_reconstruct_time(write_config, patch_config, tmp_path):
+    """A rate (photons/s) uses the exposure reconstruct recorded: a config edited afterwards to
+    state another exposure is refused by summary and report, naming both values (issue 26: a
+    summary printed 7.669e+07 photons/s for a reconstruction that gives 1.278e+07 at 30 s)."""
+    cfg = copy.deepcopy(patch_config)
+    cfg["simulate"]["noise"] = {"model": "poisson", "peaks_photons": [1e5], "repeats": 1, "seed": 4}
+    cfg["simulate"]["export"] = {"format": "tiff"}
+    p = write_config(cfg)
+    assert run("simulate", p, "--quiet").exit_code == 0
+    cfg["reconstruct"] = {"images": {"files": [f"run/images/level0/h{h:+g}_rot0_rep0.tif" for h in (0, 8)],
+                                     "exposure_s": 30.0}}
+    p = write_config(cfg)
+    r = run("reconstruct", p, "--quiet")
+    assert r.exit_code == 0, r.output
+    with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
+        assert f.attrs["rate_exposure_s"] == 30.0
+        total = float(np.nansum(f["per_pose/total"][()][0]))
+    r = run("summary", p)
+    assert r.exit_code == 0, r.output
+    assert "exposure 30 s" in r.output and f"{total / 30.0:.4g}" in r.output
+    for stage in ("summary", "report"):
+        r = run(stage, p, "--set", "reconstruct.images.exposure_s=5")
+        text = " ".join(r.output.split())
+        assert r.exit_code == 2, r.output
+        assert "5 s" in text and "30 s" in text and "reconstruction.h5" in text
+    # no exposure at reconstruct time, one stated later: refused too (per exposure is not per second)
+    del cfg["reconstruct"]["images"]["exposure_s"]
+    p = write_config(cfg)
+    assert run("reconstruct", p, "--quiet").exit_code == 0
+    r = run("summary", p, "--set", "reconstruct.images.exposure_s=5")
+    assert r.exit_code == 2 and "no exposure time" in " ".join(r.output.split())

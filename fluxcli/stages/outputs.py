@@ -18,6 +18,7 @@ import numpy as np
 
 from .. import artefacts as A
 from .. import config as C
+from ..errors import UserError
 from ..surface import export as X
 from ..surface.units import UNITS, element_quantities
 
@@ -39,6 +40,33 @@ def reconstruction_exposure_s(cfg: C.LoadedConfig) -> float | None:
         t = getattr(rc.images, "exposure_s", None)
         return float(t) if t is not None and _given(rc.images, "exposure_s") else None
     return simulation_exposure_s(cfg)
+
+
+def rate_exposure_s(cfg: C.LoadedConfig, rec_path: Path | None = None) -> float | None:
+    """The exposure that turns a reconstruction's photons into photons/s, as ``reconstruct``
+    recorded it (a capture's frames, else the config's stated exposure), not as the config says
+    now: a rate must not change when the config is edited after the fact.
+
+    A config that now states another exposure than the one recorded is refused (UserError
+    naming both); an artefact from before the exposure was recorded falls back to the config.
+    """
+    rec_path = Path(rec_path) if rec_path is not None else cfg.workdir / "reconstruction.h5"
+    stated = reconstruction_exposure_s(cfg)
+    if not rec_path.is_file():
+        return stated
+    with A.open_artefact(rec_path, "reconstruction") as f:
+        if "rate_exposure_s" not in f.attrs:
+            return stated
+        recorded = float(f.attrs["rate_exposure_s"])
+        source = str(f.attrs.get("rate_exposure_source", "reconstruct"))
+    recorded_t = None if not np.isfinite(recorded) else recorded
+    if stated is not None and (recorded_t is None or abs(stated - recorded_t) > 1e-9 * max(stated, recorded_t)):
+        was = f"{recorded_t:g} s ({source})" if recorded_t is not None else "no exposure time (per exposure, no rates)"
+        raise UserError(f"the config states an exposure of {stated:g} s (reconstruct.images.exposure_s or "
+                        f"simulate.noise.exposure_s) but {rec_path} was reconstructed with {was}: a rate cannot be "
+                        f"changed after the fact. Remove the override, or run 'fluxmap reconstruct {cfg.path} --force' "
+                        f"with the exposure the images were taken at.")
+    return recorded_t
 
 
 def _quantities(prefix: str, power, areas, exposure_s, sigma=None) -> tuple[dict, dict]:
@@ -127,7 +155,7 @@ def export_3d(cfg: C.LoadedConfig, ctx, artefact: Path) -> Path:
     """The ``.vtp`` beside a reconstruction or simulation artefact (the stages' one-line call)."""
     artefact = Path(artefact)
     if artefact.stem == "reconstruction":
-        out = reconstruction_vtp(artefact, artefact.with_suffix(".vtp"), exposure_s=reconstruction_exposure_s(cfg))
+        out = reconstruction_vtp(artefact, artefact.with_suffix(".vtp"), exposure_s=rate_exposure_s(cfg, artefact))
     else:
         out = simulation_vtp(artefact, artefact.parent / "simulation_truth.vtp", exposure_s=simulation_exposure_s(cfg))
     ctx.say(f"3-D surface for ParaView/pyvista: {out}")
@@ -171,7 +199,7 @@ def record_of(cfg: C.LoadedConfig, digests: dict[str, str]) -> list[tuple[str, s
                                   f"{mm.reflectance:g}" for k, mm in enumerate(m.system.mirrors)) or "none"),
             ("poses", f"heights {list((m.subject.poses or C.Poses()).heights_mm)} mm × rotations "
                       f"{list((m.subject.poses or C.Poses()).rotations_deg)}°")]
-    t = reconstruction_exposure_s(cfg)
+    t = rate_exposure_s(cfg)
     rows.append(("exposure", f"{t:g} s" if t is not None else "not given (quantities per exposure; no rates)"))
     rc = m.reconstruct
     if rc.images is not None and not hasattr(rc.images, "files"):  # a capture artefact

@@ -760,6 +760,12 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         fit.create_dataset("residual", data=(inp.images - fitted).astype(np.float32), compression="gzip")
         fit.create_dataset("valid", data=inp.valid, compression="gzip")
         f.attrs["method"] = m.method
+        # the exposure that makes rates (photons/s), fixed here: summary, report and the VTP read it
+        # from this file, and refuse a config that later states another (a published rate must not move)
+        t_rate = roi_exposure_s(inp)
+        f.attrs["rate_exposure_s"] = float(t_rate) if t_rate is not None else np.nan
+        f.attrs["rate_exposure_source"] = ("capture.h5 frames" if isinstance(rc.images, C.CaptureSource)
+                                           else "config" if t_rate is not None else "none")
         f.attrs["settings"] = json.dumps(m.model_dump(mode="json", by_alias=True))
         f.attrs["lambda_used"] = float(main.lam) if main.lam is not None else np.nan
         f.attrs["seconds"] = A.recorded_seconds(seconds)

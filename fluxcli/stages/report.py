@@ -27,7 +27,7 @@ from ..errors import UserError
 from ..pipeline import check_writable, geometry_of
 from ..scene import SubjectPlacer
 from .context import RunContext
-from .outputs import reconstruction_exposure_s, record_of, rig_of
+from .outputs import rate_exposure_s, record_of, rig_of
 
 
 _GEOMETRY = ("system", "system.camera.lens", "system.camera.pose", "subject")
@@ -82,7 +82,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
                                    extra={"provenance": {"inputs": inputs, "settings": settings}},
                                    sections=_rois_section(rec) + ([_calibration_section(cal)] if cal.is_file() else [])
                                    + ([_surface_section(surf, plotly_loaded=True)] if surf is not None else []),
-                                   record=record_of(cfg, inputs), rig=rig_of(cfg), exposure_s=reconstruction_exposure_s(cfg))
+                                   record=record_of(cfg, inputs), rig=rig_of(cfg), exposure_s=rate_exposure_s(cfg, rec))
     for note in summary["notes"]:
         ctx.say(f"note: {note}")
     sp = summary["spreads"]

@@ -21,7 +21,7 @@ from ..errors import UserError
 from .context import RunContext
 from ..report import spread
 from ..report.notebook import observed_share
-from .outputs import reconstruction_exposure_s
+from .outputs import rate_exposure_s
 
 
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> None:
@@ -47,7 +47,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> None:
             from ..quantify.rois import read_group
 
             rois = read_group(f["rois"])
-    t = reconstruction_exposure_s(cfg)
+    t = rate_exposure_s(cfg, rec)
     rate, unit = (1.0 / t, "photons/s") if t is not None else (1.0, "photons per exposure")
     share = observed_share(pose_obs, truth if truth is not None else power)
     share_name = "share of the true light observed" if truth is not None else "share of the light observed"
