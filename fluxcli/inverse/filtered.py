@@ -225,20 +225,8 @@ def filtered_solve(T_obs, a, *, prior=None, k: int = 10, tol: float | None = Non
         covariance = None
     totals = (np.nan, np.nan)
     if lam is None and b.sum() > 0:
-        def total_at(lam_x):
-            bx = run(spec, lam_x, k, tol=tol)[0]
-            if not free_level:
-                return float(bx.sum())
-            fx = T_obs @ bx
-            w = 1.0 / var_model if var_model is not None else np.ones(m)
-            return float(bx.sum() * ((fx * w) @ a) / max((fx * w) @ fx, 1e-300))
-
-        totals = tuple(total_at(f * lam_abs) for f in (0.5, 2.0))
-        jump = max(abs(t / b.sum() - 1) for t in totals)
-        if jump > TOTAL_JUMP:
-            warn.append(f"the total changes by {jump:.0%} when lambda is halved or doubled "
-                        f"({totals[0] / b.sum():.3f}x, {totals[1] / b.sum():.3f}x): it is not determined by the data "
-                        "alone; treat it with care")
+        totals = halved_and_doubled(lambda lam_x: run(spec, lam_x, k, tol=tol)[0], T_obs, a, b, lam_abs,
+                                    var_model=var_model, free_level=free_level, warnings=warn)
     return Filtered(power=b, sigma=sigma, lam=float(lam_p), lam_absolute=float(lam_abs), iterations=int(it),
                     converged=bool(conv), choice=choice, chi2_per_pixel=chi2,
                     total_at_half_and_double_lambda=totals, weighted=weights is not None, warnings=warn,
@@ -273,3 +261,24 @@ def level_and_fit(a, b, fitted, *, weights, var_model, variance, free_level: boo
                                "or too much regularisation)" if chi2 > hi else
                                "the fit follows the noise (too little regularisation, or the noise model overstates it)"))
     return b, fitted, var_model, level, chi2
+
+
+def halved_and_doubled(solve, T_obs, a, b, lam_abs: float, *, var_model, free_level: bool, warnings: list) -> tuple:
+    """The totals at λ/2 and 2λ relative to ``b``'s (``solve(lam_abs) -> b``), with the level left
+    to the data as in the solve; a warning appended when either moves by more than TOTAL_JUMP."""
+
+    def total_at(lam_x):
+        bx = solve(lam_x)
+        if not free_level:
+            return float(bx.sum())
+        fx = T_obs @ bx
+        w = 1.0 / var_model if var_model is not None else np.ones(len(a))
+        return float(bx.sum() * ((fx * w) @ a) / max((fx * w) @ fx, 1e-300))
+
+    totals = tuple(total_at(f * lam_abs) for f in (0.5, 2.0))
+    jump = max(abs(t / b.sum() - 1) for t in totals)
+    if jump > TOTAL_JUMP:
+        warnings.append(f"the total changes by {jump:.0%} when lambda is halved or doubled "
+                        f"({totals[0] / b.sum():.3f}x, {totals[1] / b.sum():.3f}x): it is not determined by the data "
+                        "alone; treat it with care")
+    return totals

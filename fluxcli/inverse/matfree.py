@@ -44,7 +44,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from fluxcli.inverse import spectral as S
-from fluxcli.inverse.filtered import TOTAL_JUMP, Filtered, level_and_fit
+from fluxcli.inverse.filtered import Filtered, halved_and_doubled, level_and_fit
+from fluxcli.inverse.smooth import observed_adjacency
 
 DENSE_MAX_UNKNOWNS = 6000  # auto: the dense engine up to here (exact, ~14 s at 5880), this path beyond
 TRACE_PROBES = 16
@@ -67,15 +68,7 @@ def sparse_exitance_prior(adjacency, mask: np.ndarray, areas=None, ridge: float 
     R : sparse csc (n_obs, n_obs), symmetric positive definite.
     E : sparse csr (n_edges + n_obs, n_obs).
     """
-    A = sp.csr_array(adjacency, dtype=np.float64)
-    n = mask.size
-    if A.shape != (n, n):
-        raise ValueError(f"adjacency must have shape ({n}, {n}), got {A.shape}.")
-    if A.nnz and not (np.all(np.isfinite(A.data)) and A.data.min() >= 0):
-        raise ValueError("adjacency weights must be finite and non-negative.")
-    A = sp.csr_array(A[mask][:, mask])
-    A.setdiag(0.0)
-    A.eliminate_zeros()
+    A = observed_adjacency(adjacency, mask)
     if A.nnz and abs(A - A.T).max() > 1e-12 * abs(A).max():
         raise ValueError("adjacency must be symmetric.")
     n_obs = A.shape[0]
@@ -468,20 +461,8 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
             sigma_sums = sgs * level
     totals = (np.nan, np.nan)
     if lam is None and b.sum() > 0:
-        def total_at(lam_x):
-            bx = _clipped(P, lam_x, k)[0]
-            if not free_level:
-                return float(bx.sum())
-            fx = P.T @ bx
-            w = 1.0 / var_model if var_model is not None else np.ones(m)
-            return float(bx.sum() * ((fx * w) @ a) / max((fx * w) @ fx, 1e-300))
-
-        totals = tuple(total_at(f * lam_abs) for f in (0.5, 2.0))
-        jump = max(abs(t / b.sum() - 1) for t in totals)
-        if jump > TOTAL_JUMP:
-            warn.append(f"the total changes by {jump:.0%} when lambda is halved or doubled "
-                        f"({totals[0] / b.sum():.3f}x, {totals[1] / b.sum():.3f}x): it is not determined by the data "
-                        "alone; treat it with care")
+        totals = halved_and_doubled(lambda lam_x: _clipped(P, lam_x, k)[0], P.T, a, b, lam_abs,
+                                    var_model=var_model, free_level=free_level, warnings=warn)
     return Filtered(power=b, sigma=sigma, lam=float(lam_p), lam_absolute=float(lam_abs), iterations=int(it),
                     converged=bool(conv), choice=choice, chi2_per_pixel=chi2,
                     total_at_half_and_double_lambda=totals, weighted=weights is not None, warnings=warn,

@@ -24,6 +24,21 @@ import scipy.sparse as sp
 from . import _common as c
 
 
+def observed_adjacency(adjacency, mask: np.ndarray) -> sp.csr_array:
+    """The edge weights among the observed elements (``mask``), checked: square, finite,
+    non-negative; the diagonal dropped."""
+    A = sp.csr_array(adjacency, dtype=np.float64)
+    n = mask.size
+    if A.shape != (n, n):
+        raise ValueError(f"adjacency must have shape ({n}, {n}), got {A.shape}.")
+    if A.nnz and not (np.all(np.isfinite(A.data)) and A.data.min() >= 0):
+        raise ValueError("adjacency weights must be finite and non-negative.")
+    A = sp.csr_array(A[mask][:, mask])
+    A.setdiag(0.0)
+    A.eliminate_zeros()
+    return A
+
+
 def element_laplacian(adjacency, mask: np.ndarray, ridge: float = 1e-3) -> np.ndarray:
     """Dense weighted graph Laplacian ``diag(A1) − A`` of the observed elements, scaled to
     unit max diagonal, plus ``ridge`` times the identity (so it is positive definite).
@@ -31,14 +46,7 @@ def element_laplacian(adjacency, mask: np.ndarray, ridge: float = 1e-3) -> np.nd
     ``adjacency`` holds the edge weights: 1 where elements touch (Surface.element_adjacency),
     or the cotangent weights of a vertex basis (Surface.vertex_basis().stiffness), for which
     the Laplacian is the exact ``∫|∇J|² dS`` of an exitance linear within faces."""
-    A = sp.csr_array(adjacency, dtype=np.float64)
-    n = mask.size
-    if A.shape != (n, n):
-        raise ValueError(f"adjacency must have shape ({n}, {n}), got {A.shape}.")
-    if A.nnz and not (np.all(np.isfinite(A.data)) and A.data.min() >= 0):
-        raise ValueError("adjacency weights must be finite and non-negative.")
-    A = A[mask][:, mask].toarray()
-    np.fill_diagonal(A, 0.0)
+    A = observed_adjacency(adjacency, mask).toarray()
     L = np.diag(A.sum(axis=1)) - A
     peak = L.diagonal().max()
     return (L / peak if peak > 0 else L) + ridge * np.eye(len(L))
