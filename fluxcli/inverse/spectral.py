@@ -446,11 +446,16 @@ def iterated_exact(spec: Spectrum, lam_abs: float, k: int, *, tol: float | None 
         if tol is not None and gain < tol:
             converged = True
             break
+    return b, it, _settled(converged, tol=tol, gain=gain, k=k, norm=norm)
+
+
+def _settled(converged: bool, *, tol, gain: float, k: int, norm: float) -> bool:
+    """Whether an iterated scheme converged.  With a fixed number of solves (``tol`` None),
+    "converged" means the last one no longer moved the fit by more than 1 % (the iterates have
+    settled), not merely that k solves ran; a perfect fit (norm 0) has converged."""
     if tol is None:
         converged = bool(abs(gain) < 0.01) if k > 1 else True
-    if norm == 0:
-        converged = True
-    return b, it, converged
+    return True if norm == 0 else converged
 
 
 def iterated_clipped(spec: Spectrum, lam_abs: float, k: int, *, tol: float | None = None):
@@ -505,10 +510,4 @@ def iterated_clipped(spec: Spectrum, lam_abs: float, k: int, *, tol: float | Non
         if gain < tol:
             converged = True
             break
-    if tol is None:
-        # a fixed number of solves: "converged" means the last one no longer moved the fit
-        # by more than 1 % (the iterates have settled), not merely that k solves ran
-        converged = bool(abs(gain) < 0.01) if k > 1 else True
-    if norm == 0:
-        converged = True
-    return b, it, converged
+    return b, it, _settled(converged, tol=tol, gain=gain, k=k, norm=norm)

@@ -158,36 +158,30 @@ def _next(state):
 
 # ------------------------------------------------------------------ geometry
 @nb.njit(cache=True, inline="always")
+def _slab(h, p, u, low_face, best, face):
+    """The nearer of (best, face) and the exit through the slab |p| <= h along u: face
+    ``low_face`` at -h, ``low_face + 1`` at +h."""
+    if u > 0:
+        t = (h - p) / u
+        if t < best:
+            return t, low_face + 1
+    elif u < 0:
+        t = (-h - p) / u
+        if t < best:
+            return t, low_face
+    return best, face
+
+
+@nb.njit(cache=True, inline="always")
 def _distance_out(kind, h0, h1, h2, x, y, z, ux, uy, uz):
     """Distance along (ux, uy, uz) from an inside point to the boundary, and the face hit
     (0..5 box faces -x,+x,-y,+y,-z,+z; cylinder 0/1 caps, 2 side)."""
     best = 1e300
     face = -1
     if kind == BOX:
-        if ux > 0:
-            t = (h0 - x) / ux
-            if t < best:
-                best, face = t, 1
-        elif ux < 0:
-            t = (-h0 - x) / ux
-            if t < best:
-                best, face = t, 0
-        if uy > 0:
-            t = (h1 - y) / uy
-            if t < best:
-                best, face = t, 3
-        elif uy < 0:
-            t = (-h1 - y) / uy
-            if t < best:
-                best, face = t, 2
-        if uz > 0:
-            t = (h2 - z) / uz
-            if t < best:
-                best, face = t, 5
-        elif uz < 0:
-            t = (-h2 - z) / uz
-            if t < best:
-                best, face = t, 4
+        best, face = _slab(h0, x, ux, 0, best, face)
+        best, face = _slab(h1, y, uy, 2, best, face)
+        best, face = _slab(h2, z, uz, 4, best, face)
     else:
         if ux > 0:
             best, face = (h0 - x) / ux, 1
