@@ -159,3 +159,19 @@ def test_a_window_projector_without_pyglet_names_the_key_and_the_extra(tmp_path,
     assert code == 2, out
     assert "rig.projectors.left: rig.projectors.left.display on screen 1: 'window' needs pyglet" in out
     assert "pip install 'fluxmap[projector]'" in out
+
+
+def test_rig_check_on_a_dcam_camera_without_a_shutter_takes_the_lit_frame_only(tmp_path, monkeypatch):
+    import fake_dcam
+
+    fake_dcam.reset()
+    monkeypatch.setitem(sys.modules, "dcam", fake_dcam)  # the vendor's wrapper module, faked
+    rig = dict(SHIPPED["rig"], camera={"backend": "dcam", "binning": 4})
+    code, out = invoke("rig", "check", write(tmp_path, {"rig": rig}), "--no-move")
+    assert code == 0, out
+    assert "rig.camera: C9100-13 | serial 100123 | firmware 3.10.B | on backend dcam" in out
+    assert "frames 256 x 256 px at binning 4" in out
+    assert "dark: not taken (no shutter property is configured" in out
+    assert not (tmp_path / "run" / "rig-check" / "dark.tif").exists()
+    assert (tmp_path / "run" / "rig-check" / "lit.tif").exists()
+    assert fake_dcam.state.initialised == 0  # the camera was released
