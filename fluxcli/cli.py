@@ -272,7 +272,8 @@ def info(artefact: Path = typer.Argument(..., help="An HDF5 artefact (transfer.h
 
 
 # --------------------------------------------------------------------------- fluxmap rig ... (issue 11)
-rig_app = typer.Typer(no_args_is_help=True, help="The rig's devices: simulators on the real wire protocols.")
+rig_app = typer.Typer(no_args_is_help=True, help="The rig's devices: check them, snap frames, serve simulators on the real "
+                                                 "wire protocols.")
 app.add_typer(rig_app, name="rig")
 STAGE_REQUIRES["rig serve"] = ("rig",)
 
@@ -289,6 +290,51 @@ def rig_serve(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt) -> N
     from .stages import rig_serve as stage
 
     _run("rig serve", stage.run, config, set_, False, 1, False)
+
+
+STAGE_REQUIRES["rig check"] = ("rig",)
+STAGE_REQUIRES["rig snap"] = ("rig",)
+STAGE_MODULES["rig check"] = "rig_check"
+STAGE_MODULES["rig snap"] = "rig_snap"
+ExposureOpt = typer.Option(0.1, "--exposure-s", min=1e-6, help="Exposure of each frame (s).")
+GainOpt = typer.Option(None, "--em-gain", min=1.0, help="EM gain (default: the lowest of rig.camera.em_gain_range).")
+
+
+@rig_app.command("check")
+def rig_check(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt,
+              move: bool = typer.Option(True, "--move/--no-move", help="Move the wheel and the stage (0.5 mm) and back."),
+              exposure_s: float = ExposureOpt, em_gain: Optional[float] = GainOpt, quiet: bool = QuietOpt) -> None:
+    """Talk to every device in `rig`: model, serial, firmware; move the wheel and the stage a
+    little and back; sensor temperature and cooler; one dark and one lit frame as TIFF.
+    Exit 2 naming each device that does not answer.
+
+    $ fluxmap rig check configs/rig-sim.yaml
+    """
+    from functools import partial
+
+    from .stages import rig_check as stage
+
+    _run("rig check", partial(stage.run, move=move, exposure_s=exposure_s, em_gain=em_gain), config, set_, False, 1,
+         quiet)
+
+
+@rig_app.command("snap")
+def rig_snap(config: Path = ConfigArg, set_: Optional[List[str]] = SetOpt, exposure_s: float = ExposureOpt,
+             em_gain: Optional[float] = GainOpt,
+             frames: int = typer.Option(1, "--frames", min=1, help="Frames in one sequence (one TIFF each)."),
+             dark: bool = typer.Option(False, "--dark", help="Shutter closed."),
+             out: Optional[Path] = typer.Option(None, "--out", help="TIFF to write (default <workdir>/snap.tif)."),
+             quiet: bool = QuietOpt) -> None:
+    """Take frames with the configured camera and write them as TIFF (counts, 16 bit).
+
+    $ fluxmap rig snap configs/rig-sim.yaml --exposure-s 0.5 --frames 3
+    """
+    from functools import partial
+
+    from .stages import rig_snap as stage
+
+    _run("rig snap", partial(stage.run, exposure_s=exposure_s, em_gain=em_gain, frames=frames, dark=dark, out=out),
+         config, set_, False, 1, quiet)
 
 def main() -> None:
     app()

@@ -839,14 +839,18 @@ class FilterLight(Model):
 
 
 class RigCamera(Model):
-    backend: Literal["simulated", "dcam"] = Field("simulated", description="simulated (default) or dcam (optional extra, the real camera).")
+    backend: Literal["simulated", "dcam", "andor_sdk2", "andor_sdk3", "pvcam"] = Field("simulated", description="simulated (default); a real camera: dcam (Hamamatsu, vendor's DCAM-SDK4 wrapper), andor_sdk2 (iXon EMCCDs), andor_sdk3 (Andor sCMOS) or pvcam (Teledyne Photometrics), the last three through pylablib (pip install 'fluxmap[cameras]').")
     binning: int = Field(1, ge=1, description="Binning set on the camera; system.camera.pixels/pixel_pitch_mm describe the binned image (the ImagEM: 4).")
     filters: dict[str, FilterLight] = Field(default_factory=dict, description="Simulated camera: what reaches the sensor behind each filter (by name); unlisted filters pass simulate's truth unchanged.")
     setpoint_c: float = Field(-65.0, description="Sensor temperature with the cooler on (deg C); dark_current_e_per_s holds there.")
     ambient_c: float = Field(20.0, description="Simulated camera: sensor temperature with the cooler off (deg C).")
     dark_doubling_c: float = Field(6.3, gt=0, description="Simulated camera: dark current doubles per this many deg C.")
     em_gain_range: tuple[float, float] = Field((1.0, 1200.0), description="EM gains the camera accepts [low, high] (unverified: x4-x1200 for the ImagEM).")
-    device_index: int = Field(0, ge=0, description="dcam: which DCAM camera (0 = first).")
+    device_index: int = Field(0, ge=0, description="A real camera: which one of its vendor library's list (0 = first).")
+    serial: str | None = Field(None, min_length=1, description="andor_sdk2, andor_sdk3, pvcam: the serial number the camera must report (with several cameras, the one chosen); another camera is refused.")
+    em_gain_advanced: bool = Field(False, description="andor_sdk2: allow EM gains above 300 (Andor's advanced mode; strong light can then damage the sensor).")
+    fan: Literal["full", "low", "off"] = Field("full", description="andor_sdk2: the head's fan (off only with liquid cooling).")
+    linux_sdk: bool = Field(False, description="andor_sdk2, andor_sdk3, pvcam on Linux: let pylablib load the vendor's Linux library (it refuses non-Windows libraries unless told).")
     shutter_property: str | None = Field(None, description="dcam: name of the DCAM property that closes a shutter for dark frames (unverified; none: darks refused).")
     true_surface: Union[Phantom, MeshSurface] | None = Field(None, description="Simulated camera: the subject's true surface it renders (emission and projected patterns), when subject.surface is the one capture-surface measures (default subject.surface).")
     subject_albedo: float = Field(0.8, gt=0, le=1, description="Simulated camera: Lambertian reflectance of the subject under the projectors.")
@@ -857,7 +861,7 @@ class RigProjector(ProjectorModel):
     """A projector showing structured-light patterns: its pinhole-plus-radial-distortion model
     (ProjectorModel's keys, e.g. from calibrate's camera.yaml) and its display."""
 
-    display: Literal["simulated", "window"] = Field("simulated", description="simulated (an image sink the simulated camera renders) or window (a full-screen window on a monitor: the lab; needs pyglet).")
+    display: Literal["simulated", "window"] = Field("simulated", description="simulated (an image sink the simulated camera renders) or window (a full-screen window on a monitor: the lab; needs pyglet: pip install 'fluxmap[projector]').")
     screen: int = Field(1, ge=0, description="window: which monitor the projector is (0 = primary).")
     settle_s: float = Field(0.1, ge=0, description="window: wait after a pattern is shown before the camera exposes (s).")
     intensity_photons_per_s_per_sr: float = Field(1e12, gt=0, description="Simulated projector: photons per second per steradian on its axis at full white, as the camera sees them through the pattern frames' filter.")

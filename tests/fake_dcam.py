@@ -7,7 +7,7 @@ classmethods; ``Dcam(index)`` with ``dev_open``, ``prop_getnextid`` (walks the p
 ids, ``False`` at the end), ``prop_getname``, ``prop_getvalue``, ``prop_setgetvalue``
 (clamps to the property's range like the camera does), ``buf_alloc``, ``cap_snapshot``,
 ``wait_capevent_frameready(timeout_ms)``, ``buf_getlastframedata``, ``buf_getframedata``,
-``cap_stop``, ``buf_release``, ``dev_close``; every call returns ``False`` on failure and
+``cap_stop``, ``buf_release``, ``dev_getstring(DCAM_IDSTR.*)``, ``dev_close``; every call returns ``False`` on failure and
 ``lasterr()`` then says why.  Property ids here are made up: the backend must find
 properties by name.  What it *cannot* show: that the real SDK behaves like this.
 """
@@ -34,6 +34,18 @@ PROPERTIES = {
     "IMAGE WIDTH": (0x420210, 1024, 1, 1024),
     "IMAGE HEIGHT": (0x420220, 1024, 1, 1024),
 }
+
+
+class DCAM_IDSTR:  # dcamapi4's string ids, re-exported by dcam.py (``from dcamapi4 import *``)
+    BUS = 0x04000101
+    CAMERAID = 0x04000102
+    VENDOR = 0x04000103
+    MODEL = 0x04000104
+    CAMERAVERSION = 0x04000105
+
+
+_STRINGS = {DCAM_IDSTR.BUS: "USB2.0", DCAM_IDSTR.CAMERAID: "S/N: 100123", DCAM_IDSTR.VENDOR: "Hamamatsu",
+            DCAM_IDSTR.MODEL: "C9100-13", DCAM_IDSTR.CAMERAVERSION: "3.10.B"}
 
 
 class _State:
@@ -102,6 +114,11 @@ class Dcam:
             return self._fail(ERR_NOCAMERA)
         self._open = True
         return True
+
+    def dev_getstring(self, idstr):
+        if not self._check("dev_getstring"):
+            return False
+        return _STRINGS.get(idstr, False) or self._fail("DCAMERR.INVALIDPARAM")
 
     def dev_close(self):
         self._check("dev_close")

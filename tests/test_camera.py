@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fluxcli.hardware.camera import SimulatedEmccd, dark_current_at
+from fluxcli.hardware.camera import DeviceIdentity, SimulatedEmccd, dark_current_at
 from fluxcli.hardware.errors import DeviceError
 from fluxcli.imaging.noise import EMCCDModel
 
@@ -114,6 +114,7 @@ def test_dcam_sets_emccd_mode_and_finds_properties_by_name(dcam):
     assert (cam.exposure_s, cam.em_gain, cam.binning, cam.cooler_on) == (0.5, 300, 4, True)
     assert cam.temperature_c == -65.0
     assert cam.shape == (256, 256)
+    assert cam.identity() == DeviceIdentity("C9100-13", "100123", "3.10.B")  # for `fluxmap rig check`
     frame = cam.snap()
     assert frame.shape == (256, 256) and frame.dtype == np.uint16
     seq = cam.sequence(3)

@@ -14,8 +14,10 @@ was asked for.  The photons then go through the EMCCD chain of
 :mod:`fluxcli.imaging.noise`, seeded by (seed, frame index): the same plan and seed give
 the same bytes, frame by frame, however often the run was interrupted and resumed.
 
-The real camera (Hamamatsu ImagEM through the vendor's DCAM-API) lives in
-:mod:`fluxcli.hardware.dcam`.
+Real cameras: the Hamamatsu ImagEM through the vendor's DCAM-API
+(:mod:`fluxcli.hardware.dcam`); Andor (SDK2: iXon EMCCDs; SDK3: Zyla, Sona, Marana sCMOS)
+and Teledyne Photometrics (PVCAM) through pylablib (:mod:`fluxcli.hardware.pylablib_cameras`).
+:func:`fluxcli.hardware.cameras.open_camera` picks one from ``rig.camera.backend``.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from __future__ import annotations
 import math
 import time
 from abc import ABC, abstractmethod
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
@@ -31,7 +33,16 @@ import numpy as np
 from ..imaging import noise as N
 from .errors import DeviceError
 
-__all__ = ["Camera", "SimulatedEmccd", "dark_current_at"]
+__all__ = ["Camera", "DeviceIdentity", "SimulatedEmccd", "dark_current_at"]
+
+
+@dataclass(frozen=True)
+class DeviceIdentity:
+    """What a device says it is (``""`` where it does not say)."""
+
+    model: str
+    serial: str = ""
+    firmware: str = ""
 
 
 class Camera(ABC):
@@ -80,6 +91,15 @@ class Camera(ABC):
     def make_safe(self) -> None:
         """Close the shutter (what an interrupted acquisition leaves behind)."""
         self.shutter_open = False
+
+    def identity(self) -> DeviceIdentity:
+        """Model, serial number and firmware, as the camera reports them."""
+        return DeviceIdentity(self.name)
+
+    @property
+    def cooling_status(self) -> str:
+        """The cooler in words ("on", "off", or the camera's own word: "stabilized", ...)."""
+        return "on" if self.cooler_on else "off"
 
     def close(self) -> None:
         """Release the camera."""
@@ -216,6 +236,9 @@ class SimulatedEmccd(Camera):
 
     def set_frame_index(self, index: int) -> None:
         self._next_frame = int(index)
+
+    def identity(self) -> DeviceIdentity:
+        return DeviceIdentity("simulated EMCCD (fluxcli.hardware.camera.SimulatedEmccd)", "none", "fluxmap")
 
     # ---------------------------------------------------------------- frames
     def model(self) -> N.EMCCDModel:

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from .camera import Camera
+from .camera import Camera, DeviceIdentity
 from .errors import DeviceError
 
 __all__ = ["DcamCamera", "PROPERTY_NAMES"]
@@ -138,6 +138,19 @@ class DcamCamera(Camera):
         if got is False:
             raise self._error(f"setting {name!r} to {value!r} failed", self._lasterr(self._dcam))
         return float(got)
+
+    def identity(self) -> DeviceIdentity:
+        """``dev_getstring`` of DCAM_IDSTR MODEL, CAMERAID (``S/N: ...``) and CAMERAVERSION."""
+        ids = getattr(self._api, "DCAM_IDSTR", None)
+        if ids is None:
+            return DeviceIdentity(self.name)
+
+        def text(key: str) -> str:
+            got = self._dcam.dev_getstring(getattr(ids, key))
+            return "" if got is False else str(got)
+
+        serial = text("CAMERAID")
+        return DeviceIdentity(text("MODEL") or self.name, serial.removeprefix("S/N:").strip(), text("CAMERAVERSION"))
 
     # ---------------------------------------------------------------- settings
     @property

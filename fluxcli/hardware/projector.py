@@ -6,7 +6,8 @@ The interface is :class:`fluxcli.structured.projector.PatternDisplay` (``show(pa
 - ``simulated``: :class:`~fluxcli.structured.projector.ImageSink` keeps the image; the
   simulated camera reads it (:meth:`shown`) and renders it on the true surface.
 - ``window`` (the lab): :class:`WindowDisplay`, a borderless full-screen window on the
-  projector's monitor drawn 1:1 with vsync (pyglet, imported only when used; not
+  projector's monitor drawn 1:1 with vsync (pyglet, the optional extra
+  ``fluxmap[projector]``, imported only when used; not
   exercised in CI, where no display exists).  After a pattern is drawn it waits
   ``settle_s`` (a few refreshes plus the projector's own latency) before returning, so the
   exposure that follows sees the new pattern.
@@ -31,8 +32,9 @@ class WindowDisplay(PatternDisplay):
         try:
             import pyglet
         except ImportError:
-            raise DeviceError(f"rig.projectors.{name}", f"screen {screen}", "display 'window' needs pyglet "
-                              "(pip install pyglet) and a graphical session", show_said=False) from None
+            raise DeviceError(f"rig.projectors.{name}.display", f"screen {screen}", "'window' needs pyglet, an "
+                              "optional extra: pip install 'fluxmap[projector]' (and a graphical session); or use "
+                              "display: simulated", show_said=False) from None
         screens = pyglet.display.get_display().get_screens()
         if screen >= len(screens):
             raise DeviceError(f"rig.projectors.{name}", f"screen {screen}",

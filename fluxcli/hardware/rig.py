@@ -6,11 +6,13 @@ attributes).  A port ``"pty"`` or ``"socket://HOST:0"`` means "simulate this dev
 
 from __future__ import annotations
 
+import re
 from urllib.parse import urlparse
 
 from ..errors import UserError
 from . import apt
 from .apt_labjack import AptLabJack
+from .camera import DeviceIdentity
 from .errors import DeviceError
 from .fw102c import FW102C
 from .sim import FW102CSimulator, LabJackSimulator
@@ -109,21 +111,66 @@ def open_devices(rig_section, urls: dict | None = None) -> tuple[FW102C | None, 
                               "start it with start_simulators() (or `fluxmap rig serve`) and pass its URL",
                               show_said=False)
     wheel = stage = None
-    ts = rig_section.time_scale
     try:
-        fw = rig_section.filter_wheel
-        if fw is not None:
-            wheel = FW102C(urls.get("filter_wheel", fw.port), positions=fw.positions, time_scale=ts,
-                           timeout_s=fw.timeout_s, filters=dict(fw.filters))
-        st = rig_section.stage
-        if st is not None:
-            stage = AptLabJack(urls.get("stage", st.port), counts_per_mm=st.counts_per_mm,
-                               travel_mm=tuple(st.travel_mm), time_scale=ts, channel=st.channel,
-                               timeout_s=st.timeout_s, velocity_mm_s=st.velocity_mm_s,
-                               acceleration_mm_s2=st.acceleration_mm_s2, velocity_scale=st.velocity_scale,
-                               acceleration_scale=st.acceleration_scale)
+        if rig_section.filter_wheel is not None:
+            wheel = open_filter_wheel(rig_section, urls.get("filter_wheel"))
+        if rig_section.stage is not None:
+            stage = open_stage(rig_section, urls.get("stage"))
     except BaseException:
         if wheel is not None:
             wheel.close()
         raise
     return wheel, stage
+
+
+def open_filter_wheel(rig_section, url: str | None = None) -> FW102C:
+    """The FW102C driver on ``url`` (default: the configured port)."""
+    fw = rig_section.filter_wheel
+    return FW102C(url or fw.port, positions=fw.positions, time_scale=rig_section.time_scale, timeout_s=fw.timeout_s,
+                  filters=dict(fw.filters))
+
+
+def open_stage(rig_section, url: str | None = None) -> AptLabJack:
+    """The lab-jack driver on ``url`` (default: the configured port)."""
+    st = rig_section.stage
+    return AptLabJack(url or st.port, counts_per_mm=st.counts_per_mm, travel_mm=tuple(st.travel_mm),
+                      time_scale=rig_section.time_scale, channel=st.channel, timeout_s=st.timeout_s,
+                      velocity_mm_s=st.velocity_mm_s, acceleration_mm_s2=st.acceleration_mm_s2,
+                      velocity_scale=st.velocity_scale, acceleration_scale=st.acceleration_scale)
+
+
+# --------------------------------------------------------------------------- device checks (fluxmap rig check)
+def wheel_identity(wheel: FW102C) -> DeviceIdentity:
+    """Model and firmware from the wheel's ``*idn?`` line (the FW102C reports no serial number)."""
+    line = wheel.identify().strip()
+    version = re.search(r"version\s+(\S+)", line, flags=re.I)
+    return DeviceIdentity(line, "", version.group(1) if version else "")
+
+
+def stage_identity(stage: AptLabJack) -> DeviceIdentity:
+    """Model, serial number and firmware from the controller's HW_GET_INFO."""
+    info = stage.info()
+    return DeviceIdentity(str(info["model"]), str(info["serial_number"]), str(info["firmware"]))
+
+
+def exercise_wheel(wheel: FW102C) -> list[str]:
+    """Visit every named filter's position (in position order) and return to the start;
+    each position is read back by the driver.  Returns what happened, in words."""
+    start = wheel.position
+    names = {p: n for n, p in wheel.filters.items()}
+    visited = [f"{p} ({names[p]})" for p in sorted(names) if wheel.move_to(p) == p]
+    wheel.move_to(start)
+    return [f"at position {start}; visited {', '.join(visited) or 'no named filter'}; back at {wheel.position}"]
+
+
+def exercise_stage(stage: AptLabJack, *, step_mm: float = 0.5) -> list[str]:
+    """Move ``step_mm`` up (down when that leaves the travel) and back, never homing (an
+    animal may be on the jack).  Returns what happened, in words."""
+    start = stage.position_mm()
+    lo, hi = stage.travel_mm
+    target = start + step_mm if start + step_mm <= hi else start - step_mm
+    if not lo <= target <= hi:
+        return [f"at {start:.4f} mm; no move (the travel {lo:g}..{hi:g} mm is narrower than {step_mm:g} mm)"]
+    there = stage.move_to_mm(target)
+    back = stage.move_to_mm(start)
+    return [f"at {start:.4f} mm; moved to {there:.4f} mm and back to {back:.4f} mm (read back)"]

@@ -11,7 +11,8 @@ Devices come from ``rig:``: a port ``pty`` or ``socket://127.0.0.1:0`` starts th
 simulator in this process, any other port is opened as the real device (or a ``fluxmap
 rig serve`` elsewhere).  ``rig.camera.backend: simulated`` renders the subject's emission
 through the forward model (``simulate.flux``, T at the stage's physical height, the filter
-in the beam) with EMCCD noise; ``dcam`` drives the real camera.  Frames go to
+in the beam) with EMCCD noise; ``dcam``, ``andor_sdk2``, ``andor_sdk3`` and ``pvcam`` drive a
+real camera (:mod:`fluxcli.hardware.cameras`).  Frames go to
 ``<workdir>/capture.h5`` as they arrive (see :mod:`fluxcli.acquisition`).  Ctrl-C stops at
 a frame boundary with the shutter closed and the stage stopped (exit 130); a device fault
 exits 2 naming the device.
@@ -301,12 +302,10 @@ def _camera(cfg: C.LoadedConfig, cap: C.Capture, rig: C.Rig, sims: dict, wheel, 
     from ..pipeline import emccd_model
 
     cc = rig.camera or C.RigCamera()
-    if cc.backend == "dcam":
-        from ..hardware.dcam import DcamCamera
+    if cc.backend != "simulated":
+        from ..hardware.cameras import open_real_camera
 
-        cam = DcamCamera(cc.device_index, shutter_property=cc.shutter_property)
-        cam.binning = cc.binning
-        return cam
+        return open_real_camera(cc)
     from ..hardware.camera import SimulatedEmccd
 
     positions = {p: n for n, p in rig.filter_wheel.filters.items()}
