@@ -225,7 +225,16 @@ def calibrate_geometry(images: list[np.ndarray], heights_mm: list[float], *, kin
     partial = []
     for k in used:
         if len(dets[k].ij) < n_all:
-            partial.append(f"z={heights_mm[k]:g} mm: {len(dets[k].ij)}/{n_all}")
+            partial.append(f"z={heights_mm[k]:g} mm: {len(dets[k].ij)} of {n_all}")
+        # one count per image: the points used (the detection's count, less any the per-dot fit dropped)
+        found = [n for n in dets[k].notes if n.endswith(" points found")]
+        notes = [n for n in dets[k].notes if not n.endswith(" points found")]
+        if found or len(dets[k].ij) < n_all:
+            detected = int(found[0].split(" of ")[0]) if found else n_all
+            dropped = detected - len(dets[k].ij)
+            notes.append(f"{len(dets[k].ij)} of {n_all} points used"
+                         + (f" ({detected} found, {dropped} dropped by the per-dot fit)" if dropped > 0 else ""))
+        dets[k].notes = notes
     if partial:
         warnings.append("the grid leaves the field (or some points were not found) in some images, "
                         "using the points found: " + ", ".join(partial))
