@@ -1275,7 +1275,12 @@ def _camera_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
         raise UserError(f"config {path}: 'system.camera.file' must be the path of a camera YAML file.")
     hint = "run `fluxmap calibrate` to make one, or give the camera block inline"
     loaded = _block_from_file(ref, "camera", dict, "system.camera", base_dir, path, hint)
-    system["camera"] = _merge(loaded, overrides)
+    merged = _merge(loaded, overrides)
+    if isinstance(merged.get("assumed"), dict):  # a value given beside the file is the user's, no longer assumed
+        given = {k for k, v in overrides.items() if not isinstance(v, dict)}
+        given |= {k for v in overrides.values() if isinstance(v, dict) for k in v}
+        merged["assumed"] = {k: v for k, v in merged["assumed"].items() if k.split(".")[-1] not in given}
+    system["camera"] = merged
 
 
 def _block_from_file(ref: str, block: str, kind: type, key: str, base_dir: Path, path: Path, hint: str):

@@ -145,16 +145,30 @@ def radiometric_from_capture(cal, ctx: RunContext, *, bit_depth: int = 16) -> R.
                       max_counts=float(2**bit_depth - 1))
 
 
-def assumed_qe_warning(cfg: C.LoadedConfig, stage: str) -> str | None:
+def counts_in(cfg: C.LoadedConfig) -> bool | None:
+    """Whether reconstruct turns counts into photons: True for a real camera's counts (a capture
+    of a real camera, image files in counts), False for a simulated camera's capture (its QE is
+    the simulation's own), None when its images are photons already."""
+    im = cfg.model.reconstruct.images if cfg.model.reconstruct is not None else None
+    if isinstance(im, C.CaptureSource):
+        rig = cfg.model.rig
+        return not (rig is None or rig.camera is None or rig.camera.backend == "simulated")
+    if isinstance(im, C.ImageFiles) and im.units == "counts":
+        return True
+    return None
+
+
+def assumed_qe_warning(cfg: C.LoadedConfig, stage: str, *, real_counts: bool | None = True) -> str | None:
     """The one-line warning of a stage that turns counts into photons when the quantum efficiency
-    is assumed (camera.yaml's ``camera.assumed``, or no value in the config: fluxmap's default)."""
+    is assumed: camera.yaml's ``camera.assumed`` says so, or (``real_counts``: a real camera's
+    counts) the config gives no value and fluxmap's default is used.  None: nothing to warn."""
     system = cfg.model.system
-    if system is None:
+    if system is None or real_counts is None:
         return None
     cam = system.camera
     qe = cam.sensor.quantum_efficiency
     why = cam.assumed.get("quantum_efficiency")
-    if why is None and "quantum_efficiency" not in cam.sensor.model_fields_set:
+    if why is None and real_counts and "quantum_efficiency" not in cam.sensor.model_fields_set:
         why = f"fluxmap default {qe:g}, not measured — set system.camera.sensor.quantum_efficiency from the datasheet"
     if why is None:
         return None

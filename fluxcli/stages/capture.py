@@ -41,6 +41,7 @@ from .. import artefacts as A
 from .. import config as C
 from ..acquisition import CaptureFile, Interrupted, Plan, RigDevices, acquire
 from ..errors import UserError
+from ._radiometric import assumed_qe_warning
 from .context import RunContext
 
 # Test hook: sleep this long between the steps of creating capture.h5, so that the kill
@@ -574,6 +575,9 @@ def _make_surface(cfg: C.LoadedConfig, ctx: RunContext, sf: C.CaptureSurface, sc
     mirrors = plane_mirrors(m.system)
     views = ["direct"] + mirror_names(m.system)
     photons = pc.photons(emccd_model(m.system.camera.sensor, pc.exposure_s))
+    warning = assumed_qe_warning(cfg, "capture-surface", real_counts=scene is None)
+    if warning:
+        ctx.say(warning)
     scans = []
     with ctx.progress("decode", len(pc.projectors)) as tick:
         for name in pc.projectors:
