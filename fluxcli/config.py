@@ -737,7 +737,7 @@ class CalibrationGrid(Model):
 
 class CalibrationImage(Model):
     file: Path = Field(description="Image of the grid lying flat (TIFF/FITS/EXR; counts or photons), relative to the config.")
-    plane_z_mm: float = Field(description="World z of the grid plane in this image (mm); the world frame is the grid's.")
+    plane_z_mm: float = Field(description="World z of the grid plane in this image (mm); the world frame is the grid's. On a stage: system.stage.top_z_mm + the stage height + the grid's thickness (calibrate.capture computes it so).")
 
 
 # --------------------------------------------------------------------------- calibrate: projectors
