@@ -153,7 +153,7 @@ class CalibrationFrame:
 class CalibrationPlan:
     """The calibration part of a plan: series of (kind, height, exposure, gain, filter, frames)."""
 
-    series: tuple[tuple[str, int, float, float, float, str, int], ...]  # kind, series, exposure, gain, height, filter, n
+    series: tuple[tuple[str, int, float, float, float | None, str, int], ...]  # kind, series, exposure, gain, height (None: not moved), filter, n
     grid: tuple[tuple[str, object], ...] = ()  # (key, value) of the grid's description (JSON in the file)
     content: str = ""  # digest of what a simulated camera shows (grid brightness, light) ("" for a real camera)
 
@@ -161,7 +161,8 @@ class CalibrationPlan:
         out: list[CalibrationFrame] = []
         for kind, series, exposure_s, gain, height, filter, n in self.series:
             for r in range(n):
-                out.append(CalibrationFrame(len(out), kind, series, r, exposure_s, gain, height, filter))
+                out.append(CalibrationFrame(len(out), kind, series, r, exposure_s, gain,
+                                            float("nan") if height is None else height, filter))
         return out
 
 

@@ -192,11 +192,15 @@ def _from_capture(path: Path, sec: C.Calibrate, shape) -> GridSource:
     from ..acquisition import read_calibration
 
     cal = read_calibration(path)
+    if cal.grid is None and cal.bias is None:
+        raise UserError(f"calibrate.capture: {path} holds neither grid frames nor bias and photon-transfer frames: "
+                        "nothing to calibrate (capture.calibration.grid, or .bias and .ptc).")
+    if cal.grid is None and sec.grid is not None:
+        raise UserError(f"calibrate.grid: the capture {path} holds no grid frames (capture.calibration.grid was not "
+                        "set); leave calibrate.grid out for a radiometric calibration from it.")
     grid = sec.grid
     if grid is None and cal.grid is not None:
         grid = C.CalibrationGrid(kind=cal.grid["kind"], pitch_mm=cal.grid["pitch_mm"], shape=tuple(cal.grid["shape"]))
-    if cal.grid is None:
-        grid = None
     heights = cal.grid_plane_z_mm() if grid is not None else []
     labels = [f"{path} (stage at {h:.4g} mm)" for h in cal.grid_stage_mm]
     keys = [f"calibrate.capture, grid frames at stage height {h:.4g} mm" for h in cal.grid_stage_mm]

@@ -279,7 +279,7 @@ def _calibration_plan(cfg: C.LoadedConfig, cal: C.CaptureCalibration, backend: s
     grid at each height, then the even light (flats, gain-off and gain-on PTC pairs)."""
     from ..acquisition import CalibrationPlan
 
-    nan = float("nan")
+    nan = None  # the stage stays where it is (None, not NaN: the plan is compared as JSON on --resume)
     series = []
     if cal.bias:
         series.append(("bias", 0, cal.bias.exposure_s, 1.0, nan, "", cal.bias.frames))
