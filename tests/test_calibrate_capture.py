@@ -255,3 +255,28 @@ def test_an_assumed_quantum_efficiency_is_warned_where_counts_become_photons(cal
     # no value at all on a real camera's counts: fluxmap's default is an assumption too
     use.write_text(yaml.safe_dump({"system": {"camera": {"pixels": [8, 8], "pixel_pitch_mm": 0.1}}}))
     assert "fluxmap default 0.9" in assumed_qe_warning(C.load_config(use), "reconstruct")
+
+
+def test_reconstruct_from_count_images_warns_an_assumed_qe_once(write_config, minimal_config, tmp_path):
+    """Counts become photons in reconstruct: with no QE in the config (fluxmap's default) it says
+    so in one line; a QE the config states is the user's and is not warned."""
+    import copy
+
+    cfg = copy.deepcopy(minimal_config)  # a flat 6 x 4-element patch facing the camera (as test_reconstruct's)
+    cfg["system"]["camera"].update({"pixels": [48, 48], "pixel_pitch_mm": 0.2})
+    cfg["subject"]["surface"] = {"phantom": "patch", "size_mm": [24, 16], "n": [6, 4], "center_mm": [0, 0, 10]}
+    cfg["subject"]["poses"] = {"heights_mm": [0, 8]}
+    cfg["simulate"] = {"flux": {"kind": "gaussian", "width_mm": 6.0, "peak_photons": 1e7, "center_mm": [2, 1, 10]}}
+    cfg["simulate"]["noise"] = {"model": "emccd", "peaks_photons": [1e7], "repeats": 1, "seed": 4}
+    cfg["simulate"]["export"] = {"format": "tiff"}
+    cfg["system"]["camera"]["sensor"] = {"em_gain": 20}
+    assert _run("simulate", write_config(cfg), "--quiet").exit_code == 0
+    cfg["reconstruct"] = {"images": {"files": [f"run/images/level0/h{h:+g}_rot0_rep0.tif" for h in (0, 8)],
+                                     "units": "counts"}}
+    r = _run("reconstruct", write_config(cfg))
+    assert r.exit_code == 0, r.output
+    text = " ".join(r.output.split())
+    assert text.count("quantum_efficiency 0.9 is assumed (fluxmap default 0.9, not measured") == 1, r.output
+    cfg["system"]["camera"]["sensor"]["quantum_efficiency"] = 0.9
+    r = _run("reconstruct", write_config(cfg), "--force")
+    assert r.exit_code == 0 and "is assumed" not in r.output, r.output
