@@ -449,7 +449,8 @@ def camera_yaml(cam: C.Camera | None, geo: GeometricCalibration | None, rad,
             + ("\n#   rig: {projectors: path/to/camera.yaml}   (the projectors; display keys beside file: {file: ..., NAME: {display: window}})" if projectors else "") + "\n")
     if cam is not None:
         head += ("# camera.measured: the 1 sigma of each measured value; camera.assumed: where each other value comes\n"
-                 "# from; camera.uncertainty: the 1 sigma the reconstruction propagates into its totals.\n")
+                 "# from; camera.uncertainty: the 1 sigma the reconstruction propagates into its totals (gain_relative:\n"
+                 "# photons per count from electrons per count and EM gain; an assumed QE adds an error not in it).\n")
     if geo is not None:
         s = geo.sigma
         head += (f"# 1-sigma: f {s['focal_length_mm']:.3g} mm, u {s['focus_distance_mm']:.3g} mm, aperture "
