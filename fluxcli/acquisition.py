@@ -1,7 +1,9 @@
 """Crash-safe acquisition: the plan, ``capture.h5``, the frame loop, the readers.
 
-The plan (:class:`Plan`) lists every frame: first, with ``capture.surface``, the
-structured-light pattern frames (:class:`SurfacePlan`: for each projector each pattern of
+The plan (:class:`Plan`) lists every frame: first, with ``capture.calibration``, the
+calibration frames (:class:`CalibrationPlan`: bias and dark frames with the shutter closed,
+the grid at each stage height, the flat and photon-transfer frames of an even light), then,
+with ``capture.surface``, the structured-light pattern frames (:class:`SurfacePlan`: for each projector each pattern of
 the Gray-code + phase-shift sequence, the other projectors black), then the dark frames
 (shutter closed) of each exposure time, then for each stage height, each filter, each
 exposure, ``repeats`` emission frames.  Emission frame ``k`` of the plan has slot ``k`` in
@@ -22,6 +24,15 @@ exposure, ``repeats`` emission frames.  Emission frame ``k`` of the plan has slo
                              ``white``/``black``/``grayB``/``grayB-inverse``/``phaseK``, the
                              Gray-code bit shown (-1: none), 1 for an inverse frame, the phase
                              step (-1: none) and its shift 2 pi K / n_steps (nan: none)
+``/calibration/counts``      uint16 ``[n_calibration_frames, ny, nx]`` (``capture.calibration``)
+``/calibration/<metadata>``  as for ``/frames``, read back per frame (the grid frames' stage
+                             height is the one the grid plane is placed at), and ``committed``
+``/calibration/{kind, series, repeat, plan_height_mm, plan_exposure_s, plan_em_gain, filter}``
+                             what each slot is: ``grid``/``bias``/``dark``/``flat``/``ptc_off``/
+                             ``ptc_on``, its series within the kind (a grid height, a dark or PTC
+                             exposure), its frame number in the series (PTC pairs: 0-1, 2-3, ...)
+                             and the planned settings; attribute ``grid`` (JSON: kind, pitch_mm,
+                             shape, thickness_mm, stage_top_z_mm)
 
 Why it survives a kill at any instant: the skeleton is written in full (every dataset
 contiguous and allocated, zero-filled) under a temporary name and renamed into place, so
@@ -47,7 +58,8 @@ from . import artefacts as A
 from .errors import UserError
 from .imaging import noise as N
 
-__all__ = ["Frame", "PatternFrame", "SurfacePlan", "Plan", "CaptureFile", "RigDevices", "acquire", "read_capture",
+__all__ = ["Frame", "PatternFrame", "SurfacePlan", "CalibrationFrame", "CalibrationPlan", "CalibrationCapture",
+           "read_calibration", "Plan", "CaptureFile", "RigDevices", "acquire", "read_capture",
            "CaptureImages", "Interrupted", "PatternCapture", "read_patterns"]
 
 KIND = "capture"
@@ -110,6 +122,50 @@ class SurfacePlan:
                 for k, p in enumerate(self.projectors) for i, name in enumerate(self.patterns)]
 
 
+CALIBRATION_KINDS = ("bias", "dark", "grid", "flat", "ptc_off", "ptc_on")  # the order they are taken in
+_SHUTTER_CLOSED = ("bias", "dark")
+
+
+@dataclass(frozen=True)
+class CalibrationFrame:
+    index: int  # slot in /calibration
+    kind: str  # one of CALIBRATION_KINDS
+    series: int  # which series of its kind (grid: the height; dark, PTC: the exposure)
+    repeat: int  # frame number in its series (PTC and bias pairs: 0-1, 2-3, ...)
+    exposure_s: float
+    em_gain: float
+    height_mm: float  # planned stage height (nan: the stage stays where it is)
+    filter: str  # filter in the beam ("": shutter closed, any filter)
+
+    @property
+    def target(self) -> str:
+        """What must be in front of the camera: ``closed`` (shutter), ``grid`` (on the stage, lit), ``light``."""
+        return "closed" if self.kind in _SHUTTER_CLOSED else "grid" if self.kind == "grid" else "light"
+
+    @property
+    def label(self) -> str:
+        where = f"h={self.height_mm:g} mm, " if self.kind == "grid" else ""
+        return (f"calibration {self.kind} {where}{self.exposure_s:g} s, gain {self.em_gain:g}, "
+                f"frame {self.repeat + 1}")
+
+
+@dataclass(frozen=True)
+class CalibrationPlan:
+    """The calibration part of a plan: series of (kind, height, exposure, gain, filter, frames)."""
+
+    series: tuple[tuple[str, int, float, float, float | None, str, int], ...]  # kind, series, exposure, gain, height (None: not moved), filter, n
+    grid: tuple[tuple[str, object], ...] = ()  # (key, value) of the grid's description (JSON in the file)
+    content: str = ""  # digest of what a simulated camera shows (grid brightness, light) ("" for a real camera)
+
+    def frames(self) -> list[CalibrationFrame]:
+        out: list[CalibrationFrame] = []
+        for kind, series, exposure_s, gain, height, filter, n in self.series:
+            for r in range(n):
+                out.append(CalibrationFrame(len(out), kind, series, r, exposure_s, gain,
+                                            float("nan") if height is None else height, filter))
+        return out
+
+
 @dataclass(frozen=True)
 class Plan:
     """What to acquire.  Two runs may share a file only when their plans are equal."""
@@ -126,11 +182,12 @@ class Plan:
     camera: str = "simulated"  # backend
     scene: str = ""  # digest of what a simulated camera renders ("" for a real camera)
     surface: SurfacePlan | None = None  # structured-light pattern frames, taken first
+    calibration: CalibrationPlan | None = None  # calibration frames, taken before everything else
 
     def frames(self) -> list[Frame]:
         out: list[Frame] = []
         for e in self.exposures_s:
-            for r in range(self.darks):
+            for r in range(self.darks if self.heights_mm else 0):  # no subject frames: nothing to subtract darks from
                 out.append(Frame(len(out), True, self.heights_mm[0], self.filters[0], r, e))
         for h in self.heights_mm:
             for name in self.filters:
@@ -153,14 +210,17 @@ class Plan:
             theirs = other.get(k)
             if theirs == mine[k]:
                 continue
-            if k == "surface" and isinstance(theirs, dict) and isinstance(mine[k], dict):
+            if k in ("surface", "calibration") and isinstance(theirs, dict) and isinstance(mine[k], dict):
                 sub = {"content": "the patterns or rig.projectors", "shape": "pattern frame shape",
-                       "patterns": "the pattern sequence"}
-                out += [f"{sub.get(j, 'capture.surface.' + j)}: file has {theirs.get(j)!r}, config has {v!r}"
+                       "patterns": "the pattern sequence"} if k == "surface" else {
+                       "content": "capture.calibration.simulated", "series": "the calibration series",
+                       "grid": "capture.calibration.grid or system.stage.top_z_mm"}
+                out += [f"{sub.get(j, f'capture.{k}.' + j)}: file has {theirs.get(j)!r}, config has {v!r}"
                         for j, v in mine[k].items() if theirs.get(j) != v]
-            elif k == "surface":
-                out.append(f"capture.surface: the file was captured {'without' if theirs is None else 'with'} "
-                           f"structured-light frames, the config asks {'without' if mine[k] is None else 'with'} them")
+            elif k in ("surface", "calibration"):
+                what = "structured-light" if k == "surface" else "calibration"
+                out.append(f"capture.{k}: the file was captured {'without' if theirs is None else 'with'} "
+                           f"{what} frames, the config asks {'without' if mine[k] is None else 'with'} them")
             else:
                 out.append(f"{names.get(k, 'capture.' + k)}: file has {theirs!r}, config has {mine[k]!r}")
         return out
@@ -177,6 +237,7 @@ class RigDevices:
     displays: dict = field(default_factory=dict)  # projector name -> PatternDisplay (.show(image))
     pattern_image: Callable[[str, int], np.ndarray] | None = None  # (projector, pattern index) -> image
     panels: dict = field(default_factory=dict)  # projector name -> (height_px, width_px)
+    prepare: Callable[[str], None] | None = None  # calibration: set up "closed" / "grid" / "light" in front of the camera
 
     def filter_name(self, position: int) -> str:
         for name, p in self.filter_positions.items():
@@ -200,16 +261,21 @@ class CaptureFile:
         self.committed = f["frames/committed"][()].astype(bool)
         self.pattern_committed = (f["patterns/committed"][()].astype(bool) if "patterns" in f
                                   else np.zeros(0, bool))
+        self.calibration_committed = (f["calibration/committed"][()].astype(bool) if "calibration" in f
+                                      else np.zeros(0, bool))
 
     # ------------------------------------------------------------ create / open
     @classmethod
     def create(cls, path: Path, plan: Plan, *, config_sha256: str = "", provenance: A.Provenance | None = None,
-               truth: dict[str, np.ndarray] | None = None, truth_unit: str = "", pause_s: float = 0.0) -> "CaptureFile":
+               truth: dict[str, np.ndarray] | None = None, truth_unit: str = "", pause_s: float = 0.0,
+               calibration_truth: dict | None = None) -> "CaptureFile":
         """Write the whole skeleton under a temporary name, then rename it to ``path``
         (the artefacts' atomic writer: fsync, rename, fsync of the folder).
 
         ``pause_s`` sleeps between the creation steps; the kill test uses it to land
-        SIGKILLs inside the creation window (0 otherwise)."""
+        SIGKILLs inside the creation window (0 otherwise).  ``calibration_truth`` (simulated
+        camera) is the camera and sensor that render the calibration frames, stored as JSON
+        in ``/calibration`` attribute ``truth`` for calibrate to report its errors against."""
         path = Path(path)
         frames = plan.frames()
         n, (ny, nx) = len(frames), plan.shape
@@ -231,6 +297,10 @@ class CaptureFile:
             A.put(f, "frames/committed", np.zeros(n, np.uint8))
             if plan.surface is not None:
                 _create_patterns(f, plan.surface)
+            if plan.calibration is not None:
+                _create_calibration(f, plan.calibration, plan.shape)
+                if calibration_truth is not None:
+                    f["calibration"].attrs["truth"] = json.dumps(calibration_truth)
             if truth:
                 t = f.create_group("truth")
                 t.attrs["unit"] = truth_unit
@@ -255,23 +325,25 @@ class CaptureFile:
         return cls._open(path, plan)
 
     # ------------------------------------------------------------ frames
-    def write_frame(self, index: int, counts: np.ndarray, meta: dict, *, pattern: bool = False) -> None:
-        """Store frame ``index`` (of ``/patterns`` when ``pattern``) durably, then mark it committed (last)."""
+    def write_frame(self, index: int, counts: np.ndarray, meta: dict, *, pattern: bool = False,
+                    calibration: bool = False) -> None:
+        """Store frame ``index`` (of ``/patterns`` when ``pattern``, of ``/calibration`` when
+        ``calibration``) durably, then mark it committed (last)."""
         shape = self.plan.surface.shape if pattern else self.plan.shape
         if counts.shape != tuple(shape):
             raise ValueError(f"frame {index} is {counts.shape}, the plan's frames are {tuple(shape)}")
-        g = self._f["patterns" if pattern else "frames"]
+        g = self._f["patterns" if pattern else "calibration" if calibration else "frames"]
         g["counts"][index] = counts
         for name in _META:
             g[name][index] = meta[name]
         _fsync(self._f)
         g["committed"][index] = 1
         _fsync(self._f)
-        (self.pattern_committed if pattern else self.committed)[index] = True
+        (self.pattern_committed if pattern else self.calibration_committed if calibration else self.committed)[index] = True
 
     @property
     def n_committed(self) -> int:
-        return int(self.committed.sum() + self.pattern_committed.sum())
+        return int(self.committed.sum() + self.pattern_committed.sum() + self.calibration_committed.sum())
 
     def close(self) -> None:
         self._f.close()
@@ -294,6 +366,25 @@ def _create_patterns(f: h5py.File, sp: SurfacePlan) -> None:
     step = [int(fr.name[5:]) if fr.name.startswith("phase") else -1 for fr in frames]
     A.put(g, "phase_step", np.array(step, np.int32))
     A.put(g, "phase_shift_rad", np.array([2 * np.pi * k / sp.n_steps if k >= 0 else np.nan for k in step]))
+    A.put(g, "counts", np.zeros((n, ny, nx), np.uint16))
+    for name, dtype in _META.items():
+        A.put(g, name, np.zeros(n, dtype))
+    A.put(g, "committed", np.zeros(n, np.uint8))
+
+
+def _create_calibration(f: h5py.File, cp: CalibrationPlan, shape: tuple[int, int]) -> None:
+    """The /calibration skeleton: zero-filled, contiguous (a frame later changes no metadata)."""
+    frames = cp.frames()
+    n, (ny, nx) = len(frames), shape
+    g = f.create_group("calibration")
+    g.attrs["grid"] = json.dumps(dict(cp.grid))
+    A.put(g, "kind", np.array([fr.kind.encode() for fr in frames], "S16"))
+    A.put(g, "series", np.array([fr.series for fr in frames], np.int32))
+    A.put(g, "repeat", np.array([fr.repeat for fr in frames], np.int32))
+    A.put(g, "plan_height_mm", np.array([fr.height_mm for fr in frames], float))
+    A.put(g, "plan_exposure_s", np.array([fr.exposure_s for fr in frames], float))
+    A.put(g, "plan_em_gain", np.array([fr.em_gain for fr in frames], float))
+    A.put(g, "filter", np.array([fr.filter.encode() for fr in frames], "S32"))
     A.put(g, "counts", np.zeros((n, ny, nx), np.uint16))
     for name, dtype in _META.items():
         A.put(g, name, np.zeros(n, dtype))
@@ -360,6 +451,44 @@ def _acquire_patterns(plan: Plan, out: "CaptureFile", rig: "RigDevices", cam, *,
     return len(todo)
 
 
+def _acquire_calibration(plan: Plan, out: "CaptureFile", rig: "RigDevices", cam, *, stop_requested, on_step,
+                         on_frame, tolerance_mm: float) -> int:
+    """The calibration frames not yet in ``out``: ``rig.prepare(target)`` whenever what must be
+    in front of the camera changes (also before the first frame taken in this run)."""
+    todo = [fr for fr in plan.calibration.frames() if not out.calibration_committed[fr.index]]
+    first_slot = len(plan.frames()) + (len(plan.surface.frames()) if plan.surface is not None else 0)
+    current = None
+    for fr in todo:
+        if stop_requested():
+            raise Interrupted(fr.label)
+        if fr.target != current:
+            cam.shutter_open = False
+            if rig.prepare is not None:
+                on_step(f"set up: {fr.target}")
+                rig.prepare(fr.target)
+            current = fr.target
+        if fr.kind == "grid":
+            _settle(rig, cam, filter=fr.filter, height_mm=fr.height_mm, on_step=on_step, tolerance_mm=tolerance_mm)
+        elif fr.filter and rig.wheel.position != rig.filter_positions[fr.filter]:
+            on_step(f"filter -> {fr.filter}")
+            rig.wheel.move_to(rig.filter_positions[fr.filter])
+        if cam.em_gain != fr.em_gain:
+            cam.em_gain = fr.em_gain
+        if cam.exposure_s != fr.exposure_s:
+            cam.exposure_s = fr.exposure_s
+        cam.shutter_open = fr.target != "closed"
+        on_step(fr.label)
+        cam.set_frame_index(first_slot + fr.index)  # the noise of calibration frame k: after every other slot
+        counts = cam.snap()
+        out.write_frame(fr.index, np.asarray(counts), _meta(rig, cam), calibration=True)
+        on_frame(fr)
+    if todo and rig.prepare is not None and (plan.frames() or plan.surface is not None):
+        cam.shutter_open = False
+        on_step("set up: subject")
+        rig.prepare("subject")
+    return len(todo)
+
+
 def acquire(plan: Plan, out: CaptureFile, rig: RigDevices, *, stop_requested: Callable[[], bool] = lambda: False,
             on_step: Callable[[str], None] = lambda s: None, on_frame: Callable[[Frame], None] = lambda fr: None,
             height_tolerance_mm: float = 1e-3) -> int:
@@ -371,11 +500,15 @@ def acquire(plan: Plan, out: CaptureFile, rig: RigDevices, *, stop_requested: Ca
     cam = rig.camera
     taken = 0
     todo = [fr for fr in plan.frames() if not out.committed[fr.index]]
-    if not todo and (plan.surface is None or out.pattern_committed.all()):
+    if not todo and (plan.surface is None or out.pattern_committed.all()) and (
+            plan.calibration is None or out.calibration_committed.all()):
         return 0
     try:
         on_step("camera settings")
         cam.cooler_on = True
+        if plan.calibration is not None:
+            taken += _acquire_calibration(plan, out, rig, cam, stop_requested=stop_requested, on_step=on_step,
+                                          on_frame=on_frame, tolerance_mm=height_tolerance_mm)
         if plan.surface is not None:
             taken += _acquire_patterns(plan, out, rig, cam, stop_requested=stop_requested, on_step=on_step,
                                        on_frame=on_frame, tolerance_mm=height_tolerance_mm)
@@ -537,18 +670,26 @@ class PatternCapture:
         return {p: N.counts_to_photons(c, model) for p, c in self.counts.items()}
 
 
+def _complete_group(f: h5py.File, path: Path, group: str, what: str, missing: str) -> h5py.Group:
+    """Group ``group`` of a capture once every frame in it is committed; UserError ``missing``
+    when the capture has no such group, or naming the count when frames are missing."""
+    if group not in f:
+        raise UserError(missing)
+    g = f[group]
+    committed = g["committed"][()].astype(bool)
+    if not committed.all():
+        raise UserError(f"capture {path} is incomplete: {committed.sum()} of {committed.size} {what}; "
+                        "finish it with 'fluxmap capture-surface CONFIG --resume'.")
+    return g
+
+
 def read_patterns(path: Path) -> PatternCapture:
     """The pattern frames of a capture; UserError when it has none or they are incomplete."""
     path = Path(path)
     with A.open_artefact(path, KIND) as f:
-        if "patterns" not in f:
-            raise UserError(f"capture {path} holds no structured-light pattern frames (capture.surface was not set "
+        g = _complete_group(f, path, "patterns", "pattern frames",
+                            f"capture {path} holds no structured-light pattern frames (capture.surface was not set "
                             "when it was taken); capture them with 'fluxmap capture-surface CONFIG --force'.")
-        g = f["patterns"]
-        committed = g["committed"][()].astype(bool)
-        if not committed.all():
-            raise UserError(f"capture {path} is incomplete: {committed.sum()} of {committed.size} pattern frames; "
-                            "finish it with 'fluxmap capture-surface CONFIG --resume'.")
         proj = np.char.decode(g["projector"][()])
         order = g["pattern_index"][()]
         counts = g["counts"][()]
@@ -560,3 +701,71 @@ def read_patterns(path: Path) -> PatternCapture:
                             f"exposures {exps.tolist()} s; one of each is expected.")
         return PatternCapture(names, by, float(exps[0]), float(gains[0]), float(g["stage_height_mm"][()].mean()),
                               int(g.attrs["binning"]), int(g.attrs["n_gray"]), int(g.attrs["n_steps"]), path)
+
+
+# ------------------------------------------------------------------ reading the calibration frames back
+@dataclass
+class CalibrationCapture:
+    """The calibration frames of a capture, as ``calibrate`` uses them (settings as read back).
+
+    ``grid_images`` are the mean of each height's repeats (counts, float), ``grid_stage_mm``
+    the stage height read back (mean over the repeats); the grid plane lies at
+    ``stage_top_z_mm + grid_stage_mm + thickness_mm`` (:meth:`grid_plane_z_mm`).  Radiometric
+    series are count stacks ``[frame, row, col]`` with the exposure (s) and EM gain read back."""
+
+    grid: dict | None  # kind, pitch_mm, shape, thickness_mm, stage_top_z_mm
+    grid_images: list[np.ndarray]
+    grid_stage_mm: list[float]
+    bias: np.ndarray | None
+    darks: list[tuple[np.ndarray, float, float]]  # (frames, exposure_s, em_gain)
+    flats: np.ndarray | None
+    ptc: list[tuple[np.ndarray, float, float]]  # (frames, exposure_s, em_gain), one per exposure and gain
+    truth: dict | None = None  # simulated camera: the camera and sensor that made the frames
+    path: Path | None = None
+
+    def grid_plane_z_mm(self) -> list[float]:
+        g = self.grid or {}
+        return [float(g.get("stage_top_z_mm", 0.0)) + h + float(g.get("thickness_mm", 0.0)) for h in self.grid_stage_mm]
+
+
+def _one_setting(values: np.ndarray, what: str, path: Path, kind: str) -> float:
+    u = np.unique(np.round(values, 9))
+    if len(u) != 1:
+        raise UserError(f"capture {path}: the {kind} frames of one series were read out at {what} {u.tolist()}; "
+                        "one value is expected (was the camera changed during the series?).")
+    return float(u[0])
+
+
+def read_calibration(path: Path) -> CalibrationCapture:
+    """The calibration frames of a capture; UserError when it has none or they are incomplete."""
+    path = Path(path)
+    with A.open_artefact(path, KIND) as f:
+        g = _complete_group(f, path, "calibration", "calibration frames",
+                            f"capture {path} holds no calibration frames (capture.calibration was not set when it "
+                            "was taken); take them with 'fluxmap capture-surface CONFIG' and capture.calibration.")
+        kind = np.char.decode(g["kind"][()])
+        series = g["series"][()]
+        counts = g["counts"]
+        exposure, gain, height = g["exposure_s"][()], g["em_gain"][()], g["stage_height_mm"][()]
+        grid = json.loads(g.attrs["grid"]) or None
+        truth = json.loads(g.attrs["truth"]) if "truth" in g.attrs else None
+
+        def stacks(k: str) -> list[tuple[np.ndarray, float, float]]:
+            out = []
+            for s_ in sorted(set(series[kind == k].tolist())):
+                sel = np.flatnonzero((kind == k) & (series == s_))
+                out.append((counts[sel[0]:sel[-1] + 1][sel - sel[0]].astype(np.float64),
+                            _one_setting(exposure[sel], "exposures (s)", path, k),
+                            _one_setting(gain[sel], "EM gains", path, k)))
+            return out
+
+        grids = stacks("grid")
+        grid_stage = []
+        for s_ in sorted(set(series[kind == "grid"].tolist())):
+            grid_stage.append(float(height[(kind == "grid") & (series == s_)].mean()))
+        bias = stacks("bias")
+        flats = stacks("flat")
+        darks = stacks("dark")
+        ptc = stacks("ptc_off") + stacks("ptc_on")
+    return CalibrationCapture(grid if grids else None, [s[0].mean(axis=0) for s in grids], grid_stage,
+                              bias[0][0] if bias else None, darks, flats[0][0] if flats else None, ptc, truth, path)

@@ -105,13 +105,36 @@ class Sensor(Model):
     bit_depth: int = Field(16, ge=8, le=16, description="ADC bit depth; counts saturate at 2**bit_depth - 1.")
 
 
+class CameraUncertainty(Model):
+    """1 sd of the calibrated camera (what ``calibrate`` writes as camera.yaml's ``camera.uncertainty``);
+    reconstruct carries it into the sigma of every total (reconstruct.calibration_budget)."""
+
+    focal_length_mm: float | None = Field(None, ge=0, description="1 sd of lens.focal_length_mm (mm).")
+    focus_distance_mm: float | None = Field(None, ge=0, description="1 sd of lens.focus_distance_mm (mm).")
+    aperture_diameter_mm: float | None = Field(None, ge=0, description="1 sd of the lens aperture diameter 2R (mm).")
+    lens_center_mm: tuple[float, float, float] | None = Field(
+        None, description="1 sd of pose.lens_center_mm along world x, y, z (mm), each >= 0.")
+    look_deg: float | None = Field(None, ge=0, description="1 sd of the optical axis direction, per tilt axis (degrees).")
+    gain_relative: float | None = Field(None, ge=0, description="Relative 1 sd of the photons per count (radiometric gain, QE included; e.g. 0.02).")
+
+    @field_validator("lens_center_mm")
+    @classmethod
+    def _nonneg(cls, v):
+        if v is not None and min(v) < 0:
+            raise ValueError("lens_center_mm: each 1 sd must be >= 0")
+        return v
+
+
 class Camera(Model):
     pixels: tuple[int, int] = Field(description="Sensor size [nx, ny] in (binned) pixels: columns, rows.")
     pixel_pitch_mm: float = Field(gt=0, description="(Binned) pixel pitch on the detector (mm).")
     lens: Lens | None = Field(None, description="The thin lens (required by every stage but calibrate, which derives it).")
     pose: CameraPose | None = Field(None, description="Where the camera is and where it looks (required by every stage but calibrate).")
+    measured: dict[str, float | tuple[float, ...]] = Field(default_factory=dict, exclude=True, description="The 1 sigma of each measured value (calibrate writes it: lens.focal_length_mm, pose.lens_center_mm, sensor.em_gain, ...), in the value's unit.")
+    assumed: dict[str, str] = Field(default_factory=dict, exclude=True, description="Values that were not measured, each with where the assumption comes from (calibrate writes it, e.g. quantum_efficiency); an assumed quantum_efficiency is warned by every stage that turns counts into photons.")
     apertures: tuple[Aperture, ...] = Field((), description="Extra circular apertures in front of the lens (the beta term).")
     sensor: Sensor = Field(Sensor(), description="Detector model used to turn photons into counts.")
+    uncertainty: CameraUncertainty | None = Field(None, description="1 sd of the calibrated values (calibrate writes it); reconstruct propagates it into every total's sigma.")
 
     @field_validator("pixels")
     @classmethod
@@ -128,6 +151,8 @@ class Mirror(Model):
     axis: Vec3 = Field(description="Direction of the first side of the rectangle (in the mirror plane).")
     size_mm: tuple[float, float] = Field(description="[along axis, along normal x axis] (mm).")
     reflectance: float = Field(1.0, gt=0, le=1, description="Mirror reflectance rho.")
+    normal_sigma_deg: float | None = Field(None, ge=0, description="1 sd of the normal's direction, per tilt axis (degrees; calibrate's), for reconstruct's calibration budget.")
+    offset_sigma_mm: float | None = Field(None, ge=0, description="1 sd of the mirror plane's position along its normal (mm), for reconstruct's calibration budget.")
     scale: float = Field(1.0, gt=0, description="Per-view scale s (filter angular transmission heuristic).")
 
     @model_validator(mode="after")
@@ -712,7 +737,7 @@ class CalibrationGrid(Model):
 
 class CalibrationImage(Model):
     file: Path = Field(description="Image of the grid lying flat (TIFF/FITS/EXR; counts or photons), relative to the config.")
-    plane_z_mm: float = Field(description="World z of the grid plane in this image (mm); the world frame is the grid's.")
+    plane_z_mm: float = Field(description="World z of the grid plane in this image (mm); the world frame is the grid's. On a stage: system.stage.top_z_mm + the stage height + the grid's thickness (calibrate.capture computes it so).")
 
 
 # --------------------------------------------------------------------------- calibrate: projectors
@@ -775,13 +800,20 @@ class Calibrate(Model):
     refine_mirrors: bool = Field(True, description="Refine the planes of system.mirrors from the grid seen in each mirror.")
     radiometric: Radiometric | None = Field(None, description="Bias, dark, flat and photon-transfer frames: the sensor block.")
     projectors: tuple[ProjectorCalibration, ...] = Field((), description="Structured-light projectors to calibrate against the calibrated camera (needs grid and images); written to camera.yaml's projectors mapping.")
+    capture: Path | None = Field(None, description="A capture.h5 holding calibration frames (capture.calibration): the grid frames with their stage heights and the bias, dark, flat and photon-transfer frames, used instead of images and radiometric.")
 
     @model_validator(mode="after")
     def _check(self) -> "Calibrate":
+        if self.capture is not None:
+            if self.images or self.radiometric is not None:
+                raise ValueError("capture: the frames come from the capture file; leave images and radiometric out")
+            if self.projectors:
+                raise ValueError("capture: projectors are calibrated from frame files (images); not with capture")
+            return self
         if (self.grid is None) != (len(self.images) == 0):
             raise ValueError("give both grid and images (geometric calibration), or neither")
         if self.grid is None and self.radiometric is None:
-            raise ValueError("give grid and images (geometric), radiometric, or both")
+            raise ValueError("give grid and images (geometric), radiometric, capture, or more than one")
         if self.projectors and self.grid is None:
             raise ValueError("projectors are calibrated against the camera the grid images give: add grid and images")
         return self
@@ -903,10 +935,85 @@ class CaptureSurface(Model):
     mesh: SurfaceMesh = Field(SurfaceMesh(), description="From points to the closed surface.")
 
 
-class Capture(Model):
-    """The acquisition plan of ``fluxmap capture-surface``: pattern frames (``surface``) first, then darks, then per height, per filter, repeats."""
+class CalibrationGridCapture(Model):
+    """The calibration grid lying flat on the stage, one series of frames per stage height."""
 
-    heights_mm: tuple[float, ...] = Field(min_length=1, description="Stage heights to image at (mm), in this order.")
+    kind: Literal["dots", "checkerboard"] = Field("dots", description="dots (a regular dot grid) or checkerboard (its inner corners are the points).")
+    pitch_mm: float = Field(gt=0, description="Distance between neighbouring grid points (mm).")
+    shape: tuple[int, int] = Field(description="Points along x and along y [nx, ny] (checkerboard: inner corners).")
+    thickness_mm: float = Field(0.0, ge=0, description="Height of the printed grid surface above the stage top (mm): the grid plane is at z = system.stage.top_z_mm + stage height + thickness_mm.")
+    heights_mm: tuple[float, ...] = Field(min_length=3, description="Stage heights (mm), five or more through and around focus; each frame records the height read back from the stage.")
+    exposure_s: float = Field(0.1, gt=0, description="Exposure of a grid frame (s).")
+    em_gain: float = Field(10.0, ge=1, description="EM gain of the grid frames.")
+    repeats: int = Field(1, ge=1, description="Frames per height (averaged by calibrate).")
+    filter: str = Field("open", description="Filter in the beam (a key of rig.filter_wheel.filters).")
+    dot_diameter_mm: float | None = Field(None, gt=0, description="Simulated camera: diameter of a printed dot (mm; default pitch_mm / 2).")
+
+    @field_validator("heights_mm")
+    @classmethod
+    def _heights(cls, v):
+        if len(set(v)) != len(v):
+            raise ValueError("list each stage height once (use repeats for more frames)")
+        return v
+
+
+class CalibrationSeries(Model):
+    frames: int = Field(4, ge=2, description="Frames in the series (consecutive frames are paired for temporal variances).")
+    exposure_s: float = Field(0.001, gt=0, description="Exposure of each frame (s).")
+
+
+class CalibrationDarkSeries(Model):
+    frames: int = Field(2, ge=1, description="Dark frames at each exposure.")
+    exposures_s: tuple[float, ...] = Field((30.0, 120.0), min_length=1, description="Exposures (s); two or more separate dark current from clock-induced charge.")
+    em_gain: float = Field(300.0, ge=1, description="EM gain of the dark frames (the working gain; the PTC's gain-on levels measure it).")
+
+
+class CalibrationPTC(Model):
+    """Photon-transfer pairs of one steady, even light at several exposures, EM gain off (gain 1) and on."""
+
+    exposures_off_s: tuple[float, ...] = Field(min_length=2, description="Exposures of the gain-off pairs (s): signals from a few hundred counts to about half of full scale.")
+    exposures_on_s: tuple[float, ...] = Field((), description="Exposures of the gain-on pairs (s): the same light, short enough not to saturate at em_gain.")
+    em_gain: float = Field(300.0, ge=1, description="EM gain of the gain-on pairs.")
+    pairs: int = Field(1, ge=1, description="Pairs of frames per exposure.")
+
+
+class CalibrationSimulated(Model):
+    """What the simulated rig shows for the calibration frames (ignored by a real camera)."""
+
+    grid_photons_per_s: float = Field(2000.0, gt=0, description="Photons per pixel per second inside an in-focus dot on the axis (a dot grid: the dots bright).")
+    background_fraction: float = Field(0.05, ge=0, lt=1, description="Brightness of the grid's background relative to a dot.")
+    light_photons_per_s: float = Field(1.0e5, gt=0, description="Photons per pixel per second of the even light (flats and PTC).")
+    sub: int = Field(2, ge=1, le=6, description="Sub-pixels per pixel side when rendering the grid.")
+    lens_samples: int = Field(32, ge=4, description="Lens points per sub-pixel when rendering the grid (defocus blur).")
+
+
+class CaptureCalibration(Model):
+    """Calibration frames for ``fluxmap calibrate`` (``calibrate.capture``), taken before anything else."""
+
+    grid: CalibrationGridCapture | None = Field(None, description="The grid at listed stage heights (geometric calibration).")
+    bias: CalibrationSeries | None = Field(None, description="Bias frames: shutter closed, EM gain off, shortest exposure.")
+    darks: CalibrationDarkSeries | None = Field(None, description="Dark frames: shutter closed, EM gain on, at each exposure.")
+    flats: CalibrationSeries | None = Field(None, description="Flat frames: the even light, EM gain off.")
+    ptc: CalibrationPTC | None = Field(None, description="Photon-transfer pairs (the even light).")
+    filter: str = Field("open", description="Filter in the beam for the flat and PTC frames (a key of rig.filter_wheel.filters).")
+    confirm: bool = Field(True, description="Real camera: wait for Enter before each set-up the operator makes (grid on the stage, even light on); false: no wait (tests, motorised set-ups).")
+    simulated: CalibrationSimulated = Field(CalibrationSimulated(), description="Simulated camera: the brightness of the grid and of the even light.")
+
+    @model_validator(mode="after")
+    def _check(self) -> "CaptureCalibration":
+        if not any((self.grid, self.bias, self.darks, self.flats, self.ptc)):
+            raise ValueError("give one or more of grid, bias, darks, flats, ptc")
+        if (self.bias is None) != (self.ptc is None):
+            raise ValueError("the radiometric calibration needs both bias and ptc (give both, or neither)")
+        if self.darks is not None and self.ptc is not None and not self.ptc.exposures_on_s:
+            raise ValueError("darks taken with the EM gain on need ptc.exposures_on_s to measure that gain")
+        return self
+
+
+class Capture(Model):
+    """The acquisition plan of ``fluxmap capture-surface``: calibration frames (``calibration``) first, then pattern frames (``surface``), then darks, then per height, per filter, repeats."""
+
+    heights_mm: tuple[float, ...] = Field((), description="Stage heights to image the subject at (mm), in this order (none: a calibration-only capture).")
     filters: tuple[str, ...] = Field(("open",), min_length=1, description="Filter names (keys of rig.filter_wheel.filters), in this order.")
     exposure_s: float | tuple[float, ...] = Field(1.0, description="Exposure time (s), or several: each height and filter is taken at each.")
     em_gain: float = Field(300.0, ge=1, description="EM gain of every frame.")
@@ -914,6 +1021,15 @@ class Capture(Model):
     darks: int = Field(4, ge=0, description="Dark frames (shutter closed, same exposure and gain), taken first.")
     seed: int = Field(0, ge=0, description="Simulated camera: frame k's noise comes from the seed (seed, k).")
     surface: CaptureSurface | None = Field(None, description="Structured-light pattern frames, decoded into <workdir>/surface.h5.")
+    calibration: CaptureCalibration | None = Field(None, description="Calibration frames (grid at stage heights, bias, darks, flats, photon transfer) for calibrate.capture.")
+
+    @model_validator(mode="after")
+    def _something(self) -> "Capture":
+        if not self.heights_mm and self.calibration is None:
+            raise ValueError("heights_mm: give one or more stage heights (or a calibration-only capture: calibration)")
+        if not self.heights_mm and self.surface is not None:
+            raise ValueError("capture.surface images the subject: give heights_mm too")
+        return self
 
     @field_validator("heights_mm", "filters")
     @classmethod
@@ -1163,7 +1279,12 @@ def _camera_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:
         raise UserError(f"config {path}: 'system.camera.file' must be the path of a camera YAML file.")
     hint = "run `fluxmap calibrate` to make one, or give the camera block inline"
     loaded = _block_from_file(ref, "camera", dict, "system.camera", base_dir, path, hint)
-    system["camera"] = _merge(loaded, overrides)
+    merged = _merge(loaded, overrides)
+    if isinstance(merged.get("assumed"), dict):  # a value given beside the file is the user's, no longer assumed
+        given = {k for k, v in overrides.items() if not isinstance(v, dict)}
+        given |= {k for v in overrides.values() if isinstance(v, dict) for k in v}
+        merged["assumed"] = {k: v for k, v in merged["assumed"].items() if k.split(".")[-1] not in given}
+    system["camera"] = merged
 
 
 def _block_from_file(ref: str, block: str, kind: type, key: str, base_dir: Path, path: Path, hint: str):

@@ -385,3 +385,47 @@ def test_the_simulated_camera_renders_a_truth_finer_than_the_elements(reference,
     constant = (T_el @ per_element).reshape(image.shape)
     assert image.sum() == pytest.approx(constant.sum(), rel=0.01)
     assert np.abs(image - constant).max() > 0.05 * image.max()
+
+
+def test_calibration_frames_first_leave_the_subject_frames_unchanged(reference, tmp_path):
+    """capture.calibration (issue 26) is taken before the subject: with it in the plan the
+    subject's frames are byte-identical to a capture without it (the set-up is taken away again,
+    and each frame's noise is keyed by its own plan slot), and the calibration frames see the
+    even light and the closed shutter."""
+    cfg, ref_path = reference
+    ref_counts, *_ = frames(ref_path)
+    cfg = copy.deepcopy(cfg)
+    cfg["workdir"] = str(tmp_path / "run")
+    cfg["capture"]["calibration"] = {"bias": {"frames": 2, "exposure_s": 0.001},
+                                     "ptc": {"exposures_off_s": [0.01, 0.02]},
+                                     "simulated": {"light_photons_per_s": 1.0e5}}
+    path = tmp_path / "cfg.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    r = run("capture-surface", path)
+    assert r.exit_code == 0, r.output
+    counts, committed, *_ = frames(tmp_path / "run" / "capture.h5")
+    assert committed.all() and np.array_equal(counts, ref_counts)
+    with h5py.File(tmp_path / "run" / "capture.h5", "r") as f:
+        kind = np.char.decode(f["calibration/kind"][()])
+        cal = f["calibration/counts"][()].astype(float)
+        exposure = f["calibration/exposure_s"][()]
+    sensor = cfg["system"]["camera"].get("sensor", {})
+    bias = sensor.get("bias_counts", 500.0)
+    assert abs(cal[kind == "bias"].mean() - bias) < 2  # shutter closed: the bias (dark and CIC negligible)
+    ptc = kind == "ptc_off"
+    expected = 0.9 * 1.0e5 * exposure[ptc] / sensor.get("electrons_per_count", 10.0)  # QE 0.9, gain off
+    assert np.allclose(cal[ptc].mean(axis=(1, 2)) - bias, expected, rtol=0.02)
+
+
+def test_a_real_rig_is_told_what_to_set_up_and_waits(monkeypatch):
+    from fluxcli.stages import capture as S
+
+    said, asked = [], []
+    ctx = type("Ctx", (), {"say": lambda self, m: said.append(m)})()
+    monkeypatch.setattr("builtins.input", lambda prompt="": asked.append(prompt) or "")
+    prepare = S._operator_prepare(ctx, confirm=True)
+    prepare("grid")
+    prepare("closed")  # the shutter does it: nothing to wait for
+    assert "grid flat on the stage" in said[0] and len(asked) == 1
+    S._operator_prepare(ctx, confirm=False)("light")
+    assert "even light" in said[-1] and len(asked) == 1

@@ -212,6 +212,21 @@ register(Kind("capture", 1, "fluxmap capture-surface", "emission images acquired
     Dataset("patterns/stage_height_mm", "mm", "stage height read back", required=False),
     Dataset("patterns/exposure_s", "s", "exposure read back", required=False),
     Dataset("patterns/em_gain", "", "EM gain read back", required=False),
+    # calibration frames (capture.calibration), taken first: what calibrate.capture reads
+    Dataset("calibration/counts", "ADC counts", "counts[calibration frame, row, col]", required=False),
+    Dataset("calibration/committed", "", "1 once calibration frame k and its metadata are durable", required=False),
+    Dataset("calibration/kind", "", "grid, bias, dark, flat, ptc_off (EM gain 1) or ptc_on", required=False),
+    Dataset("calibration/series", "", "series within the kind (grid: the height; dark, PTC: the exposure)",
+            required=False),
+    Dataset("calibration/repeat", "", "frame number in its series (pairs 0-1, 2-3, ...)", required=False),
+    Dataset("calibration/plan_height_mm", "mm", "planned stage height (nan: not moved)", required=False),
+    Dataset("calibration/plan_exposure_s", "s", "planned exposure", required=False),
+    Dataset("calibration/plan_em_gain", "", "planned EM gain", required=False),
+    Dataset("calibration/filter", "", "planned filter ('': shutter closed)", required=False),
+    Dataset("calibration/stage_height_mm", "mm", "stage height read back (grid plane z = stage top + this + "
+            "grid thickness)", required=False),
+    Dataset("calibration/exposure_s", "s", "exposure read back", required=False),
+    Dataset("calibration/em_gain", "", "EM gain read back", required=False),
 )))
 
 # --- structured-light surface (issue 12): what `subject.surface: {artefact: ...}` reads

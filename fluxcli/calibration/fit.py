@@ -17,6 +17,7 @@ from .geometry import (BlurFit, CameraGeometry, FocusCurve, GeometryFit, angle_s
                        fit_focus_curve, fit_geometry, focus_measure, grid_points_mm, initial_geometry)
 
 REPROJECTION_WARN_PX = 0.5
+BLUR_WARN_PX = 2.0  # defocus blur (px) the farthest heights should reach for the aperture to be measured
 
 
 class CalibrationError(ValueError):
@@ -132,6 +133,7 @@ def calibrate_geometry(images: list[np.ndarray], heights_mm: list[float], *, kin
                 raise CalibrationError(f"{e}; check that its plane_z_mm ({heights_mm[k]:g}) matches the image "
                                        "(the heights may not match the images)", k) from None
     used = list(range(len(dets)))
+    n_found = [len(d.ij) for d in dets]  # before the per-dot fit drops any
     geo = _fit(dets, used, heights_mm, pitch_mm, shape, geo.camera)
     _check_heights(dets, heights_mm, pitch_mm, shape, geo.camera)
     # per-dot model: sub-pixel centres and blur
@@ -214,6 +216,14 @@ def calibrate_geometry(images: list[np.ndarray], heights_mm: list[float], *, kin
     if geo.rms_px > REPROJECTION_WARN_PX:
         warnings.append(f"RMS reprojection error {geo.rms_px:.2f} px exceeds {REPROJECTION_WARN_PX} px: "
                         "the grid detection or the camera model does not fit these images")
+    if blur is not None:
+        # the blur the lens adds at the farthest heights: when it stays near a pixel it hides in the
+        # floor (pixel, dot edge) and the aperture comes out low (-17 % at ~1 px on the simulated rig)
+        defocus_px = float(blur.k_px_mm * np.max(np.abs(1 / z_all - 1 / blur.focus_distance_mm)))
+        if defocus_px < BLUR_WARN_PX:
+            warnings.append(f"the dots blur by at most {defocus_px:.1f} px over these heights: the aperture "
+                            f"({2 * R:.3g} mm) is poorly measured and likely low, beyond its 1 sigma; spread the "
+                            "heights further from the focal plane, or give the lens' f_number")
     zmin, zmax = axial_mean.min(), axial_mean.max()
     if not (zmin < u < zmax):
         warnings.append(f"the heights do not span the focal plane (focus at axial {u:.1f} mm, images at "
@@ -225,10 +235,17 @@ def calibrate_geometry(images: list[np.ndarray], heights_mm: list[float], *, kin
     partial = []
     for k in used:
         if len(dets[k].ij) < n_all:
-            partial.append(f"z={heights_mm[k]:g} mm: {len(dets[k].ij)}/{n_all}")
+            partial.append(f"z={heights_mm[k]:g} mm: {len(dets[k].ij)} of {n_all}")
+        # one count per image: the points used (the detection's count, less any the per-dot fit dropped)
+        notes = [n for n in dets[k].notes if not n.endswith(" points found")]
+        if len(dets[k].ij) < n_all:
+            dropped = n_found[k] - len(dets[k].ij)
+            notes.append(f"{len(dets[k].ij)} of {n_all} points used"
+                         + (f" ({n_found[k]} found, {dropped} dropped by the per-dot fit)" if dropped > 0 else ""))
+        dets[k].notes = notes
     if partial:
-        warnings.append("the grid leaves the field (or some points were not found) in some images, "
-                        "using the points found: " + ", ".join(partial))
+        warnings.append("the grid leaves the field (or some points were not found, or not fitted) in some images; "
+                        "points used: " + ", ".join(partial))
     images_out = []
     for k in used:
         P = grid_points_mm(dets[k].ij, pitch_mm, shape, heights_mm[k])

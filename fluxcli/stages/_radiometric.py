@@ -107,16 +107,73 @@ def run_radiometric(section: C.Radiometric, resolve: Callable[[Path], Path], ctx
     darks = [(_read_frames(d.files, f"darks[{j}].files", resolve, shape), d.exposure_s, d.em_gain_on)
              for j, d in enumerate(section.darks)]
     flats = _read_frames(section.flats, "flats", resolve, shape) if section.flats else None
+    return _calibrate(KEY, ctx, bias=bias, ptc=ptc, darks=darks or None, flats=flats,
+                      max_counts=section.saturation_counts,
+                      excess_noise_factor_squared=section.excess_noise_factor_squared,
+                      gain_tolerance=section.gain_tolerance)
+
+
+def _calibrate(key: str, ctx: RunContext, **frames) -> R.RadiometricResult:
     try:
-        result = R.calibrate_radiometric(
-            bias=bias, ptc=ptc, darks=darks or None, flats=flats, max_counts=section.saturation_counts,
-            excess_noise_factor_squared=section.excess_noise_factor_squared, gain_tolerance=section.gain_tolerance)
+        result = R.calibrate_radiometric(**frames)
     except ValueError as e:
-        raise UserError(f"{KEY}: {e}") from None
+        raise UserError(f"{key}: {e}") from None
     ctx.table(["quantity", "value", "1 sigma"], summary_rows(result))
     for w in result.warnings:
         ctx.say(f"calibrate: warning: {w}")
     return result
+
+
+EVEN_LIGHT = "capture.calibration even light"  # one source for every flat and PTC frame of a capture
+
+
+def radiometric_from_capture(cal, ctx: RunContext, *, bit_depth: int = 16) -> R.RadiometricResult:
+    """Calibrate from the bias, dark, flat and photon-transfer frames of a capture
+    (:class:`fluxcli.acquisition.CalibrationCapture`), with the exposures and EM gains read
+    back from the camera; gain-off means EM gain 1.  All PTC pairs share one light source,
+    so the gain-on and gain-off signals are compared per second of exposure (the EM gain)."""
+    key = f"calibrate.capture ({cal.path})"
+    ptc = [R.PTCLevel(frames, exposure_s, gain > 1.0, EVEN_LIGHT) for frames, exposure_s, gain in cal.ptc]
+    darks = [(frames, exposure_s, gain > 1.0) for frames, exposure_s, gain in cal.darks]
+    if sum(not lv.em_gain_on for lv in ptc) < 2:
+        raise UserError(f"{key}: the capture holds {sum(not lv.em_gain_on for lv in ptc)} gain-off photon-transfer "
+                        "exposure(s); electrons per count need two or more (capture.calibration.ptc.exposures_off_s).")
+    ctx.say(f"calibrate: radiometric frames from {cal.path}: {len(cal.bias)} bias, "
+            f"{sum(len(d[0]) for d in darks)} dark, {0 if cal.flats is None else len(cal.flats)} flat, "
+            f"{sum(len(lv.frames) for lv in ptc)} photon-transfer")
+    return _calibrate(key, ctx, bias=cal.bias, ptc=ptc, darks=darks or None, flats=cal.flats,
+                      max_counts=float(2**bit_depth - 1))
+
+
+def counts_in(cfg: C.LoadedConfig) -> bool | None:
+    """Whether reconstruct turns counts into photons: True for a real camera's counts (a capture
+    of a real camera, image files in counts), False for a simulated camera's capture (its QE is
+    the simulation's own), None when its images are photons already."""
+    im = cfg.model.reconstruct.images if cfg.model.reconstruct is not None else None
+    if isinstance(im, C.CaptureSource):
+        rig = cfg.model.rig
+        return not (rig is None or rig.camera is None or rig.camera.backend == "simulated")
+    if isinstance(im, C.ImageFiles) and im.units == "counts":
+        return True
+    return None
+
+
+def assumed_qe_warning(cfg: C.LoadedConfig, stage: str, *, real_counts: bool | None = True) -> str | None:
+    """The one-line warning of a stage that turns counts into photons when the quantum efficiency
+    is assumed: camera.yaml's ``camera.assumed`` says so, or (``real_counts``: a real camera's
+    counts) the config gives no value and fluxmap's default is used.  None: nothing to warn."""
+    system = cfg.model.system
+    if system is None or real_counts is None:
+        return None
+    cam = system.camera
+    qe = cam.sensor.quantum_efficiency
+    why = cam.assumed.get("quantum_efficiency")
+    if why is None and real_counts and "quantum_efficiency" not in cam.sensor.model_fields_set:
+        why = f"fluxmap default {qe:g}, not measured — set system.camera.sensor.quantum_efficiency from the datasheet"
+    if why is None:
+        return None
+    return (f"{stage}: warning: quantum_efficiency {qe:g} is assumed ({why}); every photon number scales "
+            "with 1/QE")
 
 
 def summary_rows(result: R.RadiometricResult) -> list[list[str]]:

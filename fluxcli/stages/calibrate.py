@@ -36,7 +36,7 @@ from ..hardware.projector import projector_model
 from ..imaging.imagefiles import read_image
 from ..pipeline import provenance
 from ..structured import calibrate as SC
-from ._radiometric import run_radiometric, section_files, write_radiometric
+from ._radiometric import radiometric_from_capture, run_radiometric, section_files, write_radiometric
 from .context import RunContext
 
 
@@ -47,6 +47,10 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     cam = system.camera if system is not None else None
     out = cfg.workdir / "calibration.h5"
     yaml_out = cfg.workdir / "camera.yaml"
+    capture_path = cfg.resolve(sec.capture) if sec.capture is not None else None
+    if capture_path is not None and not capture_path.is_file():
+        raise UserError(f"calibrate.capture: {capture_path} does not exist; take the calibration frames first with "
+                        "'fluxmap capture-surface CONFIG' (capture.calibration).")
     image_paths = [cfg.resolve(im.file) for im in sec.images]
     for k, p in enumerate(image_paths):
         if not p.is_file():
@@ -62,6 +66,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     for k, p in enumerate(rad_paths):
         if p.is_file():
             prov.add_file(f"calibrate.radiometric[{k}]", p)
+    if capture_path is not None:
+        prov.add_file("calibrate.capture", capture_path)
     digest = A.inputs_digest(calibrate=sec.model_dump(mode="json"),
                              camera=cam.model_dump(mode="json") if cam is not None else None,
                              mirrors=[m.model_dump(mode="json") for m in system.mirrors] if system is not None else [],
@@ -72,29 +78,38 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
 
     geo, images = None, []
     mirrors: list[MirrorFit] = []
-    if sec.grid is not None:
+    shape = (cam.pixels[1], cam.pixels[0]) if cam is not None else None
+    src = _from_capture(capture_path, sec, shape) if capture_path is not None else _from_files(cfg, sec, image_paths)
+    if src.grid is not None:
         if cam is None:
             raise UserError(f"config {cfg.path}: 'calibrate' with a grid needs 'system.camera' with pixels and "
                             "pixel_pitch_mm (the lens and pose are what it measures).")
-        geo, images = _geometric(cfg, sec, cam, image_paths, ctx)
+        images = src.read_images(cam)
+        geo = _geometric(src, cam, images, ctx)
         if system.mirrors and sec.refine_mirrors:
-            mirrors = _mirrors(cfg, sec, system, geo, images, ctx)
+            mirrors = _mirrors(src, system, geo, images, ctx)
     projectors = _projectors(cfg, sec, cam, geo, frame_paths, ctx) if sec.projectors else []
     rad = None
     if sec.radiometric is not None:
-        shape = (cam.pixels[1], cam.pixels[0]) if cam is not None else None
         rad = run_radiometric(sec.radiometric, cfg.resolve, ctx, expected_shape=shape)
+    elif src.capture is not None and src.capture.bias is not None:
+        rad = radiometric_from_capture(src.capture, ctx, bit_depth=cam.sensor.bit_depth if cam is not None else 16)
+    truth_errors = None
+    if src.capture is not None and src.capture.truth is not None:
+        truth_errors = _truth_report(src.capture, geo, rad, ctx)
 
-    text = camera_yaml(cam, geo, rad.sensor_block() if rad is not None else None, mirrors, system, projectors)
+    text = camera_yaml(cam, geo, rad, mirrors, system, projectors)
     if geo is not None and not (np.isfinite(geo.aperture_diameter_mm) and geo.aperture_diameter_mm > 0) and (
             cam.lens is None):
         ctx.say("calibrate: warning: the aperture was not measured (a checkerboard gives no per-dot blur); "
                 "camera.yaml's lens has no aperture: add f_number or aperture_diameter_mm to it before use")
     with A.write_artefact(out, "calibration", config_sha256=cfg.sha256, provenance=prov) as f:
         f.attrs["inputs_digest"] = digest
+        if truth_errors is not None:  # simulated rig: how far the calibration is from the camera that made the frames
+            f.attrs["truth_errors"] = json.dumps(truth_errors)
         f.create_dataset("camera_yaml", data=text)
         if geo is not None:
-            _write_geometric(f.create_group("geometric"), geo, sec, image_paths, cfg, images)
+            _write_geometric(f.create_group("geometric"), geo, src, images)
         if mirrors:
             _write_mirrors(f.create_group("mirrors"), mirrors)
         if rad is not None:
@@ -106,32 +121,102 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     return out
 
 
+def _truth_report(cal, geo: GeometricCalibration | None, rad, ctx: RunContext) -> dict:
+    """The simulated rig's true camera against what was measured (said and stored, never used by the fit)."""
+    true = C.Camera.model_validate(cal.truth["camera"])
+    errors: dict = {}
+    if geo is not None and true.lens is not None and true.pose is not None:
+        errors["focal_length_relative"] = geo.focal_length_mm / true.lens.focal_length_mm - 1
+        errors["lens_center_mm"] = float(np.linalg.norm(geo.camera.center_mm - np.array(true.pose.lens_center_mm)))
+        look = np.array(true.pose.look) / np.linalg.norm(true.pose.look)
+        errors["look_deg"] = float(np.degrees(np.arccos(np.clip(geo.camera.look @ look, -1, 1))))
+        ctx.say(f"calibrate: against the simulated rig's true camera: f {errors['focal_length_relative']:+.3%}, "
+                f"lens centre {errors['lens_center_mm']:.3f} mm off, axis {errors['look_deg']:.3f} deg")
+    if rad is not None:
+        s = true.sensor
+        errors["electrons_per_count_relative"] = rad.electrons_per_count / s.electrons_per_count - 1
+        msg = f"electrons per count {errors['electrons_per_count_relative']:+.2%}"
+        gains = [g for _, _, g in cal.ptc if g > 1.0]
+        if rad.em_gain is not None and gains:  # the simulated register multiplies by the gain it was set to
+            errors["em_gain_relative"] = rad.em_gain / gains[0] - 1
+            msg += f", EM gain {errors['em_gain_relative']:+.2%} (set to {gains[0]:g})"
+        ctx.say(f"calibrate: against the simulated rig's true sensor: {msg}")
+    return errors
+
+
 # ------------------------------------------------------------------ geometric
-def _geometric(cfg, sec: C.Calibrate, cam: C.Camera, paths: list[Path], ctx: RunContext):
-    nx, ny = cam.pixels
-    images = []
-    for k, p in enumerate(paths):
-        try:
-            img, _ = read_image(p)
-        except (ValueError, OSError) as e:
-            raise UserError(f"calibrate.images[{k}].file: {e}") from None
-        if img.shape != (ny, nx):
-            raise UserError(f"calibrate.images[{k}].file: {p} is {img.shape[1]} x {img.shape[0]} pixels but "
-                            f"system.camera.pixels is [{nx}, {ny}]; give images of the camera being calibrated "
-                            "(same binning) or correct system.camera.pixels.")
-        if not np.issubdtype(img.dtype, np.number):
-            raise UserError(f"calibrate.images[{k}].file: {p} does not hold numbers.")
-        images.append(img.astype(float))
-    heights = [im.plane_z_mm for im in sec.images]
-    g = sec.grid
+@dataclass
+class GridSource:
+    """Where the grid frames (and, from a capture, the radiometric frames) come from."""
+
+    grid: C.CalibrationGrid | None
+    heights_mm: list[float]  # world z of the grid plane in each image
+    labels: list[str]  # per image: the file, or the capture and its stage height
+    keys: list[str]  # per image: the config key to name in a message
+    files: list[Path] | None = None  # image files (calibrate.images)
+    capture: "CalibrationCapture | None" = None  # or the capture's calibration frames
+
+    def read_images(self, cam: C.Camera) -> list[np.ndarray]:
+        nx, ny = cam.pixels
+        if self.capture is not None:
+            imgs = self.capture.grid_images
+            if imgs and imgs[0].shape != (ny, nx):
+                raise UserError(f"calibrate.capture: the grid frames of {self.capture.path} are {imgs[0].shape[1]} x "
+                                f"{imgs[0].shape[0]} pixels but system.camera.pixels is [{nx}, {ny}]; describe the "
+                                "camera at the binning the frames were taken at.")
+            return [np.asarray(im, float) for im in imgs]
+        images = []
+        for k, p in enumerate(self.files):
+            try:
+                img, _ = read_image(p)
+            except (ValueError, OSError) as e:
+                raise UserError(f"calibrate.images[{k}].file: {e}") from None
+            if img.shape != (ny, nx):
+                raise UserError(f"calibrate.images[{k}].file: {p} is {img.shape[1]} x {img.shape[0]} pixels but "
+                                f"system.camera.pixels is [{nx}, {ny}]; give images of the camera being calibrated "
+                                "(same binning) or correct system.camera.pixels.")
+            if not np.issubdtype(img.dtype, np.number):
+                raise UserError(f"calibrate.images[{k}].file: {p} does not hold numbers.")
+            images.append(img.astype(float))
+        return images
+
+
+def _from_files(cfg, sec: C.Calibrate, paths: list[Path]) -> GridSource:
+    return GridSource(sec.grid, [im.plane_z_mm for im in sec.images], [str(p) for p in paths],
+                      [f"calibrate.images[{k}]" for k in range(len(paths))], files=paths)
+
+
+def _from_capture(path: Path, sec: C.Calibrate, shape) -> GridSource:
+    """The calibration frames of ``path``: the grid (its description from the capture unless
+    calibrate.grid is given) at the plane heights the read-back stage heights give."""
+    from ..acquisition import read_calibration
+
+    cal = read_calibration(path)
+    if cal.grid is None and cal.bias is None:
+        raise UserError(f"calibrate.capture: {path} holds neither grid frames nor bias and photon-transfer frames: "
+                        "nothing to calibrate (capture.calibration.grid, or .bias and .ptc).")
+    if cal.grid is None and sec.grid is not None:
+        raise UserError(f"calibrate.grid: the capture {path} holds no grid frames (capture.calibration.grid was not "
+                        "set); leave calibrate.grid out for a radiometric calibration from it.")
+    grid = sec.grid
+    if grid is None and cal.grid is not None:
+        grid = C.CalibrationGrid(kind=cal.grid["kind"], pitch_mm=cal.grid["pitch_mm"], shape=tuple(cal.grid["shape"]))
+    heights = cal.grid_plane_z_mm() if grid is not None else []
+    labels = [f"{path} (stage at {h:.4g} mm)" for h in cal.grid_stage_mm]
+    keys = [f"calibrate.capture, grid frames at stage height {h:.4g} mm" for h in cal.grid_stage_mm]
+    return GridSource(grid, heights, labels, keys, capture=cal)
+
+
+def _geometric(src: GridSource, cam: C.Camera, images: list[np.ndarray], ctx: RunContext) -> GeometricCalibration:
+    g = src.grid
     try:
-        geo = calibrate_geometry(images, heights, kind=g.kind, pitch_mm=g.pitch_mm, shape=tuple(g.shape),
+        geo = calibrate_geometry(images, src.heights_mm, kind=g.kind, pitch_mm=g.pitch_mm, shape=tuple(g.shape),
                                  pixel_pitch_mm=cam.pixel_pitch_mm)
     except CalibrationError as e:
-        where = f"calibrate.images[{e.image}] ({paths[e.image]}): " if e.image is not None else "calibrate: "
+        where = f"{src.keys[e.image]} ({src.labels[e.image]}): " if e.image is not None else "calibrate: "
         raise UserError(where + str(e) + _hint(e)) from None
     _summary(geo, ctx)
-    return geo, images
+    return geo
 
 
 def _hint(e: CalibrationError) -> str:
@@ -169,7 +254,7 @@ def _summary(geo: GeometricCalibration, ctx: RunContext) -> None:
         ctx.say(f"calibrate: warning: {w}")
 
 
-def _write_geometric(g, geo: GeometricCalibration, sec: C.Calibrate, paths, cfg, images) -> None:
+def _write_geometric(g, geo: GeometricCalibration, src: GridSource, images) -> None:
     c = geo.camera
     g.create_dataset("lens_center_mm", data=c.center_mm).attrs["unit"] = "mm"
     g.create_dataset("rotation", data=c.rotation)
@@ -185,7 +270,7 @@ def _write_geometric(g, geo: GeometricCalibration, sec: C.Calibrate, paths, cfg,
         g.attrs[name] = float(value)
         g.attrs[f"{name}_unit"] = unit
     g.attrs["pixels"] = np.array([c.nx, c.ny])
-    g.attrs["grid"] = json.dumps(sec.grid.model_dump(mode="json"))
+    g.attrs["grid"] = json.dumps(src.grid.model_dump(mode="json"))
     g.attrs["warnings"] = json.dumps(geo.warnings)
     sg = g.create_group("sigma")
     for k, v in geo.sigma.items():
@@ -204,7 +289,7 @@ def _write_geometric(g, geo: GeometricCalibration, sec: C.Calibrate, paths, cfg,
     for k, im in enumerate(geo.images):
         h = ims.create_group(str(k))
         h.attrs["plane_z_mm"] = im.plane_z_mm
-        h.attrs["file"] = str(paths[k])
+        h.attrs["file"] = src.labels[k]
         h.attrs["focus_measure"] = im.focus_measure
         h.attrs["notes"] = json.dumps(im.notes)
         h.create_dataset("image", data=np.asarray(images[k], np.float32), compression="gzip", shuffle=True)
@@ -216,9 +301,9 @@ def _write_geometric(g, geo: GeometricCalibration, sec: C.Calibrate, paths, cfg,
 
 
 # ------------------------------------------------------------------ mirrors
-def _mirrors(cfg, sec, system: C.System, geo: GeometricCalibration, images, ctx) -> list[MirrorFit]:
-    g = sec.grid
-    heights = [im.plane_z_mm for im in sec.images]
+def _mirrors(src: GridSource, system: C.System, geo: GeometricCalibration, images, ctx) -> list[MirrorFit]:
+    g = src.grid
+    heights = src.heights_mm
     fits = []
     for k, m in enumerate(system.mirrors):
         try:
@@ -251,38 +336,100 @@ def _r(x, nd=6):
     return [round(float(v), nd) for v in x] if np.ndim(x) else round(float(x), nd)
 
 
-def camera_yaml(cam: C.Camera | None, geo: GeometricCalibration | None, sensor: dict | None,
+SENSOR_MEASURED = ("electrons_per_count", "read_noise_e", "bias_counts", "em_gain", "dark_current_e_per_s",
+                   "cic_e_per_pixel")  # what a radiometric calibration can measure (RadiometricResult names)
+
+
+def _given(cam: C.Camera, key: str, where: str) -> str:
+    """Where a value that was not measured comes from: the config, or fluxmap's default."""
+    if key in cam.assumed:  # a camera.yaml of an earlier calibration said so
+        return cam.assumed[key]
+    sensor = key in C.Sensor.model_fields
+    if sensor and key not in cam.sensor.model_fields_set:
+        value = getattr(C.Sensor(), key)
+        hint = " set from the camera's datasheet" if key in ("quantum_efficiency", "bit_depth") else \
+            " measure it (calibrate with bias, dark and photon-transfer frames) or set it from the datasheet"
+        return f"fluxmap default {value:g}, not measured —{hint}"
+    path = f"system.camera.{'sensor.' if sensor else ''}{key}"
+    return f"given in the config ({path}{where}), not measured"
+
+
+def camera_block(cam: C.Camera, geo: GeometricCalibration | None, rad) -> dict:
+    """The ``camera:`` block: valid as ``system.camera``, every value marked measured or assumed.
+
+    ``measured`` maps each measured value (``lens.focal_length_mm``, ``sensor.em_gain``, ...) to
+    its 1 sigma (same unit); ``assumed`` maps each other value to where it comes from;
+    ``uncertainty`` is the 1-sigma block the reconstruction propagates (``system.camera.uncertainty``:
+    focal_length_mm, focus_distance_mm, aperture_diameter_mm, lens_center_mm [x, y, z],
+    look_deg, gain_relative: the relative 1 sigma of photons per count, K / (G QE), without QE's)."""
+    block: dict = {"pixels": [int(cam.pixels[0]), int(cam.pixels[1])], "pixel_pitch_mm": float(cam.pixel_pitch_mm)}
+    measured: dict = {}
+    assumed: dict = {"pixels": _given(cam, "pixels", ": the frames' size agrees"),
+                     "pixel_pitch_mm": _given(cam, "pixel_pitch_mm", ": the sensor's pixel pitch x binning")}
+    unc: dict = {}
+    if geo is not None:
+        c, sg = geo.camera, geo.sigma
+        lens = {"focal_length_mm": _r(geo.focal_length_mm), "focus_distance_mm": _r(geo.focus_distance_mm)}
+        measured["lens.focal_length_mm"] = _r(sg["focal_length_mm"], 9)
+        measured["lens.focus_distance_mm"] = _r(sg["focus_distance_mm"], 9)
+        unc["focal_length_mm"] = measured["lens.focal_length_mm"]
+        unc["focus_distance_mm"] = measured["lens.focus_distance_mm"]
+        if np.isfinite(geo.aperture_diameter_mm) and geo.aperture_diameter_mm > 0:
+            lens["aperture_diameter_mm"] = _r(geo.aperture_diameter_mm)
+            measured["lens.aperture_diameter_mm"] = unc["aperture_diameter_mm"] = _r(sg["aperture_diameter_mm"], 9)
+        elif cam.lens is not None:  # not measured: keep what the config says
+            for k, v in cam.lens.model_dump().items():
+                if k in ("f_number", "aperture_diameter_mm") and v is not None:
+                    lens[k] = v
+                    assumed[f"lens.{k}"] = _given(cam, f"lens.{k}", ": a checkerboard gives no per-dot blur")
+        block["lens"] = lens
+        block["pose"] = {"lens_center_mm": _r(c.center_mm), "look": _r(c.look, 9), "up": _r(c.up, 9)}
+        centre = _r([sg["lens_center_x_mm"], sg["lens_center_y_mm"], sg["lens_center_z_mm"]], 9)
+        measured["pose.lens_center_mm"] = unc["lens_center_mm"] = centre
+        measured["pose.look_deg"] = unc["look_deg"] = _r(sg["look_deg"], 9)
+        measured["pose.up_deg"] = _r(sg["roll_deg"], 9)  # the in-plane rotation about the axis
+    else:
+        if cam.lens is not None:
+            block["lens"] = cam.lens.model_dump(exclude_none=True)
+            assumed["lens"] = _given(cam, "lens", "")
+        if cam.pose is not None:
+            block["pose"] = cam.pose.model_dump(mode="json")
+            assumed["pose"] = _given(cam, "pose", "")
+    if cam.apertures:
+        block["apertures"] = [a.model_dump() for a in cam.apertures]
+        assumed["apertures"] = _given(cam, "apertures", ": measured by hand")
+    if rad is not None:
+        sens = cam.sensor.model_dump()
+        got = rad.sensor_block()
+        sens.update(got)
+        block["sensor"] = sens
+        for k in sens:
+            if k in got:
+                sigma = getattr(rad, f"{k}_sigma", None)
+                measured[f"sensor.{k}"] = _r(sigma, 9) if sigma is not None and np.isfinite(sigma) else None
+            else:
+                assumed[k] = _given(cam, k, "")
+        rel = [rad.electrons_per_count_sigma / rad.electrons_per_count]
+        if rad.em_gain is not None and rad.em_gain_sigma is not None:
+            rel.append(rad.em_gain_sigma / rad.em_gain)
+        unc["gain_relative"] = _r(float(np.hypot.reduce(rel)), 9)
+    if unc:
+        block["uncertainty"] = unc
+    block["measured"] = {k: v for k, v in measured.items() if v is not None}
+    block["assumed"] = assumed
+    return block
+
+
+def camera_yaml(cam: C.Camera | None, geo: GeometricCalibration | None, rad,
                 mirrors: list[MirrorFit], system: C.System | None, projectors: list | None = None) -> str:
-    """The YAML text: ``camera:`` valid as ``system.camera``, ``mirrors:`` valid as ``system.mirrors``,
+    """The YAML text: ``camera:`` valid as ``system.camera`` (geometric and radiometric results in
+    one block, see :func:`camera_block`), ``mirrors:`` valid as ``system.mirrors``,
     ``projectors:`` valid as ``rig.projectors`` (name -> optics and pose)."""
     doc: dict = {}
-    block: dict = {}
     if cam is not None:
-        block = {"pixels": [int(cam.pixels[0]), int(cam.pixels[1])], "pixel_pitch_mm": float(cam.pixel_pitch_mm)}
-        if geo is not None:
-            c = geo.camera
-            lens = {"focal_length_mm": _r(geo.focal_length_mm), "focus_distance_mm": _r(geo.focus_distance_mm)}
-            if np.isfinite(geo.aperture_diameter_mm) and geo.aperture_diameter_mm > 0:
-                lens["aperture_diameter_mm"] = _r(geo.aperture_diameter_mm)
-            elif cam.lens is not None:  # not measured: keep what the config says
-                lens.update({k: v for k, v in cam.lens.model_dump().items()
-                             if k in ("f_number", "aperture_diameter_mm") and v is not None})
-            block["lens"] = lens
-            block["pose"] = {"lens_center_mm": _r(c.center_mm), "look": _r(c.look, 9), "up": _r(c.up, 9)}
-        else:
-            if cam.lens is not None:
-                block["lens"] = cam.lens.model_dump(exclude_none=True)
-            if cam.pose is not None:
-                block["pose"] = cam.pose.model_dump(mode="json")
-        if cam.apertures:
-            block["apertures"] = [a.model_dump() for a in cam.apertures]
-        sens = cam.sensor.model_dump()
-        if sensor is not None:
-            sens.update(sensor)
-            block["sensor"] = sens
-        doc["camera"] = block
-    elif sensor is not None:
-        doc["sensor"] = sensor
+        doc["camera"] = camera_block(cam, geo, rad)
+    elif rad is not None:
+        doc["sensor"] = rad.sensor_block()
     if mirrors and system is not None:
         out = []
         for m, fit in zip(system.mirrors, mirrors):
@@ -290,6 +437,9 @@ def camera_yaml(cam: C.Camera | None, geo: GeometricCalibration | None, sensor: 
             d["center_mm"] = _r(fit.center_mm)
             d["normal"] = _r(fit.normal, 9)
             d["axis"] = _r(fit.axis, 9)
+            for key in ("normal_sigma_deg", "offset_sigma_mm"):  # measured: 1 sigma of the refined plane
+                if np.isfinite(getattr(fit, key)):
+                    d[key] = _r(getattr(fit, key), 9)
             out.append(d)
         doc["mirrors"] = out
     if projectors:
@@ -297,16 +447,30 @@ def camera_yaml(cam: C.Camera | None, geo: GeometricCalibration | None, sensor: 
     head = ("# Written by `fluxmap calibrate`. Use it in any config in one line:\n"
             "#   system: {camera: path/to/camera.yaml}" + ("   (and  mirrors: path/to/camera.yaml)" if mirrors else "")
             + ("\n#   rig: {projectors: path/to/camera.yaml}   (the projectors; display keys beside file: {file: ..., NAME: {display: window}})" if projectors else "") + "\n")
+    if cam is not None:
+        head += ("# camera.measured: the 1 sigma of each measured value; camera.assumed: where each other value comes\n"
+                 "# from; camera.uncertainty: the 1 sigma the reconstruction propagates into its totals (gain_relative:\n"
+                 "# photons per count from electrons per count and EM gain; an assumed QE adds an error not in it).\n")
     if geo is not None:
         s = geo.sigma
         head += (f"# 1-sigma: f {s['focal_length_mm']:.3g} mm, u {s['focus_distance_mm']:.3g} mm, aperture "
                  f"{s['aperture_diameter_mm']:.3g} mm, lens centre ({s['lens_center_x_mm']:.3g}, "
                  f"{s['lens_center_y_mm']:.3g}, {s['lens_center_z_mm']:.3g}) mm, look {s['look_deg']:.3g} deg; "
                  f"RMS reprojection {geo.rms_px:.3f} px\n")
+    if mirrors:
+        head += ("# mirrors: their planes are measured (normal_sigma_deg, offset_sigma_mm: 1 sigma); size, axis "
+                 "direction and reflectance are given in the config\n")
     for pf in projectors or []:
         head += (f"# projector {pf.name}: {len(pf.result.points_mm)} board points, RMS reprojection "
                  f"{pf.result.rms_px:.3f} projector px; gamma {'measured' if pf.gamma_measured else 'given'}\n")
-    return head + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)
+    return head + yaml.dump(doc, Dumper=_NoAliases, sort_keys=False, default_flow_style=None, allow_unicode=True)
+
+
+class _NoAliases(yaml.SafeDumper):
+    """Writes a list used twice (uncertainty and measured) twice, not as an anchor and alias."""
+
+    def ignore_aliases(self, data):
+        return True
 
 
 # ------------------------------------------------------------------ projectors

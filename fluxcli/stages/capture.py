@@ -42,6 +42,7 @@ from .. import artefacts as A
 from .. import config as C
 from ..acquisition import CaptureFile, Interrupted, Plan, RigDevices, acquire
 from ..errors import UserError
+from ._radiometric import assumed_qe_warning
 from .context import RunContext
 
 # Test hook: sleep this long between the steps of creating capture.h5, so that the kill
@@ -230,7 +231,7 @@ def _check(cfg: C.LoadedConfig) -> tuple[C.Capture, C.Rig]:
         missing = "rig" if rig is None else "rig.stage" if rig.stage is None else "rig.filter_wheel"
         raise UserError(f"config {cfg.path}: '{missing}' is missing; capture-surface drives the stage, the filter "
                         "wheel and the camera.")
-    unknown = [f for f in cap.filters if f not in rig.filter_wheel.filters]
+    unknown = [f for f in cap.filters if f not in rig.filter_wheel.filters] if cap.heights_mm else []
     if unknown:
         raise UserError(f"capture.filters: {unknown} not in rig.filter_wheel.filters "
                         f"({sorted(rig.filter_wheel.filters)}).")
@@ -240,7 +241,112 @@ def _check(cfg: C.LoadedConfig) -> tuple[C.Capture, C.Rig]:
         raise UserError(f"capture.heights_mm: {out} mm outside the stage's travel rig.stage.travel_mm [{lo}, {hi}].")
     if cap.surface is not None:
         _check_surface(cap.surface, rig)
+    if cap.calibration is not None:
+        _check_calibration(cfg, cap.calibration, rig)
     return cap, rig
+
+
+def _check_calibration(cfg: C.LoadedConfig, cal: C.CaptureCalibration, rig: C.Rig) -> None:
+    wheel = rig.filter_wheel.filters
+    for key, name in (("filter", cal.filter if (cal.flats or cal.ptc) else None),
+                      ("grid.filter", cal.grid.filter if cal.grid else None)):
+        if name is not None and name not in wheel:
+            raise UserError(f"capture.calibration.{key}: {name!r} not in rig.filter_wheel.filters ({sorted(wheel)}).")
+    lo, hi = rig.stage.travel_mm
+    out = [h for h in cal.grid.heights_mm if not lo <= h <= hi] if cal.grid else []
+    if out:
+        raise UserError(f"capture.calibration.grid.heights_mm: {out} mm outside the stage's travel "
+                        f"rig.stage.travel_mm [{lo}, {hi}].")
+    cc = rig.camera or C.RigCamera()
+    gains = [("grid.em_gain", cal.grid.em_gain if cal.grid else None),
+             ("darks.em_gain", cal.darks.em_gain if cal.darks else None),
+             ("ptc.em_gain", cal.ptc.em_gain if cal.ptc and cal.ptc.exposures_on_s else None)]
+    g_lo, g_hi = cc.em_gain_range
+    for key, g in gains:
+        if g is not None and not g_lo <= g <= g_hi:
+            raise UserError(f"capture.calibration.{key}: EM gain {g:g} is outside rig.camera.em_gain_range "
+                            f"[{g_lo:g}, {g_hi:g}].")
+    if (cal.bias or cal.flats or cal.ptc) and g_lo > 1:
+        raise UserError(f"capture.calibration: bias, flat and gain-off PTC frames are taken at EM gain 1, below "
+                        f"rig.camera.em_gain_range [{g_lo:g}, {g_hi:g}]; set the range's low end to 1 if the camera "
+                        "allows it.")
+    if cc.backend == "simulated":
+        C.require(cfg, "capture.calibration with the simulated camera (it renders with the true camera)",
+                  ("system", "system.camera.lens", "system.camera.pose"))
+
+
+def _calibration_plan(cfg: C.LoadedConfig, cal: C.CaptureCalibration, backend: str):
+    """The calibration series in the order they are taken: shutter closed (bias, darks), the
+    grid at each height, then the even light (flats, gain-off and gain-on PTC pairs)."""
+    from ..acquisition import CalibrationPlan
+
+    nan = None  # the stage stays where it is (None, not NaN: the plan is compared as JSON on --resume)
+    series = []
+    if cal.bias:
+        series.append(("bias", 0, cal.bias.exposure_s, 1.0, nan, "", cal.bias.frames))
+    if cal.darks:
+        series += [("dark", k, float(e), cal.darks.em_gain, nan, "", cal.darks.frames)
+                   for k, e in enumerate(cal.darks.exposures_s)]
+    grid = ()
+    if cal.grid:
+        g = cal.grid
+        series += [("grid", k, g.exposure_s, g.em_gain, float(h), g.filter, g.repeats) for k, h in enumerate(g.heights_mm)]
+        stage = cfg.model.system.stage if cfg.model.system is not None else None
+        grid = (("kind", g.kind), ("pitch_mm", g.pitch_mm), ("shape", list(g.shape)), ("thickness_mm", g.thickness_mm),
+                ("stage_top_z_mm", stage.top_z_mm if stage is not None else 0.0))
+    if cal.flats:
+        series.append(("flat", 0, cal.flats.exposure_s, 1.0, nan, cal.filter, cal.flats.frames))
+    if cal.ptc:
+        p = cal.ptc
+        series += [("ptc_off", k, float(e), 1.0, nan, cal.filter, 2 * p.pairs) for k, e in enumerate(p.exposures_off_s)]
+        series += [("ptc_on", k, float(e), p.em_gain, nan, cal.filter, 2 * p.pairs)
+                   for k, e in enumerate(p.exposures_on_s)]
+    content = ""
+    if backend == "simulated":
+        m = cfg.model
+        content = A.inputs_digest(simulated=cal.simulated.model_dump(mode="json"),
+                                  camera=m.system.camera.model_dump(mode="json"),
+                                  dot_diameter_mm=cal.grid.dot_diameter_mm if cal.grid else None,
+                                  renderer="calibration.synthetic.render_plane, direct view")
+    return CalibrationPlan(series=tuple(series), grid=grid, content=content)
+
+
+def _calibration_targets(cfg: C.LoadedConfig, cal: C.CaptureCalibration):
+    """The simulated calibration set-up (grid on the stage, even light) for the rig's true camera."""
+    from ..hardware.sim.targets import CalibrationTargets
+    from ..scene import camera_from_config
+
+    m = cfg.model
+    g = cal.grid
+    top = m.system.stage.top_z_mm if m.system.stage is not None else 0.0
+    sim = cal.simulated
+    return CalibrationTargets(camera_from_config(m.system.camera), kind=g.kind if g else "dots",
+                              pitch_mm=g.pitch_mm if g else 1.0, shape=tuple(g.shape) if g else (2, 2),
+                              plane_offset_mm=top + (g.thickness_mm if g else 0.0),
+                              dot_diameter_mm=(g.dot_diameter_mm or g.pitch_mm / 2) if g else 0.5,
+                              grid_photons_per_s=sim.grid_photons_per_s, background_fraction=sim.background_fraction,
+                              light_photons_per_s=sim.light_photons_per_s, sub=sim.sub, lens_samples=sim.lens_samples)
+
+
+_SET_UP = {"grid": "lay the calibration grid flat on the stage, centred under the camera, and light it evenly",
+           "light": "put the even light in front of the camera (flat field and photon transfer); nothing on the stage",
+           "closed": "the shutter closes for bias and dark frames",
+           "subject": "calibration frames done: remove the calibration set-up and place the subject"}
+
+
+def _operator_prepare(ctx: RunContext, confirm: bool):
+    """A real rig: tell the operator what to set up (and wait for Enter when ``confirm``)."""
+    def prepare(target: str) -> None:
+        ctx.say(f"capture-surface: calibration: {_SET_UP[target]}")
+        if confirm and target != "closed":
+            input("  press Enter when ready ... ")
+    return prepare
+
+
+def _calibration_truth(cfg: C.LoadedConfig) -> dict:
+    cam = cfg.model.system.camera
+    return {"about": "the simulated rig's true camera (system.camera of the capture's config)",
+            "camera": cam.model_dump(mode="json")}
 
 
 def _check_surface(sf: C.CaptureSurface, rig: C.Rig) -> None:
@@ -298,7 +404,7 @@ def _surface_plan(cfg: C.LoadedConfig, sf: C.CaptureSurface, rig: C.Rig, camera)
 
 
 def _camera(cfg: C.LoadedConfig, cap: C.Capture, rig: C.Rig, sims: dict, wheel, stage, scene,
-            displays: dict | None = None):
+            displays: dict | None = None, targets=None):
     from ..pipeline import emccd_model
 
     cc = rig.camera or C.RigCamera()
@@ -315,7 +421,12 @@ def _camera(cfg: C.LoadedConfig, cap: C.Capture, rig: C.Rig, sims: dict, wheel, 
     def shown():  # what the simulated projectors show right now (black ones left out)
         return {n: d.current for n, d in (displays or {}).items() if d.current.any()}
 
-    return SimulatedEmccd(scene.render, stage_height_mm=height, filter_name=lambda: positions.get(pos(), f"position {pos()}"),
+    def render(height_mm, filter_name, **kw):  # a calibration set-up in front of the camera, else the subject
+        if targets is not None and (targets.current is not None or scene is None):
+            return targets.render(height_mm)
+        return scene.render(height_mm, filter_name, **kw)
+
+    return SimulatedEmccd(render, stage_height_mm=height, filter_name=lambda: positions.get(pos(), f"position {pos()}"),
                           projectors=shown,
                           sensor=emccd_model(cfg.model.system.camera.sensor, cap.exposures_s[0]), seed=cap.seed,
                           native_binning=cc.binning, setpoint_c=cc.setpoint_c, ambient_c=cc.ambient_c,
@@ -346,7 +457,8 @@ def _stop_on_signals(ctx: RunContext):
 def run(cfg: C.LoadedConfig, ctx: RunContext, resume: bool = False) -> Path:
     cap, rig = _check(cfg)
     cc = rig.camera or C.RigCamera()
-    scene = SimulatedScene(cfg) if cc.backend == "simulated" else None  # config checked before any file is touched
+    # config checked before any file is touched (a calibration-only capture has no subject to render)
+    scene = SimulatedScene(cfg) if cc.backend == "simulated" and cap.heights_mm else None
     out = _acquire_plan(cfg, ctx, cap, rig, scene, resume)
     if cap.surface is not None:
         _make_surface(cfg, ctx, cap.surface, scene, out)
@@ -377,14 +489,17 @@ def _acquire_plan(cfg: C.LoadedConfig, ctx: RunContext, cap: C.Capture, rig: C.R
         for name in names:
             displays[name] = open_display(name, rig.projectors[name])
             stack.callback(displays[name].close)
-        camera = _camera(cfg, cap, rig, sims, wheel, stage, scene, displays)
+        cal = cap.calibration
+        targets = _calibration_targets(cfg, cal) if cal is not None and cc.backend == "simulated" else None
+        camera = _camera(cfg, cap, rig, sims, wheel, stage, scene, displays, targets)
         stack.callback(camera.close)
         plan = Plan(heights_mm=tuple(cap.heights_mm), filters=tuple(cap.filters), exposures_s=cap.exposures_s,
                     em_gain=cap.em_gain, repeats=cap.repeats, darks=cap.darks, seed=cap.seed,
                     shape=tuple(camera.shape), camera=cc.backend, scene=scene.digest if scene else "",
                     filter_positions=tuple((f, rig.filter_wheel.filters[f]) for f in dict.fromkeys(
                         cap.filters + ((sf.filter,) if sf else ()))),
-                    surface=_surface_plan(cfg, sf, rig, camera) if sf else None)
+                    surface=_surface_plan(cfg, sf, rig, camera) if sf else None,
+                    calibration=_calibration_plan(cfg, cal, cc.backend) if cal else None)
         if out.exists():
             capfile = CaptureFile.resume(out, plan)
         else:
@@ -394,9 +509,10 @@ def _acquire_plan(cfg: C.LoadedConfig, ctx: RunContext, cap: C.Capture, rig: C.R
                     else A.Provenance(config=cfg.model.model_dump(mode="json", by_alias=True)))
             capfile = CaptureFile.create(out, plan, config_sha256=cfg.sha256, provenance=prov, truth=truth,
                                          truth_unit="photons per element per second (subject at rest)",
-                                         pause_s=float(os.environ.get(CREATE_PAUSE_ENV, "0") or 0))
+                                         pause_s=float(os.environ.get(CREATE_PAUSE_ENV, "0") or 0),
+                                         calibration_truth=_calibration_truth(cfg) if targets is not None else None)
         stack.callback(capfile.close)
-        total = len(plan.frames()) + len(capfile.pattern_committed)
+        total = len(plan.frames()) + len(capfile.pattern_committed) + len(capfile.calibration_committed)
         done = capfile.n_committed
         if done == total:
             ctx.say(f"capture-surface: {out} already holds all {total} frames")
@@ -408,10 +524,19 @@ def _acquire_plan(cfg: C.LoadedConfig, ctx: RunContext, cap: C.Capture, rig: C.R
             for h, name in dict.fromkeys((fr.height_mm, fr.filter) for fr in plan.frames()
                                          if not fr.dark and not capfile.committed[fr.index]):
                 scene.render(h, name)
+        if targets is not None and cal.grid is not None and not capfile.calibration_committed.all():
+            heights = list(cal.grid.heights_mm)
+            with ctx.progress("render grid", len(heights)) as tick:  # the simulated grid images, before any move
+                for h in heights:
+                    targets.grid(h)
+                    tick()
         pattern_sets = {p: _patterns(sf, rig.projectors[p]) for p in names}
+        prepare = None
+        if cal is not None:
+            prepare = targets.prepare if targets is not None else _operator_prepare(ctx, cal.confirm)
         devices = RigDevices(stage, wheel, camera, dict(rig.filter_wheel.filters), displays=displays,
                              pattern_image=lambda p, k: pattern_sets[p].frames[k],
-                             panels={p: tuple(reversed(rig.projectors[p].pixels)) for p in names})
+                             panels={p: tuple(reversed(rig.projectors[p].pixels)) for p in names}, prepare=prepare)
         try:  # from here Ctrl-C waits for the frame under way (before, it stops at once)
             with _stop_on_signals(ctx) as stop_requested:
                 ctx.say(f"capture-surface: {total - done} of {total} frames to take"
@@ -449,6 +574,9 @@ def _make_surface(cfg: C.LoadedConfig, ctx: RunContext, sf: C.CaptureSurface, sc
     mirrors = plane_mirrors(m.system)
     views = ["direct"] + mirror_names(m.system)
     photons = pc.photons(emccd_model(m.system.camera.sensor, pc.exposure_s))
+    warning = assumed_qe_warning(cfg, "capture-surface", real_counts=scene is None)
+    if warning:
+        ctx.say(warning)
     scans = []
     with ctx.progress("decode", len(pc.projectors)) as tick:
         for name in pc.projectors:

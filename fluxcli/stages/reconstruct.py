@@ -696,6 +696,9 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     stray = [light_outside(Ts[k], inp.images[k], inp.valid[k], noise, pt.pose.label, surface)
              for k, (_, pt) in enumerate(todo)]
     ctx.say(f"reconstruct: {inp.source}; {describe(m)}, {P} pose(s); {noise.kind} noise model")
+    from ._radiometric import assumed_qe_warning, counts_in
+    if qe_warning := assumed_qe_warning(cfg, "reconstruct", real_counts=counts_in(cfg)):  # QE scales every photon
+        ctx.say(qe_warning)
     from .outputs import reconstruction_exposure_s
     from .rois import RoiMeter
 
