@@ -513,7 +513,8 @@ def acquire(plan: Plan, out: CaptureFile, rig: RigDevices, *, stop_requested: Ca
             taken += _acquire_patterns(plan, out, rig, cam, stop_requested=stop_requested, on_step=on_step,
                                        on_frame=on_frame, tolerance_mm=height_tolerance_mm)
         cam.em_gain = plan.em_gain
-        for fr in todo:
+        for run in _runs(todo):  # the repeats of one setting: one camera sequence
+            fr = run[0]
             if stop_requested():
                 raise Interrupted(fr.label)
             if fr.dark:
@@ -524,17 +525,41 @@ def acquire(plan: Plan, out: CaptureFile, rig: RigDevices, *, stop_requested: Ca
                 cam.shutter_open = True
             if cam.exposure_s != fr.exposure_s:
                 cam.exposure_s = fr.exposure_s
-            on_step(fr.label)
             cam.set_frame_index(fr.index)
-            counts = cam.snap()
-            out.write_frame(fr.index, np.asarray(counts), _meta(rig, cam))
-            taken += 1
-            on_frame(fr)
+            stream = cam.frames(len(run))
+            try:
+                for one in run:  # each frame committed as it is read out; a stop between any two
+                    if one is not fr and stop_requested():
+                        raise Interrupted(one.label)
+                    on_step(one.label)
+                    counts = next(stream, None)
+                    if counts is None:
+                        raise UserError(f"camera ({plan.camera} backend): a sequence of {len(run)} frames ended "
+                                        f"before {one.label}; the frames before it are kept, run again with --resume.")
+                    out.write_frame(one.index, np.asarray(counts), _meta(rig, cam))
+                    taken += 1
+                    on_frame(one)
+            finally:
+                stream.close()
     except BaseException:
         _make_safe(rig, report=False)  # what went wrong first is what the user must read
         raise
     _make_safe(rig)
     return taken
+
+
+def _runs(frames: list[Frame]) -> list[list[Frame]]:
+    """Consecutive frames of one setting (dark or lit, height, filter, exposure) with consecutive
+    plan indices: the repeats a camera takes as one sequence (``Camera.frames``)."""
+    runs: list[list[Frame]] = []
+    for fr in frames:
+        last = runs[-1][-1] if runs else None
+        if (last is not None and fr.index == last.index + 1 and fr.dark == last.dark and fr.height_mm == last.height_mm
+                and fr.filter == last.filter and fr.exposure_s == last.exposure_s):
+            runs[-1].append(fr)
+        else:
+            runs.append([fr])
+    return runs
 
 
 def _make_safe(rig: RigDevices, report: bool = True) -> None:

@@ -180,6 +180,31 @@ class _Camera:
             raise self.TimeoutError(f"timeout while waiting for a frame ({frame_timeout} s)")
         return [self._one_frame() for _ in range(nframes)]
 
+    # a streamed acquisition (pylablib's IAcqCamera): what Camera.frames drives
+    def start_acquisition(self, *args, **kwargs):
+        self._call("start_acquisition", kwargs.get("mode"), kwargs.get("nframes"))
+        self._acq = {"left": int(kwargs.get("nframes") or 1), "ready": 0}
+
+    def wait_for_frame(self, since="lastread", nframes=1, timeout=20., error_on_stopped=False):
+        self._call("wait_for_frame", since, nframes, timeout)
+        acq = getattr(self, "_acq", None)
+        if acq is None or state.stall_frames or acq["left"] <= 0:
+            raise self.TimeoutError(f"timeout while waiting for a frame ({timeout} s)")
+        acq["left"] -= 1
+        acq["ready"] += 1
+
+    def read_oldest_image(self, peek=False, return_info=False):
+        self._call("read_oldest_image")
+        acq = getattr(self, "_acq", None)
+        if acq is None or acq["ready"] <= 0:
+            return None
+        acq["ready"] -= 1
+        return self._one_frame()
+
+    def stop_acquisition(self):
+        self._call("stop_acquisition")
+        self._acq = None
+
     def snap(self, timeout=5., return_info=False):
         self._call("snap", timeout)
         if state.stall_frames:

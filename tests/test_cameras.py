@@ -44,16 +44,16 @@ def expected_counts(*, exposure_s, gain=1.0, binning=1, lit=True, s=None):
 # ------------------------------------------------------------------ the fakes are pylablib's shape
 USED = {  # the pylablib calls each backend makes
     ("Andor", "AndorSDK2Camera"): ["__init__", "set_image_indexing", "get_data_dimensions", "set_exposure",
-                                   "get_exposure", "set_roi", "get_roi", "snap", "grab", "close", "get_device_info",
+                                   "get_exposure", "set_roi", "get_roi", "snap", "grab", "start_acquisition", "wait_for_frame", "read_oldest_image", "stop_acquisition", "close", "get_device_info",
                                    "get_EMCCD_gain", "set_EMCCD_gain", "set_temperature", "get_temperature",
                                    "get_temperature_setpoint", "get_temperature_status", "is_cooler_on",
                                    "set_cooler", "setup_shutter", "get_shutter"],
     ("Andor", "AndorSDK3Camera"): ["__init__", "set_image_indexing", "get_data_dimensions", "set_exposure",
-                                   "get_exposure", "set_roi", "get_roi", "snap", "grab", "close", "get_device_info",
+                                   "get_exposure", "set_roi", "get_roi", "snap", "grab", "start_acquisition", "wait_for_frame", "read_oldest_image", "stop_acquisition", "close", "get_device_info",
                                    "set_temperature", "get_temperature", "get_temperature_setpoint", "is_cooler_on",
                                    "set_cooler", "set_shutter", "get_shutter"],
     ("Photometrics", "PvcamCamera"): ["__init__", "set_image_indexing", "get_data_dimensions", "set_exposure",
-                                      "get_exposure", "set_roi", "get_roi", "snap", "grab", "close",
+                                      "get_exposure", "set_roi", "get_roi", "snap", "grab", "start_acquisition", "wait_for_frame", "read_oldest_image", "stop_acquisition", "close",
                                       "get_device_info", "get_attribute_value", "set_attribute_value",
                                       "set_temperature", "get_temperature", "get_temperature_setpoint"],
 }
@@ -234,6 +234,44 @@ def test_capture_surface_drives_each_backend_through_its_fake(lab, tmp_path, bac
     closes = [i for i, c in enumerate(calls) if c in (("setup_shutter", "closed"), ("set_shutter", "closed"),
                                                       ("set_attribute_value", "SHTR_OPEN_MODE", 0))]
     assert closes, "the shutter was never closed for the darks"
+    # the repeats of each setting are one hardware sequence (2 darks per exposure, 2 repeats per
+    # height/filter/exposure): 2 + 8 sequences of 2 frames, each started, read frame by frame, stopped
+    starts = [c for c in calls if c[0] == "start_acquisition"]
+    assert starts == [("start_acquisition", "sequence", 2)] * (2 + 2 * 2 * 2), starts
+    assert sum(c[0] == "read_oldest_image" for c in calls) == len(counts)
+    assert sum(c[0] == "stop_acquisition" for c in calls) == len(starts)
+    assert not any(c[0] == "snap" for c in calls)
+
+
+def test_a_stop_inside_a_camera_sequence_keeps_the_frames_read_and_ends_the_sequence(lab, tmp_path, monkeypatch):
+    """A sequence interrupted after its first frame: that frame is committed, the camera's
+    acquisition is stopped, and --resume takes the rest."""
+    import fluxcli.stages.capture as stage
+
+    cfg = _rig_config("andor_sdk3")
+    path = tmp_path / "cfg.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    taken = []
+    real = stage.acquire
+
+    def stop_after_three(*a, **kw):
+        on_frame = kw.get("on_frame", lambda fr: None)
+        kw.update(stop_requested=lambda: len(taken) >= 3, on_frame=lambda fr: (taken.append(fr), on_frame(fr)))
+        return real(*a, **kw)
+
+    monkeypatch.setattr(stage, "acquire", stop_after_three)
+    r = CliRunner().invoke(app, ["capture-surface", str(path), "--quiet"])
+    monkeypatch.setattr(stage, "acquire", real)
+    assert r.exit_code == 130, r.output
+    with h5py.File(tmp_path / "run" / "capture.h5", "r") as f:
+        committed = f["frames/committed"][()]
+    assert committed.sum() == 3 and committed[:3].all()  # the 2nd sequence stopped after its 1st frame
+    calls = [c[1:] for c in lab.calls]
+    assert sum(c[0] == "start_acquisition" for c in calls) == sum(c[0] == "stop_acquisition" for c in calls) == 2
+    r = CliRunner().invoke(app, ["capture-surface", str(path), "--quiet", "--resume"])
+    assert r.exit_code == 0, r.output
+    with h5py.File(tmp_path / "run" / "capture.h5", "r") as f:
+        assert f["frames/committed"][()].all()
 
 
 def test_capture_surface_exits_2_naming_the_camera(lab, tmp_path):

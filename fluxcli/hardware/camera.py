@@ -84,6 +84,14 @@ class Camera(ABC):
         """``n`` frames in a row: ``uint16`` counts ``[n, ny, nx]``."""
         return np.stack([self.snap() for _ in range(int(n))]) if n > 0 else np.zeros((0, *self.shape), np.uint16)
 
+    def frames(self, n: int):
+        """``n`` frames in a row, handed over one at a time as each is read out (``uint16``
+        ``[ny, nx]``), so the caller can commit each before the next and stop between any two.
+        Closing the generator early ends the sequence.  The default takes them one ``snap`` at a
+        time; a camera that streams a sequence in hardware overrides it."""
+        for _ in range(int(n)):
+            yield self.snap()
+
     def set_frame_index(self, index: int) -> None:
         """The plan index of the next frame.  Simulated cameras key their noise on it (so a
         resumed run repeats the same frames); real cameras ignore it."""

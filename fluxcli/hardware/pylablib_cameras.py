@@ -232,6 +232,26 @@ class PylablibCamera(Camera):
             raise self._error(f"a sequence of {n} frames returned {len(frames)}")
         return np.stack(frames)
 
+    def frames(self, n: int):
+        """A hardware sequence of ``n`` frames (pylablib's ``sequence`` acquisition, a ring buffer of
+        ``n``), each handed over as it is read out; closing early stops the acquisition."""
+        n = int(n)
+        if n <= 0:
+            return
+        t = self._timeout_s()
+        self._call(f"starting a sequence of {n} frames", self._cam.start_acquisition, mode="sequence", nframes=n)
+        try:
+            for i in range(n):
+                self._call(f"waiting for frame {i + 1} of a sequence of {n} (up to {t:g} s)",
+                           self._cam.wait_for_frame, since="lastread", nframes=1, timeout=t)
+                yield self._frame(self._call(f"reading frame {i + 1} of a sequence of {n}",
+                                             self._cam.read_oldest_image))
+        finally:
+            try:
+                self._cam.stop_acquisition()
+            except self._errors():  # stopping must not mask the error that led here
+                pass
+
     def close(self) -> None:
         cam, self._cam = self._cam, None
         if cam is not None:
