@@ -105,6 +105,26 @@ class Sensor(Model):
     bit_depth: int = Field(16, ge=8, le=16, description="ADC bit depth; counts saturate at 2**bit_depth - 1.")
 
 
+class CameraUncertainty(Model):
+    """1 sd of the calibrated camera (what ``calibrate`` writes as camera.yaml's ``camera.uncertainty``);
+    reconstruct carries it into the sigma of every total (reconstruct.calibration_budget)."""
+
+    focal_length_mm: float | None = Field(None, ge=0, description="1 sd of lens.focal_length_mm (mm).")
+    focus_distance_mm: float | None = Field(None, ge=0, description="1 sd of lens.focus_distance_mm (mm).")
+    aperture_diameter_mm: float | None = Field(None, ge=0, description="1 sd of the lens aperture diameter 2R (mm).")
+    lens_center_mm: tuple[float, float, float] | None = Field(
+        None, description="1 sd of pose.lens_center_mm along world x, y, z (mm), each >= 0.")
+    look_deg: float | None = Field(None, ge=0, description="1 sd of the optical axis direction, per tilt axis (degrees).")
+    gain_relative: float | None = Field(None, ge=0, description="Relative 1 sd of the photons per count (radiometric gain, QE included; e.g. 0.02).")
+
+    @field_validator("lens_center_mm")
+    @classmethod
+    def _nonneg(cls, v):
+        if v is not None and min(v) < 0:
+            raise ValueError("lens_center_mm: each 1 sd must be >= 0")
+        return v
+
+
 class Camera(Model):
     pixels: tuple[int, int] = Field(description="Sensor size [nx, ny] in (binned) pixels: columns, rows.")
     pixel_pitch_mm: float = Field(gt=0, description="(Binned) pixel pitch on the detector (mm).")
@@ -112,6 +132,7 @@ class Camera(Model):
     pose: CameraPose | None = Field(None, description="Where the camera is and where it looks (required by every stage but calibrate).")
     apertures: tuple[Aperture, ...] = Field((), description="Extra circular apertures in front of the lens (the beta term).")
     sensor: Sensor = Field(Sensor(), description="Detector model used to turn photons into counts.")
+    uncertainty: CameraUncertainty | None = Field(None, description="1 sd of the calibrated values (calibrate writes it); reconstruct propagates it into every total's sigma.")
 
     @field_validator("pixels")
     @classmethod
@@ -128,6 +149,8 @@ class Mirror(Model):
     axis: Vec3 = Field(description="Direction of the first side of the rectangle (in the mirror plane).")
     size_mm: tuple[float, float] = Field(description="[along axis, along normal x axis] (mm).")
     reflectance: float = Field(1.0, gt=0, le=1, description="Mirror reflectance rho.")
+    normal_sigma_deg: float | None = Field(None, ge=0, description="1 sd of the normal's direction, per tilt axis (degrees; calibrate's), for reconstruct's calibration budget.")
+    offset_sigma_mm: float | None = Field(None, ge=0, description="1 sd of the mirror plane's position along its normal (mm), for reconstruct's calibration budget.")
     scale: float = Field(1.0, gt=0, description="Per-view scale s (filter angular transmission heuristic).")
 
     @model_validator(mode="after")
@@ -622,6 +645,7 @@ class Reconstruct(Model):
     repeat: int = Field(0, ge=0, description="Which noise repeat of the simulation to reconstruct.")
     noiseless: bool = Field(False, description="Reconstruct the simulation's noiseless images.")
     joint: bool = Field(True, description="Also reconstruct all poses jointly onto one surface.")
+    calibration_budget: bool = Field(True, description="With system.camera.uncertainty (or mirrors' sigma): rebuild T once per calibrated parameter moved by +1 sd and re-solve at the same lambda, to give every total its calibration sigma (one T build per parameter and pose; false skips it).")
     read_noise_photons: float = Field(0.0, ge=0, description="Added to the shot-noise variance in weights (photons rms).")
     noise: Literal["auto", "gaussian", "poisson", "emccd"] = Field(
         "auto", description="Noise model of the images for weights, sigma and chi^2 (auto: the simulation's; emccd for "

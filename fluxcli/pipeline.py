@@ -117,6 +117,11 @@ def geometry_of(cfg: LoadedConfig, surface_sha256: str | None = None) -> dict:
     m = cfg.model
     g = {"system": m.system.model_dump(mode="json") if m.system is not None else None,
          "subject": m.subject.model_dump(mode="json") if m.subject is not None else None}
+    if g["system"] is not None:  # a calibration's 1 sd is not the set-up (reconstruct's error budget reads it)
+        g["system"]["camera"].pop("uncertainty", None)
+        for mirror in g["system"].get("mirrors") or ():
+            mirror.pop("normal_sigma_deg", None)
+            mirror.pop("offset_sigma_mm", None)
     if g["subject"] is not None:  # Lambertian (absent or explicit): the digest of before emission profiles
         em = g["subject"].pop("emission", None)
         if em is not None and em.get("model") != "lambertian":

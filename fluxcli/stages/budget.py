@@ -1,0 +1,303 @@
+"""reconstruct's error budget: every total's σ from photon noise, regularisation and calibration.
+
+reconstruct calls :func:`error_budget` once after its solves and :func:`write` once inside
+reconstruction.h5 (``/budget``).  The science is :mod:`fluxcli.quantify.budget`.
+
+Photon noise is measured on every run (from each solve's covariance, while it is alive:
+:class:`TotalMeter`).  Regularisation and calibration need more solves and, for the
+calibration, one T build per calibrated parameter (and pose): they run only when the
+config states the camera's 1 σ (``system.camera.uncertainty``, what calibrate writes) or
+a mirror's (``normal_sigma_deg``, ``offset_sigma_mm``), and ``reconstruct.calibration_budget``
+is not false.  The count of T builds is printed before they start.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field, replace
+
+import h5py
+import numpy as np
+import scipy.sparse as sp
+
+from .. import config as C
+from ..quantify import budget as Q
+
+
+# ------------------------------------------------------------------ photon noise, on every run
+class TotalMeter:
+    """σ of each solve's total under the images' noise, measured while its covariance lives."""
+
+    def __init__(self):
+        self.sigma: dict[str, float] = {}
+
+    def __bool__(self) -> bool:
+        return True
+
+    def measure(self, label: str, height_mm, rotation_deg, res) -> None:
+        self.sigma[label] = Q.total_sigma_noise(res)
+
+
+class Both:
+    """Two meters where reconstruct takes one (its ROI meter, and the totals' meter)."""
+
+    def __init__(self, *meters):
+        self.meters = [m for m in meters if m]
+
+    def __bool__(self) -> bool:
+        return bool(self.meters)
+
+    def measure(self, *args) -> None:
+        for m in self.meters:
+            m.measure(*args)
+
+
+# ------------------------------------------------------------------ the calibration's parameters
+def _rotate(v, axis, angle_deg: float) -> tuple[float, float, float]:
+    """``v`` rotated by ``angle_deg`` about the unit ``axis`` (Rodrigues)."""
+    v, k = np.asarray(v, float), np.asarray(axis, float) / np.linalg.norm(axis)
+    a = math.radians(angle_deg)
+    out = v * math.cos(a) + np.cross(k, v) * math.sin(a) + k * (k @ v) * (1 - math.cos(a))
+    return tuple(float(x) for x in out)
+
+
+def _with_camera(system: C.System, **parts) -> C.System:
+    cam = system.camera
+    return system.model_copy(update={"camera": cam.model_copy(update=parts)})
+
+
+def _lens(cam: C.Camera, **update) -> C.Lens:
+    """The lens with ``update``; the aperture held as a diameter (so that moving f keeps it)."""
+    lens = cam.lens
+    base = {"aperture_diameter_mm": 2 * lens.aperture_radius_mm, "f_number": None}
+    return lens.model_copy(update=base | update)
+
+
+def parameters(system: C.System) -> list[tuple[str, float, str, C.System]]:
+    """Every calibrated parameter with a stated 1 σ, as (name, σ, unit, the system with it moved
+    by +1 σ).  The optical axis and each mirror normal are tilted about two perpendicular axes."""
+    cam = system.camera
+    unc = cam.uncertainty
+    out = []
+    if unc is not None:
+        pose, lens = cam.pose, cam.lens
+        if unc.lens_center_mm is not None:
+            for i, ax in enumerate("xyz"):
+                s = unc.lens_center_mm[i]
+                if s > 0:
+                    c = list(pose.lens_center_mm)
+                    c[i] += s
+                    out.append((f"lens_center_mm.{ax}", s, "mm",
+                                _with_camera(system, pose=pose.model_copy(update={"lens_center_mm": tuple(c)}))))
+        if unc.look_deg:
+            look = np.asarray(pose.look, float) / np.linalg.norm(pose.look)
+            up = np.asarray(pose.up, float)
+            right = np.cross(look, up)
+            up_perp = np.cross(right, look)
+            for name, axis in (("look_deg.pan", up_perp), ("look_deg.tilt", right)):
+                out.append((name, unc.look_deg, "deg", _with_camera(system, pose=pose.model_copy(update={
+                    "look": _rotate(look, axis, unc.look_deg), "up": _rotate(up, axis, unc.look_deg)}))))
+        for key, unit in (("focal_length_mm", "mm"), ("focus_distance_mm", "mm"), ("aperture_diameter_mm", "mm")):
+            s = getattr(unc, key)
+            if s:
+                now = 2 * lens.aperture_radius_mm if key == "aperture_diameter_mm" else getattr(lens, key)
+                out.append((key, s, unit, _with_camera(system, lens=_lens(cam, **{key: now + s}))))
+    for k, m in enumerate(system.mirrors):
+        name = m.name or f"mirror{k}"
+        n = np.asarray(m.normal, float) / np.linalg.norm(m.normal)
+        if m.offset_sigma_mm:
+            moved = m.model_copy(update={"center_mm": tuple(float(x) for x in np.asarray(m.center_mm) + m.offset_sigma_mm * n)})
+            out.append((f"mirror {name} offset_mm", m.offset_sigma_mm, "mm", _with_mirror(system, k, moved)))
+        if m.normal_sigma_deg:
+            u = np.asarray(m.axis, float) / np.linalg.norm(m.axis)
+            v = np.cross(n, u)
+            for label, ax in (("about its axis", u), ("across its axis", v)):
+                moved = m.model_copy(update={"normal": _rotate(n, ax, m.normal_sigma_deg),
+                                             "axis": _rotate(u, ax, m.normal_sigma_deg)})
+                out.append((f"mirror {name} normal_deg {label}", m.normal_sigma_deg, "deg", _with_mirror(system, k, moved)))
+    return out
+
+
+def _with_mirror(system: C.System, k: int, mirror: C.Mirror) -> C.System:
+    mirrors = list(system.mirrors)
+    mirrors[k] = mirror
+    return system.model_copy(update={"mirrors": tuple(mirrors)})
+
+
+def gain_relative(system: C.System) -> float | None:
+    unc = system.camera.uncertainty
+    return unc.gain_relative if unc is not None else None
+
+
+def wanted(cfg: C.LoadedConfig) -> bool:
+    """Whether reconstruct computes the regularisation and calibration parts."""
+    s = cfg.model.system
+    return bool(cfg.model.reconstruct.calibration_budget and (s.camera.uncertainty is not None or any(
+        m.normal_sigma_deg or m.offset_sigma_mm for m in s.mirrors)))
+
+
+# ------------------------------------------------------------------ the budget
+@dataclass
+class Budget:
+    totals: list  # [Q.TotalBudget] per pose, then joint
+    shifts: list  # [Q.Shift] per pose
+    parameters: list = field(default_factory=list)  # [(name, sigma, unit)]
+    gain_relative: float | None = None
+    t_builds: int = 0
+    exposure_s: float | None = None
+
+    def lines(self) -> list[str]:
+        """Console lines: every total ± σ with the parts."""
+        t = self.exposure_s
+        rate, unit = (1.0 / t, "photons/s") if t else (1.0, "photons per exposure")
+        out = []
+        for b in self.totals:
+            parts = [f"photon noise {b.sigma_noise * rate:.2g}"]
+            if np.isfinite(b.sigma_regularisation):
+                parts.append(f"regularisation {b.sigma_regularisation * rate:.2g}")
+            if np.isfinite(b.sigma_calibration):
+                parts.append(f"calibration {b.sigma_calibration * rate:.2g}")
+            else:
+                parts.append("calibration not given (system.camera.uncertainty)")
+            out.append(f"error budget, {b.label}: {b.total * rate:.4g} ± {b.sigma * rate:.2g} {unit} (1 sd; "
+                       + ", ".join(parts) + ")")
+        if self.parameters:
+            big = max(self.totals, key=lambda b: b.sigma_calibration if np.isfinite(b.sigma_calibration) else -1)
+            top = sorted(big.deltas.items(), key=lambda kv: -abs(kv[1]))[:3]
+            out.append(f"calibration: {len(self.parameters)} parameter(s) moved by +1 sd ({self.t_builds} T builds)"
+                       + (f", gain {self.gain_relative:.1%}" if self.gain_relative else "")
+                       + f"; largest in {big.label}: " + ", ".join(
+                           f"{k} {v / big.total:+.1%}" if big.total else f"{k} {v:.3g}" for k, v in top))
+        return out
+
+
+def noise_only(meter: TotalMeter, per_pose, joint, labels: list[str], exposure_s) -> Budget:
+    """The budget of a run without the calibration's σ: photon noise alone."""
+    totals = [Q.TotalBudget(f"pose {lab}", float(np.nansum(r.power)), sigma_noise=meter.sigma.get(str(k + 1), np.nan))
+              for k, ((r, _), lab) in enumerate(zip(per_pose, labels))]
+    if joint is not None:
+        totals.append(Q.TotalBudget("all poses jointly", float(np.nansum(joint.power)),
+                                    sigma_noise=meter.sigma.get("joint", np.nan)))
+    return Budget(totals, [], exposure_s=exposure_s)
+
+
+def shifts(per_pose, inp, noise) -> list:
+    """The shift test on each pose's fit (measured, fitted, valid, the noise model's variance)."""
+    out = []
+    for k, (r, fitted) in enumerate(per_pose):
+        var = noise.variance(np.where(np.isfinite(fitted), np.maximum(fitted, 0.0), 0.0))
+        out.append(Q.image_shift(inp.images[k], fitted, inp.valid[k], var))
+    return out
+
+
+def with_shift_warnings(per_pose, shifts_: list, labels: list[str]):
+    """Each pose's result with the shift warning added to its warnings (where the test fires)."""
+    out = []
+    for (r, fitted), s, lab in zip(per_pose, shifts_, labels):
+        w = Q.shift_warning(lab, s, r.chi2_per_pixel)
+        out.append((replace(r, warnings=tuple(r.warnings) + (w,)) if w else r, fitted))
+    return out
+
+
+def error_budget(cfg: C.LoadedConfig, ctx, surface, m: C.MethodSettings, gm, inp, noise, per_pose, joint, todo,
+                 scale: float, meter: TotalMeter, exposure_s) -> Budget:
+    """The budget of every total: photon noise always; with the calibration's σ given, the
+    regularisation (λ halved and doubled) and the calibration (one T per parameter at +1 σ,
+    each pose solved again at its own λ)."""
+    from .reconstruct import make_grid, run_method
+
+    labels = [pt.pose.label for _, pt in todo]
+    b = noise_only(meter, per_pose, joint, labels, exposure_s)
+    b.shifts = shifts(per_pose, inp, noise)
+    if not wanted(cfg):
+        return b
+    params = parameters(cfg.model.system)
+    b.parameters = [(n, s, u) for n, s, u, _ in params]
+    b.gain_relative = gain_relative(cfg.model.system)
+    b.t_builds = len(params) * len(todo)
+    ctx.say(f"error budget: {len(params)} calibrated parameter(s) moved by +1 sd: {b.t_builds} T builds "
+            f"({len(params)} x {len(todo)} pose(s)), then each pose solved again at its lambda"
+            + (" (the T cache keeps them for the next run)" if params else ""))
+    P = len(todo)
+    results = [r for r, _ in per_pose] + ([joint] if joint is not None else [])
+
+    def solve(Ts, parts_k, k, lam):  # k: pose, or None for joint
+        mk = m.model_copy(update={"lam": float(lam)}) if lam is not None and m.method != "mlem" else m
+        if k is None:
+            T, a, valid = sp.vstack(Ts).tocsr(), inp.images, inp.valid
+        else:
+            T, a, valid = Ts[k], inp.images[k], inp.valid[k]
+        res, _ = run_method(T, a, valid, mk, noise, gm.adjacency, parts_k, gm.n_elements, gm.areas)
+        return float(np.nansum(res.power)) / scale
+
+    def each(Ts, parts_of, lam_factor=1.0):
+        out = []
+        for i, r in enumerate(results):
+            k = i if i < P else None
+            lam = None if r.lam is None else r.lam * lam_factor
+            out.append(solve(Ts, parts_of(k), k, lam))
+        return out
+
+    quiet = replace(ctx, quiet=True)
+    with ctx.progress_steps("error budget", 3 + len(params)) as step:
+        step("lambda as used")
+        base = each(gm.Ts, gm.parts, 1.0)
+        step("lambda halved", advance=True)
+        half = each(gm.Ts, gm.parts, 0.5)
+        step("lambda doubled", advance=True)
+        double = each(gm.Ts, gm.parts, 2.0)
+        deltas = [dict() for _ in results]
+        for name, _, _, system in params:
+            step(f"T with {name} + 1 sd", advance=True)
+            cfg_i = C.LoadedConfig(cfg.model.model_copy(update={"system": system}), cfg.path, cfg.raw)
+            g = make_grid(cfg_i, quiet, surface, m.unknowns)
+            moved = each(g.Ts, g.parts, 1.0)
+            for d, t0, t1 in zip(deltas, base, moved):
+                d[name] = t1 - t0
+        step("done", advance=True)
+    for tb, t0, th, td, d in zip(b.totals, base, half, double, deltas):
+        reg = Q.regularisation_sigma(t0, th, td)
+        tb.sigma_regularisation = reg
+        tb.deltas = d
+        tb.sigma_gain = tb.total * (b.gain_relative or 0.0)
+        tb.sigma_calibration = Q.calibration_sigma(tb.total, list(d.values()), b.gain_relative)
+    return b
+
+
+def write(g: h5py.Group, b: Budget) -> None:
+    """``/budget`` of reconstruction.h5: per total (poses, then joint) its σ by cause."""
+    g.attrs["meaning"] = ("1 sd of each total (photons per exposure) by cause: photon noise sqrt(w'Cw); "
+                          "regularisation max |t(lambda/2) - t|, |t(2 lambda) - t|; calibration sqrt(sum_i delta_i^2 "
+                          "+ (t gain_relative)^2) with delta_i the total's change when T is rebuilt with parameter i "
+                          "moved by +1 sd (same lambda); sigma = the three in quadrature (NaN: not computed)")
+    g.attrs["labels"] = json.dumps([t.label for t in b.totals])
+    g.attrs["t_builds"] = b.t_builds
+    g.attrs["gain_relative"] = b.gain_relative if b.gain_relative is not None else np.nan
+    g.attrs["parameters"] = json.dumps([{"name": n, "sigma": s, "unit": u} for n, s, u in b.parameters])
+    for key in ("total", "sigma_noise", "sigma_regularisation", "sigma_calibration", "sigma"):
+        g.create_dataset(key, data=np.array([getattr(t, key) for t in b.totals], float)).attrs["unit"] = "photons"
+    if b.parameters:
+        g.create_dataset("deltas", data=np.array([[t.deltas.get(n, np.nan) for n, _, _ in b.parameters]
+                                                  for t in b.totals], float)).attrs["layout"] = "deltas[total, parameter] photons"
+    if b.shifts:
+        g.create_dataset("shift_px", data=np.array([[s.dx_px, s.dy_px] for s in b.shifts], float)).attrs["meaning"] = \
+            "per pose: the shift (x, y pixels) of the fitted image that best explains the residual"
+        g.create_dataset("shift_z", data=np.array([s.z for s in b.shifts], float)).attrs["meaning"] = \
+            f"per pose: |shift| in units of its standard error; warned above {Q.SHIFT_Z:g} (and {Q.SHIFT_MIN_PX:g} px)"
+
+
+def read(f) -> dict | None:
+    """``/budget`` as plain lists (None when the file has none)."""
+    if "budget" not in f:
+        return None
+    g = f["budget"]
+    out = {"labels": json.loads(g.attrs["labels"]), "t_builds": int(g.attrs.get("t_builds", 0)),
+           "parameters": json.loads(g.attrs.get("parameters", "[]")),
+           "gain_relative": float(g.attrs.get("gain_relative", np.nan))}
+    for key in ("total", "sigma_noise", "sigma_regularisation", "sigma_calibration", "sigma"):
+        out[key] = g[key][()].tolist()
+    if "shift_z" in g:
+        out["shift_z"] = g["shift_z"][()].tolist()
+        out["shift_px"] = g["shift_px"][()].tolist()
+    return out
