@@ -122,7 +122,7 @@ def _budget_run(tiny, tmp_path, uncertainty):
     r = CliRunner().invoke(app, ["reconstruct", str(p), "--force"])
     assert r.exit_code == 0, r.output
     with h5py.File(d / "run" / "reconstruction.h5") as f:
-        return B.read(f), r.output, cfg
+        return Q.read_group(f["budget"]), r.output, cfg
 
 
 def test_aperture_sigma_moves_the_total_as_the_collected_light(tiny_run, tmp_path):

@@ -25,6 +25,7 @@ Arrays and numbers only: the stage that rebuilds T is :mod:`fluxcli.stages.budge
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -116,6 +117,8 @@ def image_shift(measured: np.ndarray, fitted: np.ndarray, valid: np.ndarray, var
     """
     m = np.asarray(measured, float)
     f = np.asarray(fitted, float)
+    if min(f.shape) < 3:  # a line detector: no image to shift across its rows (not tested)
+        return Shift(np.nan, np.nan, (np.nan, np.nan), np.nan, 0)
     ok = np.asarray(valid, bool) & np.isfinite(m) & np.isfinite(f) & (f >= 1.0) & (np.asarray(variance) > 0)
     f0 = np.where(np.isfinite(f), f, 0.0)
     gy, gx = np.gradient(f0)
@@ -150,3 +153,16 @@ def shift_warning(label: str, shift: Shift, chi2_per_pixel: float) -> str | None
             f"(x, y; {shift.z:.0f} times its standard error) although chi^2/pixel is {chi2_per_pixel:.3g}: the "
             "camera or a mirror is likely a calibration error away from where the config puts it (check "
             "system.camera.pose, system.mirrors, or calibrate again); the total may be off by more than its sigma")
+
+
+def read_group(g) -> dict:
+    """``/budget`` of reconstruction.h5 as plain lists (photons per exposure; NaN: not computed)."""
+    out = {"labels": json.loads(g.attrs["labels"]), "t_builds": int(g.attrs.get("t_builds", 0)),
+           "parameters": json.loads(g.attrs.get("parameters", "[]")),
+           "gain_relative": float(g.attrs.get("gain_relative", np.nan))}
+    for key in ("total", "sigma_noise", "sigma_regularisation", "sigma_calibration", "sigma"):
+        out[key] = np.asarray(g[key][()], float).tolist()
+    if "shift_z" in g:
+        out["shift_z"] = g["shift_z"][()].tolist()
+        out["shift_px"] = g["shift_px"][()].tolist()
+    return out

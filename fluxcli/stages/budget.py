@@ -285,19 +285,3 @@ def write(g: h5py.Group, b: Budget) -> None:
             "per pose: the shift (x, y pixels) of the fitted image that best explains the residual"
         g.create_dataset("shift_z", data=np.array([s.z for s in b.shifts], float)).attrs["meaning"] = \
             f"per pose: |shift| in units of its standard error; warned above {Q.SHIFT_Z:g} (and {Q.SHIFT_MIN_PX:g} px)"
-
-
-def read(f) -> dict | None:
-    """``/budget`` as plain lists (None when the file has none)."""
-    if "budget" not in f:
-        return None
-    g = f["budget"]
-    out = {"labels": json.loads(g.attrs["labels"]), "t_builds": int(g.attrs.get("t_builds", 0)),
-           "parameters": json.loads(g.attrs.get("parameters", "[]")),
-           "gain_relative": float(g.attrs.get("gain_relative", np.nan))}
-    for key in ("total", "sigma_noise", "sigma_regularisation", "sigma_calibration", "sigma"):
-        out[key] = g[key][()].tolist()
-    if "shift_z" in g:
-        out["shift_z"] = g["shift_z"][()].tolist()
-        out["shift_px"] = g["shift_px"][()].tolist()
-    return out
