@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import _numba_cache
 from . import artefacts as A
 from .artefacts import transfer as AT
 from .config import LoadedConfig, Sensor, Transfer
@@ -530,6 +531,8 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
                 ctx.warn(f"the cached T of pose {p.pose.label} is unreadable and is rebuilt: {why}")
         need.append((s, p))
     prov = provenance(cfg, placer.surface.digest())
+    if need and not _numba_cache.kernels_compiled():  # the first build after an install: say why it waits
+        ctx.say(_numba_cache.COMPILING)
     cluster = getattr(ctx, "client", None)  # --scheduler: a Dask cluster builds the poses
     # one bar over the poses, advanced after every batch of rays in every worker (with an ETA)
     # processes x threads <= cores locally; on a cluster one thread per task (a worker thread is a core)
