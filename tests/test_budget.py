@@ -149,4 +149,4 @@ def test_without_uncertainty_only_photon_noise_and_no_t_builds(tiny_run, tmp_pat
     assert b["t_builds"] == 0 and b["parameters"] == []
     assert all(np.isnan(b["sigma_calibration"])) and all(np.isnan(b["sigma_regularisation"]))
     assert all(s > 0 for s in b["sigma_noise"])  # every total carries its photon-noise sigma
-    assert "calibration not given" in out
+    assert "system.camera.uncertainty not given" in out and "photon noise only" in out

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from dataclasses import dataclass, field, replace
 
 import h5py
@@ -26,17 +27,32 @@ from ..quantify import budget as Q
 
 
 # ------------------------------------------------------------------ photon noise, on every run
-class TotalMeter:
-    """σ of each solve's total under the images' noise, measured while its covariance lives."""
+SLOW_SOLVE_S = 5.0  # a solve that took longer says so when it ends (what a long reconstruct is doing)
 
-    def __init__(self):
+
+class TotalMeter:
+    """σ of each solve's total under the images' noise, measured while its covariance lives;
+    with ``ctx``, a line after each solve once the solves have taken more than SLOW_SOLVE_S
+    (which solve of how many, how long, the time left at that pace)."""
+
+    def __init__(self, ctx=None, n_solves: int = 0):
         self.sigma: dict[str, float] = {}
+        self.ctx, self.n = ctx, n_solves
+        self.t0 = self.last = time.perf_counter()
 
     def __bool__(self) -> bool:
         return True
 
     def measure(self, label: str, height_mm, rotation_deg, res) -> None:
         self.sigma[label] = Q.total_sigma_noise(res)
+        now = time.perf_counter()
+        done = len(self.sigma)
+        if self.ctx is not None and now - self.t0 > SLOW_SOLVE_S:
+            left = (now - self.t0) / done * (self.n - done) if self.n > done else 0.0
+            what = "all poses jointly" if label == "joint" else f"pose {label}"
+            self.ctx.say(f"reconstruct: solved {what} ({done} of {self.n}) in {now - self.last:.0f} s"
+                         + (f"; about {left:.0f} s to go" if left > 0 else ""))
+        self.last = now
 
 
 class Both:
@@ -158,10 +174,11 @@ class Budget:
                 parts.append(f"regularisation {b.sigma_regularisation * rate:.2g}")
             if np.isfinite(b.sigma_calibration):
                 parts.append(f"calibration {b.sigma_calibration * rate:.2g}")
-            else:
-                parts.append("calibration not given (system.camera.uncertainty)")
-            out.append(f"error budget, {b.label}: {b.total * rate:.4g} ± {b.sigma * rate:.2g} {unit} (1 sd; "
-                       + ", ".join(parts) + ")")
+            out.append(f"error budget, {b.label}: {b.total * rate:.4g} ± {b.sigma * rate:.2g} {unit} over observed "
+                       "elements (1 sd: " + ", ".join(parts) + ")")
+        if not self.parameters and self.gain_relative is None:
+            out.append("error budget: photon noise only; the calibration's error and the regularisation's are not "
+                       "included (system.camera.uncertainty not given: calibrate writes it)")
         if self.parameters:
             big = max(self.totals, key=lambda b: b.sigma_calibration if np.isfinite(b.sigma_calibration) else -1)
             top = sorted(big.deltas.items(), key=lambda kv: -abs(kv[1]))[:3]

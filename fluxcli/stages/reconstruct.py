@@ -710,7 +710,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     scale = _transmission(cfg, main_filter)
     if inp.truth is not None and scale != 1.0:
         inp.truth = inp.truth / scale  # the truth through the filter, as the results: before it
-    totals = B.TotalMeter()  # each total's photon-noise sigma, while the covariance lives
+    totals = B.TotalMeter(ctx, P + int(rc.joint and P > 1))  # each total's photon-noise sigma; progress
     per_pose, joint = _solve_poses(gm, inp, m, noise, stray, todo, (ny, nx), rc.joint, B.Both(rois, totals), scale)
     others = {}  # filter -> (inputs, per pose, joint, ROI meter): one T per pose for every filter
     for name in filters[1:]:
