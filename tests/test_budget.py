@@ -108,7 +108,7 @@ def test_parameters_move_by_one_sigma_and_keep_the_rest():
 
 
 # ------------------------------------------------------------------ the budget in a run
-def _budget_run(tiny, tmp_path, uncertainty):
+def _budget_run(tiny, tmp_path, uncertainty, rois=None):
     src, cfg, _ = tiny
     d = tmp_path / "b"
     shutil.copytree(src, d)
@@ -117,6 +117,8 @@ def _budget_run(tiny, tmp_path, uncertainty):
     cfg["transfer"]["cache_dir"] = str(d / "cache")
     if uncertainty is not None:
         cfg["system"]["camera"]["uncertainty"] = uncertainty
+    if rois:
+        cfg["rois"] = rois
     p = d / "cfg.yaml"
     p.write_text(yaml.safe_dump(cfg))
     r = CliRunner().invoke(app, ["reconstruct", str(p), "--force"])
@@ -129,7 +131,8 @@ def test_aperture_sigma_moves_the_total_as_the_collected_light(tiny_run, tmp_pat
     """The light a thin lens collects from a distant point grows as its aperture's area: with the
     diameter 1 sd larger, the same images need a total smaller by D²/(D+δ)² (a closed form, not
     the code's)."""
-    b, out, cfg = _budget_run(tiny_run, tmp_path, {"aperture_diameter_mm": 0.1, "gain_relative": 0.02})
+    b, out, cfg = _budget_run(tiny_run, tmp_path, {"aperture_diameter_mm": 0.1, "gain_relative": 0.02},
+                              rois=[{"name": "top", "kind": "elements", "ids": list(range(12))}])
     lens = cfg["system"]["camera"]["lens"]
     D = lens["focal_length_mm"] / lens["f_number"]
     expected = D ** 2 / (D + 0.1) ** 2 - 1.0  # -3.1 %
@@ -142,6 +145,14 @@ def test_aperture_sigma_moves_the_total_as_the_collected_light(tiny_run, tmp_pat
         assert b["sigma_calibration"][k] == pytest.approx(np.hypot(delta, 0.02 * t), rel=1e-6)
         assert b["sigma"][k] >= max(b["sigma_noise"][k], b["sigma_calibration"][k])
     assert "error budget, all poses jointly" in out and "calibration" in out and "2 T builds" in out
+    # a region's total is scaled by the aperture as every element is: its calibration sigma by the same closed form
+    with h5py.File(tmp_path / "b" / "run" / "reconstruction.h5") as f:
+        roi_total = f["rois/total_photons_per_s"][0] * f["rois"].attrs["exposure_s"] if np.isfinite(
+            f["rois"].attrs["exposure_s"]) else f["rois/total_photons_per_s"][0]
+    assert b["rois"]["names"] == ["top"]
+    for k, t in enumerate(roi_total):
+        assert 0 < t < b["total"][k]  # a part of the subject
+        assert b["rois"]["sigma_calibration"][0][k] == pytest.approx(np.hypot(expected * t, 0.02 * t), rel=0.15)
 
 
 def test_without_uncertainty_only_photon_noise_and_no_t_builds(tiny_run, tmp_path):

@@ -162,6 +162,10 @@ def read_group(g) -> dict:
            "gain_relative": float(g.attrs.get("gain_relative", np.nan))}
     for key in ("total", "sigma_noise", "sigma_regularisation", "sigma_calibration", "sigma"):
         out[key] = np.asarray(g[key][()], float).tolist()
+    if "rois" in g:
+        out["rois"] = {"names": json.loads(g["rois"].attrs["names"]),
+                       "sigma_regularisation": g["rois/sigma_regularisation"][()].tolist(),
+                       "sigma_calibration": g["rois/sigma_calibration"][()].tolist()}
     if "shift_z" in g:
         out["shift_z"] = g["shift_z"][()].tolist()
         out["shift_px"] = g["shift_px"][()].tolist()

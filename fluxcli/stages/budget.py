@@ -162,6 +162,9 @@ class Budget:
     gain_relative: float | None = None
     t_builds: int = 0
     exposure_s: float | None = None
+    roi_names: list = field(default_factory=list)
+    roi_sigma_regularisation: np.ndarray | None = None  # (n_roi, n_totals) photons
+    roi_sigma_calibration: np.ndarray | None = None  # (n_roi, n_totals) photons
 
     def lines(self) -> list[str]:
         """Console lines: every total ± σ with the parts."""
@@ -218,10 +221,12 @@ def with_shift_warnings(per_pose, shifts_: list, labels: list[str]):
 
 
 def error_budget(cfg: C.LoadedConfig, ctx, surface, m: C.MethodSettings, gm, inp, noise, per_pose, joint, todo,
-                 scale: float, meter: TotalMeter, exposure_s) -> Budget:
+                 scale: float, meter: TotalMeter, exposure_s, rois=None) -> Budget:
     """The budget of every total: photon noise always; with the calibration's σ given, the
     regularisation (λ halved and doubled) and the calibration (one T per parameter at +1 σ,
-    each pose solved again at its own λ)."""
+    each pose solved again at its own λ).  With ``rois`` (the run's RoiMeter, which measured
+    each solve) every region's total gets its regularisation and calibration σ too, over the
+    region's members as measured on the solve as used."""
     from .reconstruct import make_grid, run_method
 
     labels = [pt.pose.label for _, pt in todo]
@@ -246,7 +251,7 @@ def error_budget(cfg: C.LoadedConfig, ctx, surface, m: C.MethodSettings, gm, inp
         else:
             T, a, valid = Ts[k], inp.images[k], inp.valid[k]
         res, _ = run_method(T, a, valid, mk, noise, gm.adjacency, parts_k, gm.n_elements, gm.areas)
-        return float(np.nansum(res.power)) / scale
+        return np.asarray(res.power, float) / scale
 
     def each(Ts, parts_of, lam_factor=1.0):
         out = []
@@ -264,21 +269,38 @@ def error_budget(cfg: C.LoadedConfig, ctx, surface, m: C.MethodSettings, gm, inp
         half = each(gm.Ts, gm.parts, 0.5)
         step("lambda doubled", advance=True)
         double = each(gm.Ts, gm.parts, 2.0)
-        deltas = [dict() for _ in results]
+        moved_all = []
         for name, _, _, system in params:
             step(f"T with {name} + 1 sd", advance=True)
             cfg_i = C.LoadedConfig(cfg.model.model_copy(update={"system": system}), cfg.path, cfg.raw)
             g = make_grid(cfg_i, quiet, surface, m.unknowns)
-            moved = each(g.Ts, g.parts, 1.0)
-            for d, t0, t1 in zip(deltas, base, moved):
-                d[name] = t1 - t0
+            moved_all.append(each(g.Ts, g.parts, 1.0))
         step("done", advance=True)
-    for tb, t0, th, td, d in zip(b.totals, base, half, double, deltas):
-        reg = Q.regularisation_sigma(t0, th, td)
-        tb.sigma_regularisation = reg
-        tb.deltas = d
-        tb.sigma_gain = tb.total * (b.gain_relative or 0.0)
-        tb.sigma_calibration = Q.calibration_sigma(tb.total, list(d.values()), b.gain_relative)
+    # the totals (each over its own observed elements), then each region's (over its members)
+    members = [np.ones((1, gm.n_elements), bool) for _ in results]
+    if rois and len(getattr(rois, "members", [])) == len(results):
+        members = [np.vstack([np.ones((1, gm.n_elements), bool), np.asarray(M, bool)]) for M in rois.members]
+        b.roi_names = [r.name for r in rois.regions]
+
+    def sums(power, i):  # (1 + n_roi,) photons: the total and each region's, unobserved elements left out
+        return np.where(members[i], np.nan_to_num(power, nan=0.0)[None, :], 0.0).sum(axis=1)
+
+    n_roi = len(b.roi_names)
+    roi_reg = np.full((n_roi, len(results)), np.nan)
+    roi_cal = np.full((n_roi, len(results)), np.nan)
+    for i, tb in enumerate(b.totals):
+        t0, th, td = sums(base[i], i), sums(half[i], i), sums(double[i], i)
+        d = np.array([sums(mv[i], i) - t0 for mv in moved_all]).reshape(len(params), -1)
+        reg = np.maximum(np.abs(th - t0), np.abs(td - t0))
+        g_rel = b.gain_relative or 0.0
+        cal = np.sqrt(np.sum(d ** 2, axis=0) + (np.r_[tb.total, t0[1:]] * g_rel) ** 2)
+        tb.sigma_regularisation = float(reg[0])
+        tb.deltas = {name: float(d[j, 0]) for j, (name, *_) in enumerate(params)}
+        tb.sigma_gain = tb.total * g_rel
+        tb.sigma_calibration = Q.calibration_sigma(tb.total, list(tb.deltas.values()), b.gain_relative)
+        roi_reg[:, i], roi_cal[:, i] = reg[1:], cal[1:]
+    if n_roi:
+        b.roi_sigma_regularisation, b.roi_sigma_calibration = roi_reg, roi_cal
     return b
 
 
@@ -297,6 +319,12 @@ def write(g: h5py.Group, b: Budget) -> None:
     if b.parameters:
         g.create_dataset("deltas", data=np.array([[t.deltas.get(n, np.nan) for n, _, _ in b.parameters]
                                                   for t in b.totals], float)).attrs["layout"] = "deltas[total, parameter] photons"
+    if b.roi_names:
+        r = g.create_group("rois")
+        r.attrs["names"] = json.dumps(b.roi_names)
+        r.attrs["layout"] = "[roi, total] in the order of /budget/labels (poses, then joint); photons per exposure"
+        r.create_dataset("sigma_regularisation", data=b.roi_sigma_regularisation).attrs["unit"] = "photons"
+        r.create_dataset("sigma_calibration", data=b.roi_sigma_calibration).attrs["unit"] = "photons"
     if b.shifts:
         g.create_dataset("shift_px", data=np.array([[s.dx_px, s.dy_px] for s in b.shifts], float)).attrs["meaning"] = \
             "per pose: the shift (x, y pixels) of the fitted image that best explains the residual"

@@ -725,7 +725,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         pp_f, joint_f = _solve_poses(gm, inp_f, m, noise_f, stray_f, todo, (ny, nx), rc.joint, meter, t_f)
         others[name] = (inp_f, pp_f, joint_f, meter)
     seconds = time.perf_counter() - t0
-    budget = B.error_budget(cfg, ctx, surface, m, gm, inp, noise, per_pose, joint, todo, scale, totals, roi_exposure_s(inp))
+    budget = B.error_budget(cfg, ctx, surface, m, gm, inp, noise, per_pose, joint, todo, scale, totals, roi_exposure_s(inp),
+                            rois)
     per_pose = B.with_shift_warnings(per_pose, budget.shifts, [pt.pose.label for _, pt in todo])
     main = joint if joint is not None else per_pose[0][0]
     areas = surface.element_areas_mm2

@@ -94,8 +94,15 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> None:
         for i, name in enumerate(rois["names"]):
             n = rois["numbers"]
             st = rois["status"][i, -1]
+            extra = ""
+            if budget is not None and "rois" in budget and name in budget["rois"]["names"]:
+                j = budget["rois"]["names"].index(name)
+                r_rate = 1.0 / rois["exposure_s"] if rois["exposure_s"] is not None else 1.0
+                cal = budget["rois"]["sigma_calibration"][j][-1] * r_rate
+                reg = budget["rois"]["sigma_regularisation"][j][-1] * r_rate
+                extra = f" (photon noise) ± {cal:.2g} (calibration) ± {reg:.2g} (regularisation)"
             ctx.say(f"ROI {name} ({rois['maps'][-1]}): " + (
-                f"{n['total_photons_per_s'][i, -1]:.4g} ± {n['sigma_photons_per_s'][i, -1]:.2g} {r_unit}, "
+                f"{n['total_photons_per_s'][i, -1]:.4g} ± {n['sigma_photons_per_s'][i, -1]:.2g}{extra} {r_unit}, "
                 f"{n['area_mm2'][i, -1]:.3g} mm², {n['observed_share'][i, -1]:.0%} observed")
                 + (f" — {st}" if st else ""))
         ctx.say(f"ROI numbers per pose: {cfg.workdir / 'rois.csv'}")
