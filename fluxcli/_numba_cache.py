@@ -78,5 +78,5 @@ def kernels_compiled() -> bool:
     return False
 
 
-COMPILING = ("compiling the ray-casting kernels (numba, once after an install: about half a minute; "
+COMPILING = ("compiling the ray-casting kernels (numba, once after an install: about 20 s of one core; "
              "later runs reuse them)")

@@ -531,7 +531,8 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
                 ctx.warn(f"the cached T of pose {p.pose.label} is unreadable and is rebuilt: {why}")
         need.append((s, p))
     prov = provenance(cfg, placer.surface.digest())
-    if need and not _numba_cache.kernels_compiled():  # the first build after an install: say why it waits
+    compiling = bool(need) and not _numba_cache.kernels_compiled()
+    if compiling:  # the first build after an install: say why it waits
         ctx.say(_numba_cache.COMPILING)
     cluster = getattr(ctx, "client", None)  # --scheduler: a Dask cluster builds the poses
     # one bar over the poses, advanced after every batch of rays in every worker (with an ETA)
@@ -541,8 +542,12 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
         check_shared(cache_dir(cfg), [p.path for _, p in need])
     else:
         threads = max(1, default_threads() // max(1, min(ctx.jobs, len(need))))
-        built = run_tasks(_build_and_store, [(s, views, tr, p.path, cfg.sha256, prov, threads) for s, p in need],
-                          label=label, jobs=ctx.jobs, quiet=ctx.quiet, pool=pool_for(None, temp_dirs=(cache_dir(cfg),)))
+        tasks = [(s, views, tr, p.path, cfg.sha256, prov, threads) for s, p in need]
+        built = []
+        if compiling and ctx.jobs > 1 and len(tasks) > 1:  # compile once, here; the workers then load the cache
+            built = run_tasks(_build_and_store, tasks[:1], label=f"{label} (compiling)", jobs=1, quiet=ctx.quiet)
+        built += run_tasks(_build_and_store, tasks[len(built):], label=label, jobs=ctx.jobs, quiet=ctx.quiet,
+                           pool=pool_for(None, temp_dirs=(cache_dir(cfg),)))
     results |= {p.key: r | {"cached": False} for (_, p), r in zip(need, built)}
     check_collection(todo, results, names, ctx)
     return views, placer, todo, results
