@@ -161,3 +161,35 @@ def test_without_uncertainty_only_photon_noise_and_no_t_builds(tiny_run, tmp_pat
     assert all(np.isnan(b["sigma_calibration"])) and all(np.isnan(b["sigma_regularisation"]))
     assert all(s > 0 for s in b["sigma_noise"])  # every total carries its photon-noise sigma
     assert "system.camera.uncertainty not given" in out and "photon noise only" in out
+
+
+# ------------------------------------------------------------------ one number per pose, each warning once
+def test_report_shows_reconstructs_chi2_and_each_warning_once(tiny_run, tmp_path):
+    import json
+
+    src, cfg, _ = tiny_run
+    d = tmp_path / "r"
+    shutil.copytree(src, d)
+    cfg = yaml.safe_load(yaml.safe_dump(cfg))
+    cfg["workdir"] = str(d / "run")
+    cfg["transfer"]["cache_dir"] = str(d / "cache")
+    p = d / "cfg.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    r = CliRunner().invoke(app, ["report", str(p), "--set", "report.surface_views=false"])
+    assert r.exit_code == 0, r.output
+    summary = json.loads((d / "run" / "report" / "summary.json").read_text())
+    with h5py.File(d / "run" / "reconstruction.h5") as f:
+        stored = f["per_pose/chi2_per_pixel"][()]
+        n_sigma = len(f["budget/sigma"][()])
+    assert [p_["chi2_per_pixel"] for p_ in summary["poses"]] == pytest.approx(stored.tolist())
+    page = (d / "run" / "report" / "index.html").read_text()
+    for w in summary["warnings"]:  # the page lists each warning once
+        assert page.count(_html(w)) == 1, w
+    assert len(summary["warnings"]) == len(set(summary["warnings"]))
+    assert "Error budget of each total" in page and len(summary["budget"]["sigma"]) == n_sigma
+
+
+def _html(text: str) -> str:
+    import html
+
+    return html.escape(text)

@@ -169,16 +169,16 @@ class Budget:
     def lines(self) -> list[str]:
         """Console lines: every total ± σ with the parts."""
         t = self.exposure_s
-        rate, unit = (1.0 / t, "photons/s") if t else (1.0, "photons per exposure")
         out = []
-        for b in self.totals:
-            parts = [f"photon noise {b.sigma_noise * rate:.2g}"]
+        for b in self.totals:  # photons, as the total lines above; the rate beside when the exposure is known
+            parts = [f"photon noise {b.sigma_noise:.2g}"]
             if np.isfinite(b.sigma_regularisation):
-                parts.append(f"regularisation {b.sigma_regularisation * rate:.2g}")
+                parts.append(f"regularisation {b.sigma_regularisation:.2g}")
             if np.isfinite(b.sigma_calibration):
-                parts.append(f"calibration {b.sigma_calibration * rate:.2g}")
-            out.append(f"error budget, {b.label}: {b.total * rate:.4g} ± {b.sigma * rate:.2g} {unit} over observed "
-                       "elements (1 sd: " + ", ".join(parts) + ")")
+                parts.append(f"calibration {b.sigma_calibration:.2g}")
+            rate = f" = {b.total / t:.4g} ± {b.sigma / t:.2g} photons/s" if t else ""
+            out.append(f"error budget, {b.label}: {b.total:.4g} ± {b.sigma:.2g} photons over observed elements{rate} "
+                       "(1 sd: " + ", ".join(parts) + ")")
         if not self.parameters and self.gain_relative is None:
             out.append("error budget: photon noise only; the calibration's error and the regularisation's are not "
                        "included (system.camera.uncertainty not given: calibrate writes it)")
@@ -239,8 +239,8 @@ def error_budget(cfg: C.LoadedConfig, ctx, surface, m: C.MethodSettings, gm, inp
     b.gain_relative = gain_relative(cfg.model.system)
     b.t_builds = len(params) * len(todo)
     ctx.say(f"error budget: {len(params)} calibrated parameter(s) moved by +1 sd: {b.t_builds} T builds "
-            f"({len(params)} x {len(todo)} pose(s)), then each pose solved again at its lambda"
-            + (" (the T cache keeps them for the next run)" if params else ""))
+            f"({len(params)} x {len(todo)} pose(s); the T cache keeps them, a rerun only solves), then each pose "
+            "and the joint set solved again at its lambda, and at lambda halved and doubled")
     P = len(todo)
     results = [r for r, _ in per_pose] + ([joint] if joint is not None else [])
 
