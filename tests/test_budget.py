@@ -108,13 +108,19 @@ def test_parameters_move_by_one_sigma_and_keep_the_rest():
 
 
 # ------------------------------------------------------------------ the budget in a run
-def _budget_run(tiny, tmp_path, uncertainty, rois=None):
+def _copied(tiny, d):
+    """The tiny run copied into ``d``: (its config dict, pointing at the copy)."""
     src, cfg, _ = tiny
-    d = tmp_path / "b"
     shutil.copytree(src, d)
     cfg = yaml.safe_load(yaml.safe_dump(cfg))
     cfg["workdir"] = str(d / "run")
     cfg["transfer"]["cache_dir"] = str(d / "cache")
+    return cfg
+
+
+def _budget_run(tiny, tmp_path, uncertainty, rois=None):
+    d = tmp_path / "b"
+    cfg = _copied(tiny, d)
     if uncertainty is not None:
         cfg["system"]["camera"]["uncertainty"] = uncertainty
     if rois:
@@ -167,12 +173,8 @@ def test_without_uncertainty_only_photon_noise_and_no_t_builds(tiny_run, tmp_pat
 def test_report_shows_reconstructs_chi2_and_each_warning_once(tiny_run, tmp_path):
     import json
 
-    src, cfg, _ = tiny_run
     d = tmp_path / "r"
-    shutil.copytree(src, d)
-    cfg = yaml.safe_load(yaml.safe_dump(cfg))
-    cfg["workdir"] = str(d / "run")
-    cfg["transfer"]["cache_dir"] = str(d / "cache")
+    cfg = _copied(tiny_run, d)
     p = d / "cfg.yaml"
     p.write_text(yaml.safe_dump(cfg))
     r = CliRunner().invoke(app, ["report", str(p), "--set", "report.surface_views=false"])
