@@ -9,9 +9,9 @@ regularisation, calibration) gives each total its σ.  Counted: draws whose trut
 2 σ of the total (target ≥ 90 %, 18 of 20).  Then the issue's case: the lens centre 10 mm
 (and 18 mm in z) off, [10, 0, 320] for [0, 0, 338], reconstructed without any σ: warned?
 
-    .venv/bin/python benchmarks/calibration_budget.py [--draws 20] [--out runs/bench-calibration]
+    make calibration-budget     (= .venv/bin/python benchmarks/calibration_budget.py --draws 20)
 
-About 5 min on 2 shared cores (the T for the calibrated camera and its +1 σ moves are built
+About 2 min on 2 shared cores (the T for the calibrated camera and its +1 σ moves are built
 once, in the shared cache; each draw builds its true camera's forward T and solves).
 """
 
