@@ -58,3 +58,25 @@ def configure() -> str:
                      f"({_PACKAGE}, {_user_cache()}, {tempfile.gettempdir()}); kernels are compiled "
                      "afresh each run (set NUMBA_CACHE_DIR to a writable folder to keep them)\n")
     return "off"
+
+
+KERNEL = "transfer_kernel.lens_columns"  # the ray-casting kernel every T build runs first
+
+
+def kernels_compiled() -> bool:
+    """Whether numba's cache already holds the ray-casting kernels (so that a T build will not
+    spend its first minute compiling them): the kernel's index file in the folder
+    :func:`configure` chose."""
+    folders = [Path(os.environ["NUMBA_CACHE_DIR"])] if os.environ.get("NUMBA_CACHE_DIR") else []
+    folders += [_PACKAGE / "optics" / "__pycache__", _user_cache()]
+    for folder in folders:
+        try:
+            if folder.is_dir() and next(folder.rglob(f"{KERNEL}-*.nbi"), None) is not None:
+                return True
+        except OSError:
+            continue
+    return False
+
+
+COMPILING = ("compiling the ray-casting kernels (numba, once after an install: about 20 s of one core; "
+             "later runs reuse them)")

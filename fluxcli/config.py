@@ -647,6 +647,7 @@ class Reconstruct(Model):
     repeat: int = Field(0, ge=0, description="Which noise repeat of the simulation to reconstruct.")
     noiseless: bool = Field(False, description="Reconstruct the simulation's noiseless images.")
     joint: bool = Field(True, description="Also reconstruct all poses jointly onto one surface.")
+    calibration_budget: bool = Field(True, description="With system.camera.uncertainty (or mirrors' sigma): rebuild T once per calibrated parameter moved by +1 sd and re-solve at the same lambda, to give every total its calibration sigma (one T build per parameter and pose; false skips it).")
     read_noise_photons: float = Field(0.0, ge=0, description="Added to the shot-noise variance in weights (photons rms).")
     noise: Literal["auto", "gaussian", "poisson", "emccd"] = Field(
         "auto", description="Noise model of the images for weights, sigma and chi^2 (auto: the simulation's; emccd for "

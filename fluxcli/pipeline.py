@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import _numba_cache
 from . import artefacts as A
 from .artefacts import transfer as AT
 from .config import LoadedConfig, Sensor, Transfer
@@ -117,6 +118,11 @@ def geometry_of(cfg: LoadedConfig, surface_sha256: str | None = None) -> dict:
     m = cfg.model
     g = {"system": m.system.model_dump(mode="json") if m.system is not None else None,
          "subject": m.subject.model_dump(mode="json") if m.subject is not None else None}
+    if g["system"] is not None:  # a calibration's 1 sd is not the set-up (reconstruct's error budget reads it)
+        g["system"]["camera"].pop("uncertainty", None)
+        for mirror in g["system"].get("mirrors") or ():
+            mirror.pop("normal_sigma_deg", None)
+            mirror.pop("offset_sigma_mm", None)
     if g["subject"] is not None:  # Lambertian (absent or explicit): the digest of before emission profiles
         em = g["subject"].pop("emission", None)
         if em is not None and em.get("model") != "lambertian":
@@ -525,6 +531,9 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
                 ctx.warn(f"the cached T of pose {p.pose.label} is unreadable and is rebuilt: {why}")
         need.append((s, p))
     prov = provenance(cfg, placer.surface.digest())
+    compiling = bool(need) and not _numba_cache.kernels_compiled()
+    if compiling:  # the first build after an install: say why it waits
+        ctx.say(_numba_cache.COMPILING)
     cluster = getattr(ctx, "client", None)  # --scheduler: a Dask cluster builds the poses
     # one bar over the poses, advanced after every batch of rays in every worker (with an ETA)
     # processes x threads <= cores locally; on a cluster one thread per task (a worker thread is a core)
@@ -533,8 +542,12 @@ def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: st
         check_shared(cache_dir(cfg), [p.path for _, p in need])
     else:
         threads = max(1, default_threads() // max(1, min(ctx.jobs, len(need))))
-        built = run_tasks(_build_and_store, [(s, views, tr, p.path, cfg.sha256, prov, threads) for s, p in need],
-                          label=label, jobs=ctx.jobs, quiet=ctx.quiet, pool=pool_for(None, temp_dirs=(cache_dir(cfg),)))
+        tasks = [(s, views, tr, p.path, cfg.sha256, prov, threads) for s, p in need]
+        built = []
+        if compiling and ctx.jobs > 1 and len(tasks) > 1:  # compile once, here; the workers then load the cache
+            built = run_tasks(_build_and_store, tasks[:1], label=f"{label} (compiling)", jobs=1, quiet=ctx.quiet)
+        built += run_tasks(_build_and_store, tasks[len(built):], label=label, jobs=ctx.jobs, quiet=ctx.quiet,
+                           pool=pool_for(None, temp_dirs=(cache_dir(cfg),)))
     results |= {p.key: r | {"cached": False} for (_, p), r in zip(need, built)}
     check_collection(todo, results, names, ctx)
     return views, placer, todo, results

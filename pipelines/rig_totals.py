@@ -47,8 +47,12 @@ def report(path: Path) -> tuple[float, bool]:
     with h5py.File(path, "r") as f:
         total = float(f["flux/total"][()])
         observed = f["flux/observed"][()].astype(bool)
+        # the error budget's 1 sd of the joint (or only) total: photon noise, and calibration where stated
+        joint = bool(f["flux"].attrs.get("joint_over_poses", False))
+        sigma = float(f["budget/sigma"][-1 if joint else 0]) if "budget" in f else float("nan")
     truth = truth_total(path)
-    print(f"{path}: reconstructed total {total:.4g} photons per exposure ({observed.mean():.0%} of the elements observed)")
+    sd = f" ± {sigma:.2g} (1 sd)" if sigma == sigma else ""
+    print(f"{path}: reconstructed total {total:.4g}{sd} photons per exposure ({observed.mean():.0%} of the elements observed)")
     if truth is None:
         print("  no simulated truth recorded (not a simulated camera)")
         return total, True

@@ -429,3 +429,22 @@ def test_a_real_rig_is_told_what_to_set_up_and_waits(monkeypatch):
     assert "grid flat on the stage" in said[0] and len(asked) == 1
     S._operator_prepare(ctx, confirm=False)("light")
     assert "even light" in said[-1] and len(asked) == 1
+
+
+def test_the_record_shows_the_sensor_as_the_frames_were_taken(reference, tmp_path):
+    """issue 26: the report's sensor row showed the config's em_gain (300, the schema default)
+    for frames read out at 100; it reads the gain the camera reported per frame."""
+    from fluxcli import config as C
+    from fluxcli.stages.outputs import sensor_row
+
+    cfg, ref_path = reference
+    cfg = copy.deepcopy(cfg)
+    cfg["workdir"] = str(ref_path.parent)
+    cfg["reconstruct"] = {"images": {"capture": "capture.h5", "filter": "open"}}
+    p = tmp_path / "cfg.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    loaded = C.load_config(p)
+    assert loaded.model.system.camera.sensor.em_gain == 300.0  # what the config says
+    label, text = sensor_row(loaded)
+    assert label == "sensor" and "as the frames were taken" in text and "em_gain 100;" in text
+    assert "em_gain 300" not in text

@@ -236,7 +236,8 @@ def test_summary_prints_per_pose_totals_spreads_and_rates(cylinder_run):
     with h5py.File(cylinder_run / "reconstruction.h5") as f:
         totals = f["per_pose/total"][()]
         roi = f["per_pose/direct_roi_photons"][()]
-    assert "exposure 2.5 s" in out and "fluxmap total (photons/s)" in out
-    assert f"{totals[0] / 2.5:.4g}" in out and f"{roi[0]:.4g}" in out
+    # issue 26: the ROI sum beside the total in the same unit (photons/s), every total with its sigma
+    assert "exposure 2.5 s" in out and "fluxmap total (photons/s, ± 1 sd)" in out and "direct ROI sum (photons/s)" in out
+    assert f"{totals[0] / 2.5:.4g} ± " in out and f"{roi[0] / 2.5:.4g}" in out
     assert f"fluxmap total {(totals.max() - totals.min()) / totals.mean():.1%}" in out
     assert out.rstrip().splitlines()[-1].startswith("report:")

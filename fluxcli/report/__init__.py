@@ -90,6 +90,8 @@ class Study:
     total_well_observed: float | None = None
     emission: dict | None = None  # /emission and the grazing shares of the reconstruction (issue 21)
     headline: tuple | None = None  # (photons, over what, why not over all observed elements or "")
+    pose_chi2: np.ndarray | None = None  # (P,) χ²/pixel as reconstruct computed and warned on (its noise model)
+    budget: dict | None = None  # /budget: each total's σ by cause (fluxcli.quantify.budget.read_group)
 
     @property
     def n_poses(self) -> int:
@@ -162,6 +164,11 @@ def load(reconstruction: Path, *, t_cache_dir: Path | None = None, simulation: P
             st.pose_poorly = pp["observation"][()] == 1
         if "warnings" in f:
             st.warnings = [w.decode() if isinstance(w, bytes) else str(w) for w in f["warnings"][()]]
+        st.pose_chi2 = _opt(pp, "chi2_per_pixel")
+        if "budget" in f:
+            from ..quantify.budget import read_group
+
+            st.budget = read_group(f["budget"])
         if "emission" in f:
             st.emission = _load_emission(f)
         if "truth" in f:
@@ -371,6 +378,7 @@ def summarise(st: Study, *, title: str, slice_axial_mm: float, view_names: list[
         "flux_headline_reason": (st.headline[2] or None) if st.headline else None,
         "flux_poorly_observed_fraction": float(st.poorly.mean()) if st.poorly is not None else None,
         "warnings": st.warnings,
+        "budget": st.budget,  # each total's σ by cause (photons per exposure), poses then joint
         "totals_normalised_by_mean": normalised,
         "spreads": {k: spread(v) for k, v in totals.items()},
         "slice_axial_mm": slice_axial_mm,
@@ -395,8 +403,11 @@ def summarise(st: Study, *, title: str, slice_axial_mm: float, view_names: list[
 
 
 def chi2_per_pixel(st: Study) -> list[float | None]:
-    """Mean of residual² / max(measured, 1) over the fitted pixels that some view reaches
-    (all fitted pixels without the T files): ≈1 for a fit down to the shot noise."""
+    """χ²/pixel per pose: the one reconstruct computed under its noise model and warned on
+    (one number per pose, everywhere); for an artefact without it, the mean of
+    residual² / max(measured, 1) over the fitted pixels that some view reaches."""
+    if st.pose_chi2 is not None and len(st.pose_chi2) == st.n_poses:
+        return [float(c) if np.isfinite(c) else None for c in np.asarray(st.pose_chi2, float)]
     out = []
     for k, (m, fi, v) in enumerate(zip(st.measured, st.fitted, st.valid)):
         ok = v & np.isfinite(fi) & np.isfinite(m)
@@ -492,8 +503,9 @@ def make_report(study: Study, out_dir: Path, *, title: str, geometry: Geometry, 
         "scale, and their difference on a symmetric diverging scale (white = 0), in photons per pixel. "
         "Direct and mirror views share one frame, as on the detector; outlines mark the pixels each view "
         "can reach. Grey: pixels left out of the fit (saturated or not finite). "
-        "χ²/pixel is the mean of residual² / max(measured, 1) over the pixels the views reach: about 1 when the "
-        "fit is as good as the shot noise allows.")
+        "χ²/pixel is reconstruct's: the mean of residual² / σ² of the noise model (evaluated on the fitted "
+        "image) over the pixels whose model holds at least one photon — the number it prints and warns on; about "
+        "1 when the fit is as good as the noise allows.")
     labels = F.pose_labels(study.heights_mm, study.rotations_deg)
     axis_labels = F.image_axis_labels(geometry.look, geometry.up)
     for k in range(study.n_poses):

@@ -61,11 +61,13 @@ def warnings_for(study, summary: dict) -> list[str]:
                            "misses the rest; compare poses through the joint reconstruction.")
     for k, p in enumerate(summary.get("poses", [])):
         c = p.get("chi2_per_pixel")
+        if getattr(study, "pose_chi2", None) is not None:
+            break  # reconstruct warned on this very χ² (its warnings are above): once, not twice
         if c is not None and not CHI2_FAR[0] <= c <= CHI2_FAR[1]:
             out.append(f"pose {k + 1}: χ²/pixel = {c:.3g}, far from 1: the fit is "
                        + ("worse than the noise allows (model error, or the noise model underestimates the noise)."
                           if c > 1 else "better than the noise allows (the noise model overestimates the noise)."))
-    return out
+    return list(dict.fromkeys(out))  # each warning once
 
 
 def share_summary(study) -> dict:
@@ -96,18 +98,25 @@ def add_top(page, study, summary: dict, record: list[tuple[str, str]] | None = N
     else:
         page.parts.append('<p class="ok">No warnings: every pose fits its images to within the noise '
                           "(χ²/pixel near 1) and observes most of the light.</p>")
+    b = getattr(study, "budget", None)
+    sd = b["sigma"] if b and len(b.get("sigma", [])) >= study.n_poses else None
+
+    def pm(i):  # ' ± σ' of total i (poses, then joint) in photons/s
+        return f" ± {sd[i] / exposure_s:.2g}" if sd is not None and i < len(sd) and _finite(sd[i]) else ""
     if exposure_s is not None:
         rates = [("exposure", f"{exposure_s:g} s")]
-        rates += [(f"total flux, pose {k + 1} alone (photons/s)", f"{t / exposure_s:.4g}")
+        rates += [(f"total flux, pose {k + 1} alone (photons/s, ± 1 sd)", f"{t / exposure_s:.4g}{pm(k)}")
                   for k, t in enumerate(study.pose_total)]
-        rates.append(("total flux, " + ("joint over poses" if study.joint else "first pose") + " (photons/s)",
-                      f"{np.nansum(study.power) / exposure_s:.4g}"))
+        rates.append(("total flux, " + ("joint over poses" if study.joint else "first pose") + " (photons/s, ± 1 sd)",
+                      f"{np.nansum(study.power) / exposure_s:.4g}" + pm(study.n_poses if study.joint else 0)))
         if study.truth_power is not None:
             rates.append(("ground-truth total (photons/s)", f"{study.truth_power.sum() / exposure_s:.4g}"))
         page.parts.append('<h2 id="rates">Flux as a rate</h2>' + _table(rates))
         summary["rates_photons_per_s"] = {"exposure_s": exposure_s,
                                           "pose_total": (study.pose_total / exposure_s).tolist(),
                                           "total": float(np.nansum(study.power) / exposure_s)}
+    if b:
+        _budget_table(page, b, exposure_s)
     if record:
         page.parts.append('<h2 id="record">What was measured, with what</h2>' + _table(record))
         summary["record"] = [list(r) for r in record]
@@ -117,7 +126,8 @@ def add_top(page, study, summary: dict, record: list[tuple[str, str]] | None = N
             for k, s in enumerate(sh["per_pose"])]
     page.parts.append(f"<p>Share of the light each pose observes ({html.escape(sh['basis'])}): a pose that sees only "
                       "part of the subject reconstructs only that part, so its own total is smaller by this share.</p>")
-    page.table(["pose", "height (mm)", "rotation (°)", "share of the light observed", "elements observed"], rows)
+    page.table(["pose", "height (mm)", "rotation (°)", f"share of the light observed ({sh['basis']})",
+                "elements observed (of all elements)"], rows)
 
 
 def add_3d_view(page, study, *, rig=None, exposure_s: float | None = None) -> None:
@@ -164,3 +174,27 @@ def add_3d_view(page, study, *, rig=None, exposure_s: float | None = None) -> No
         "mirrors are drawn where they are. Mid grey: elements no view observes (unknown, not zero); light grey: faces "
         "that are no element.</p>")
     page.parts.append('<div class="plot3d">' + view3d.to_html(fig) + "</div>")
+
+
+def _budget_table(page, b: dict, exposure_s: float | None) -> None:
+    """Each total with its σ by cause: photon noise, regularisation, calibration (reconstruct's /budget)."""
+    t = exposure_s or 1.0
+    unit = "photons/s" if exposure_s else "photons per exposure"
+
+    def cell(x):
+        return f"{x / t:.2g}" if _finite(x) else "not computed"
+    rows = [[lab, f"{b['total'][i] / t:.4g}", cell(b["sigma_noise"][i]), cell(b["sigma_regularisation"][i]),
+             cell(b["sigma_calibration"][i]), cell(b["sigma"][i])] for i, lab in enumerate(b["labels"])]
+    how = (f"T rebuilt with each of {len(b['parameters'])} calibrated parameter(s) moved by +1 sd "
+           f"({', '.join(p['name'] for p in b['parameters'])}; {b['t_builds']} T builds), solved again at the same λ"
+           + (f", and the radiometric gain's {b['gain_relative']:.1%}" if _finite(b.get("gain_relative")) and b["gain_relative"] else "")
+           if b["parameters"] else "not computed: the config gives no system.camera.uncertainty (calibrate writes it)")
+    page.parts.append('<h2 id="budget">Error budget of each total</h2><p>' + html.escape(
+        f"1 sd of each total over its observed elements ({unit}), by cause. Photon noise: from the reconstruction's "
+        "covariance. Regularisation: the total's largest move when λ is halved or doubled. Calibration: " + how
+        + ". σ: the three in quadrature.") + "</p>")
+    page.table(["total", f"value ({unit})", "photon noise", "regularisation", "calibration", "σ"], rows)
+
+
+def _finite(x) -> bool:
+    return x is not None and bool(np.isfinite(x))

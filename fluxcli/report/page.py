@@ -52,6 +52,18 @@ def _method(name, settings: dict) -> str:
     return str(name)
 
 
+def _sigma_text(s: dict) -> str:
+    """' ± σ (1 sd: ...)' of the joint (or first pose's) total from the error budget, or ''."""
+    b = s.get("budget")
+    if not b or not b.get("sigma") or s.get("flux_headline_reason"):  # σ is of the total over observed elements
+        return ""
+    i = len(b["sigma"]) - 1 if s.get("joint_over_poses") else 0
+    parts = [f"photon noise {fmt(b['sigma_noise'][i])}"]
+    for key, name in (("sigma_regularisation", "regularisation"), ("sigma_calibration", "calibration")):
+        parts.append(f"{name} {fmt(b[key][i])}" if b[key][i] is not None else f"{name} not computed")
+    return f" ± {fmt(b['sigma'][i])} (1 sd: " + ", ".join(parts) + ")"
+
+
 class Page:
     def __init__(self, title: str):
         self.title = title
@@ -71,7 +83,7 @@ class Page:
                 ("views", ", ".join(s.get("views", []))),
                 ("total flux, " + ("joint over poses" if s.get("joint_over_poses") else "first pose") + " (photons"
                  + (", over well-observed elements" if s.get("flux_headline_reason") else "") + ")",
-                 fmt(s.get("flux_headline_total_photons", s.get("flux_total_photons")))
+                 fmt(s.get("flux_headline_total_photons", s.get("flux_total_photons"))) + _sigma_text(s)
                  + (f" — the total over all observed elements ({fmt(s.get('flux_total_photons'))}) is not pinned down "
                     f"by the data: {s['flux_headline_reason']}" if s.get("flux_headline_reason") else "")),
                 ("observed elements", fmt(s.get("flux_observed_fraction"), "%"))]
@@ -88,9 +100,7 @@ class Page:
         self.parts.append('<table class="meta">' + "".join(
             f'<tr><th class="l">{html.escape(k)}</th><td class="l">{html.escape(str(v))}</td></tr>' for k, v in rows)
             + "</table>")
-        if s.get("warnings"):  # what the solves detected: never silent
-            self.parts.append('<p><b>Warnings from the reconstruction:</b></p><ul>' + "".join(
-                f"<li>{html.escape(w)}</li>" for w in s["warnings"]) + "</ul>")
+        # the warnings are the page's first block (notebook.add_top): listed once, not here again
 
     def section(self, anchor: str, title: str) -> None:
         self.toc.append((anchor, title))

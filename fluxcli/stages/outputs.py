@@ -193,7 +193,7 @@ def record_of(cfg: C.LoadedConfig, digests: dict[str, str]) -> list[tuple[str, s
                      + (f" (f/{lens.f_number:g})" if lens.f_number else "")
                      + f", focused {lens.focus_distance_mm:g} mm in front"),
             ("apertures", ", ".join(f"⌀{a.diameter_mm:g} mm at {a.distance_mm:g} mm" for a in cam.apertures) or "none"),
-            ("sensor", ", ".join(f"{k} {v:g}" for k, v in cam.sensor.model_dump().items())),
+            sensor_row(cfg),
             ("mirrors", "; ".join(f"{mm.name or f'mirror{k}'}: centre {list(mm.center_mm)} mm, normal "
                                   f"{list(mm.normal)}, {mm.size_mm[0]:g} × {mm.size_mm[1]:g} mm, reflectance "
                                   f"{mm.reflectance:g}" for k, mm in enumerate(m.system.mirrors)) or "none"),
@@ -217,3 +217,39 @@ def record_of(cfg: C.LoadedConfig, digests: dict[str, str]) -> list[tuple[str, s
     for name, digest in digests.items():
         rows.append((f"artefact {name}", f"sha256 {digest}"))
     return rows
+
+
+def frames_settings(capture: Path, filter_name: str | None) -> dict:
+    """The sensor settings the light frames of ``capture`` (capture.h5) were read out at, as the
+    camera reported them per frame: {em_gain, exposure_s, temperature_c: sorted distinct values}
+    over the frames of ``filter_name`` (all light frames when None); {} when unreadable."""
+    try:
+        with A.open_artefact(capture, "capture") as f:
+            fr = f["frames"]
+            light = ~f["plan/dark"][()].astype(bool)
+            if filter_name is not None and "plan/filter" in f:
+                light &= np.char.decode(f["plan/filter"][()]) == filter_name
+            done = fr["committed"][()].astype(bool) & light
+            return {k: sorted({round(float(x), 6) for x in fr[k][()][done]}) for k in ("em_gain", "exposure_s", "temperature_c")
+                    if k in fr}
+    except (OSError, KeyError, UserError):
+        return {}
+
+
+def sensor_row(cfg: C.LoadedConfig) -> tuple[str, str]:
+    """The record's sensor row: the settings as used.  For a capture, the EM gain, exposure and
+    temperature the frames were read out at (capture.h5, per frame); the config's sensor model
+    for the rest (QE, conversion gain, noise), which is what converts counts to photons."""
+    sensor = cfg.model.system.camera.sensor.model_dump()
+    rc = cfg.model.reconstruct
+    if rc.images is not None and hasattr(rc.images, "capture"):
+        from .reconstruct import _capture_path
+
+        src = rc.images
+        used = frames_settings(_capture_path(cfg), src.filters[0] if src.filters else src.filter)
+        if used.get("em_gain"):
+            sensor.pop("em_gain", None)
+            shown = "; ".join(f"{k} {', '.join(f'{v:g}' for v in vals)}" for k, vals in used.items() if vals)
+            return ("sensor", f"as the frames were taken (capture.h5): {shown}; model: "
+                    + ", ".join(f"{k} {v:g}" for k, v in sensor.items()))
+    return ("sensor", ", ".join(f"{k} {v:g}" for k, v in sensor.items()))

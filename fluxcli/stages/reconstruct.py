@@ -36,6 +36,7 @@ from ..pipeline import check_folders, check_memory, emccd_model, ensure_T, geome
 from ..workers import blas_threads, pool_for
 from ..imaging.sensor_maps import counts_to_photons_with_maps
 from ._radiometric import read_radiometric_maps
+from . import budget as B
 from .context import RunContext
 from .outputs import export_3d
 
@@ -712,7 +713,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     scale = _transmission(cfg, main_filter)
     if inp.truth is not None and scale != 1.0:
         inp.truth = inp.truth / scale  # the truth through the filter, as the results: before it
-    per_pose, joint = _solve_poses(gm, inp, m, noise, stray, todo, (ny, nx), rc.joint, rois, scale)
+    totals = B.TotalMeter(ctx, P + int(rc.joint and P > 1))  # each total's photon-noise sigma; progress
+    per_pose, joint = _solve_poses(gm, inp, m, noise, stray, todo, (ny, nx), rc.joint, B.Both(rois, totals), scale)
     others = {}  # filter -> (inputs, per pose, joint, ROI meter): one T per pose for every filter
     for name in filters[1:]:
         inp_f = _from_capture(cfg, surface.n_elements, name)
@@ -726,6 +728,9 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         pp_f, joint_f = _solve_poses(gm, inp_f, m, noise_f, stray_f, todo, (ny, nx), rc.joint, meter, t_f)
         others[name] = (inp_f, pp_f, joint_f, meter)
     seconds = time.perf_counter() - t0
+    budget = B.error_budget(cfg, ctx, surface, m, gm, inp, noise, per_pose, joint, todo, scale, totals, roi_exposure_s(inp),
+                            rois)
+    per_pose = B.with_shift_warnings(per_pose, budget.shifts, [pt.pose.label for _, pt in todo])
     main = joint if joint is not None else per_pose[0][0]
     areas = surface.element_areas_mm2
     rows = []
@@ -802,6 +807,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         per_pose, joint, emission_lines = _emission_checks(f, placer, views, todo, per_pose, joint, inp, noise, cfg)
         _warnings(ctx, f, per_pose, joint, todo)
         summary = _total_summary(per_pose, joint, todo)
+        B.write(f.create_group("budget"), budget)
+        summary += budget.lines()
         f.attrs["totals_summary"] = json.dumps(summary)
         pp.create_dataset("chi2_per_pixel", data=[r.chi2_per_pixel for r, _ in per_pose])
         heads = [headline_of(r) for r, _ in per_pose]

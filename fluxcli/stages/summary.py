@@ -42,6 +42,11 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> None:
         joint = bool(f["flux"].attrs.get("joint_over_poses", False))
         truth = f["truth/power"][()] if "truth" in f else None
         error = float(f["truth"].attrs["error"]) if truth is not None and "error" in f["truth"].attrs else None
+        budget = None
+        if "budget" in f:  # each total's σ by cause (reconstruct's error budget)
+            from ..quantify.budget import read_group as read_budget
+
+            budget = read_budget(f["budget"])
         rois = None
         if "rois" in f:
             from ..quantify.rois import read_group
@@ -50,23 +55,33 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> None:
     t = rate_exposure_s(cfg, rec)
     rate, unit = (1.0 / t, "photons/s") if t is not None else (1.0, "photons per exposure")
     share = observed_share(pose_obs, truth if truth is not None else power)
-    share_name = "share of the true light observed" if truth is not None else "share of the light observed"
+    share_name = ("share observed (of the true light)" if truth is not None
+                  else "share observed (of the light the joint reconstruction finds)")
+    sd = budget["sigma"] if budget is not None else None
+
+    def pm(i):  # ' ± σ' of total i (poses, then joint); none where the total is over well-observed elements
+        return f" ± {sd[i] * rate:.2g}" if sd is not None and i < len(sd) and np.isfinite(sd[i]) else ""
     rows = []
     for k in range(len(heights)):
-        rows.append([k + 1, f"{heights[k]:g}", f"{rots[k]:g}", f"{roi[k]:.4g}" if roi is not None else "-",
-                     f"{heads[k] * rate:.4g}" + (" (well-observed elements: " + why[k] + ")" if why[k] else ""),
-                     f"{share[k]:.0%}"])
+        rows.append([k + 1, f"{heights[k]:g}", f"{rots[k]:g}", f"{roi[k] * rate:.4g}" if roi is not None else "-",
+                     (f"{heads[k] * rate:.4g} (well-observed elements: " + why[k] + ")") if why[k]
+                     else f"{heads[k] * rate:.4g}{pm(k)}", f"{share[k]:.0%}"])
     joint_total = float(np.nansum(power))
     if joint and len(heights) > 1:
-        rows.append(["joint", "", "", "", f"{joint_total * rate:.4g}", f"{np.isfinite(power).mean():.0%} of elements"])
+        rows.append(["joint", "", "", "", f"{joint_total * rate:.4g}{pm(len(heights))}",
+                     f"{np.isfinite(power).mean():.0%} of the elements"])
     when = f", exposure {t:g} s" if t is not None else " (no exposure time given: totals per exposure)"
     ctx.say(f"summary of {rec}{when}")
-    ctx.table(["pose", "height_mm", "rotation_deg", "direct ROI sum (photons)", f"fluxmap total ({unit})", share_name],
-              rows)
+    ctx.table(["pose", "height_mm", "rotation_deg", f"direct ROI sum ({unit})",
+               f"fluxmap total ({unit}" + (", ± 1 sd" if sd is not None else "") + ")", share_name], rows)
+    if budget is not None:
+        cal = "calibration included" if budget["parameters"] else \
+            "photon noise and no calibration error (system.camera.uncertainty not given)"
+        ctx.say(f"± 1 sd of each total: {cal}; the error budget by cause is in the report and /budget")
     if len(heights) > 1:
         parts = [f"fluxmap total {spread(totals):.1%}"]
         if roi is not None:
-            parts.insert(0, f"direct ROI sum {spread(roi):.0%} (from {roi.min():.3g} to {roi.max():.3g} photons)")
+            parts.insert(0, f"direct ROI sum {spread(roi):.0%} (from {roi.min() * rate:.3g} to {roi.max() * rate:.3g} {unit})")
         ctx.say("spread over the poses, (max - min) / mean: " + "; ".join(parts))
         if roi is not None:
             ctx.say(f"turning and raising the subject changed the direct ROI sum {roi.max() / roi.min():.1f}-fold; "
@@ -79,8 +94,15 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> None:
         for i, name in enumerate(rois["names"]):
             n = rois["numbers"]
             st = rois["status"][i, -1]
+            extra = ""
+            if budget is not None and "rois" in budget and name in budget["rois"]["names"]:
+                j = budget["rois"]["names"].index(name)
+                r_rate = 1.0 / rois["exposure_s"] if rois["exposure_s"] is not None else 1.0
+                cal = budget["rois"]["sigma_calibration"][j][-1] * r_rate
+                reg = budget["rois"]["sigma_regularisation"][j][-1] * r_rate
+                extra = f" (photon noise) ± {cal:.2g} (calibration) ± {reg:.2g} (regularisation)"
             ctx.say(f"ROI {name} ({rois['maps'][-1]}): " + (
-                f"{n['total_photons_per_s'][i, -1]:.4g} ± {n['sigma_photons_per_s'][i, -1]:.2g} {r_unit}, "
+                f"{n['total_photons_per_s'][i, -1]:.4g} ± {n['sigma_photons_per_s'][i, -1]:.2g}{extra} {r_unit}, "
                 f"{n['area_mm2'][i, -1]:.3g} mm², {n['observed_share'][i, -1]:.0%} observed")
                 + (f" — {st}" if st else ""))
         ctx.say(f"ROI numbers per pose: {cfg.workdir / 'rois.csv'}")
