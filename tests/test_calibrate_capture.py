@@ -96,15 +96,18 @@ def test_calibrate_recovers_the_simulated_rigs_camera_and_sensor(calibrated):
     assert abs(cam["sensor"]["bias_counts"] - true.sensor.bias_counts) < 1.0
 
 
-def test_an_aperture_the_blur_cannot_measure_is_warned(calibrated):
-    """At f/2.8 over 0-46 mm the dots blur by ~1 px: the aperture comes out ~17 % low, far beyond
-    its stated 1 sigma, so the run must say so (the lens-centre and focal-length checks stand)."""
+def test_an_aperture_the_blur_cannot_measure_is_warned_and_not_written_as_measured(calibrated):
+    """At f/2.8 over 0-46 mm the dots blur by ~1 px: the fitted aperture comes out ~17 % low, far
+    beyond its stated 1 sigma (a 17 % aperture is 45 % on every total). The run must say so, and
+    camera.yaml keeps the lens' stated f-number, marked assumed with the reason, instead of the
+    fitted diameter (the lens-centre and focal-length checks stand)."""
     folder, _, _, out = calibrated
-    true = 2 * _true_camera().lens.aperture_radius_mm
     cam = yaml.safe_load((folder / "out" / "camera.yaml").read_text())["camera"]
-    fitted, sigma = cam["lens"]["aperture_diameter_mm"], cam["measured"]["lens.aperture_diameter_mm"]
-    if abs(fitted - true) > 3 * sigma:  # an error its 1 sigma does not cover is never silent
-        assert "aperture" in out and "poorly measured" in " ".join(out.split()), (fitted, true, sigma)
+    assert "aperture" in out and "poorly measured" in " ".join(out.split())
+    assert "aperture_diameter_mm" not in cam["lens"] and cam["lens"]["f_number"] == 2.8
+    assert "not trusted" in cam["assumed"]["lens.f_number"]
+    assert "lens.aperture_diameter_mm" not in cam["measured"]
+    assert "aperture_diameter_mm" not in cam["uncertainty"]  # an assumed value carries no calibrated sigma
 
 
 def test_one_camera_file_marks_every_value_measured_or_assumed_and_loads_as_system_camera(calibrated):
@@ -124,8 +127,8 @@ def test_one_camera_file_marks_every_value_measured_or_assumed_and_loads_as_syst
     assert "sensor.electrons_per_count" in measured and "sensor.em_gain" in measured
     # the machine-readable 1 sigma, exactly the keys the reconstruction's budget reads
     unc = cam["uncertainty"]
-    assert set(unc) == {"focal_length_mm", "focus_distance_mm", "aperture_diameter_mm", "lens_center_mm", "look_deg",
-                        "gain_relative"}
+    assert set(unc) == {"focal_length_mm", "focus_distance_mm", "lens_center_mm", "look_deg",
+                        "gain_relative"} | ({"aperture_diameter_mm"} if "lens.aperture_diameter_mm" in measured else set())
     assert len(unc["lens_center_mm"]) == 3 and all(v > 0 for v in unc["lens_center_mm"])
     rel = np.hypot(measured["sensor.electrons_per_count"] / cam["sensor"]["electrons_per_count"],
                    measured["sensor.em_gain"] / cam["sensor"]["em_gain"])

@@ -56,6 +56,7 @@ class GeometricCalibration:
     focus_distance_from_measure_mm: float
     dot_diameter_mm: float
     warnings: list[str]
+    aperture_resolved: bool = True  # False: the dots blur too little (< BLUR_WARN_PX) for the aperture to be trusted
 
     @property
     def focal_plane_z_mm(self) -> float:
@@ -195,6 +196,7 @@ def calibrate_geometry(images: list[np.ndarray], heights_mm: list[float], *, kin
     cam = geo.camera
     v = cam.image_distance_mm
     blur = None
+    aperture_resolved = True
     z_all = np.concatenate([cam.axial_mm(grid_points_mm(dets[k].ij, pitch_mm, shape, heights_mm[k])) for k in used])
     d_all = np.concatenate([blur_px[k] for k in used])
     ok = np.isfinite(d_all)
@@ -220,7 +222,8 @@ def calibrate_geometry(images: list[np.ndarray], heights_mm: list[float], *, kin
         # the blur the lens adds at the farthest heights: when it stays near a pixel it hides in the
         # floor (pixel, dot edge) and the aperture comes out low (-17 % at ~1 px on the simulated rig)
         defocus_px = float(blur.k_px_mm * np.max(np.abs(1 / z_all - 1 / blur.focus_distance_mm)))
-        if defocus_px < BLUR_WARN_PX:
+        aperture_resolved = defocus_px >= BLUR_WARN_PX
+        if not aperture_resolved:
             warnings.append(f"the dots blur by at most {defocus_px:.1f} px over these heights: the aperture "
                             f"({2 * R:.3g} mm) is poorly measured and likely low, beyond its 1 sigma; spread the "
                             "heights further from the focal plane, or give the lens' f_number")
@@ -260,7 +263,7 @@ def calibrate_geometry(images: list[np.ndarray], heights_mm: list[float], *, kin
              "roll_deg": s_roll, "focus_distance_mm": su, "focal_length_mm": sf,
              "aperture_diameter_mm": 2 * sR}
     return GeometricCalibration(cam, float(f), float(u), float(2 * R), sigma, images_out, geo.rms_px, rms_mm, blur,
-                                focus, u_measure, dot_diam, warnings)
+                                focus, u_measure, dot_diam, warnings, aperture_resolved)
 
 
 def _subset(f: D.DotFits, m: np.ndarray) -> D.DotFits:

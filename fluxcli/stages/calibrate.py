@@ -29,7 +29,7 @@ import yaml
 
 from .. import artefacts as A
 from .. import config as C
-from ..calibration.fit import CalibrationError, GeometricCalibration, calibrate_geometry
+from ..calibration.fit import BLUR_WARN_PX, CalibrationError, GeometricCalibration, calibrate_geometry
 from ..calibration.mirrors import MirrorFit, refine_mirrors
 from ..errors import UserError
 from ..hardware.projector import projector_model
@@ -374,14 +374,18 @@ def camera_block(cam: C.Camera, geo: GeometricCalibration | None, rad) -> dict:
         measured["lens.focus_distance_mm"] = _r(sg["focus_distance_mm"], 9)
         unc["focal_length_mm"] = measured["lens.focal_length_mm"]
         unc["focus_distance_mm"] = measured["lens.focus_distance_mm"]
-        if np.isfinite(geo.aperture_diameter_mm) and geo.aperture_diameter_mm > 0:
+        fitted = np.isfinite(geo.aperture_diameter_mm) and geo.aperture_diameter_mm > 0
+        given = {k: v for k, v in (cam.lens.model_dump().items() if cam.lens is not None else ())
+                 if k in ("f_number", "aperture_diameter_mm") and v is not None}
+        if fitted and (geo.aperture_resolved or not given):
             lens["aperture_diameter_mm"] = _r(geo.aperture_diameter_mm)
             measured["lens.aperture_diameter_mm"] = unc["aperture_diameter_mm"] = _r(sg["aperture_diameter_mm"], 9)
-        elif cam.lens is not None:  # not measured: keep what the config says
-            for k, v in cam.lens.model_dump().items():
-                if k in ("f_number", "aperture_diameter_mm") and v is not None:
-                    lens[k] = v
-                    assumed[f"lens.{k}"] = _given(cam, f"lens.{k}", ": a checkerboard gives no per-dot blur")
+        else:  # not measured, or the dots blur too little to trust it (it comes out low): keep the config's
+            why = (f": the dots blur < {BLUR_WARN_PX:g} px, so the fitted {geo.aperture_diameter_mm:.3g} mm is not "
+                   "trusted" if fitted else ": a checkerboard gives no per-dot blur")
+            for k, v in given.items():
+                lens[k] = v
+                assumed[f"lens.{k}"] = _given(cam, f"lens.{k}", why)
         block["lens"] = lens
         block["pose"] = {"lens_center_mm": _r(c.center_mm), "look": _r(c.look, 9), "up": _r(c.up, 9)}
         centre = _r([sg["lens_center_x_mm"], sg["lens_center_y_mm"], sg["lens_center_z_mm"]], 9)
