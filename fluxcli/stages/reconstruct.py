@@ -806,7 +806,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
             rows.append(row)
         per_pose, joint, emission_lines = _emission_checks(f, placer, views, todo, per_pose, joint, inp, noise, cfg)
         _warnings(ctx, f, per_pose, joint, todo)
-        summary = _total_summary(per_pose, joint, todo)
+        summary = _total_summary(per_pose, joint, todo, {b.label: b.sigma for b in budget.totals})
         B.write(f.create_group("budget"), budget)
         summary += budget.lines()
         f.attrs["totals_summary"] = json.dumps(summary)
@@ -1046,23 +1046,32 @@ def _warnings(ctx: RunContext, f, per_pose, joint, todo) -> list[str]:
     return out
 
 
-def _total_summary(per_pose, joint, todo) -> list[str]:
-    """The number the mission is about: the total per pose and jointly, with its spread."""
+def _total_summary(per_pose, joint, todo, sigmas: dict | None = None) -> list[str]:
+    """The number the mission is about: the total per pose and jointly, with its spread and,
+    from the error budget (``sigmas``: its label -> 1 sd in photons), its σ."""
+    sigmas = sigmas or {}
     tot = np.array([np.nansum(r.power) for r, _ in per_pose])
     well = np.array([np.nansum(np.where(r.well_observed, r.power, 0.0)) for r, _ in per_pose])
+
+    def pm(label: str) -> str:
+        s = sigmas.get(label, np.nan)
+        return f" ± {s:.2g}" if np.isfinite(s) else ""
+
     lines = []
     for (r, _), (_, pt), t, w in zip(per_pose, todo, tot, well):
-        h = headline_of(r)
-        lines.append(h.line(f"total flux, pose {pt.pose.label}") if h.reason else
-                     f"total flux, pose {pt.pose.label}: {t:.4g} photons over observed elements ({w:.4g} over well-observed)")
+        h, what = headline_of(r), f"pose {pt.pose.label}"
+        lines.append(h.line(f"total flux, {what}") + (f"; observed total {t:.4g}{pm(what)} photons" if pm(what) else "")
+                     if h.reason else
+                     f"total flux, {what}: {t:.4g}{pm(what)} photons over observed elements ({w:.4g} over well-observed)")
     if len(tot) > 1:
         spread = (tot.max() - tot.min()) / tot.mean() if tot.mean() > 0 else np.nan
         lines.append(f"total flux over {len(tot)} poses: mean {tot.mean():.4g} photons, spread (max-min)/mean "
                      f"{spread:.1%}, sd/mean {tot.std(ddof=1) / tot.mean():.1%}")
     if joint is not None:
-        h = headline_of(joint)
-        lines.append(h.line("total flux, all poses jointly") if h.reason else
-                     f"total flux, all poses jointly: {np.nansum(joint.power):.4g} photons over observed elements "
+        h, what, t = headline_of(joint), "all poses jointly", np.nansum(joint.power)
+        lines.append(h.line(f"total flux, {what}") + (f"; observed total {t:.4g}{pm(what)} photons" if pm(what) else "")
+                     if h.reason else
+                     f"total flux, {what}: {t:.4g}{pm(what)} photons over observed elements "
                      f"({np.nansum(np.where(joint.well_observed, joint.power, 0.0)):.4g} over well-observed)")
     return lines
 
