@@ -243,3 +243,52 @@ def test_a_replaced_lambda_pick_does_not_move_the_headline_but_a_final_edge_pick
     final = ["lambda (lcurve) sits at the edge of the search range (1e-15, range 1e-15..1e+09, widened 2x): ..."]
     h = headline_total(p, obs, well, final)
     assert h.photons == 8.0 and h.over == "well-observed elements" and "edge" in h.reason
+
+
+def _grouped_cylinder():
+    """A small issue-25 mesh (tests/independent_renderer.py): a 24-gon prism along y, side quads
+    grouped 2 x 2 into elements, each cap 2 bands in 2 sectors x 2 rings."""
+    import sys
+    from pathlib import Path
+
+    from fluxcli.surface.mesh import Surface
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    import independent_renderer as ir
+
+    v, f, e = ir.cylinder_y(n_angular=24, n_axial=12, cap_bands=2, cap_sectors=2, cap_rings=2)
+    return Surface(v, f, e, int(e.max()) + 1)
+
+
+def test_element_sized_basis_keeps_power_constants_and_an_axial_gradient():
+    """unknowns: linear_elements (one unknown per element, exitance linear within faces). Closed
+    forms the construction must meet: every unknown's power is shared out completely over the
+    vertices and over the elements (columns sum to 1); a constant exitance j is represented
+    exactly (u_v = j A_v at every vertex); an exitance linear along the axis, J = 1 + g y, given
+    as element values at the element centroids, comes back exactly at every side vertex away
+    from the caps (the surrounding elements' shares are symmetric there); the prior gives a
+    constant no energy and has non-negative edge weights."""
+    surf = _grouped_cylinder()
+    vb = surf.vertex_basis()
+    hats = vb.per_element()
+    S = surf.element_areas_mm2
+    P = hats.prolong
+    assert P.shape == (vb.n_vertices, surf.n_elements) and P.data.min() >= 0
+    assert np.allclose(hats.areas_mm2, S, rtol=1e-12)
+    assert np.allclose(np.asarray(P.sum(axis=0)).ravel(), 1.0, rtol=1e-12)
+    assert np.allclose(np.asarray(hats.to_elements.sum(axis=0)).ravel(), 1.0, rtol=1e-12)
+    j = 3.7
+    assert np.allclose(P @ (j * S), j * vb.areas_mm2, rtol=1e-12)
+    g = 0.031
+    y_el = surf.element_centroids_mm[:, 1]
+    u = P @ ((1.0 + g * y_el) * S)
+    V = surf.vertices_mm[vb.vertex_index]
+    away = np.abs(V[:, 1]) < 25.0 - 1e-9  # not on a cap (nor on the cap's edge ring)
+    assert away.sum() > 200
+    assert np.allclose((u / vb.areas_mm2)[away], 1.0 + g * V[away, 1], rtol=1e-12)
+    W = hats.stiffness
+    assert W.data.min() >= 0 and np.allclose(W.toarray(), W.toarray().T)
+    from fluxcli.inverse.smooth import exitance_prior
+
+    R = exitance_prior(W, np.ones(surf.n_elements, bool), S, ridge=0.0)
+    assert abs(S @ R @ S) < 1e-10 * np.abs(R).max() * S.sum() ** 2

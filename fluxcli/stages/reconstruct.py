@@ -395,24 +395,38 @@ class VertexMap:
     to_elements: sp.csr_array  # (n_elements, n_vertices)
     adjacency: sp.csr_matrix  # elements touching
     areas: np.ndarray  # element areas, mm²
+    prolong: sp.csr_array | None = None  # (n_vertices, n_unknowns): unknowns sized by the elements (linear_elements)
 
     def unknowns_T(self, T_fine) -> sp.csr_array:
+        """T per vertex (columns of the hat functions)."""
         return sp.csr_array(T_fine @ self.to_fine)
 
+    def solve_T(self, T_fine) -> sp.csr_array:
+        """T of the solve's unknowns: per vertex, or per vertex @ prolong."""
+        Tv = self.unknowns_T(T_fine)
+        return Tv if self.prolong is None else sp.csr_array(Tv @ self.prolong)
+
     def element_map(self, T_fine) -> ElementMap:
-        return ElementMap(self.to_elements, sp.csr_array(T_fine @ self.fine_to_elements), self.adjacency, self.areas)
+        to_el = self.to_elements if self.prolong is None else sp.csr_array(self.to_elements @ self.prolong)
+        return ElementMap(to_el, sp.csr_array(T_fine @ self.fine_to_elements), self.adjacency, self.areas)
 
 
 def make_grid(cfg: C.LoadedConfig, ctx: RunContext, surface, unknowns: str) -> Grid:
-    if unknowns == "vertices":  # T per face of the once-refined surface, combined per hat function
-        _, _, todo, _ = ensure_T(cfg, replace(ctx, force=False), label="building T (vertices)", unknowns="refined:1")
+    if unknowns in ("vertices", "linear_elements"):  # T per face of the once-refined surface, per hat function
+        _, _, todo, _ = ensure_T(cfg, replace(ctx, force=False), label=f"building T ({unknowns.replace('_', ' ')})",
+                                 unknowns="refined:1")
         vb = surface.vertex_basis()
         _, fine_parent = surface.refined(1)
         fine_to_el = sp.csr_array((np.ones(fine_parent.size), (np.arange(fine_parent.size), fine_parent)),
                                   shape=(fine_parent.size, surface.n_elements))
-        vmap = VertexMap(vb.to_fine, fine_to_el, vb.to_elements, surface.element_adjacency(), surface.element_areas_mm2)
+        stiffness, areas, prolong = vb.stiffness, vb.areas_mm2, None
+        if unknowns == "linear_elements":  # one unknown per element, still linear within faces
+            hats = vb.per_element()
+            stiffness, areas, prolong = hats.stiffness, hats.areas_mm2, hats.prolong
+        vmap = VertexMap(vb.to_fine, fine_to_el, vb.to_elements, surface.element_adjacency(), surface.element_areas_mm2,
+                         prolong)
         Tf = [load_T(pt.path).tocsr() for _, pt in todo]
-        return Grid([vmap.unknowns_T(T) for T in Tf], vb.stiffness, None, surface.n_elements, vb.areas_mm2, surface,
+        return Grid([vmap.solve_T(T) for T in Tf], stiffness, None, surface.n_elements, areas, surface,
                     [str(pt.path) for _, pt in todo], vmap, [vmap.element_map(T) for T in Tf])
     label = "building T" if unknowns == "elements" else "building T (sub-elements)"
     _, _, todo, _ = ensure_T(cfg, replace(ctx, force=False), label=label, unknowns=unknowns)
@@ -620,6 +634,7 @@ def _check_solver_size(cfg: C.LoadedConfig, ctx: RunContext, surface, n_poses: i
     if any(s.unknowns == "sub_elements" for s in methods):
         n_sub["sub_elements"] = surface.unknowns()[0].n_elements
     n_sub["vertices"] = n_vertices(surface)
+    n_sub["linear_elements"] = surface.n_elements
     nx, ny = cfg.model.system.camera.pixels
     need = 8.0 * nx * ny * n_poses * 8  # images, masks, fits and residuals
     for s in methods:
@@ -639,7 +654,8 @@ def _check_solver_size(cfg: C.LoadedConfig, ctx: RunContext, surface, n_poses: i
 
 def describe(m: C.MethodSettings) -> str:
     base = _describe(m)
-    return {"elements": base, "vertices": f"{base} on vertices (exitance linear within faces)"}.get(
+    return {"elements": base, "vertices": f"{base} on vertices (exitance linear within faces)",
+            "linear_elements": f"{base} per element, exitance linear within faces"}.get(
         m.unknowns, f"{base} on sub-elements")
 
 
@@ -1068,7 +1084,7 @@ def _sweep_cell(sim_path: str, grids_k: dict, pose: int, level: int, repeats: in
     for u in {m.unknowns for m in methods}:  # T by path: no T inside a task graph
         T, part = load_T(grids_k[u][0]), grids_k[u][2]
         if isinstance(part, VertexMap):  # the fine T: per vertex, and per element for the classes
-            T, part = part.unknowns_T(T), part.element_map(T)
+            T, part = part.solve_T(T), part.element_map(T)
         Ts[u], parts[u] = T, part
     out = np.zeros((len(methods), repeats))
     with h5py.File(sim_path, "r") as f:

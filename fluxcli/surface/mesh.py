@@ -251,6 +251,62 @@ class VertexBasis:
     def n_vertices(self) -> int:
         return len(self.areas_mm2)
 
+    def per_element(self) -> "ElementHats":
+        """One unknown per element with the exitance still linear within each face and
+        continuous across edges: the exitance at a vertex is the mean of the element values
+        around it, each weighted by the share of the vertex's hat that lies on that element.
+
+        With ``A_v^e = ∫_e φ_v dS`` (so ``Σ_e A_v^e = A_v`` and ``Σ_v A_v^e = S_e``) and the
+        element value ``j_e = c_e / S_e`` (photons mm⁻²), the vertex exitance is
+        ``J_v = Σ_e (A_v^e / A_v) j_e`` and its lumped power ``u_v = A_v J_v = Σ_e (A_v^e / S_e) c_e``:
+        the prolongation ``u = P c`` with ``P[v, e] = A_v^e / S_e ≥ 0`` (so ``c ≥ 0`` gives a
+        non-negative exitance everywhere, and ``Σ_v u_v = Σ_e c_e``: power is conserved). A
+        constant exitance is represented exactly, and so is a linear one at every vertex
+        whose elements' centroids surround it symmetrically.
+
+        The prior is the same ``∫|∇J|² dS`` as on vertices, written on ``j``:
+        ``jᵀ (Qᵀ L_K Q) j`` with ``Q = P`` in exitance units and ``L_K`` the cotangent Laplacian.
+        ``Qᵀ L_K Q`` has zero row sums, so it is the graph Laplacian of the edge weights minus
+        its off-diagonal; a positive off-diagonal (a negative weight, possible on irregular
+        meshes, none on the issue-25 cylinder) is clipped at 0 as :func:`cotangent_weights`
+        clips obtuse angles.
+        """
+        import scipy.sparse as sp
+
+        A = np.asarray(self.areas_mm2, dtype=np.float64)
+        share = sp.csr_array(sp.csr_array(self.to_elements).T)  # (n_v, n_e): A_v^e / A_v
+        S = np.asarray(share.T @ A).ravel()  # S_e = Σ_v A_v^e
+        inv_S = np.divide(1.0, S, out=np.zeros_like(S), where=S > 0)
+        prolong = sp.csr_array(sp.diags_array(A) @ share @ sp.diags_array(inv_S))
+        K = sp.csr_array(self.stiffness if self.stiffness is not None else self.adjacency)
+        L = sp.diags_array(np.asarray(K.sum(axis=1)).ravel()) - K
+        Lc = sp.csr_array(share.T @ L @ share)
+        W = sp.csr_array(-(Lc - sp.diags_array(Lc.diagonal())))
+        W.data = np.maximum(W.data, 0.0)
+        W.eliminate_zeros()
+        return ElementHats(prolong, sp.csr_array(sp.csr_array(self.to_elements) @ prolong), S, W)
+
+
+@dataclass(frozen=True)
+class ElementHats:
+    """One unknown per element, exitance linear within faces (:meth:`VertexBasis.per_element`).
+
+    Attributes
+    ----------
+    prolong : sparse (n_vertices, n_elements) ≥ 0, vertex lumped power per photon of an
+        element unknown (T of the unknowns = T per vertex @ prolong).
+    to_elements : sparse (n_elements, n_elements), element power per photon of each unknown;
+        every column sums to 1 (an element's unknown spreads a little onto its neighbours).
+    areas_mm2 : (n_elements,) ``S_e``; the element value of exitance is ``c_e / S_e``.
+    stiffness : sparse (n_elements, n_elements) ≥ 0, the edge weights of ``∫|∇J|² dS`` on
+        the element values: the smoothness prior.
+    """
+
+    prolong: object
+    to_elements: object
+    areas_mm2: np.ndarray
+    stiffness: object
+
 
 def cotangent_weights(vertices_mm: np.ndarray, faces: np.ndarray):
     """Edge weights ``w_ij = (cot α_ij + cot β_ij)/2`` (α, β the angles opposite edge ij)
