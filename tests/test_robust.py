@@ -267,16 +267,19 @@ def test_element_sized_basis_keeps_power_constants_and_an_axial_gradient():
     exactly (u_v = j A_v at every vertex); an exitance linear along the axis, J = 1 + g y, given
     as element values at the element centroids, comes back exactly at every side vertex away
     from the caps (the surrounding elements' shares are symmetric there); the prior gives a
-    constant no energy and has non-negative edge weights."""
+    constant no energy and has non-negative edge weights. On a closed surface with every
+    element in the solve there is no rim: one unknown per element."""
+    from fluxcli.inverse.smooth import exitance_prior
+
     surf = _grouped_cylinder()
     vb = surf.vertex_basis()
-    hats = vb.per_element()
+    b = vb.per_element().basis()
     S = surf.element_areas_mm2
-    P = hats.prolong
-    assert P.shape == (vb.n_vertices, surf.n_elements) and P.data.min() >= 0
-    assert np.allclose(hats.areas_mm2, S, rtol=1e-12)
+    P = b.prolong
+    assert P.shape == (vb.n_vertices, surf.n_elements) and P.data.min() >= 0 and b.rim_vertices.size == 0
+    assert np.allclose(b.areas_mm2, S, rtol=1e-12)
     assert np.allclose(np.asarray(P.sum(axis=0)).ravel(), 1.0, rtol=1e-12)
-    assert np.allclose(np.asarray(hats.to_elements.sum(axis=0)).ravel(), 1.0, rtol=1e-12)
+    assert np.allclose(np.asarray(b.to_elements.sum(axis=0)).ravel(), 1.0, rtol=1e-12)
     j = 3.7
     assert np.allclose(P @ (j * S), j * vb.areas_mm2, rtol=1e-12)
     g = 0.031
@@ -286,9 +289,40 @@ def test_element_sized_basis_keeps_power_constants_and_an_axial_gradient():
     away = np.abs(V[:, 1]) < 25.0 - 1e-9  # not on a cap (nor on the cap's edge ring)
     assert away.sum() > 200
     assert np.allclose((u / vb.areas_mm2)[away], 1.0 + g * V[away, 1], rtol=1e-12)
-    W = hats.stiffness
+    W = b.stiffness
     assert W.data.min() >= 0 and np.allclose(W.toarray(), W.toarray().T)
-    from fluxcli.inverse.smooth import exitance_prior
-
     R = exitance_prior(W, np.ones(surf.n_elements, bool), S, ridge=0.0)
     assert abs(S @ R @ S) < 1e-10 * np.abs(R).max() * S.sum() ** 2
+
+
+def test_element_sized_basis_frees_the_rim_of_what_the_solve_sees():
+    """Without the elements of one cap (seen edge-on: not in the solve) the vertices on that
+    cap's edge ring keep unknowns of their own, so an exitance that rises towards the cap,
+    J = 1 + g y, is still represented there exactly (a mean over the side elements alone
+    holds it flat: the first row of a blob beyond the edge came out 4-6x its truth); vertices
+    of the left-out cap alone get no light; a constant exitance over the elements in the solve
+    (and its rim) still costs the prior nothing."""
+    from fluxcli.inverse.smooth import exitance_prior
+
+    surf = _grouped_cylinder()
+    vb = surf.vertex_basis()
+    hats = vb.per_element()
+    V = surf.vertices_mm[vb.vertex_index]
+    cap = np.abs(surf.element_normals[:, 1]) > 0.99
+    top_cap = cap & (surf.element_centroids_mm[:, 1] > 0)
+    b = hats.basis(~top_cap)
+    ring = np.flatnonzero(np.isclose(V[:, 1], 25.0) & (np.hypot(V[:, 0], V[:, 2]) > 12.0))
+    assert np.array_equal(np.sort(b.rim_vertices), ring)
+    g = 0.031
+    S = surf.element_areas_mm2
+    x = np.concatenate([(1.0 + g * surf.element_centroids_mm[:, 1]) * S * ~top_cap,
+                        (1.0 + g * V[b.rim_vertices, 1]) * vb.areas_mm2[b.rim_vertices]])
+    J = (b.prolong @ x) / vb.areas_mm2
+    side = np.abs(np.hypot(V[:, 0], V[:, 2]) - 12.5) < 1e-6
+    assert np.allclose(J[side & (V[:, 1] > -25.0 + 1e-9)], 1.0 + g * V[side & (V[:, 1] > -25.0 + 1e-9), 1], rtol=1e-12)
+    inner_cap = np.isclose(V[:, 1], 25.0) & (np.hypot(V[:, 0], V[:, 2]) < 12.0)
+    assert np.all(J[inner_cap] == 0.0)
+    const = np.concatenate([S * ~top_cap, vb.areas_mm2[b.rim_vertices]])
+    mask = const > 0
+    R = exitance_prior(b.stiffness, mask, b.areas_mm2, ridge=0.0)
+    assert abs(const[mask] @ R @ const[mask]) < 1e-10 * np.abs(R).max() * const.sum() ** 2

@@ -382,6 +382,7 @@ class ElementMap:
     T: sp.csr_array  # (n_pixels, n_elements)
     adjacency: sp.csr_matrix
     areas: np.ndarray
+    hats: object = None  # linear_elements: the T given is per vertex; run_method makes the element unknowns
 
 
 @dataclass
@@ -395,20 +396,15 @@ class VertexMap:
     to_elements: sp.csr_array  # (n_elements, n_vertices)
     adjacency: sp.csr_matrix  # elements touching
     areas: np.ndarray  # element areas, mm²
-    prolong: sp.csr_array | None = None  # (n_vertices, n_unknowns): unknowns sized by the elements (linear_elements)
+    hats: object = None  # linear_elements: surface.ElementHats (one unknown per element, from the vertices' T)
 
     def unknowns_T(self, T_fine) -> sp.csr_array:
-        """T per vertex (columns of the hat functions)."""
+        """T per vertex (columns of the hat functions; linear_elements: run_method combines them)."""
         return sp.csr_array(T_fine @ self.to_fine)
 
-    def solve_T(self, T_fine) -> sp.csr_array:
-        """T of the solve's unknowns: per vertex, or per vertex @ prolong."""
-        Tv = self.unknowns_T(T_fine)
-        return Tv if self.prolong is None else sp.csr_array(Tv @ self.prolong)
-
     def element_map(self, T_fine) -> ElementMap:
-        to_el = self.to_elements if self.prolong is None else sp.csr_array(self.to_elements @ self.prolong)
-        return ElementMap(to_el, sp.csr_array(T_fine @ self.fine_to_elements), self.adjacency, self.areas)
+        return ElementMap(self.to_elements, sp.csr_array(T_fine @ self.fine_to_elements), self.adjacency, self.areas,
+                          self.hats)
 
 
 def make_grid(cfg: C.LoadedConfig, ctx: RunContext, surface, unknowns: str) -> Grid:
@@ -419,14 +415,14 @@ def make_grid(cfg: C.LoadedConfig, ctx: RunContext, surface, unknowns: str) -> G
         _, fine_parent = surface.refined(1)
         fine_to_el = sp.csr_array((np.ones(fine_parent.size), (np.arange(fine_parent.size), fine_parent)),
                                   shape=(fine_parent.size, surface.n_elements))
-        stiffness, areas, prolong = vb.stiffness, vb.areas_mm2, None
+        stiffness, areas, hats = vb.stiffness, vb.areas_mm2, None
         if unknowns == "linear_elements":  # one unknown per element, still linear within faces
             hats = vb.per_element()
-            stiffness, areas, prolong = hats.stiffness, hats.areas_mm2, hats.prolong
+            stiffness, areas = None, None  # per solve: the unknowns depend on the elements the pixels see
         vmap = VertexMap(vb.to_fine, fine_to_el, vb.to_elements, surface.element_adjacency(), surface.element_areas_mm2,
-                         prolong)
+                         hats)
         Tf = [load_T(pt.path).tocsr() for _, pt in todo]
-        return Grid([vmap.solve_T(T) for T in Tf], stiffness, None, surface.n_elements, areas, surface,
+        return Grid([vmap.unknowns_T(T) for T in Tf], stiffness, None, surface.n_elements, areas, surface,
                     [str(pt.path) for _, pt in todo], vmap, [vmap.element_map(T) for T in Tf])
     label = "building T" if unknowns == "elements" else "building T (sub-elements)"
     _, _, todo, _ = ensure_T(cfg, replace(ctx, force=False), label=label, unknowns=unknowns)
@@ -445,6 +441,8 @@ def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSe
     when any of its parts is, its class is its best part's; sigma is not propagated: NaN);
     with an :class:`ElementMap` they are vertices shared out to the elements, which are
     classified on their own T."""
+    if isinstance(parent, ElementMap) and parent.hats is not None:
+        T, parent, adjacency, areas = element_unknowns(T, valid, parent)
     with blas_threads(1):  # dense ~10^3 solves: BLAS threads cost more than they give (workers.blas_threads)
         groups = parent.to_elements if isinstance(parent, ElementMap) else (
             None if parent is None else (parent, n_elements))
@@ -466,6 +464,19 @@ def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSe
     sigma = res.sigma_groups if res.sigma_groups is not None else np.full(n_elements, np.nan)
     return replace(res, power=np.where(observed, power, np.nan), observed=observed,
                    sigma=np.where(observed, sigma, np.nan), observation=cls), keep
+
+
+def element_unknowns(T_vertices, valid, emap: ElementMap):
+    """``unknowns: linear_elements``: T per vertex -> T per unknown (the elements these pixels
+    see, and the vertices on the rim of that set: :class:`~fluxcli.surface.mesh.ElementHats`);
+    returns that T, the ElementMap sharing the unknowns out to the elements, the prior's
+    edge weights and the unknowns' areas (mm²)."""
+    from ..inverse._common import DEFAULT_REL_THRESHOLD, observed
+
+    hats = emap.hats
+    keep = np.asarray(valid).ravel()
+    b = hats.basis(observed(sp.csr_array(emap.T[keep]), DEFAULT_REL_THRESHOLD))  # the elements' own T
+    return sp.csr_array(T_vertices @ b.prolong), replace(emap, to_elements=b.to_elements, hats=None), b.stiffness, b.areas_mm2
 
 
 def _on_elements(res, keep, emap: ElementMap):
@@ -1084,7 +1095,7 @@ def _sweep_cell(sim_path: str, grids_k: dict, pose: int, level: int, repeats: in
     for u in {m.unknowns for m in methods}:  # T by path: no T inside a task graph
         T, part = load_T(grids_k[u][0]), grids_k[u][2]
         if isinstance(part, VertexMap):  # the fine T: per vertex, and per element for the classes
-            T, part = part.solve_T(T), part.element_map(T)
+            T, part = part.unknowns_T(T), part.element_map(T)
         Ts[u], parts[u] = T, part
     out = np.zeros((len(methods), repeats))
     with h5py.File(sim_path, "r") as f:
