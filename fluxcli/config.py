@@ -616,7 +616,9 @@ class Reconstruct(Model):
     unknowns: Literal["auto", "elements", "sub_elements", "vertices", "linear_elements"] = Field(
         "auto", description="auto (default): smooth solves for the exitance at the vertices (linear within each face, "
                             "continuous; T from the once-refined surface), shared out to the elements, when there are at "
-                            "most 6000 vertices; else (and for the other methods) per element. elements, sub_elements "
+                            "most 2500 vertices; beyond, one unknown per element with the exitance still linear within "
+                            "faces (linear_elements) when there are at most 6000 elements; else (and for the other "
+                            "methods) per element. elements, sub_elements "
                             "(phantom strips, else faces), vertices or linear_elements (one unknown per element, exitance "
                             "linear within faces: a vertex takes the mean of the elements around it) to choose.")
     images: ImageFiles | CaptureSource | None = Field(None, description="Images from files, or from a capture, instead of simulation.h5.")

@@ -599,8 +599,9 @@ MAX_AUTO_SUB_ELEMENTS = 6000  # dense solves: 6000² doubles is 0.29 GB a matrix
 def resolve_unknowns(m: C.MethodSettings, surface, camera: C.Camera | None = None) -> C.MethodSettings:
     """``unknowns: auto``: ``smooth`` solves for the exitance at the vertices (linear within
     each face, continuous across edges; :meth:`Surface.vertex_basis`) and shares it out to
-    the elements when there are at most MAX_AUTO_SUB_ELEMENTS vertices; the other methods,
-    and larger meshes, solve per element. (``camera`` is kept in the signature for its
+    the elements when there are at most EXACT_MAX_UNKNOWNS vertices, beyond on one unknown per
+    element with the exitance still linear within faces (``linear_elements``, up to
+    MAX_AUTO_SUB_ELEMENTS elements); the other methods, and larger meshes, solve per element. (``camera`` is kept in the signature for its
     callers: how finely the camera resolves an element no longer decides, see below.)
 
     Light varies within an element, and where it varies steeply a model constant per element
@@ -621,11 +622,31 @@ def resolve_unknowns(m: C.MethodSettings, surface, camera: C.Camera | None = Non
     0.9 pixels 8.8 → 5.3 % / 11.6 → 6.0 %; 96 x 48 quads (4706 vertices) at 4.7 pixels
     3.2 → 2.0 % / 4.3 → 2.6 %, at 0.2 pixels 6.2 → 5.4 % / 8.8 → 6.5 %; the battery's
     cylinder at 2.2 and 0.55 pixels per element 6.1 → 3.7 % and 7.4 → 5.0 % (top), 9.3 →
-    6.3 % and 12.9 → 8.4 % (limb). Vertices won every one; totals moved either way by ≤ 1.5 %."""
+    6.3 % and 12.9 → 8.4 % (limb). Vertices won every one; totals moved either way by ≤ 1.5 %.
+
+    Beyond :data:`~fluxcli.inverse.methods.EXACT_MAX_UNKNOWNS` vertices (where the exact
+    non-negative steps would cost minutes) ``auto`` solves on ``linear_elements`` instead: one
+    unknown per element (and per vertex on the rim of what the camera sees), the exitance
+    still linear within faces (:class:`~fluxcli.surface.mesh.ElementHats`), so the reported
+    elements, not the mesh, set the cost and the solve stays exact. Issue 25's scene (5666
+    vertices, 1168 elements, 2 x 2 quads per element) went from minutes to seconds; at SNR 30
+    the element-sized basis tied or won on the battery's grouped-quad cases (renderer-direct
+    1.55 → 1.38 %, indep-direct 1.22 → 1.16 %, indep-mirrors 1.11 → 1.03 %). It has a quarter
+    of the vertices' freedom, and where the light rises steeply within elements and the data
+    are nearly noiseless the vertices win (test_independent_renderer's source behind the
+    limb at SNR 300: 0.4 % on vertices, 1.8 % per element), so below the cap vertices stay
+    (and the battery's figures with them)."""
     if m.unknowns != "auto":
         return m
-    fine = m.method == "smooth" and n_vertices(surface) <= MAX_AUTO_SUB_ELEMENTS
-    return m.model_copy(update={"unknowns": "vertices" if fine else "elements"})
+    if m.method != "smooth":
+        return m.model_copy(update={"unknowns": "elements"})
+    from ..inverse.methods import EXACT_MAX_UNKNOWNS
+
+    nv = n_vertices(surface)
+    if nv <= EXACT_MAX_UNKNOWNS:
+        return m.model_copy(update={"unknowns": "vertices"})
+    return m.model_copy(update={"unknowns": "linear_elements" if surface.n_elements <= MAX_AUTO_SUB_ELEMENTS
+                                else "elements"})
 
 
 def n_vertices(surface) -> int:
@@ -645,7 +666,7 @@ def _check_solver_size(cfg: C.LoadedConfig, ctx: RunContext, surface, n_poses: i
     if any(s.unknowns == "sub_elements" for s in methods):
         n_sub["sub_elements"] = surface.unknowns()[0].n_elements
     n_sub["vertices"] = n_vertices(surface)
-    n_sub["linear_elements"] = surface.n_elements
+    n_sub["linear_elements"] = surface.n_elements  # and the rim of what each pose sees (a few % more)
     nx, ny = cfg.model.system.camera.pixels
     need = 8.0 * nx * ny * n_poses * 8  # images, masks, fits and residuals
     for s in methods:
