@@ -547,8 +547,11 @@ def _solve_poses(gm, inp, m, noise, stray, todo, shape, joint_too: bool, rois, s
             fitted[keep] = res.fitted
             return res, fitted.reshape(ny, nx)
         res, fitted = solve_pose()
-        valid_k, spiked = reject_spikes(inp.images[k], fitted, inp.valid[k], noise)
-        if valid_k is not inp.valid[k]:  # solved again without them; the joint solve leaves them out too
+        # inp.valid[k] is a new view at every indexing: compare with the one reject_spikes was given
+        # (`valid_k is not inp.valid[k]` was always true: every pose was solved twice)
+        valid_before = inp.valid[k]
+        valid_k, spiked = reject_spikes(inp.images[k], fitted, valid_before, noise)
+        if valid_k is not valid_before:  # solved again without them; the joint solve leaves them out too
             inp.valid[k] = valid_k
             res, fitted = solve_pose()
         res = _scaled(replace(res, warnings=tuple(w for w in (stray[k], spiked) if w) + tuple(res.warnings)), scale)
