@@ -4,6 +4,7 @@ warnings triggered (and left silent) on problems built to need them."""
 
 from __future__ import annotations
 
+import h5py
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -387,3 +388,37 @@ def test_spike_rejection_leaves_model_error_alone_and_takes_lone_spikes(scene25_
     a[hits] += 1e4
     got = R.isolated_spikes(a, model, valid, noise)
     assert got.sum() == 6 and got[hits].all()
+
+
+def test_linear_elements_through_the_cli_each_pose_solved_once(write_config, minimal_config, tmp_path, monkeypatch):
+    """unknowns: linear_elements end to end on the stage tests' cylinder (two poses, honest
+    finer truth): the truth is met about as well as on vertices, the summary names the basis,
+    and each pose is solved once when no spike is left out, plus the joint solve (every pose
+    was solved twice before: the check for left-out spikes compared a fresh view of the mask
+    with `is not`; on that code this test counts 5 solves). Measured: error 7.7 % on vertices,
+    8.4 % on linear elements (single-quad elements: here the basis has fewer unknowns than
+    vertices, 96 + rim against 112)."""
+    from typer.testing import CliRunner
+
+    from conftest import cylinder_sim_config
+    from fluxcli.cli import app
+    from fluxcli.stages import reconstruct as R
+
+    cfg = cylinder_sim_config(minimal_config)
+    cfg["simulate"]["noise"]["repeats"] = 1
+    p = write_config(cfg)
+    runner = CliRunner()
+    assert runner.invoke(app, ["simulate", str(p), "--quiet"]).exit_code == 0
+    calls = []
+    solve = R._solve
+    monkeypatch.setattr(R, "_solve", lambda *a, **k: calls.append(1) or solve(*a, **k))
+    errors = {}
+    for unknowns in ("vertices", "linear_elements"):
+        calls.clear()
+        r = runner.invoke(app, ["reconstruct", str(p), "--force", "--set", f"reconstruct.unknowns={unknowns}"])
+        assert r.exit_code == 0, r.output
+        assert len(calls) == 3, len(calls)  # 2 poses + the joint solve
+        with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
+            errors[unknowns] = float(f["truth"].attrs["error"])
+    assert "per element, exitance linear within faces" in r.output
+    assert errors["linear_elements"] < 1.25 * errors["vertices"] + 0.01, errors
