@@ -396,8 +396,7 @@ def test_linear_elements_through_the_cli_each_pose_solved_once(write_config, min
     and each pose is solved once when no spike is left out, plus the joint solve (every pose
     was solved twice before: the check for left-out spikes compared a fresh view of the mask
     with `is not`; on that code this test counts 5 solves). Measured: error 7.7 % on vertices,
-    8.4 % on linear elements (single-quad elements: here the basis has fewer unknowns than
-    vertices, 96 + rim against 112)."""
+    8.4 % on linear elements (elements of one quad each: no more freedom than vertices)."""
     from typer.testing import CliRunner
 
     from conftest import cylinder_sim_config
