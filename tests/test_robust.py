@@ -356,12 +356,12 @@ def test_spike_rejection_leaves_model_error_alone_and_takes_lone_spikes(scene25_
     camera's prediction. Noise alone reaches |z| ~ 3.7 on its 65 536 pixels (a Gaussian's
     expected maximum there is 4.3), so SPIKE_SIGMA = 20 is far from a false alarm on noise;
     but at the battery's brightest peak (2e5) the camera's calibration error leaves pixels
-    along the silhouette above 20 sigma (measured: 8, up to 30; the battery met |z| = 25), and
-    only the isolation rule (SPIKE_ISOLATION x every neighbour) keeps them: without it (a
-    broken copy, isolation 1) some are cut. At the issue's peak (2e4) six lone cosmic-ray hits
-    of 1e4 photons on the subject are taken, and nothing else. (The rule's limit, measured:
-    at 2e5 the same calibration error puts the neighbours of a pixel at a median |z| of 7, so
-    a hit needs ~8 x that; three of six hits of 2e4 photons pass unseen there.)"""
+    along the silhouette above 20 sigma (measured: 8, up to 30; the battery met |z| = 25, and
+    at 150 pixels per element 43 pixels were cut as spikes). The threshold is in units of
+    the residuals' own spread (measured 3.7 there, 1.6 at 2e4): a broken copy without it and
+    without the isolation rule cuts real light. At the issue's peak (2e4) six lone
+    cosmic-ray hits of 1e4 photons on the subject are taken, and nothing else. (The rule's
+    limit, measured: at 2e5 hits of 2e4 photons are taken three times in six, of 1e4 never.)"""
     from fluxcli.stages import reconstruct as R
 
     noise = PhotonNoise(kind="poisson")
@@ -377,6 +377,7 @@ def test_spike_rejection_leaves_model_error_alone_and_takes_lone_spikes(scene25_
     assert not R.isolated_spikes(a, model, valid, noise).any()
     with monkeypatch.context() as mp:
         mp.setattr(R, "SPIKE_ISOLATION", 1.0)
+        mp.setattr(R, "residual_spread", lambda z, where: 1.0)
         assert R.isolated_spikes(a, model, valid, noise).any()
 
     clean, model = (x * 2e4 for x in scene25_images)
