@@ -356,12 +356,12 @@ def test_spike_rejection_leaves_model_error_alone_and_takes_lone_spikes(scene25_
     camera's prediction. Noise alone reaches |z| ~ 3.7 on its 65 536 pixels (a Gaussian's
     expected maximum there is 4.3), so SPIKE_SIGMA = 20 is far from a false alarm on noise;
     but at the battery's brightest peak (2e5) the camera's calibration error leaves pixels
-    along the silhouette above 20 sigma (measured: 8, up to 30; the battery met |z| = 25, and
-    at 150 pixels per element 43 pixels were cut as spikes). The threshold is in units of
-    the residuals' own spread (measured 3.7 there, 1.6 at 2e4): a broken copy without it and
-    without the isolation rule cuts real light. At the issue's peak (2e4) six lone
-    cosmic-ray hits of 1e4 photons on the subject are taken, and nothing else. (The rule's
-    limit, measured: at 2e5 hits of 2e4 photons are taken three times in six, of 1e4 never.)"""
+    along the silhouette above 20 sigma (measured: 8, up to 30; the battery met |z| = 25). The
+    bar is also 5x the residuals' own spread (measured 3.7 there, 1.6 at 2e4), and a spike must
+    stand 8x above its neighbours: a broken copy without both cuts real light. At the issue's
+    peak (2e4) six lone cosmic-ray hits of 1e4 photons on the subject are taken, and nothing
+    else. (The rule's limit, measured: at 2e5 hits of 2e4 photons are taken 4 times in 6, of
+    1e4 twice, of 3e3 never.)"""
     from fluxcli.stages import reconstruct as R
 
     noise = PhotonNoise(kind="poisson")
