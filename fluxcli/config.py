@@ -556,10 +556,11 @@ class MethodSettings(Model):
     max_iter: int = Field(10, ge=1, description="paper: at most this many solves; smooth: this many.")
     tol: float = Field(0.01, gt=0, description="paper: stop when the fit improves by less than this fraction.")
     n_iter: int = Field(500, ge=1, description="mlem: EM iterations.")
-    unknowns: Literal["auto", "elements", "sub_elements", "vertices"] = Field(
+    unknowns: Literal["auto", "elements", "sub_elements", "vertices", "linear_elements"] = Field(
         "elements", description="Solve per element; per sub-element (phantom strips, else faces) summed per element; or "
-                                "per vertex (exitance linear within faces) shared out to the elements; auto: as "
-                                "reconstruct.unknowns.")
+                                "per vertex (exitance linear within faces) shared out to the elements; linear_elements: one unknown "
+                                "per element, exitance linear within faces (a vertex takes the mean of the elements "
+                                "around it); auto: as reconstruct.unknowns.")
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True, allow_inf_nan=False)
 
@@ -637,11 +638,14 @@ class Reconstruct(Model):
     max_iter: int = Field(10, ge=1, description="paper: at most this many solves; smooth: this many.")
     tol: float = Field(0.01, gt=0, description="paper: stop when the fit improves by less than this fraction.")
     n_iter: int = Field(500, ge=1, description="mlem: EM iterations.")
-    unknowns: Literal["auto", "elements", "sub_elements", "vertices"] = Field(
+    unknowns: Literal["auto", "elements", "sub_elements", "vertices", "linear_elements"] = Field(
         "auto", description="auto (default): smooth solves for the exitance at the vertices (linear within each face, "
                             "continuous; T from the once-refined surface), shared out to the elements, when there are at "
-                            "most 6000 vertices; else (and for the other methods) per element. elements, sub_elements "
-                            "(phantom strips, else faces) or vertices to choose.")
+                            "most 2500 vertices; beyond, one unknown per element with the exitance still linear within "
+                            "faces (linear_elements) when there are at most 6000 elements; else (and for the other "
+                            "methods) per element. elements, sub_elements "
+                            "(phantom strips, else faces), vertices or linear_elements (one unknown per element, exitance "
+                            "linear within faces: a vertex takes the mean of the elements around it) to choose.")
     images: ImageFiles | CaptureSource | None = Field(None, description="Images from files, or from a capture, instead of simulation.h5.")
     level: int = Field(0, ge=0, description="Which signal level of the simulation to reconstruct.")
     repeat: int = Field(0, ge=0, description="Which noise repeat of the simulation to reconstruct.")

@@ -4,6 +4,7 @@ warnings triggered (and left silent) on problems built to need them."""
 
 from __future__ import annotations
 
+import h5py
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -243,3 +244,221 @@ def test_a_replaced_lambda_pick_does_not_move_the_headline_but_a_final_edge_pick
     final = ["lambda (lcurve) sits at the edge of the search range (1e-15, range 1e-15..1e+09, widened 2x): ..."]
     h = headline_total(p, obs, well, final)
     assert h.photons == 8.0 and h.over == "well-observed elements" and "edge" in h.reason
+
+
+def _grouped_cylinder():
+    """A small issue-25 mesh (tests/independent_renderer.py): a 24-gon prism along y, side quads
+    grouped 2 x 2 into elements, each cap 2 bands in 2 sectors x 2 rings."""
+    import sys
+    from pathlib import Path
+
+    from fluxcli.surface.mesh import Surface
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    import independent_renderer as ir
+
+    v, f, e = ir.cylinder_y(n_angular=24, n_axial=12, cap_bands=2, cap_sectors=2, cap_rings=2)
+    return Surface(v, f, e, int(e.max()) + 1)
+
+
+def test_element_sized_basis_keeps_power_constants_and_an_axial_gradient():
+    """unknowns: linear_elements (one unknown per element, exitance linear within faces). Closed
+    forms the construction must meet: every unknown's power is shared out completely over the
+    vertices and over the elements (columns sum to 1); a constant exitance j is represented
+    exactly (u_v = j A_v at every vertex); an exitance linear along the axis, J = 1 + g y, given
+    as element values at the element centroids, comes back exactly at every side vertex away
+    from the caps (the surrounding elements' shares are symmetric there); the prior gives a
+    constant no energy and has non-negative edge weights. On a closed surface with every
+    element in the solve there is no rim: one unknown per element."""
+    from fluxcli.inverse.smooth import exitance_prior
+
+    surf = _grouped_cylinder()
+    vb = surf.vertex_basis()
+    b = vb.per_element().basis()
+    S = surf.element_areas_mm2
+    P = b.prolong
+    assert P.shape == (vb.n_vertices, surf.n_elements) and P.data.min() >= 0 and b.rim_vertices.size == 0
+    assert np.allclose(b.areas_mm2, S, rtol=1e-12)
+    assert np.allclose(np.asarray(P.sum(axis=0)).ravel(), 1.0, rtol=1e-12)
+    assert np.allclose(np.asarray(b.to_elements.sum(axis=0)).ravel(), 1.0, rtol=1e-12)
+    j = 3.7
+    assert np.allclose(P @ (j * S), j * vb.areas_mm2, rtol=1e-12)
+    g = 0.031
+    y_el = surf.element_centroids_mm[:, 1]
+    u = P @ ((1.0 + g * y_el) * S)
+    V = surf.vertices_mm[vb.vertex_index]
+    away = np.abs(V[:, 1]) < 25.0 - 1e-9  # not on a cap (nor on the cap's edge ring)
+    assert away.sum() > 200
+    assert np.allclose((u / vb.areas_mm2)[away], 1.0 + g * V[away, 1], rtol=1e-12)
+    W = b.stiffness
+    assert W.data.min() >= 0 and np.allclose(W.toarray(), W.toarray().T)
+    R = exitance_prior(W, np.ones(surf.n_elements, bool), S, ridge=0.0)
+    assert abs(S @ R @ S) < 1e-10 * np.abs(R).max() * S.sum() ** 2
+
+
+def test_element_sized_basis_frees_the_rim_of_what_the_solve_sees():
+    """Without the elements of one cap (seen edge-on: not in the solve) the vertices on that
+    cap's edge ring keep unknowns of their own, so an exitance that rises towards the cap,
+    J = 1 + g y, is still represented there exactly (a mean over the side elements alone
+    holds it flat: the first row of a blob beyond the edge came out 4-6x its truth); vertices
+    of the left-out cap alone get no light; a constant exitance over the elements in the solve
+    (and its rim) still costs the prior nothing."""
+    from fluxcli.inverse.smooth import exitance_prior
+
+    surf = _grouped_cylinder()
+    vb = surf.vertex_basis()
+    hats = vb.per_element()
+    V = surf.vertices_mm[vb.vertex_index]
+    cap = np.abs(surf.element_normals[:, 1]) > 0.99
+    top_cap = cap & (surf.element_centroids_mm[:, 1] > 0)
+    b = hats.basis(~top_cap)
+    ring = np.flatnonzero(np.isclose(V[:, 1], 25.0) & (np.hypot(V[:, 0], V[:, 2]) > 12.0))
+    assert np.array_equal(np.sort(b.rim_vertices), ring)
+    g = 0.031
+    S = surf.element_areas_mm2
+    x = np.concatenate([(1.0 + g * surf.element_centroids_mm[:, 1]) * S * ~top_cap,
+                        (1.0 + g * V[b.rim_vertices, 1]) * vb.areas_mm2[b.rim_vertices]])
+    J = (b.prolong @ x) / vb.areas_mm2
+    side = np.abs(np.hypot(V[:, 0], V[:, 2]) - 12.5) < 1e-6
+    assert np.allclose(J[side & (V[:, 1] > -25.0 + 1e-9)], 1.0 + g * V[side & (V[:, 1] > -25.0 + 1e-9), 1], rtol=1e-12)
+    inner_cap = np.isclose(V[:, 1], 25.0) & (np.hypot(V[:, 0], V[:, 2]) < 12.0)
+    assert np.all(J[inner_cap] == 0.0)
+    const = np.concatenate([S * ~top_cap, vb.areas_mm2[b.rim_vertices]])
+    mask = const > 0
+    R = exitance_prior(b.stiffness, mask, b.areas_mm2, ridge=0.0)
+    assert abs(const[mask] @ R @ const[mask]) < 1e-10 * np.abs(R).max() * const.sum() ** 2
+
+
+@pytest.fixture(scope="module")
+def scene25_images():
+    """Issue 25's direct view from the independent renderer (no fluxcli code): the data seen by
+    the camera displaced within calibration errors, and what the calibrated camera predicts
+    for the same surface (the model a fit would start from), both noiseless, photons, peak 1."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    import independent_renderer as ir
+
+    p, nrm, w, _ = ir.true_cylinder_samples(rng=np.random.default_rng(0))
+
+    def exitance(q):
+        return ir.gaussian_exitance(q, (0.0, 4.0, 12.5), 6.0)
+
+    data, model = (ir.render_points(p, nrm, w, exitance, ir.perturbed_camera(ir.SCENE25_CAMERA, pert), K=16, seed=1)
+                   for pert in (ir.SCENE25_PERTURBATION, None))
+    s = data.max()
+    return data / s, model / s
+
+
+def test_spike_rejection_leaves_model_error_alone_and_takes_lone_spikes(scene25_images, monkeypatch):
+    """The spike rule on images the code did not make: issue 25's scene against the calibrated
+    camera's prediction. Noise alone reaches |z| ~ 3.7 on its 65 536 pixels (a Gaussian's
+    expected maximum there is 4.3), so SPIKE_SIGMA = 20 is far from a false alarm on noise;
+    but at the battery's brightest peak (2e5) the camera's calibration error leaves pixels
+    along the silhouette above 20 sigma (measured: 8, up to 30; the battery met |z| = 25). The
+    bar is also 5x the residuals' own spread (measured 3.7 there, 1.6 at 2e4), and a spike must
+    stand 8x above its neighbours: a broken copy without both cuts real light. At the issue's
+    peak (2e4) six lone cosmic-ray hits of 1e4 photons on the subject are taken, and nothing
+    else. (The rule's limit, measured: at 2e5 hits of 2e4 photons are taken 4 times in 6, of
+    1e4 twice, of 3e3 never.)"""
+    from fluxcli.stages import reconstruct as R
+
+    noise = PhotonNoise(kind="poisson")
+
+    def z(a, m):
+        return (a - m) / np.sqrt(noise.variance(np.maximum(a, m)))
+
+    clean, model = (x * 2e5 for x in scene25_images)
+    a = np.random.default_rng(1).poisson(clean).astype(float)
+    valid = np.ones(a.shape, bool)
+    assert np.abs(z(a, clean)).max() < R.SPIKE_SIGMA / 4  # noise alone
+    assert (z(a, model) > R.SPIKE_SIGMA).sum() >= 3  # calibration error alone
+    assert not R.isolated_spikes(a, model, valid, noise).any()
+    with monkeypatch.context() as mp:
+        mp.setattr(R, "SPIKE_ISOLATION", 1.0)
+        mp.setattr(R, "residual_spread", lambda z, where: 1.0)
+        assert R.isolated_spikes(a, model, valid, noise).any()
+
+    clean, model = (x * 2e4 for x in scene25_images)
+    a = np.random.default_rng(2).poisson(clean).astype(float)
+    assert not R.isolated_spikes(a, model, valid, noise).any()
+    rng = np.random.default_rng(3)
+    on = np.flatnonzero(model.ravel() > 0.05 * model.max())
+    hits = np.unravel_index(rng.choice(on, 6, replace=False), a.shape)
+    a[hits] += 1e4
+    got = R.isolated_spikes(a, model, valid, noise)
+    assert got.sum() == 6 and got[hits].all()
+
+
+def test_linear_elements_through_the_cli_each_pose_solved_once(write_config, minimal_config, tmp_path, monkeypatch):
+    """unknowns: linear_elements end to end on the stage tests' cylinder (two poses, honest
+    finer truth): the truth is met about as well as on vertices, the summary names the basis,
+    and each pose is solved once when no spike is left out, plus the joint solve (every pose
+    was solved twice before: the check for left-out spikes compared a fresh view of the mask
+    with `is not`; on that code this test counts 5 solves). Measured: error 7.7 % on vertices,
+    8.4 % on linear elements (elements of one quad each: no more freedom than vertices)."""
+    from typer.testing import CliRunner
+
+    from conftest import cylinder_sim_config
+    from fluxcli.cli import app
+    from fluxcli.stages import reconstruct as R
+
+    cfg = cylinder_sim_config(minimal_config)
+    cfg["simulate"]["noise"]["repeats"] = 1
+    p = write_config(cfg)
+    runner = CliRunner()
+    assert runner.invoke(app, ["simulate", str(p), "--quiet"]).exit_code == 0
+    calls = []
+    solve = R._solve
+    monkeypatch.setattr(R, "_solve", lambda *a, **k: calls.append(1) or solve(*a, **k))
+    errors = {}
+    for unknowns in ("vertices", "linear_elements"):
+        calls.clear()
+        r = runner.invoke(app, ["reconstruct", str(p), "--force", "--set", f"reconstruct.unknowns={unknowns}"])
+        assert r.exit_code == 0, r.output
+        assert len(calls) == 3, len(calls)  # 2 poses + the joint solve
+        with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
+            errors[unknowns] = float(f["truth"].attrs["error"])
+    assert "per element, exitance linear within faces" in r.output
+    assert errors["linear_elements"] < 1.25 * errors["vertices"] + 0.01, errors
+
+
+@pytest.mark.slow
+def test_lambda_where_the_pixels_are_fewer_than_the_unknowns(tmp_path, monkeypatch):
+    """Issue 25's scene at 0.5 pixels per element (90 x 90 pixels of 148 µm: 420 pixels see the
+    670 unknowns) from the independent renderer, through the CLI. UPRE's estimate is flat
+    down to λ → 0 there and picked an interpolant of the noise and the model error (1.1e-9:
+    19.8 % error, total 1.043 over observed elements); the discrepancy principle that replaces
+    it there gives 2.6 %, 1.002 (λ fixed by hand at 1e-4: 3.0 %). The code before (a broken copy:
+    DOF_SHARE_MAX infinite) must miss."""
+    import sys
+    from pathlib import Path
+
+    import yaml
+    from typer.testing import CliRunner
+
+    from fluxcli.cli import app
+    from fluxcli.inverse import filtered as F
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    import independent_renderer as ir
+
+    cam = dict(ir.SCENE25_CAMERA) | {"pixels": [90, 90], "pixel_pitch_mm": 0.148}
+    p, truth, _ = ir.scene25(tmp_path, mirrors=False, peak_photons=2e4, noise_draw=0, camera=cam)
+    runner = CliRunner()
+    assert runner.invoke(app, ["build-T", str(p), "--quiet"]).exit_code == 0
+
+    def figures():
+        r = runner.invoke(app, ["reconstruct", str(p), "--quiet", "--force"])
+        assert r.exit_code == 0, r.output
+        with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
+            power, obs = f["flux/power"][()], f["flux/observed"][()]
+        return np.abs(power[obs] - truth[obs]).sum() / truth[obs].sum(), power[obs].sum() / truth[obs].sum(), r.output
+
+    err, tot, out = figures()
+    assert err < 0.03 and abs(tot - 1) < 0.02, (err, tot)
+    assert "discrepancy principle" in out
+    monkeypatch.setattr(F, "DOF_SHARE_MAX", np.inf)
+    err_before, _, _ = figures()
+    assert err_before > 0.10, err_before

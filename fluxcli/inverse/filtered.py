@@ -73,6 +73,33 @@ def _provisional_upre(T_obs, a, prior, variance, k, lambdas, gamma, tau) -> S.Ch
     return S.choose(spec, "gcv", k=k, lambdas=lambdas, gamma=gamma, tau=tau)
 
 
+DOF_SHARE_MAX = 0.5  # UPRE's pick may spend at most this share of the pixels on degrees of freedom
+
+
+def _unless_interpolating(spec: S.Spectrum, choice: S.Choice, k, lambdas, gamma, tau):
+    """UPRE's pick, or the discrepancy principle's where UPRE cannot choose.
+
+    UPRE estimates the predictive risk ``‖W^½r‖² + 2Σf − m``; where the filter can nearly
+    interpolate the pixels (more unknowns than pixels that see them: issue 25's scene at 0.5
+    pixels per element, 420 pixels for 670 unknowns) the estimate is flat from λ → 0 up to
+    the useful range (399 at 1e-9, 437 at 1e-4, against its own noise of √(2m) = 29), and its
+    minimum lands on an interpolant of the noise and of the model error (19.8 % error, 2.9 %
+    at λ = 1e-4). When the pick's degrees of freedom exceed :data:`DOF_SHARE_MAX` of the
+    pixels, the known noise level decides instead: ``‖W^½r‖² = τm`` (Morozov's discrepancy
+    principle, which cannot fit below the noise; there 2.6 %). Returns the choice and a
+    note (None when UPRE's pick stands)."""
+    m = spec.m
+    df = float(spec.curves([choice.lam * spec.scale], k)[2][0])
+    if df <= DOF_SHARE_MAX * m:
+        return choice, None
+    disc = S.choose(spec, "discrepancy", k=k, lambdas=lambdas, gamma=gamma, tau=tau, noise_total=float(m))
+    if disc.at_edge:
+        return choice, None
+    return disc, (f"lambda (UPRE) at {choice.lam:.3g} spent {df:.0f} degrees of freedom on {m} pixels (it can "
+                  f"interpolate the noise there); chose lambda {disc.lam:.3g} by the discrepancy principle "
+                  "(chi^2/pixel 1 under the noise model)")
+
+
 def guard_lambda(spec: S.Spectrum, choice: S.Choice, b, it: int, conv: bool, k: int, *, tol=None):
     """Check a λ picked on the linear filter against the non-negative estimator that runs,
     and pick again by that estimator's fit when the check fails.
@@ -193,6 +220,10 @@ def filtered_solve(T_obs, a, *, prior=None, k: int = 10, tol: float | None = Non
             if (weights is None and variance is not None and weighted and eff_rule == "gcv"
                     and (choice.widened or choice.at_edge)):
                 choice = _provisional_upre(T_obs, a, prior, variance, k, lambdas, gamma, tau)
+            if spec.noise_weighted and eff_rule == "gcv":
+                choice, note = _unless_interpolating(spec, choice, k, lambdas, gamma, tau)
+                if note and p == n_pass - 1:
+                    warn.append(note)
             lam_p = choice.lam
         b, it, conv = run(spec, lam_p * spec.scale, k, tol=tol)
         if lam is None and tol is not None and it < k:

@@ -228,7 +228,8 @@ def _image_files(cfg: C.LoadedConfig, n_poses: int, poses: list | None) -> Input
 
 STRAY_WARN = 0.05  # share of the image's light on pixels no element reaches: warned above this
 STRAY_REFUSE = 0.5  # ... and refused above this: the images do not show this geometry
-SPIKE_SIGMA = 20.0  # a pixel this many sigma above the model ...
+SPIKE_SIGMA = 20.0  # a pixel this many sigma of the noise model above the model ...
+SPIKE_SPREAD = 5.0  # ... and this many times the residuals' own spread (where the fit is off by more than noise) ...
 SPIKE_ISOLATION = 8.0  # ... and this many times further above it than any of its 8 neighbours
 MAX_SPIKE_SHARE = 0.005  # at most this share of the valid pixels is left out as spikes
 
@@ -239,9 +240,17 @@ def isolated_spikes(image: np.ndarray, model: np.ndarray, valid: np.ndarray, noi
     with a point spread of a pixel or more can send to one pixel alone.
 
     ``z = (a - model) / sqrt(var(max(a, model)))`` (the variance at the larger of the two,
-    so a spike cannot shrink its own sigma); a spike has ``z > SPIKE_SIGMA`` and
-    ``z > SPIKE_ISOLATION x`` the largest ``z`` of its valid neighbours (at least 1).  Images
-    are [ny, nx] (a 1-D array is one row).  Returns a mask of the image's shape."""
+    so a spike cannot shrink its own sigma). Noise alone gives a Gaussian z, whose largest
+    value on 10⁷ pixels is about 5.3: SPIKE_SIGMA = 20 is no false alarm on noise. Where the
+    model is off by more than noise (a camera a calibration error away, a surface finer than
+    the elements: |z| of 25 and more along edges at high signal, as the accuracy battery met,
+    or up to 67 on test_plausible_but_wrong's images at 2e4 photons a pixel) the residuals'
+    own spread ``s`` (1.4826 x the median |z| where the model has light: a Gaussian's sigma,
+    robust to the spikes themselves; 1.6 on issue 25's scene at a 2e4 peak, 3.7 at 2e5, 36-39
+    there) sets the bar too: a spike is a 5-sigma outlier of that spread (SPIKE_SPREAD). So a spike has
+    ``z > max(SPIKE_SIGMA, SPIKE_SPREAD s)`` and ``z > SPIKE_ISOLATION x`` the largest ``z`` of
+    its valid neighbours (at least 1). Images are [ny, nx] (a 1-D array is one row).
+    Returns a mask of the image's shape."""
     from scipy.ndimage import maximum_filter
 
     a = np.asarray(image, dtype=np.float64)
@@ -251,10 +260,18 @@ def isolated_spikes(image: np.ndarray, model: np.ndarray, valid: np.ndarray, noi
     ok = np.asarray(valid, bool).reshape(a2.shape) & np.isfinite(a2) & np.isfinite(m2)
     with np.errstate(invalid="ignore"):
         z = np.where(ok, (a2 - m2) / np.sqrt(noise.variance(np.where(ok, np.maximum(a2, m2), 0.0))), 0.0)
+    scale = residual_spread(z, ok & (m2 > 0))
     ring = np.ones((3, 3), bool)
     ring[1, 1] = False
     neighbours = maximum_filter(z, footprint=ring, mode="constant", cval=0.0)
-    return ((z > SPIKE_SIGMA) & (z > SPIKE_ISOLATION * np.maximum(neighbours, 1.0))).reshape(shape)
+    return ((z > max(SPIKE_SIGMA, SPIKE_SPREAD * scale))
+            & (z > SPIKE_ISOLATION * np.maximum(neighbours, 1.0))).reshape(shape)
+
+
+def residual_spread(z: np.ndarray, where: np.ndarray) -> float:
+    """The spread of the residuals ``z`` (in noise sigma) over ``where``, robust to the spikes
+    among them: 1.4826 x the median |z| (a Gaussian's sigma), at least 1 (the noise model's)."""
+    return max(1.0, 1.4826 * float(np.median(np.abs(z[where])))) if np.any(where) else 1.0
 
 
 def describe_pixels(mask: np.ndarray, excess: np.ndarray, limit: int = 3) -> str:
@@ -383,6 +400,7 @@ class ElementMap:
     T: sp.csr_array  # (n_pixels, n_elements)
     adjacency: sp.csr_matrix
     areas: np.ndarray
+    hats: object = None  # linear_elements: the T given is per vertex; run_method makes the element unknowns
 
 
 @dataclass
@@ -396,24 +414,33 @@ class VertexMap:
     to_elements: sp.csr_array  # (n_elements, n_vertices)
     adjacency: sp.csr_matrix  # elements touching
     areas: np.ndarray  # element areas, mm²
+    hats: object = None  # linear_elements: surface.ElementHats (one unknown per element, from the vertices' T)
 
     def unknowns_T(self, T_fine) -> sp.csr_array:
+        """T per vertex (columns of the hat functions; linear_elements: run_method combines them)."""
         return sp.csr_array(T_fine @ self.to_fine)
 
     def element_map(self, T_fine) -> ElementMap:
-        return ElementMap(self.to_elements, sp.csr_array(T_fine @ self.fine_to_elements), self.adjacency, self.areas)
+        return ElementMap(self.to_elements, sp.csr_array(T_fine @ self.fine_to_elements), self.adjacency, self.areas,
+                          self.hats)
 
 
 def make_grid(cfg: C.LoadedConfig, ctx: RunContext, surface, unknowns: str) -> Grid:
-    if unknowns == "vertices":  # T per face of the once-refined surface, combined per hat function
-        _, _, todo, _ = ensure_T(cfg, replace(ctx, force=False), label="building T (vertices)", unknowns="refined:1")
+    if unknowns in ("vertices", "linear_elements"):  # T per face of the once-refined surface, per hat function
+        _, _, todo, _ = ensure_T(cfg, replace(ctx, force=False), label=f"building T ({unknowns.replace('_', ' ')})",
+                                 unknowns="refined:1")
         vb = surface.vertex_basis()
         _, fine_parent = surface.refined(1)
         fine_to_el = sp.csr_array((np.ones(fine_parent.size), (np.arange(fine_parent.size), fine_parent)),
                                   shape=(fine_parent.size, surface.n_elements))
-        vmap = VertexMap(vb.to_fine, fine_to_el, vb.to_elements, surface.element_adjacency(), surface.element_areas_mm2)
+        stiffness, areas, hats = vb.stiffness, vb.areas_mm2, None
+        if unknowns == "linear_elements":  # one unknown per element, still linear within faces
+            hats = vb.per_element()
+            stiffness, areas = None, None  # per solve: the unknowns depend on the elements the pixels see
+        vmap = VertexMap(vb.to_fine, fine_to_el, vb.to_elements, surface.element_adjacency(), surface.element_areas_mm2,
+                         hats)
         Tf = [load_T(pt.path).tocsr() for _, pt in todo]
-        return Grid([vmap.unknowns_T(T) for T in Tf], vb.stiffness, None, surface.n_elements, vb.areas_mm2, surface,
+        return Grid([vmap.unknowns_T(T) for T in Tf], stiffness, None, surface.n_elements, areas, surface,
                     [str(pt.path) for _, pt in todo], vmap, [vmap.element_map(T) for T in Tf])
     label = "building T" if unknowns == "elements" else "building T (sub-elements)"
     _, _, todo, _ = ensure_T(cfg, replace(ctx, force=False), label=label, unknowns=unknowns)
@@ -432,6 +459,8 @@ def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSe
     when any of its parts is, its class is its best part's; sigma is not propagated: NaN);
     with an :class:`ElementMap` they are vertices shared out to the elements, which are
     classified on their own T."""
+    if isinstance(parent, ElementMap) and parent.hats is not None:
+        T, parent, adjacency, areas = element_unknowns(T, valid, parent)
     with blas_threads(1):  # dense ~10^3 solves: BLAS threads cost more than they give (workers.blas_threads)
         groups = parent.to_elements if isinstance(parent, ElementMap) else (
             None if parent is None else (parent, n_elements))
@@ -453,6 +482,19 @@ def run_method(T: sp.csr_matrix, a: np.ndarray, valid: np.ndarray, m: C.MethodSe
     sigma = res.sigma_groups if res.sigma_groups is not None else np.full(n_elements, np.nan)
     return replace(res, power=np.where(observed, power, np.nan), observed=observed,
                    sigma=np.where(observed, sigma, np.nan), observation=cls), keep
+
+
+def element_unknowns(T_vertices, valid, emap: ElementMap):
+    """``unknowns: linear_elements``: T per vertex -> T per unknown (the elements these pixels
+    see, and the vertices on the rim of that set: :class:`~fluxcli.surface.mesh.ElementHats`);
+    returns that T, the ElementMap sharing the unknowns out to the elements, the prior's
+    edge weights and the unknowns' areas (mm²)."""
+    from ..inverse._common import DEFAULT_REL_THRESHOLD, observed
+
+    hats = emap.hats
+    keep = np.asarray(valid).ravel()
+    b = hats.basis(observed(sp.csr_array(emap.T[keep]), DEFAULT_REL_THRESHOLD))  # the elements' own T
+    return sp.csr_array(T_vertices @ b.prolong), replace(emap, to_elements=b.to_elements, hats=None), b.stiffness, b.areas_mm2
 
 
 def _on_elements(res, keep, emap: ElementMap):
@@ -523,8 +565,11 @@ def _solve_poses(gm, inp, m, noise, stray, todo, shape, joint_too: bool, rois, s
             fitted[keep] = res.fitted
             return res, fitted.reshape(ny, nx)
         res, fitted = solve_pose()
-        valid_k, spiked = reject_spikes(inp.images[k], fitted, inp.valid[k], noise)
-        if valid_k is not inp.valid[k]:  # solved again without them; the joint solve leaves them out too
+        # inp.valid[k] is a new view at every indexing: compare with the one reject_spikes was given
+        # (`valid_k is not inp.valid[k]` was always true: every pose was solved twice)
+        valid_before = inp.valid[k]
+        valid_k, spiked = reject_spikes(inp.images[k], fitted, valid_before, noise)
+        if valid_k is not valid_before:  # solved again without them; the joint solve leaves them out too
             inp.valid[k] = valid_k
             res, fitted = solve_pose()
         res = _scaled(replace(res, warnings=tuple(w for w in (stray[k], spiked) if w) + tuple(res.warnings)), scale)
@@ -575,8 +620,9 @@ MAX_AUTO_SUB_ELEMENTS = 6000  # dense solves: 6000² doubles is 0.29 GB a matrix
 def resolve_unknowns(m: C.MethodSettings, surface, camera: C.Camera | None = None) -> C.MethodSettings:
     """``unknowns: auto``: ``smooth`` solves for the exitance at the vertices (linear within
     each face, continuous across edges; :meth:`Surface.vertex_basis`) and shares it out to
-    the elements when there are at most MAX_AUTO_SUB_ELEMENTS vertices; the other methods,
-    and larger meshes, solve per element. (``camera`` is kept in the signature for its
+    the elements when there are at most EXACT_MAX_UNKNOWNS vertices, beyond on one unknown per
+    element with the exitance still linear within faces (``linear_elements``, up to
+    MAX_AUTO_SUB_ELEMENTS elements); the other methods, and larger meshes, solve per element. (``camera`` is kept in the signature for its
     callers: how finely the camera resolves an element no longer decides, see below.)
 
     Light varies within an element, and where it varies steeply a model constant per element
@@ -597,11 +643,31 @@ def resolve_unknowns(m: C.MethodSettings, surface, camera: C.Camera | None = Non
     0.9 pixels 8.8 → 5.3 % / 11.6 → 6.0 %; 96 x 48 quads (4706 vertices) at 4.7 pixels
     3.2 → 2.0 % / 4.3 → 2.6 %, at 0.2 pixels 6.2 → 5.4 % / 8.8 → 6.5 %; the battery's
     cylinder at 2.2 and 0.55 pixels per element 6.1 → 3.7 % and 7.4 → 5.0 % (top), 9.3 →
-    6.3 % and 12.9 → 8.4 % (limb). Vertices won every one; totals moved either way by ≤ 1.5 %."""
+    6.3 % and 12.9 → 8.4 % (limb). Vertices won every one; totals moved either way by ≤ 1.5 %.
+
+    Beyond :data:`~fluxcli.inverse.methods.EXACT_MAX_UNKNOWNS` vertices (where the exact
+    non-negative steps would cost minutes) ``auto`` solves on ``linear_elements`` instead: one
+    unknown per element (and per vertex on the rim of what the camera sees), the exitance
+    still linear within faces (:class:`~fluxcli.surface.mesh.ElementHats`), so the reported
+    elements, not the mesh, set the cost and the solve stays exact. Issue 25's scene (5666
+    vertices, 1168 elements, 2 x 2 quads per element) went from minutes to seconds; at SNR 30
+    the element-sized basis tied or won on the battery's grouped-quad cases (renderer-direct
+    1.55 → 1.38 %, indep-direct 1.22 → 1.16 %, indep-mirrors 1.11 → 1.03 %). It has a quarter
+    of the vertices' freedom, and where the light rises steeply within elements and the data
+    are nearly noiseless the vertices win (test_independent_renderer's source behind the
+    limb at SNR 300: 0.4 % on vertices, 1.8 % per element), so below the cap vertices stay
+    (and the battery's figures with them)."""
     if m.unknowns != "auto":
         return m
-    fine = m.method == "smooth" and n_vertices(surface) <= MAX_AUTO_SUB_ELEMENTS
-    return m.model_copy(update={"unknowns": "vertices" if fine else "elements"})
+    if m.method != "smooth":
+        return m.model_copy(update={"unknowns": "elements"})
+    from ..inverse.methods import EXACT_MAX_UNKNOWNS
+
+    nv = n_vertices(surface)
+    if nv <= EXACT_MAX_UNKNOWNS:
+        return m.model_copy(update={"unknowns": "vertices"})
+    return m.model_copy(update={"unknowns": "linear_elements" if surface.n_elements <= MAX_AUTO_SUB_ELEMENTS
+                                else "elements"})
 
 
 def n_vertices(surface) -> int:
@@ -621,6 +687,7 @@ def _check_solver_size(cfg: C.LoadedConfig, ctx: RunContext, surface, n_poses: i
     if any(s.unknowns == "sub_elements" for s in methods):
         n_sub["sub_elements"] = surface.unknowns()[0].n_elements
     n_sub["vertices"] = n_vertices(surface)
+    n_sub["linear_elements"] = surface.n_elements  # and the rim of what each pose sees (a few % more)
     nx, ny = cfg.model.system.camera.pixels
     need = 8.0 * nx * ny * n_poses * 8  # images, masks, fits and residuals
     for s in methods:
@@ -640,7 +707,8 @@ def _check_solver_size(cfg: C.LoadedConfig, ctx: RunContext, surface, n_poses: i
 
 def describe(m: C.MethodSettings) -> str:
     base = _describe(m)
-    return {"elements": base, "vertices": f"{base} on vertices (exitance linear within faces)"}.get(
+    return {"elements": base, "vertices": f"{base} on vertices (exitance linear within faces)",
+            "linear_elements": f"{base} per element, exitance linear within faces"}.get(
         m.unknowns, f"{base} on sub-elements")
 
 
@@ -656,7 +724,8 @@ def _describe(m: C.MethodSettings) -> str:
 
 
 # what `unknowns: auto` and the solvers do; a reconstruction made by an older version is redone
-SOLVER_VERSION = "2026-11 vertex basis, cotangent prior, provisional UPRE, isolated spikes left out, exact non-negative steps"
+SOLVER_VERSION = ("2026-11 vertex basis, cotangent prior, provisional UPRE, isolated spikes left out, exact non-negative "
+                  "steps, linear_elements beyond 2500 vertices, discrepancy where UPRE interpolates")
 
 
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:

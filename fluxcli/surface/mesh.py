@@ -206,7 +206,11 @@ class Surface:
         adj = sp.csr_array((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_v, n_v))
         adj = sp.csr_array(((adj + adj.T) > 0).astype(np.float64))
         K = cotangent_weights(self.vertices_mm[used], local)
-        return VertexBasis(fine, to_fine, sp.csr_array(P @ to_fine), A_v, adj, used, K)
+        e_all = np.sort(local[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        edges, count = np.unique(e_all, axis=0, return_counts=True)
+        rim = np.zeros(n_v, bool)
+        rim[edges[count != 2].ravel()] = True  # on the edge of an open surface (or of a non-manifold one)
+        return VertexBasis(fine, to_fine, sp.csr_array(P @ to_fine), A_v, adj, used, K, rim)
 
     def digest(self) -> str:
         """Content hash of the placed geometry (rounded to 1 nm, so float noise does not matter)."""
@@ -237,6 +241,7 @@ class VertexBasis:
     stiffness : sparse (n_vertices, n_vertices), the edge weights of ``∫|∇J|² dS`` for an
         exitance linear within each face (:func:`cotangent_weights`): the smoothness prior
         of a solve on vertices.
+    on_boundary : (n_vertices,) bool, on the edge of an open surface.
     """
 
     fine: "Surface"
@@ -246,10 +251,115 @@ class VertexBasis:
     adjacency: object
     vertex_index: np.ndarray
     stiffness: object = None
+    on_boundary: np.ndarray | None = None  # (n_vertices,) bool: on an edge used by one face only
 
     @property
     def n_vertices(self) -> int:
         return len(self.areas_mm2)
+
+    def per_element(self) -> "ElementHats":
+        """One unknown per element with the exitance still linear within each face and
+        continuous across edges: the exitance at a vertex is the mean of the element values
+        around it, each weighted by the share of the vertex's hat that lies on that element
+        (:class:`ElementHats`)."""
+        import scipy.sparse as sp
+
+        A = np.asarray(self.areas_mm2, dtype=np.float64)
+        share = sp.csr_array(sp.csr_array(self.to_elements).T)  # (n_v, n_e): A_v^e / A_v, rows sum to 1
+        S = np.asarray(share.T @ A).ravel()  # S_e = Σ_v A_v^e
+        K = sp.csr_array(self.stiffness if self.stiffness is not None else self.adjacency)
+        L = sp.csr_array(sp.diags_array(np.asarray(K.sum(axis=1)).ravel()) - K)
+        boundary = np.zeros(len(A), bool) if self.on_boundary is None else np.asarray(self.on_boundary, bool)
+        return ElementHats(share, A, S, L, sp.csr_array(self.to_elements), boundary)
+
+
+@dataclass(frozen=True)
+class ElementHats:
+    """One unknown per element, exitance linear within faces (:meth:`VertexBasis.per_element`).
+
+    With ``A_v^e = ∫_e φ_v dS`` (``Σ_e A_v^e = A_v``, ``Σ_v A_v^e = S_e``) and the element
+    value ``j_e = c_e / S_e`` (photons mm⁻²), the exitance at an inner vertex v is the mean
+    ``J_v = Σ_e w_ve j_e / Σ_e w_ve`` with ``w_ve = A_v^e / A_v`` over the elements around it,
+    and its lumped power ``u_v = A_v J_v``: ``u = P c`` with ``P ≥ 0``, so ``c ≥ 0`` keeps the
+    exitance non-negative everywhere. A constant exitance is represented exactly, and so is
+    a linear one at every vertex whose elements' centroids surround it symmetrically.
+
+    A mean is one-sided where some of a vertex's elements are not in the solve (the camera
+    does not see them) or where the surface ends: there it would hold the exitance flat
+    towards the edge (a blob beyond the edge: 4-6x too much light on the grazing elements of
+    the last row, where free vertices fit). Such *rim* vertices keep an unknown of their own,
+    the lumped power ``u_v`` as on vertices; vertices with no element in the solve have none
+    (``J_v = 0``). The unknowns are the elements (columns of elements not in the solve are 0)
+    followed by the rim vertices (:meth:`basis`).
+
+    The prior is the vertices' ``∫|∇J|² dS`` written on the unknowns: ``xᵀ (Qᵀ L_K Q) x`` in
+    exitance units (``J = Q x``) with ``L_K`` the cotangent Laplacian. ``Qᵀ L_K Q`` has zero
+    row sums, so it is the graph Laplacian of its negated off-diagonal; a positive
+    off-diagonal (a negative weight) is clipped at 0 as :func:`cotangent_weights` clips
+    obtuse angles.
+
+    Attributes
+    ----------
+    share : sparse (n_vertices, n_elements), ``w_ve = A_v^e / A_v``.
+    vertex_areas_mm2 : (n_vertices,) ``A_v``.
+    areas_mm2 : (n_elements,) ``S_e``; the element value of exitance is ``c_e / S_e``.
+    laplacian : sparse (n_vertices, n_vertices), ``L_K`` (cotangent).
+    vertex_to_elements : sparse (n_elements, n_vertices), element power per photon of a
+        vertex's lumped power (:attr:`VertexBasis.to_elements`).
+    on_boundary : (n_vertices,) bool, on the edge of an open surface.
+    """
+
+    share: object
+    vertex_areas_mm2: np.ndarray
+    areas_mm2: np.ndarray
+    laplacian: object
+    vertex_to_elements: object
+    on_boundary: np.ndarray
+
+    def basis(self, included=None) -> "HatBasis":
+        """The unknowns for the elements ``included`` (bool (n_elements,); None: all)."""
+        import scipy.sparse as sp
+
+        n_v, n_e = self.share.shape
+        inc = np.ones(n_e, bool) if included is None else np.asarray(included, bool)
+        Q = sp.csr_array(self.share @ sp.diags_array(inc.astype(np.float64)))
+        inside = np.asarray(Q.sum(axis=1)).ravel()  # share of each vertex's hat on included elements
+        outside = np.asarray(self.share.sum(axis=1)).ravel() - inside
+        rim = (inside > 0) & ((outside > 1e-12) | self.on_boundary)
+        scale = np.where((inside > 0) & ~rim, 1.0 / np.where(inside > 0, inside, 1.0), 0.0)
+        Q = sp.csr_array(sp.diags_array(scale) @ Q)
+        rim_idx = np.flatnonzero(rim)
+        E = sp.csr_array((np.ones(rim_idx.size), (rim_idx, np.arange(rim_idx.size))), shape=(n_v, rim_idx.size))
+        Q = sp.csr_array(sp.hstack([Q, E]))  # J = Q x, x exitance per unknown (photons mm⁻²)
+        areas = np.concatenate([self.areas_mm2, self.vertex_areas_mm2[rim_idx]])
+        inv = np.divide(1.0, areas, out=np.zeros_like(areas), where=areas > 0)
+        P = sp.csr_array(sp.diags_array(self.vertex_areas_mm2) @ Q @ sp.diags_array(inv))
+        Lc = sp.csr_array(Q.T @ self.laplacian @ Q)
+        W = sp.csr_array(-(Lc - sp.diags_array(Lc.diagonal())))
+        W.data = np.maximum(W.data, 0.0)
+        W.eliminate_zeros()
+        return HatBasis(P, sp.csr_array(self.vertex_to_elements @ P), areas, W, rim_idx)
+
+
+@dataclass(frozen=True)
+class HatBasis:
+    """The unknowns of :meth:`ElementHats.basis`: the elements, then the rim vertices.
+
+    Attributes
+    ----------
+    prolong : sparse (n_vertices, n_unknowns) ≥ 0, vertex lumped power per photon of each
+        unknown (T of the unknowns = T per vertex @ prolong).
+    to_elements : sparse (n_elements, n_unknowns), element power per photon of each unknown.
+    areas_mm2 : (n_unknowns,) the unknown's exitance is its power over this area.
+    stiffness : sparse (n_unknowns, n_unknowns) ≥ 0, the edge weights of ``∫|∇J|² dS``.
+    rim_vertices : (n_rim,) the vertex of each unknown after the elements.
+    """
+
+    prolong: object
+    to_elements: object
+    areas_mm2: np.ndarray
+    stiffness: object
+    rim_vertices: np.ndarray
 
 
 def cotangent_weights(vertices_mm: np.ndarray, faces: np.ndarray):
