@@ -18,6 +18,11 @@ Profiles (docs/design.md, "Emission"):
     unpolarised Fresnel reflectance (Haskell et al. 1994), carried out through the surface by
     Fresnel transmission at the internal angle theta' (sin theta = n sin theta') and the n^2
     change of radiance; then normalised.
+    With it (on by default) the tangential flux of the same diffusion radiance: where the
+    exitance varies along the surface the light leaves tilted away from where it is
+    brighter, ``L_t(r, s) = -pi p(theta) g(theta) grad_t M . s / pi`` with
+    ``g = 1 / (n mu_t' (1 + 3 mu' / 2A))`` (mm), mu_t' = mu_a + mu_s'; see
+    :func:`tangent_length` and docs/design.md, "Emission: the tangential flux".
 ``table``
     a measured or computed curve (angle from the normal in degrees, or cos theta) -> relative
     radiance, interpolated linearly and normalised.
@@ -105,6 +110,22 @@ class Profile:
     table: np.ndarray = field(repr=False)
     refractive_index: float | None = None
     source: str | None = None  # a table's file name, for reports
+    # the tangential-flux term (diffuse only): pi p(theta) g(theta) on the same mu grid, mm; empty: off
+    tangent: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+    reduced_scattering_per_mm: float | None = None
+    absorption_per_mm: float | None = None
+
+    @property
+    def has_tangent(self) -> bool:
+        return len(self.tangent) > 0
+
+    def tangent_weight(self, cos_theta) -> np.ndarray:
+        """``pi p(theta) g(theta)`` (mm) at ``cos_theta``: a ray's tangential weight per unit
+        of ``-grad_t M / M . s_o`` (0 behind the surface, or when the term is off)."""
+        mu = np.asarray(cos_theta, float)
+        if not self.has_tangent:
+            return np.zeros_like(mu)
+        return np.where(mu > 0, interp_weight(self.tangent, np.clip(mu, 0.0, 1.0)), 0.0)
 
     @property
     def is_lambertian(self) -> bool:
@@ -136,10 +157,15 @@ class Profile:
         out = {"model": self.model, "weights_sha256": hashlib.sha256(self.table.tobytes()).hexdigest()}
         if self.refractive_index is not None:
             out["refractive_index"] = float(self.refractive_index)
+        if self.has_tangent:  # absent when off: the key of a diffuse T before the term existed
+            out["tangent_sha256"] = hashlib.sha256(self.tangent.tobytes()).hexdigest()
         return out
 
     def describe(self) -> str:
         if self.model == "diffuse":
+            if self.has_tangent:
+                return (f"diffuse (refractive index {self.refractive_index:g}) with its tangential flux "
+                        f"(mu_s' {self.reduced_scattering_per_mm:g} /mm, mu_a {self.absorption_per_mm:g} /mm)")
             return f"diffuse (refractive index {self.refractive_index:g})"
         if self.model == "table":
             return f"table ({self.source})" if self.source else "table"
@@ -174,12 +200,48 @@ def lambertian() -> Profile:
     return Profile("lambertian", np.zeros(0))
 
 
-def diffuse(refractive_index: float = 1.40) -> Profile:
+# The tangential term's default medium: a reduced scattering coefficient of ~1 /mm is the
+# order of soft tissue and of tissue phantoms in the red / near infrared (Jacques 2013, Phys.
+# Med. Biol. 58 R37: mu_s' ~ 0.5-2 /mm for most soft tissues at 600-800 nm), and 0.01 /mm
+# absorption that of a phantom (it enters only through mu_t' = mu_a + mu_s').
+DEFAULT_REDUCED_SCATTERING_PER_MM = 1.0
+DEFAULT_ABSORPTION_PER_MM = 0.01
+
+
+def tangent_length(cos_theta: np.ndarray, n: float, transport_per_mm: float) -> np.ndarray:
+    """The length ``g(theta) = 1 / (n mu_t' (1 + 3 mu' / 2A))`` (mm) that turns the relative
+    exitance gradient into the tangential part of the radiance: outside,
+    ``L = M p(theta) (1 - g(theta) grad_t M / M . s_o)``.
+
+    Inside, ``L_in = phi / 4pi + 3 J.s_i / 4pi``; the normal part with the Robin boundary
+    ``J_n = phi / 2A`` gives ``M p(theta)``, the tangential part ``J_t = -D grad_t phi``
+    (D = 1 / 3 mu_t') crosses the surface with ``T_F / n^2`` and ``s_i,t = s_o,t / n`` (Snell),
+    and ``grad phi / phi = grad M / M`` (M proportional to phi at the surface)."""
+    mu = np.clip(np.asarray(cos_theta, float), 0.0, 1.0)
+    mu_in = np.sqrt(1.0 - (1.0 - mu * mu) / n**2)
+    return 1.0 / (n * transport_per_mm * (1.0 + 3.0 * mu_in / (2.0 * boundary_A(n))))
+
+
+def diffuse(refractive_index: float = 1.40, *, tangential: bool = False,
+            reduced_scattering_per_mm: float = DEFAULT_REDUCED_SCATTERING_PER_MM,
+            absorption_per_mm: float = DEFAULT_ABSORPTION_PER_MM) -> Profile:
+    """The diffusion-theory profile; with ``tangential`` also the tangential-flux term of a
+    medium with these coefficients (the profile itself does not depend on them)."""
     n = float(refractive_index)
     if not (np.isfinite(n) and n >= 1.0):
         raise ValueError(f"refractive index must be a number >= 1, got {refractive_index}")
     mu = np.linspace(0.0, 1.0, N_TABLE)
-    return Profile("diffuse", _normalised(diffuse_radiance(mu, n)), refractive_index=n)
+    table = _normalised(diffuse_radiance(mu, n))
+    if not tangential:
+        return Profile("diffuse", table, refractive_index=n)
+    mus, mua = float(reduced_scattering_per_mm), float(absorption_per_mm)
+    if not (np.isfinite(mus) and mus > 0):
+        raise ValueError(f"reduced_scattering_per_mm must be a number > 0, got {reduced_scattering_per_mm}")
+    if not (np.isfinite(mua) and mua >= 0):
+        raise ValueError(f"absorption_per_mm must be a number >= 0, got {absorption_per_mm}")
+    tangent = np.ascontiguousarray(table * tangent_length(mu, n, mus + mua))
+    return Profile("diffuse", table, refractive_index=n, tangent=tangent, reduced_scattering_per_mm=mus,
+                   absorption_per_mm=mua)
 
 
 def table(x, radiance, *, unit: str = "deg", source: str | None = None) -> Profile:
@@ -264,7 +326,9 @@ def profile(model) -> Profile:
     if kind == "lambertian":
         return lambertian()
     if kind == "diffuse":
-        return diffuse(get("refractive_index", 1.40))
+        return diffuse(get("refractive_index", 1.40), tangential=bool(get("tangential_flux", True)),
+                       reduced_scattering_per_mm=get("reduced_scattering_per_mm", DEFAULT_REDUCED_SCATTERING_PER_MM),
+                       absorption_per_mm=get("absorption_per_mm", DEFAULT_ABSORPTION_PER_MM))
     if kind == "table":
         return table(get("angles"), get("radiance"), unit=get("unit", "deg"))
     raise ValueError(f"unknown emission model {kind!r} (lambertian, diffuse or table)")
@@ -277,3 +341,45 @@ def share_beyond(weights: np.ndarray, cos_theta: np.ndarray, degrees: float) -> 
     if not tot > 0:
         return float("nan")
     return float(np.sum(w[np.asarray(cos_theta) < np.cos(np.radians(degrees))])) / tot
+
+
+def tangent_operator(surface, levels: int = 1):
+    """The tangential term's map from vertex unknowns to the fine faces T is built on
+    (:meth:`fluxcli.surface.mesh.Surface.vertex_basis`, same orderings): sparse
+    (3 n_fine, n_vertices), row 3f + x, column v: ``-S_f (grad phi_v|_f)_x / A_v`` (mm).
+
+    With exitance linear within each face, ``M = sum_v phi_v u_v / A_v`` (u_v the lumped power
+    of vertex v, A_v = int phi_v dS), its gradient on fine face f is the constant
+    ``sum_v grad phi_v|_f u_v / A_v`` (the hat's gradient on the coarse face f lies in), in the
+    face's plane.  The light the term sends to pixel i is ``-S_f grad_t M|_f . T_tangent[i, f]``;
+    so T per vertex gains ``T_tangent @ tangent_operator``.  Per-element (or per-face) unknowns
+    have no gradient inside an element: the term does not act on them."""
+    import scipy.sparse as sp
+
+    levels = int(levels)
+    fine, _ = surface.refined(levels)
+    vb = surface.vertex_basis(levels)
+    ok = surface.element_of_face >= 0
+    _, local = np.unique(surface.faces[ok], return_inverse=True)
+    local = local.reshape(-1, 3)
+    coarse = np.flatnonzero(np.tile(ok, 4**levels)) % len(surface.faces)  # refined(): children of i at t F + i
+    rank = np.cumsum(ok) - 1
+    tri = surface.vertices_mm[surface.faces[coarse]]  # (n_fine, 3, 3): the coarse face of each fine one
+    S_f = fine.face_areas_mm2[fine.element_of_face >= 0]
+    nvec = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    two_a = np.linalg.norm(nvec, axis=1)
+    good = two_a > 0
+    nhat = np.divide(nvec, two_a[:, None], out=np.zeros_like(nvec), where=good[:, None])
+    inv_av = np.divide(1.0, vb.areas_mm2, out=np.zeros_like(vb.areas_mm2), where=vb.areas_mm2 > 0)
+    n_fine, n_v = len(S_f), len(vb.areas_mm2)
+    rows, cols, vals = [], [], []
+    for k in range(3):  # grad phi_k = n x (p_{k+2} - p_{k+1}) / 2a, pointing from the opposite edge to p_k
+        edge = tri[:, (k + 2) % 3] - tri[:, (k + 1) % 3]
+        grad = np.divide(np.cross(nhat, edge), two_a[:, None], out=np.zeros_like(edge), where=good[:, None])
+        v = local[rank[coarse], k]
+        for x in range(3):
+            rows.append(3 * np.arange(n_fine) + x)
+            cols.append(v)
+            vals.append(-S_f * grad[:, x] * inv_av[v])
+    G = sp.coo_array((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n_fine, n_v))
+    return sp.csr_array(G.tocsr())
