@@ -147,7 +147,7 @@ def show(label, rows):
               f"edge>=4: {s['edge>=4'][0]:5.1%} (rel {s['edge>=4'][1]:5.1%})", flush=True)
 
 
-def reconstruct(cfg_path, tag, label, overrides=None, images=None):
+def reconstruct(cfg_path, tag, label, overrides=None, images=None, emission=None):
     """Reconstruct in a copy of the run's folder (own simulation.h5 with ``images`` when given)."""
     cfg = yaml.safe_load(cfg_path.read_text())
     src = OUT / cfg["workdir"].split("/")[-1]
@@ -161,6 +161,8 @@ def reconstruct(cfg_path, tag, label, overrides=None, images=None):
             f["images/noiseless"][0] = images.astype(np.float32)
     cfg["workdir"] = f"../{dst.name}"
     cfg["reconstruct"].update(overrides or {})
+    em = {**cfg["subject"]["emission"], **(emission or {})}
+    cfg["subject"]["emission"] = {k: v for k, v in em.items() if v is not None}
     p = OUT / "configs" / f"{dst.name}.yaml"
     p.write_text(yaml.safe_dump(cfg))
     AM.fluxmap("reconstruct", p, "--force")
@@ -237,6 +239,10 @@ def main(argv=None):
             reconstruct(p, tag, v, overrides={"lambda": lam * fac})
         elif v == "elements":
             reconstruct(p, tag, v, overrides={"unknowns": "elements"})
+        elif v == "notangent":  # diffuse without its tangential-flux term (the profile in theta only)
+            reconstruct(p, tag, v, emission={"tangential_flux": False})
+        elif v == "lambertian":
+            reconstruct(p, tag, v, emission={"model": "lambertian", "refractive_index": None})
     return 0
 
 
