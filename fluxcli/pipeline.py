@@ -257,7 +257,7 @@ class PartialFiles(Checkpoint):
                     return None  # made with another chunking (transfer.rays_per_batch): cast again
                 n = len(spans)
                 el_off, nz_off = z["el_off"], z["nz_off"]
-                tval = z["tval"] if "tval" in z.files else np.zeros((0, 3))
+                tval = z["tval"] if "tval" in z.files else np.zeros((0, 2))
                 return [(z["elements"][el_off[i]:el_off[i + 1]], z["starts"][el_off[i] + i:el_off[i + 1] + i + 1],
                          z["pix"][nz_off[i]:nz_off[i + 1]], z["val"][nz_off[i]:nz_off[i + 1]],
                          z["err"][el_off[i]:el_off[i + 1]], int(z["cast"][i]), int(z["rays"][i]), 0,

@@ -424,42 +424,77 @@ def test_tangential_flux_matches_the_drift_of_monte_carlo_exit_photons(n, n_phot
         assert abs(g_mc / p1 - 1) > 3 * tol
 
 
+def tiny_triangle(center, normal, size=0.02):
+    """One triangle (one element, one face frame) centred at ``center`` facing ``normal``."""
+    from fluxcli.surface.mesh import Surface
+
+    nrm = np.asarray(normal, float) / np.linalg.norm(normal)
+    u = np.cross(nrm, [1.0, 0, 0] if abs(nrm[0]) < 0.9 else [0, 1.0, 0])
+    u /= np.linalg.norm(u)
+    v = np.cross(nrm, u)
+    pts = np.asarray(center, float) + size * np.array([u, -0.5 * u + 0.87 * v, -0.5 * u - 0.87 * v])
+    return Surface(pts, np.array([[0, 1, 2]]), np.array([0]), 1)
+
+
 @pytest.mark.parametrize("estimator", ["lens", "pairwise"])
 def test_tangential_columns_are_g_times_the_direction_leaving_the_surface(estimator):
-    """A small tilted patch: the tangential matrix summed over pixels over T's column sum is
-    g(theta_s) times the unit vector from the patch to the lens (a closed form); the scalar T is
-    the same to the bit with and without the term; Lambertian and table profiles have none."""
+    """A small tilted triangle: the tangential matrix summed over pixels over T's column sum is
+    g(theta_s) times the in-plane components of the unit vector from it to the lens (a closed
+    form); the scalar T is the same to the bit with and without the term; Lambertian and table
+    profiles have none."""
     q, nrm = np.array([30.0, 10.0, -60.0]), np.array([0.0, 0.3, 1.0]) / np.hypot(0.3, 1.0)
     cam = camera(d_focus=150.0, R=2.0, n=384, pitch=0.2)
     kw = ({"pairwise_sampling": PairwiseSampling(surface_subdivisions=1, pixel_subdivisions=4)}
           if estimator == "pairwise" else {})
+    subject = tiny_triangle(q, nrm)
+    assert np.allclose(subject.face_normals[0], nrm)
     on = E.diffuse(1.40, tangential=True, reduced_scattering_per_mm=0.8, absorption_per_mm=0.05)
-    r = build_transfer(tiny_patch(q, nrm), views_for(cam, []), estimator=estimator, emission=on, **kw)
+    r = build_transfer(subject, views_for(cam, []), estimator=estimator, emission=on, **kw)
     s = -q / np.linalg.norm(q)
     mu_in = np.sqrt(1 - (1 - (nrm @ s) ** 2) / 1.40**2)
     A = E.boundary_A(1.40)
     g = (1 + 3 * mu_in / A) / (1.40 * 0.85 * (1 + 3 * mu_in / (2 * A)))
+    e = E.face_frames(subject.face_vertices_mm)[0]
+    assert np.allclose(e @ e.T, np.eye(2)) and np.allclose(e @ nrm, 0)
     got = np.asarray(r.T_tangent.sum(axis=0)).ravel() / r.T.sum()
-    assert got == pytest.approx(g * s, abs=3e-3 * g)
-    off = build_transfer(tiny_patch(q, nrm), views_for(cam, []), estimator=estimator, emission=E.diffuse(1.40), **kw)
+    assert got == pytest.approx(g * (e @ s), abs=3e-3 * g)
+    off = build_transfer(subject, views_for(cam, []), estimator=estimator, emission=E.diffuse(1.40), **kw)
     assert off.T_tangent is None and np.array_equal(off.T.toarray(), r.T.toarray())
     for prof in (E.lambertian(), E.table([0, 90], [1, 0.5])):
-        assert build_transfer(tiny_patch(q, nrm), views_for(cam, []), estimator=estimator, emission=prof,
+        assert build_transfer(subject, views_for(cam, []), estimator=estimator, emission=prof,
                               **kw).T_tangent is None
 
 
 def test_tangential_columns_of_a_mirror_view_follow_the_ray_leaving_the_real_surface():
     cam = camera(d_focus=180.0, R=4.0, n=96, pitch=0.08)
     mirror = PlaneMirror.from_axis([0, 20.0, -135.0], [0, -1, 1], [1, 0, 0], (200.0, 200.0))
-    subject = tiny_patch([2.0, -10.0, -150.0], (0, 1, 0.3), size=0.05)
+    subject = tiny_triangle([2.0, -10.0, -150.0], (0, 1, 0.3), size=0.05)
     prof = E.diffuse(1.40, tangential=True)
     r = build_transfer(subject, views_for(cam, [("m", mirror, 0.9)])[1:], emission=prof)
     c = subject.element_centroids_mm[0]
     s = mirror.reflect_points(np.zeros((1, 3)))[0] - c  # towards the mirror image of the lens
     s /= np.linalg.norm(s)
     g = float(prof.tangent_weight(subject.face_normals[0] @ s) / prof.weight(subject.face_normals[0] @ s))
+    e = E.face_frames(subject.face_vertices_mm)[0]
     got = np.asarray(r.T_tangent.sum(axis=0)).ravel() / r.T.sum()
-    assert got == pytest.approx(g * s, abs=3e-3 * g)
+    assert got == pytest.approx(g * (e @ s), abs=3e-3 * g)
+
+
+def test_tangential_values_do_not_depend_on_the_pose():
+    """T_tangent is held in each face's own frame: the subject and the lens turned together
+    give the same numbers (what lets one tangent operator of the subject's surface serve every pose)."""
+    from scipy.spatial.transform import Rotation
+
+    prof = E.diffuse(1.40, tangential=True)
+    subject = tiny_triangle([0.0, 0.0, -80.0], (0.2, 0.4, 1.0), size=0.5)
+    a = build_transfer(subject, views_for(camera(d_focus=80.0, R=3.0, n=64, pitch=0.1), []), emission=prof)
+    R = Rotation.from_rotvec([0.3, -0.5, 0.2]).as_matrix()
+    turned = subject.transformed(R, np.zeros(3))
+    cam = ThinLensCamera.from_pose(lens_center_mm=[0, 0, 0], look=R @ [0, 0, -1], up=R @ [0, 1, 0], focal_length_mm=25.0,
+                                   aperture_radius_mm=3.0, focus_distance_mm=80.0, nx=64, ny=64, pixel_pitch_mm=0.1)
+    b = build_transfer(turned, views_for(cam, []), emission=prof)
+    assert a.T_tangent.sum() != 0
+    assert np.abs((a.T_tangent - b.T_tangent).toarray()).max() < 1e-6 * np.abs(a.T_tangent.toarray()).max()
 
 
 def test_tangent_operator_gives_the_surface_gradient_of_a_linear_exitance():
@@ -473,16 +508,18 @@ def test_tangent_operator_gives_the_surface_gradient_of_a_linear_exitance():
     fine = vb.fine
     ok = fine.element_of_face >= 0
     nrm, S = fine.face_normals[ok], fine.face_areas_mm2[ok]
-    want = -S[:, None] * (a - (nrm @ a)[:, None] * nrm)
-    assert G.shape == (3 * ok.sum(), vb.n_vertices)
-    assert np.abs((G @ u).reshape(-1, 3) - want).max() < 1e-12
+    frames = E.face_frames(fine.face_vertices_mm[ok])
+    want = -S[:, None] * np.einsum("j,iaj->ia", a, frames)  # the in-plane components of grad M
+    assert np.allclose(np.einsum("iaj,ij->ia", frames, nrm), 0)
+    assert G.shape == (2 * ok.sum(), vb.n_vertices)
+    assert np.abs((G @ u).reshape(-1, 2) - want).max() < 1e-12
     assert np.abs(G @ vb.areas_mm2).max() < 1e-12  # a uniform exitance: no gradient, no term
 
 
 def test_the_tangential_term_is_in_the_key_only_when_on():
     on, off = E.diffuse(1.40, tangential=True), E.diffuse(1.40)
     assert "tangent_sha256" in on.key() and "tangent_sha256" not in off.key()
-    assert {k: v for k, v in on.key().items() if k != "tangent_sha256"} == off.key()
+    assert {k: v for k, v in on.key().items() if not k.startswith("tangent")} == off.key()
     assert E.diffuse(1.40, tangential=True, reduced_scattering_per_mm=2.0).key() != on.key()
     assert E.profile({"model": "diffuse", "refractive_index": 1.4}).has_tangent  # the config's default
     assert not E.profile({"model": "diffuse", "tangential_flux": False}).has_tangent

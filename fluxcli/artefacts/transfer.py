@@ -60,7 +60,7 @@ def write_T(path: Path, *, T: sp.csr_matrix, T_per_view: list, view_kinds: list[
 
     ``column_error`` (n_elements,): the estimated L1 error of each column of T (same unit
     as T); ``column_error_per_view``: the same per view (weight not applied); ``T_tangent``
-    (pixels x 3 elements, mm): the tangential-flux term of the emission profile, when it has one
+    (pixels x 2 elements, mm): the tangential-flux term of the emission profile, when it has one
     (:attr:`fluxcli.optics.transfer.TransferResult.T_tangent`)."""
     with write_artefact(path, "transfer", config_sha256=config_sha256, provenance=provenance) as f:
         write_csr(f.create_group("T"), T)
@@ -70,7 +70,8 @@ def write_T(path: Path, *, T: sp.csr_matrix, T_per_view: list, view_kinds: list[
             put(f, "T/column_error", np.asarray(column_error, float))
         if T_tangent is not None:
             write_csr(f.create_group("T_tangent"), T_tangent)
-            f["T_tangent"].attrs["unit"] = "mm (per unit of -grad_t M . s / M per element power; column 3j + x)"
+            f["T_tangent"].attrs["unit"] = ("mm (per unit of -grad_t M / M per element power; column 2j + a: along the "
+                                            "face's in-plane unit vector a, fluxcli.optics.emission.face_frames)")
         write_surface(f.create_group("surface"), surface)
         occ = f.create_group("occluders")
         for k, o in enumerate(occluders):
@@ -99,7 +100,7 @@ def load_T(path: Path) -> sp.csr_matrix:
 
 
 def load_T_tangent(path: Path) -> sp.csr_matrix | None:
-    """The tangential-flux matrix (pixels x 3 elements, column 3j + x) of one cached pose, or
+    """The tangential-flux matrix (pixels x 2 elements, column 2j + a) of one cached pose, or
     None when its emission profile has no tangential term."""
     with open_artefact(path, "transfer") as f:
         return read_csr(f["T_tangent"]) if "T_tangent" in f else None

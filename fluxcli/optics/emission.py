@@ -38,6 +38,7 @@ import numpy as np
 
 N_TABLE = 4097  # ray weights are tabulated on mu = cos(theta) = k / (N_TABLE - 1), linear in between
 CHECK_DEG = (30.0, 45.0, 60.0, 70.0, 75.0, 80.0)  # where reports and notices quote the curve
+TANGENT_LAYOUT = "face-frame-2"  # how T_tangent is stored (2 in-plane components per face): in its cache key
 
 
 # ------------------------------------------------------------------ Fresnel and the boundary
@@ -159,6 +160,7 @@ class Profile:
             out["refractive_index"] = float(self.refractive_index)
         if self.has_tangent:  # absent when off: the key of a diffuse T before the term existed
             out["tangent_sha256"] = hashlib.sha256(self.tangent.tobytes()).hexdigest()
+            out["tangent_layout"] = TANGENT_LAYOUT
         return out
 
     def describe(self) -> str:
@@ -357,10 +359,27 @@ def share_beyond(weights: np.ndarray, cos_theta: np.ndarray, degrees: float) -> 
     return float(np.sum(w[np.asarray(cos_theta) < np.cos(np.radians(degrees))])) / tot
 
 
+def face_frames(face_vertices_mm: np.ndarray) -> np.ndarray:
+    """Two in-plane unit vectors per triangle (F, 2, 3): e1 along its first edge, e2 = n x e1.
+    They turn with the surface (a rigid placement turns them as it turns the face), so the
+    tangential matrix T holds in these components is the same for the subject's own surface
+    and for any pose of it.  Degenerate faces get zeros."""
+    tri = np.asarray(face_vertices_mm, float)
+    e1 = tri[:, 1] - tri[:, 0]
+    nvec = np.cross(e1, tri[:, 2] - tri[:, 0])
+    l1 = np.linalg.norm(e1, axis=1)
+    ln = np.linalg.norm(nvec, axis=1)
+    good = (l1 > 0) & (ln > 0)
+    e1 = np.divide(e1, l1[:, None], out=np.zeros_like(e1), where=good[:, None])
+    nhat = np.divide(nvec, ln[:, None], out=np.zeros_like(nvec), where=good[:, None])
+    return np.stack([e1, np.cross(nhat, e1)], axis=1)
+
+
 def tangent_operator(surface, levels: int = 1):
     """The tangential term's map from vertex unknowns to the fine faces T is built on
     (:meth:`fluxcli.surface.mesh.Surface.vertex_basis`, same orderings): sparse
-    (3 n_fine, n_vertices), row 3f + x, column v: ``-S_f (grad phi_v|_f)_x / A_v`` (mm).
+    (2 n_fine, n_vertices), row 2f + a, column v: ``-S_f grad phi_v|_f . e_a / A_v`` (mm), e_a
+    the fine face's in-plane unit vectors (:func:`face_frames`, the components T holds).
 
     With exitance linear within each face, ``M = sum_v phi_v u_v / A_v`` (u_v the lumped power
     of vertex v, A_v = int phi_v dS), its gradient on fine face f is the constant
@@ -379,7 +398,9 @@ def tangent_operator(surface, levels: int = 1):
     coarse = np.flatnonzero(np.tile(ok, 4**levels)) % len(surface.faces)  # refined(): children of i at t F + i
     rank = np.cumsum(ok) - 1
     tri = surface.vertices_mm[surface.faces[coarse]]  # (n_fine, 3, 3): the coarse face of each fine one
-    S_f = fine.face_areas_mm2[fine.element_of_face >= 0]
+    fine_ok = fine.element_of_face >= 0
+    S_f = fine.face_areas_mm2[fine_ok]
+    frames = face_frames(fine.face_vertices_mm[fine_ok])
     nvec = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     two_a = np.linalg.norm(nvec, axis=1)
     good = two_a > 0
@@ -391,9 +412,9 @@ def tangent_operator(surface, levels: int = 1):
         edge = tri[:, (k + 2) % 3] - tri[:, (k + 1) % 3]
         grad = np.divide(np.cross(nhat, edge), two_a[:, None], out=np.zeros_like(edge), where=good[:, None])
         v = local[rank[coarse], k]
-        for x in range(3):
-            rows.append(3 * np.arange(n_fine) + x)
+        for a in range(2):
+            rows.append(2 * np.arange(n_fine) + a)
             cols.append(v)
-            vals.append(-S_f * grad[:, x] * inv_av[v])
-    G = sp.coo_array((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n_fine, n_v))
+            vals.append(-S_f * np.einsum("ij,ij->i", grad, frames[:, a]) * inv_av[v])
+    G = sp.coo_array((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(2 * n_fine, n_v))
     return sp.csr_array(G.tocsr())

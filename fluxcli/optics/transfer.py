@@ -83,8 +83,10 @@ class TransferResult:
     stats: dict[str, dict[str, float]] = field(default_factory=dict)
     column_error_per_view: list[np.ndarray] = field(default_factory=list)  # per view, L1 error estimate per column
     column_error: np.ndarray | None = None  # of T: sum over views of weight x view's estimate
-    # the tangential-flux term (emission profiles with one): (n_pixels, 3 n_elements), column 3j + x
-    # the x component (mm) of sum over rays of weight x g x direction; sum of weight x view's
+    # the tangential-flux term (emission profiles with one): (n_pixels, 2 n_elements), column 2j + a
+    # the component along the face's in-plane unit vector a (emission.face_frames) of the sum over
+    # rays of weight x g x direction (mm); for an element of several faces each in its own face's
+    # frame (meaningful for one face per element, as the vertex basis's fine T); sum of weight x view's
     T_tangent: sp.csr_matrix | None = None
     T_tangent_per_view: list = field(default_factory=list)
 
@@ -324,6 +326,7 @@ class _LensPlan:
     n_cap: int  # adaptive rounds: lens samples per surface sample, at most
     emis: np.ndarray = field(default_factory=lambda: np.zeros(0))  # ray weights pi p on cos theta (empty: Lambertian)
     tang: np.ndarray = field(default_factory=lambda: np.zeros(0))  # tangential weights pi p g, mm (empty: off)
+    tframe: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3)))  # per sample its face's frame
 
 
 def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: int,
@@ -400,7 +403,8 @@ def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: in
                      np.ascontiguousarray(disk_unit), np.ascontiguousarray(square_unit), np.ascontiguousarray(jitter),
                      chunks, int(n_lens.sum()), clear, _spins(E, turn_patterns),
                      margin, float(s.target_column_error),
-                     int(s.lens_samples_max), _emission_table(emission), _tangent_table(emission))
+                     int(s.lens_samples_max), _emission_table(emission), _tangent_table(emission),
+                     _frames(surface, F, emission))
 
 
 def _emission_table(emission: Profile | None) -> np.ndarray:
@@ -417,21 +421,30 @@ def _tangent_table(emission: Profile | None) -> np.ndarray:
     return np.ascontiguousarray(emission.tangent, np.float64)
 
 
+def _frames(surface: Surface, faces: np.ndarray, emission: Profile | None) -> np.ndarray:
+    """Per sample the in-plane unit vectors of its face (S, 2, 3); (0, 2, 3) when the term is off."""
+    if emission is None or not emission.has_tangent:
+        return np.zeros((0, 2, 3))
+    from .emission import face_frames
+
+    return np.ascontiguousarray(face_frames(surface.face_vertices_mm[faces]))
+
+
 def _tangent_csr(results: list, n_pix: int, n_el: int) -> sp.csr_matrix:
-    """The chunks' tangential values as (n_pix, 3 n_el), column 3j + x (whole elements per chunk,
+    """The chunks' tangential values as (n_pix, 2 n_el), column 2j + a (whole elements per chunk,
     pixels sorted within each column, as the scalar T)."""
     rows, cols, vals = [], [], []
     for r in results:
         elements, starts, pix, tval = r[0], r[1], r[2], r[8]
         col = np.repeat(elements, np.diff(starts))
-        for x in range(3):
+        for a in range(2):
             rows.append(pix)
-            cols.append(3 * col + x)
-            vals.append(tval[:, x])
+            cols.append(2 * col + a)
+            vals.append(tval[:, a])
     if not rows:
-        return sp.csr_matrix((n_pix, 3 * n_el))
+        return sp.csr_matrix((n_pix, 2 * n_el))
     T = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                      shape=(n_pix, 3 * n_el)).tocsr()
+                      shape=(n_pix, 2 * n_el)).tocsr()
     T.eliminate_zeros()
     return T
 
@@ -487,7 +500,7 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
     if plan is None or not plan.chunks or scene.native is None:
         if plan is not None and plan.chunks and scene.native is None:
             raise ValueError("nothing to cast against: the scene has no triangles")
-        tan = sp.csr_matrix((n_pix, 3 * surface.n_elements)) if emission is not None and emission.has_tangent else None
+        tan = sp.csr_matrix((n_pix, 2 * surface.n_elements)) if emission is not None and emission.has_tangent else None
         return sp.csr_matrix(shape), err, {"rays": 0.0, "surface_samples": 0.0, "rays_evaluated": 0.0}, tan
     run = _lens_runner(view, scene, plan, eps)
     rays_of = [int(plan.n_lens[a:b].sum()) for a, b in plan.chunks]
@@ -556,13 +569,13 @@ def _lens_runner(view: View, scene: OcclusionScene, plan: _LensPlan, eps: float)
         if not hasattr(scratch, "even"):
             scratch.even, scratch.odd = np.zeros(n_pix), np.zeros(n_pix)
             scratch.mark, scratch.touched = np.zeros(n_pix, np.bool_), np.zeros(n_pix, np.int32)
-            scratch.tan = np.zeros((n_pix if len(plan.tang) else 0, 3))
+            scratch.tan = np.zeros((n_pix if len(plan.tang) else 0, 2))
         return transfer_kernel.lens_columns(
             nat.occluded16, nat.scene, cam_arr, mir, ap_dist, ap_r2, eps, plan.P, plan.N, plan.G, plan.dA,
             plan.elem, plan.lo, plan.hi, plan.dc, plan.disk_r, plan.use_box, plan.n_lens, plan.pat_off, plan.disk_unit,
             plan.square_unit, plan.jitter, chunk[0], chunk[1], n_pix, cam.nx, cam.ny,
             scratch.even, scratch.odd, scratch.mark, scratch.touched, _NO_RECORD, plan.clear, plan.margin_mm,
-            plan.target, plan.n_cap, plan.spin, plan.emis, plan.tang, scratch.tan)
+            plan.target, plan.n_cap, plan.spin, plan.emis, plan.tang, scratch.tan, plan.tframe)
 
     return run
 
@@ -639,10 +652,11 @@ def _pairwise_pairs(surface: Surface, view: View, s: PairwiseSampling, rays_per_
     faces = _candidate_faces(surface, view)
     if len(faces) == 0:
         return
-    P, N, E, W, _ = sample_faces(surface, faces, np.full(len(faces), s.surface_subdivisions))
+    P, N, E, W, _, F = sample_faces(surface, faces, np.full(len(faces), s.surface_subdivisions), return_faces=True)
     z = cam.axial(P)
     front = (z > 0) & (np.einsum("ij,ij->i", N, cam.center_mm - P) > -cam.aperture_radius_mm)
-    P, N, E, W, z = P[front], N[front], E[front], W[front], z[front]
+    P, N, E, W, z, F = P[front], N[front], E[front], W[front], z[front], F[front]
+    frames = _frames(surface, F, emission)
     k = s.pixel_subdivisions
     sub_pitch = cam.focal_pixel_mm / k
     dA_vd = sub_pitch**2
@@ -696,7 +710,8 @@ def _pairwise_pairs(surface: Surface, view: View, s: PairwiseSampling, rays_per_
             w = np.where(in_lens & (cos_s > 0), cos_s * cos_d / (np.pi * r2), 0.0) * dA_vd * W[ii]
             wt = None
             if emission is not None and emission.has_tangent:  # along the ray leaving the real surface
-                wt = (w * emission.tangent_weight(np.where(in_lens, cos_s, 0.0)) / dl)[:, None] * d
+                wt = ((w * emission.tangent_weight(np.where(in_lens, cos_s, 0.0)) / dl)[:, None]
+                      * np.einsum("ij,iaj->ia", d, frames[ii]))  # in the face's frame
             if emission is not None and not emission.is_lambertian:  # theta_s at the real surface, both views
                 w = w * emission.weight(np.where(in_lens, cos_s, 0.0))
         pix = (rr // k) * cam.nx + (cc // k)
@@ -855,13 +870,13 @@ def _pairwise_view(surface: Surface, view: View, scene: OcclusionScene, s: Pairw
     T.eliminate_zeros()
     tan = None
     if emission is not None and emission.has_tangent:
-        rows = [p for p, _, _ in tparts for _ in range(3)]
-        cols = [3 * e + x for _, e, _ in tparts for x in range(3)]
-        vals = [t[:, x] for _, _, t in tparts for x in range(3)]
+        rows = [p for p, _, _ in tparts for _ in range(2)]
+        cols = [2 * e + a for _, e, _ in tparts for a in range(2)]
+        vals = [t[:, a] for _, _, t in tparts for a in range(2)]
         tan = sp.coo_matrix((np.concatenate(vals) if vals else np.zeros(0),
                              (np.concatenate(rows) if rows else np.zeros(0, np.int64),
                               np.concatenate(cols) if cols else np.zeros(0, np.int64))),
-                            shape=(shape[0], 3 * shape[1])).tocsr()
+                            shape=(shape[0], 2 * shape[1])).tocsr()
         tan.sum_duplicates()
         tan.eliminate_zeros()
     return T, {"rays": float(filt.rays_cast), "surface_samples": float(n_samples), "rays_evaluated": float(done)}, tan

@@ -395,11 +395,11 @@ class VertexMap:
     to_elements: sp.csr_array  # (n_elements, n_vertices)
     adjacency: sp.csr_matrix  # elements touching
     areas: np.ndarray  # element areas, mm²
-    # the emission's tangential-flux term (optics.emission.tangent_operator), (3 n_fine, n_vertices); None: none
+    # the emission's tangential-flux term (optics.emission.tangent_operator), (2 n_fine, n_vertices); None: none
     tangent: "sp.csr_array | None" = None
 
     def unknowns_T(self, T_fine, T_tangent=None) -> sp.csr_array:
-        """T per vertex; with the fine T's tangential matrix (pixels x 3 n_fine) also the light
+        """T per vertex; with the fine T's tangential matrix (pixels x 2 n_fine) also the light
         the exitance gradient of each hat function tilts into each pixel.  A hat alone is not
         an exitance the term holds for everywhere: at its rim phi_v -> 0 while its gradient
         does not, and a pixel that sees only that rim at a grazing angle can get a slightly
