@@ -523,3 +523,40 @@ def test_the_tangential_term_is_in_the_key_only_when_on():
     assert E.diffuse(1.40, tangential=True, reduced_scattering_per_mm=2.0).key() != on.key()
     assert E.profile({"model": "diffuse", "refractive_index": 1.4}).has_tangent  # the config's default
     assert not E.profile({"model": "diffuse", "tangential_flux": False}).has_tangent
+
+
+def test_vertex_unknowns_take_the_tangential_term_from_the_cached_T(write_config, patch_config, tmp_path):
+    """build-T keeps T_tangent beside T (diffuse, term on) and reconstruct on vertices adds
+    T_tangent @ G to T per vertex; with ``tangential_flux: false`` the cache has no T_tangent
+    and T per vertex is the fine T's alone."""
+    import glob
+
+    import h5py
+
+    from fluxcli.artefacts.transfer import load_T, load_T_tangent
+    from fluxcli.config import load_config
+    from fluxcli.scene import SubjectPlacer
+
+    cfg = copy.deepcopy(patch_config)
+    cfg["subject"]["emission"] = {"model": "diffuse", "refractive_index": 1.40}
+    cfg["reconstruct"] = {"method": "smooth", "unknowns": "vertices", "joint": False}
+    p = write_config(cfg, name="on.yaml")
+    assert _cli("simulate", p, "--quiet").exit_code == 0
+    r = _cli("reconstruct", p)
+    assert r.exit_code == 0, r.output
+    files = glob.glob(str(tmp_path / "run" / "cache" / "T" / "*.h5"))
+    fine = [f for f in files if h5py.File(f, "r")["surface/faces"].shape[0] == 4 * 48]  # refined once: 4 x 48 faces
+    assert fine and all(load_T_tangent(f) is not None for f in fine)
+    surf = SubjectPlacer(load_config(p)).surface
+    vb = surf.vertex_basis(1)
+    G = E.tangent_operator(surf, 1)
+    T, Tt = load_T(fine[0]), load_T_tangent(fine[0])
+    assert Tt.shape == (T.shape[0], 2 * T.shape[1]) and G.shape == (Tt.shape[1], vb.n_vertices)
+    extra = Tt @ G
+    assert 0.01 < np.abs(extra).sum() / (T @ vb.to_fine).sum() < 0.5  # the term acts, as a correction
+    cfg["subject"]["emission"]["tangential_flux"] = False
+    p = write_config(cfg, name="off.yaml")
+    r = _cli("reconstruct", p)
+    assert r.exit_code == 0, r.output
+    later = set(glob.glob(str(tmp_path / "run" / "cache" / "T" / "*.h5"))) - set(files)
+    assert later and all(load_T_tangent(f) is None for f in later)
