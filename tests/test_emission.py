@@ -553,3 +553,26 @@ def test_vertex_unknowns_take_the_tangential_term_from_the_cached_T(write_config
     assert Tt.shape == (T.shape[0], 2 * T.shape[1]) and G.shape == (Tt.shape[1], vb.n_vertices)
     extra = Tt @ G
     assert 0.01 < np.abs(extra).sum() / (T @ vb.to_fine).sum() < 0.5  # the term acts, as a correction
+
+
+def test_a_resumed_build_gives_the_same_tangential_values(tmp_path, monkeypatch):
+    """The partial files of a long build keep the tangential values too: a build that reads
+    its blocks back makes the same T_tangent as the one that cast them."""
+    from fluxcli.pipeline import PartialFiles
+
+    cam = camera(d_focus=120.0, R=6.0, n=48, pitch=0.1)
+    subject = phantoms.patch(size_mm=(4, 4), n=(2, 2), center_mm=[0.5, 0.2, -110.0], normal=[0.4, 0, 1])[0]
+    prof = E.diffuse(1.40, tangential=True)
+    kw = dict(emission=prof, rays_per_batch=2000, threads=1)
+    a = build_transfer(subject, views_for(cam, []), checkpoint=PartialFiles(tmp_path, "k", rays_per_block=4000), **kw)
+    saved = list((tmp_path / "k.part").glob("*.npz"))
+    assert len(saved) > 1
+    from fluxcli.optics import transfer_kernel
+
+    def no_cast(*args):
+        raise AssertionError("cast again: the partial files were not read")
+
+    monkeypatch.setattr(transfer_kernel, "lens_columns", no_cast)
+    b = build_transfer(subject, views_for(cam, []), checkpoint=PartialFiles(tmp_path, "k", rays_per_block=4000), **kw)
+    assert a.T_tangent.nnz > 0 and np.array_equal(a.T_tangent.toarray(), b.T_tangent.toarray())
+    assert np.array_equal(a.T.toarray(), b.T.toarray())
