@@ -576,3 +576,16 @@ def test_a_resumed_build_gives_the_same_tangential_values(tmp_path, monkeypatch)
     b = build_transfer(subject, views_for(cam, []), checkpoint=PartialFiles(tmp_path, "k", rays_per_block=4000), **kw)
     assert a.T_tangent.nnz > 0 and np.array_equal(a.T_tangent.toarray(), b.T_tangent.toarray())
     assert np.array_equal(a.T.toarray(), b.T.toarray())
+
+
+def test_simulate_s_tangential_light_is_the_gradient_of_a_linear_truth():
+    """simulate adds T_tangent @ tangent_light(fine truth): for an exitance linear in space, on
+    every fine face of a box (edges and corners included), -S_f times its in-plane gradient."""
+    surf = phantoms.box(size_mm=(12, 16, 8), element_mm=2.0)[0]
+    fine = surf.refined(1)[0]
+    a = np.array([0.3, -0.2, 0.5])
+    power = (fine.face_vertices_mm.mean(axis=1) @ a + 5.0) * fine.face_areas_mm2
+    got = E.tangent_light(fine, power).reshape(-1, 2)
+    want = -fine.face_areas_mm2[:, None] * np.einsum("j,iaj->ia", a, E.face_frames(fine.face_vertices_mm))
+    assert np.abs(got - want).max() < 1e-12 * np.abs(want).max() + 1e-14
+    assert np.abs(E.tangent_light(fine, 3.0 * fine.face_areas_mm2)).max() < 1e-12  # uniform: none

@@ -418,3 +418,46 @@ def tangent_operator(surface, levels: int = 1):
             vals.append(-S_f * np.einsum("ij,ij->i", grad, frames[:, a]) * inv_av[v])
     G = sp.coo_array((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(2 * n_fine, n_v))
     return sp.csr_array(G.tocsr())
+
+
+def tangent_light(surface, power_per_element: np.ndarray, same_plane_cos: float = 0.8) -> np.ndarray:
+    """What a forward image adds for the tangential flux of a truth given as power per face
+    (``surface`` one face per element, as ``Surface.refined``): ``-S_f grad_t M|_f`` in each
+    face's frame (:func:`face_frames`), (2 n_faces,), so that ``T_tangent @ this`` is the light
+    the term sends to each pixel.  grad_t M on face f is the least-squares gradient of the
+    exitances of the faces around it (sharing a vertex) that face nearly the same way
+    (normals within ~37 deg: a box's other faces do not count, a faceted cylinder's
+    neighbours do), in f's plane: exact for an exitance linear on a plane, borders included."""
+    ok = surface.element_of_face >= 0
+    faces = surface.faces[ok]
+    el = surface.element_of_face[ok]
+    S = surface.face_areas_mm2[ok]
+    nrm = surface.face_normals[ok]
+    cen = surface.vertices_mm[faces].mean(axis=1)
+    frames = face_frames(surface.vertices_mm[faces])
+    M = np.divide(np.asarray(power_per_element, float)[el], S, out=np.zeros(len(S)), where=S > 0)
+    F = len(faces)
+    # (face, face sharing one of its vertices) pairs, through the faces around each vertex
+    corner_v, corner_f = faces.ravel(), np.repeat(np.arange(F), 3)
+    order = np.argsort(corner_v, kind="stable")
+    sv, sf = corner_v[order], corner_f[order]
+    start = np.searchsorted(sv, corner_v, side="left")
+    count = np.searchsorted(sv, corner_v, side="right") - start
+    pf = np.repeat(corner_f, count)
+    pg = sf[np.repeat(start, count) + (np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count))]
+    keep = (pf != pg) & (np.einsum("ij,ij->i", nrm[pf], nrm[pg]) >= same_plane_cos)
+    pf, pg = pf[keep], pg[keep]
+    d = np.einsum("iaj,ij->ia", frames[pf], cen[pg] - cen[pf])  # in f's frame
+    dm = M[pg] - M[pf]
+    a11 = np.bincount(pf, d[:, 0] * d[:, 0], F)
+    a12 = np.bincount(pf, d[:, 0] * d[:, 1], F)
+    a22 = np.bincount(pf, d[:, 1] * d[:, 1], F)
+    b1 = np.bincount(pf, d[:, 0] * dm, F)
+    b2 = np.bincount(pf, d[:, 1] * dm, F)
+    det = a11 * a22 - a12 * a12
+    good = det > 1e-12 * np.maximum(a11 + a22, 1e-300) ** 2
+    g1 = np.divide(a22 * b1 - a12 * b2, det, out=np.zeros(F), where=good)
+    g2 = np.divide(a11 * b2 - a12 * b1, det, out=np.zeros(F), where=good)
+    out = np.zeros((surface.n_elements, 2))
+    out[el] = -S[:, None] * np.stack([g1, g2], axis=1)
+    return out.ravel()
