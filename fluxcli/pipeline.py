@@ -554,10 +554,11 @@ def check_shared(folder: Path, written: list[Path]) -> None:
 
 
 def ensure_pose_T(cfg: LoadedConfig, pose: Pose, transfer: Transfer | None = None,
-                  placer: SubjectPlacer | None = None, refine: int = 0):
+                  placer: SubjectPlacer | None = None, refine: int = 0, tangent: bool = False):
     """T (CSR) of one pose that need not be in ``subject.poses`` (the simulated rig renders
     at the stage's physical height), from the T cache or built and cached; with ``refine``
-    its columns are the faces of the surface refined that often (Surface.refined)."""
+    its columns are the faces of the surface refined that often (Surface.refined); with
+    ``tangent`` also its tangential-flux matrix (None without one): (T, T_tangent)."""
     tr = transfer or cfg.model.transfer
     views = views_from_config(cfg.model.system)
     scene = (placer or SubjectPlacer(cfg)).scene(pose, cfg.model.system)
@@ -566,6 +567,8 @@ def ensure_pose_T(cfg: LoadedConfig, pose: Pose, transfer: Transfer | None = Non
     path = AT.entry_path(cache_dir(cfg), A.cache_key(key_parts(scene, views, tr)))
     if not path.is_file():
         _build_and_store(scene, views, tr, path, cfg.sha256, provenance(cfg))
+    if tangent:
+        return AT.load_T(path), AT.load_T_tangent(path)
     return AT.load_T(path)
 
 
