@@ -59,12 +59,14 @@ CASES = {
     # the issue's phantom: source 6 mm under the top, 5 mm off centre
     "box-direct": (BOX, 1.40, [5.0, 0.0, 4.0], [-90, -60, -30, 0, 30, 60], False),
     "box-mirrors": (BOX, 1.40, [5.0, 0.0, 4.0], [-60, 0, 60], True),
+    "box-mirrors-2h": (BOX, 1.40, [5.0, 0.0, 4.0], [-60, 0, 60], True),  # at two stage heights (HEIGHTS)
     "box-n1.33-deep8": (BOX, 1.33, [0.0, 5.0, 2.0], [-30, 0, 30, 90], False),
     "box-n1.56-shallow2": (BOX, 1.56, [-4.0, 3.0, 8.0], [-45, 0, 45], False),
     "cylinder-direct": (CYLINDER, 1.40, [5.0, 0.0, 7.5], [-90, -45, 0, 45, 90], False),
     "cylinder-mirrors-deep8": (CYLINDER, 1.37, [0.0, 0.0, 4.5], [-60, 0, 60], True),
     "cylinder-direct-40-facets": (CYLINDER_FINE, 1.40, [5.0, 0.0, 7.5], [-90, -45, 0, 45, 90], False),
 }
+HEIGHTS = {"box-mirrors-2h": [0.0, 8.0]}  # stage heights (mm) of the cases that have more than one
 MODELS = ("diffuse", "lambertian")
 
 
@@ -82,7 +84,9 @@ def config(name: str, model: str, n_photons: int, seed: int) -> dict:
         "workdir": f"../{name}",  # beside configs/
         "system": {"camera": copy.deepcopy(CAMERA), "mirrors": copy.deepcopy(MIRRORS) if mirrors else [],
                    "stage": {"top_z_mm": STAGE_TOP_MM, "size_mm": [100, 34], "thickness_mm": 5}},
-        "subject": {"surface": dict(surface), "poses": {"rotations_deg": list(rotations)}, "emission": emission},
+        "subject": {"surface": dict(surface), "poses": {"rotations_deg": list(rotations),
+                                                        **({"heights_mm": HEIGHTS[name]} if name in HEIGHTS else {})},
+                    "emission": emission},
         "simulate": {"flux": {"kind": "montecarlo", **TISSUE, "refractive_index": n, "position_mm": list(src),
                               "n_photons": int(n_photons), "seed": seed}},
         "reconstruct": {},
@@ -188,7 +192,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.list:
         for k, (s, n, src, rot, mir) in CASES.items():
-            print(f"{k}: {s['phantom']}, n {n}, source {src} mm, rotations {rot}, mirrors {mir}")
+            print(f"{k}: {s['phantom']}, n {n}, source {src} mm, rotations {rot}, mirrors {mir}"
+                  + (f", heights {HEIGHTS[k]} mm" if k in HEIGHTS else ""))
         return 0
     names = list(CASES) if a.cases == "all" else a.cases.split(",")
     ok = True

@@ -128,8 +128,8 @@ def record_rays(scene, views, sampling: LensSampling = LensSampling()) -> np.nda
             1e-3, p.P, p.N, p.G, p.dA, p.elem, p.lo, p.hi, p.dc, p.disk_r, p.use_box, p.n_lens, p.pat_off,
             p.disk_unit, p.square_unit, p.jitter, 0, len(p.P), n_pix, cam.nx, cam.ny, np.zeros(n_pix),
             np.zeros(n_pix), np.zeros(n_pix, np.bool_), np.zeros(n_pix, np.int32), rec, p.clear,
-            p.margin_mm, p.target, p.n_cap, p.spin)
-        out.append(rec[:res[-1]])
+            p.margin_mm, p.target, p.n_cap, p.spin, p.emis, p.tang, np.zeros((0, 2)), p.tframe)
+        out.append(rec[:res[7]])
     return np.concatenate(out), occ
 
 

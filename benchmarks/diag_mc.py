@@ -32,8 +32,8 @@ import accuracy_mc as AM  # noqa: E402
 OUT = AM.ROOT / "runs" / "diag_mc"
 
 
-def make_config(tag, rotations, photons, element_mm, camera, reconstruct, seed=0):
-    cfg = AM.config("box-direct", "diffuse", photons, seed)
+def make_config(tag, rotations, photons, element_mm, camera, reconstruct, seed=0, case="box-direct"):
+    cfg = AM.config(case, "diffuse", photons, seed)
     cfg["workdir"] = f"../{tag}"
     cfg["subject"]["poses"]["rotations_deg"] = list(rotations)
     cfg["subject"]["surface"]["element_mm"] = element_mm
@@ -147,7 +147,7 @@ def show(label, rows):
               f"edge>=4: {s['edge>=4'][0]:5.1%} (rel {s['edge>=4'][1]:5.1%})", flush=True)
 
 
-def reconstruct(cfg_path, tag, label, overrides=None, images=None):
+def reconstruct(cfg_path, tag, label, overrides=None, images=None, emission=None):
     """Reconstruct in a copy of the run's folder (own simulation.h5 with ``images`` when given)."""
     cfg = yaml.safe_load(cfg_path.read_text())
     src = OUT / cfg["workdir"].split("/")[-1]
@@ -161,6 +161,8 @@ def reconstruct(cfg_path, tag, label, overrides=None, images=None):
             f["images/noiseless"][0] = images.astype(np.float32)
     cfg["workdir"] = f"../{dst.name}"
     cfg["reconstruct"].update(overrides or {})
+    em = {**cfg["subject"]["emission"], **(emission or {})}
+    cfg["subject"]["emission"] = {k: v for k, v in em.items() if v is not None}
     p = OUT / "configs" / f"{dst.name}.yaml"
     p.write_text(yaml.safe_dump(cfg))
     AM.fluxmap("reconstruct", p, "--force")
@@ -198,6 +200,7 @@ def main(argv=None):
     ap.add_argument("--variants", default="mc,redrawn")
     ap.add_argument("--tag", default=None)
     ap.add_argument("--skip-sim", action="store_true")
+    ap.add_argument("--case", default="box-direct", help="an accuracy_mc case: its phantom, source and mirrors")
     a = ap.parse_args(argv)
     rot = [float(x) for x in a.rotations.split(",")]
     cam = None
@@ -207,7 +210,7 @@ def main(argv=None):
                         "focus_distance_mm": 317.0},
                "pose": {"lens_center_mm": [0, 0, 10.0 + 317.0], "look": [0, 0, -1], "up": [0, 1, 0]}}
     tag = a.tag or f"{a.camera}-e{a.element_mm:g}-p{a.photons:.0e}"
-    p = make_config(tag, rot, int(a.photons), a.element_mm, cam, {})
+    p = make_config(tag, rot, int(a.photons), a.element_mm, cam, {}, case=a.case)
     if not a.skip_sim:
         print(AM.fluxmap("simulate", p)[-1500:], flush=True)
     sim = OUT / tag / "simulation.h5"
@@ -229,7 +232,7 @@ def main(argv=None):
             d2 = redraw_directions(shape.outward_normals(pos), diffuse(1.40).table, np.random.default_rng(11))
             imgs = reimage(p, pos, d2)
             print("redrawn photons per image:", imgs.reshape(len(rot), -1).sum(1))
-            reconstruct(p, tag, "redrawn", images=imgs)
+            reconstruct(p, tag, "redrawn", images=imgs, emission={"tangential_flux": False})  # p(theta) alone
         elif v.startswith("lam"):  # lamx0.1 / lamx10: lambda fixed at factor x the mc pick (per pose, median)
             fac = float(v[4:])
             with h5py.File(OUT / f"{tag}--mc" / "reconstruction.h5") as f:
@@ -237,6 +240,10 @@ def main(argv=None):
             reconstruct(p, tag, v, overrides={"lambda": lam * fac})
         elif v == "elements":
             reconstruct(p, tag, v, overrides={"unknowns": "elements"})
+        elif v == "notangent":  # diffuse without its tangential-flux term (the profile in theta only)
+            reconstruct(p, tag, v, emission={"tangential_flux": False})
+        elif v == "lambertian":
+            reconstruct(p, tag, v, emission={"model": "lambertian", "refractive_index": None})
     return 0
 
 

@@ -364,6 +364,9 @@ class DiffuseEmission(Model):
 
     model: Literal["diffuse"]
     refractive_index: float = Field(1.40, ge=1.0, le=3.0, description="Refractive index of the medium (tissue ~1.37-1.40; 1 = no Fresnel).")
+    tangential_flux: bool = Field(True, description="Also model the tangential flux of diffusion theory: where the exitance varies along the surface the light leaves tilted away from the brighter side (acts on reconstruct.unknowns: vertices, whose exitance has a gradient; docs/design.md, Emission).")
+    reduced_scattering_per_mm: float = Field(1.0, gt=0, le=1000, description="The medium's reduced scattering coefficient mu_s' (1/mm) for the tangential flux; default 1 /mm, the order of soft tissue and phantoms in the red / near infrared (Jacques 2013).")
+    absorption_per_mm: float = Field(0.01, ge=0, le=1000, description="The medium's absorption coefficient mu_a (1/mm) for the tangential flux (it enters only as mu_a + mu_s').")
 
 
 class TableEmission(Model):

@@ -263,9 +263,11 @@ class PartialFiles(Checkpoint):
                     return None  # made with another chunking (transfer.rays_per_batch): cast again
                 n = len(spans)
                 el_off, nz_off = z["el_off"], z["nz_off"]
+                tval = z["tval"] if "tval" in z.files else np.zeros((0, 2))
                 return [(z["elements"][el_off[i]:el_off[i + 1]], z["starts"][el_off[i] + i:el_off[i + 1] + i + 1],
                          z["pix"][nz_off[i]:nz_off[i + 1]], z["val"][nz_off[i]:nz_off[i + 1]],
-                         z["err"][el_off[i]:el_off[i + 1]], int(z["cast"][i]), int(z["rays"][i])) for i in range(n)]
+                         z["err"][el_off[i]:el_off[i + 1]], int(z["cast"][i]), int(z["rays"][i]), 0,
+                         tval[nz_off[i]:nz_off[i + 1]] if len(tval) else tval) for i in range(n)]
         except (OSError, ValueError, KeyError):
             return None  # a damaged partial file is recomputed
 
@@ -281,6 +283,7 @@ class PartialFiles(Checkpoint):
                            starts=np.concatenate([r[1] for r in results]), pix=np.concatenate([r[2] for r in results]),
                            val=np.concatenate([r[3] for r in results]), err=np.concatenate([r[4] for r in results]),
                            cast=np.array([r[5] for r in results]), rays=np.array([r[6] for r in results]),
+                           tval=np.concatenate([r[8] for r in results]),
                            el_off=el_off, nz_off=nz_off, spans=np.asarray(spans, np.int64).reshape(-1, 2))
 
     def save_scene(self, scene: PlacedScene) -> Path:
@@ -338,7 +341,7 @@ def _build_and_store(scene: PlacedScene, views: list[View], tr: Transfer, target
                pixels=(cam.nx, cam.ny), surface=scene.surface, occluders=scene.occluders,
                height_mm=scene.pose.height_mm, rotation_deg=scene.pose.rotation_deg, estimator=tr.estimator,
                seconds=seconds, config_sha256=config_sha, provenance=prov, column_error=res.column_error,
-               column_error_per_view=res.column_error_per_view)
+               column_error_per_view=res.column_error_per_view, T_tangent=res.T_tangent)
     partial.remove()
     return summarise(res, scene) | {"seconds": seconds, "cpu_seconds": time.process_time() - c0, "pid": os.getpid()}
 
@@ -564,10 +567,11 @@ def check_shared(folder: Path, written: list[Path]) -> None:
 
 
 def ensure_pose_T(cfg: LoadedConfig, pose: Pose, transfer: Transfer | None = None,
-                  placer: SubjectPlacer | None = None, refine: int = 0):
+                  placer: SubjectPlacer | None = None, refine: int = 0, tangent: bool = False):
     """T (CSR) of one pose that need not be in ``subject.poses`` (the simulated rig renders
     at the stage's physical height), from the T cache or built and cached; with ``refine``
-    its columns are the faces of the surface refined that often (Surface.refined)."""
+    its columns are the faces of the surface refined that often (Surface.refined); with
+    ``tangent`` also its tangential-flux matrix (None without one): (T, T_tangent)."""
     tr = transfer or cfg.model.transfer
     views = views_from_config(cfg.model.system)
     scene = (placer or SubjectPlacer(cfg)).scene(pose, cfg.model.system)
@@ -576,6 +580,8 @@ def ensure_pose_T(cfg: LoadedConfig, pose: Pose, transfer: Transfer | None = Non
     path = AT.entry_path(cache_dir(cfg), A.cache_key(key_parts(scene, views, tr)))
     if not path.is_file():
         _build_and_store(scene, views, tr, path, cfg.sha256, provenance(cfg))
+    if tangent:
+        return AT.load_T(path), AT.load_T_tangent(path)
     return AT.load_T(path)
 
 

@@ -372,3 +372,220 @@ def test_the_rig_simulated_camera_renders_with_the_emission_model(minimal_config
     # 0.9-0, mixed with nearer faces in these 4.8 mm pixels) gain much less or lose
     assert ratio.max() == pytest.approx(float(w.weight(1.0)), abs=0.02)
     assert ratio.min() < ratio.max() - 0.1
+
+
+# ------------------------------------------------------------------ the tangential flux
+def _g_from_photons(n: float, n_photons: int, seed: int = 5):
+    """Photons of fluxcli.montecarlo leaving the top of a wide slab (mu_a 0.01, mu_s 1 /mm,
+    g 0, index n) from an isotropic point 6 mm deep: per band of exit angle, the length g the
+    photons' own drift implies.  Within 3-12 mm of the source's foot the exitance falls as
+    M(rho) (slope -k = d ln M / d rho, fitted to the photons' own exit density); a radiance
+    ``M p (1 + g k sin(theta) cos(phi))`` gives a mean radial component of the exit directions
+    ``<sin theta cos phi> = g k sin^2(theta) / 2`` per band, so ``g = 2 sum d_r / sum k sin^2``."""
+    from fluxcli.montecarlo.transport import Medium, Shape, transport
+
+    top_z = 15.0
+    e = transport(Medium(0.01, 1.0, 0.0, n), Shape.box((80, 80, 30)), (0, 0, top_z - 6.0), n_photons, seed=seed)
+    p, d = e.position_mm, e.direction
+    top = p[:, 2] > top_z - 1e-6
+    p, d = p[top], d[top]
+    rho = np.hypot(p[:, 0], p[:, 1])
+    d_r = np.einsum("ij,ij->i", d[:, :2], p[:, :2] / np.maximum(rho, 1e-12)[:, None])
+    edges = np.arange(1.0, 16.01, 0.5)
+    count, _ = np.histogram(rho, edges)
+    mid, ring = 0.5 * (edges[1:] + edges[:-1]), np.pi * (edges[1:] ** 2 - edges[:-1] ** 2)
+    fit = np.polyfit(mid, np.log(count / ring), 3, w=np.sqrt(count))
+    k = -np.polyval(np.polyder(fit), rho)
+    near = (rho > 3) & (rho < 12)
+    out = []
+    for lo, hi in ((20, 65), (20, 40), (40, 65)):
+        b = near & (d[:, 2] <= np.cos(np.radians(lo))) & (d[:, 2] > np.cos(np.radians(hi)))
+        s2 = 1 - d[b, 2] ** 2
+        g = 2 * d_r[b].sum() / (k[b] * s2).sum()
+        sigma = 2 * d_r[b].std() * np.sqrt(b.sum()) / (k[b] * s2).sum()
+        out.append((lo, hi, g, sigma, float(np.cos(np.radians((lo + hi) / 2)))))
+    return out
+
+
+@pytest.mark.parametrize("n,n_photons", [(1.40, 500_000), (1.00, 350_000)])
+def test_tangential_flux_matches_the_drift_of_monte_carlo_exit_photons(n, n_photons):
+    """The light leaving a turbid medium drifts away from where the exitance is higher; the
+    model's length g(theta) (emission.tangent_length, through the profile's tables) against
+    the drift of the photons of our Monte Carlo.  Without the term g = 0; P1's J_t = -D grad phi
+    at the surface gives g short by the factor 1 + 3 mu'/A (~2 at n 1.40, ~3.5 at n 1): both fail."""
+    prof = E.diffuse(n, tangential=True, reduced_scattering_per_mm=1.0, absorption_per_mm=0.01)
+    for lo, hi, g_mc, sigma, mu in _g_from_photons(n, n_photons):
+        g_model = float(prof.tangent_weight(mu) / prof.weight(mu))
+        tol = 0.10 if hi - lo > 30 else 0.2  # the photons sit ~7 % above the model at n 1.40, ~2 % at n 1
+        assert g_mc == pytest.approx(g_model, rel=tol), (n, lo, hi, g_mc, sigma, g_model)
+        assert sigma < tol * g_mc / 2.5  # the photons resolve the agreement the test claims
+        mu_in = np.sqrt(1 - (1 - mu * mu) / n**2)
+        p1 = 1 / (n * 1.01 * (1 + 3 * mu_in / (2 * E.boundary_A(n))))  # J_t = -D grad phi at the surface
+        assert abs(g_mc / p1 - 1) > 3 * tol
+
+
+def tiny_triangle(center, normal, size=0.02):
+    """One triangle (one element, one face frame) centred at ``center`` facing ``normal``."""
+    from fluxcli.surface.mesh import Surface
+
+    nrm = np.asarray(normal, float) / np.linalg.norm(normal)
+    u = np.cross(nrm, [1.0, 0, 0] if abs(nrm[0]) < 0.9 else [0, 1.0, 0])
+    u /= np.linalg.norm(u)
+    v = np.cross(nrm, u)
+    pts = np.asarray(center, float) + size * np.array([u, -0.5 * u + 0.87 * v, -0.5 * u - 0.87 * v])
+    return Surface(pts, np.array([[0, 1, 2]]), np.array([0]), 1)
+
+
+@pytest.mark.parametrize("estimator", ["lens", "pairwise"])
+def test_tangential_columns_are_g_times_the_direction_leaving_the_surface(estimator):
+    """A small tilted triangle: the tangential matrix summed over pixels over T's column sum is
+    g(theta_s) times the in-plane components of the unit vector from it to the lens (a closed
+    form); the scalar T is the same to the bit with and without the term; Lambertian and table
+    profiles have none."""
+    q, nrm = np.array([30.0, 10.0, -60.0]), np.array([0.0, 0.3, 1.0]) / np.hypot(0.3, 1.0)
+    cam = camera(d_focus=150.0, R=2.0, n=384, pitch=0.2)
+    kw = ({"pairwise_sampling": PairwiseSampling(surface_subdivisions=1, pixel_subdivisions=4)}
+          if estimator == "pairwise" else {})
+    subject = tiny_triangle(q, nrm)
+    assert np.allclose(subject.face_normals[0], nrm)
+    on = E.diffuse(1.40, tangential=True, reduced_scattering_per_mm=0.8, absorption_per_mm=0.05)
+    r = build_transfer(subject, views_for(cam, []), estimator=estimator, emission=on, **kw)
+    s = -q / np.linalg.norm(q)
+    mu_in = np.sqrt(1 - (1 - (nrm @ s) ** 2) / 1.40**2)
+    A = E.boundary_A(1.40)
+    g = (1 + 3 * mu_in / A) / (1.40 * 0.85 * (1 + 3 * mu_in / (2 * A)))
+    e = E.face_frames(subject.face_vertices_mm)[0]
+    assert np.allclose(e @ e.T, np.eye(2)) and np.allclose(e @ nrm, 0)
+    got = np.asarray(r.T_tangent.sum(axis=0)).ravel() / r.T.sum()
+    assert got == pytest.approx(g * (e @ s), abs=3e-3 * g)
+    off = build_transfer(subject, views_for(cam, []), estimator=estimator, emission=E.diffuse(1.40), **kw)
+    assert off.T_tangent is None and np.array_equal(off.T.toarray(), r.T.toarray())
+    for prof in (E.lambertian(), E.table([0, 90], [1, 0.5])):
+        assert build_transfer(subject, views_for(cam, []), estimator=estimator, emission=prof,
+                              **kw).T_tangent is None
+
+
+def test_tangential_columns_of_a_mirror_view_follow_the_ray_leaving_the_real_surface():
+    cam = camera(d_focus=180.0, R=4.0, n=96, pitch=0.08)
+    mirror = PlaneMirror.from_axis([0, 20.0, -135.0], [0, -1, 1], [1, 0, 0], (200.0, 200.0))
+    subject = tiny_triangle([2.0, -10.0, -150.0], (0, 1, 0.3), size=0.05)
+    prof = E.diffuse(1.40, tangential=True)
+    r = build_transfer(subject, views_for(cam, [("m", mirror, 0.9)])[1:], emission=prof)
+    c = subject.element_centroids_mm[0]
+    s = mirror.reflect_points(np.zeros((1, 3)))[0] - c  # towards the mirror image of the lens
+    s /= np.linalg.norm(s)
+    g = float(prof.tangent_weight(subject.face_normals[0] @ s) / prof.weight(subject.face_normals[0] @ s))
+    e = E.face_frames(subject.face_vertices_mm)[0]
+    got = np.asarray(r.T_tangent.sum(axis=0)).ravel() / r.T.sum()
+    assert got == pytest.approx(g * (e @ s), abs=3e-3 * g)
+
+
+def test_tangential_values_do_not_depend_on_the_pose():
+    """T_tangent is held in each face's own frame: the subject and the lens turned together
+    give the same numbers (what lets one tangent operator of the subject's surface serve every pose)."""
+    from scipy.spatial.transform import Rotation
+
+    prof = E.diffuse(1.40, tangential=True)
+    subject = tiny_triangle([0.0, 0.0, -80.0], (0.2, 0.4, 1.0), size=0.5)
+    a = build_transfer(subject, views_for(camera(d_focus=80.0, R=3.0, n=64, pitch=0.1), []), emission=prof)
+    R = Rotation.from_rotvec([0.3, -0.5, 0.2]).as_matrix()
+    turned = subject.transformed(R, np.zeros(3))
+    cam = ThinLensCamera.from_pose(lens_center_mm=[0, 0, 0], look=R @ [0, 0, -1], up=R @ [0, 1, 0], focal_length_mm=25.0,
+                                   aperture_radius_mm=3.0, focus_distance_mm=80.0, nx=64, ny=64, pixel_pitch_mm=0.1)
+    b = build_transfer(turned, views_for(cam, []), emission=prof)
+    assert a.T_tangent.sum() != 0
+    assert np.abs((a.T_tangent - b.T_tangent).toarray()).max() < 1e-6 * np.abs(a.T_tangent.toarray()).max()
+
+
+def test_tangent_operator_gives_the_surface_gradient_of_a_linear_exitance():
+    """Vertex unknowns of an exitance linear in space (u_v = M(r_v) A_v): the operator gives
+    -S_f grad_t M on every fine face (the in-plane part of the gradient, per face of a box)."""
+    surf = phantoms.box(size_mm=(6, 8, 4), element_mm=2.0)[0]
+    vb = surf.vertex_basis(1)
+    G = E.tangent_operator(surf, 1)
+    a = np.array([0.3, -0.2, 0.5])
+    u = (surf.vertices_mm[vb.vertex_index] @ a + 2.0) * vb.areas_mm2
+    fine = vb.fine
+    ok = fine.element_of_face >= 0
+    nrm, S = fine.face_normals[ok], fine.face_areas_mm2[ok]
+    frames = E.face_frames(fine.face_vertices_mm[ok])
+    want = -S[:, None] * np.einsum("j,iaj->ia", a, frames)  # the in-plane components of grad M
+    assert np.allclose(np.einsum("iaj,ij->ia", frames, nrm), 0)
+    assert G.shape == (2 * ok.sum(), vb.n_vertices)
+    assert np.abs((G @ u).reshape(-1, 2) - want).max() < 1e-12
+    assert np.abs(G @ vb.areas_mm2).max() < 1e-12  # a uniform exitance: no gradient, no term
+
+
+def test_the_tangential_term_is_in_the_key_only_when_on():
+    on, off = E.diffuse(1.40, tangential=True), E.diffuse(1.40)
+    assert "tangent_sha256" in on.key() and "tangent_sha256" not in off.key()
+    assert {k: v for k, v in on.key().items() if not k.startswith("tangent")} == off.key()
+    assert E.diffuse(1.40, tangential=True, reduced_scattering_per_mm=2.0).key() != on.key()
+    assert E.profile({"model": "diffuse", "refractive_index": 1.4}).has_tangent  # the config's default
+    assert not E.profile({"model": "diffuse", "tangential_flux": False}).has_tangent
+
+
+def test_vertex_unknowns_take_the_tangential_term_from_the_cached_T(write_config, patch_config, tmp_path):
+    """build-T keeps T_tangent beside T (diffuse, term on: the config's default) and it is a
+    correction of T per vertex, T_tangent @ G (off: no T_tangent, tested on T itself above)."""
+    import glob
+
+    import h5py
+
+    from fluxcli.artefacts.transfer import load_T, load_T_tangent
+    from fluxcli.config import load_config
+    from fluxcli.scene import SubjectPlacer
+
+    cfg = copy.deepcopy(patch_config)
+    cfg["subject"]["emission"] = {"model": "diffuse", "refractive_index": 1.40}
+    cfg["reconstruct"] = {"method": "smooth", "unknowns": "vertices", "joint": False}
+    p = write_config(cfg, name="on.yaml")
+    assert _cli("simulate", p, "--quiet").exit_code == 0
+    r = _cli("reconstruct", p)
+    assert r.exit_code == 0, r.output
+    files = glob.glob(str(tmp_path / "run" / "cache" / "T" / "*.h5"))
+    fine = [f for f in files if h5py.File(f, "r")["surface/faces"].shape[0] == 4 * 48]  # refined once: 4 x 48 faces
+    assert fine and all(load_T_tangent(f) is not None for f in fine)
+    surf = SubjectPlacer(load_config(p)).surface
+    vb = surf.vertex_basis(1)
+    G = E.tangent_operator(surf, 1)
+    T, Tt = load_T(fine[0]), load_T_tangent(fine[0])
+    assert Tt.shape == (T.shape[0], 2 * T.shape[1]) and G.shape == (Tt.shape[1], vb.n_vertices)
+    extra = Tt @ G
+    assert 0.01 < np.abs(extra).sum() / (T @ vb.to_fine).sum() < 0.5  # the term acts, as a correction
+
+
+def test_a_resumed_build_gives_the_same_tangential_values(tmp_path, monkeypatch):
+    """The partial files of a long build keep the tangential values too: a build that reads
+    its blocks back makes the same T_tangent as the one that cast them."""
+    from fluxcli.pipeline import PartialFiles
+
+    cam = camera(d_focus=120.0, R=6.0, n=48, pitch=0.1)
+    subject = phantoms.patch(size_mm=(4, 4), n=(2, 2), center_mm=[0.5, 0.2, -110.0], normal=[0.4, 0, 1])[0]
+    prof = E.diffuse(1.40, tangential=True)
+    kw = dict(emission=prof, rays_per_batch=2000, threads=1)
+    a = build_transfer(subject, views_for(cam, []), checkpoint=PartialFiles(tmp_path, "k", rays_per_block=4000), **kw)
+    saved = list((tmp_path / "k.part").glob("*.npz"))
+    assert len(saved) > 1
+    from fluxcli.optics import transfer_kernel
+
+    def no_cast(*args):
+        raise AssertionError("cast again: the partial files were not read")
+
+    monkeypatch.setattr(transfer_kernel, "lens_columns", no_cast)
+    b = build_transfer(subject, views_for(cam, []), checkpoint=PartialFiles(tmp_path, "k", rays_per_block=4000), **kw)
+    assert a.T_tangent.nnz > 0 and np.array_equal(a.T_tangent.toarray(), b.T_tangent.toarray())
+    assert np.array_equal(a.T.toarray(), b.T.toarray())
+
+
+def test_simulate_s_tangential_light_is_the_gradient_of_a_linear_truth():
+    """simulate adds T_tangent @ tangent_light(fine truth): for an exitance linear in space, on
+    every fine face of a box (edges and corners included), -S_f times its in-plane gradient."""
+    surf = phantoms.box(size_mm=(12, 16, 8), element_mm=2.0)[0]
+    fine = surf.refined(1)[0]
+    a = np.array([0.3, -0.2, 0.5])
+    power = (fine.face_vertices_mm.mean(axis=1) @ a + 5.0) * fine.face_areas_mm2
+    got = E.tangent_light(fine, power).reshape(-1, 2)
+    want = -fine.face_areas_mm2[:, None] * np.einsum("j,iaj->ia", a, E.face_frames(fine.face_vertices_mm))
+    assert np.abs(got - want).max() < 1e-12 * np.abs(want).max() + 1e-14
+    assert np.abs(E.tangent_light(fine, 3.0 * fine.face_areas_mm2)).max() < 1e-12  # uniform: none

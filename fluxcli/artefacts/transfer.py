@@ -55,17 +55,23 @@ def efficiency(Tv: sp.csr_matrix, weight: float, areas_mm2: np.ndarray) -> float
 def write_T(path: Path, *, T: sp.csr_matrix, T_per_view: list, view_kinds: list[str], weights: list[float],
             stats: list[dict], pixels: tuple[int, int], surface, occluders, height_mm: float, rotation_deg: float,
             estimator: str, seconds: float, config_sha256: str = "", provenance: Provenance | None = None,
-            column_error=None, column_error_per_view=None) -> None:
+            column_error=None, column_error_per_view=None, T_tangent=None) -> None:
     """Write one pose's T file atomically.
 
     ``column_error`` (n_elements,): the estimated L1 error of each column of T (same unit
-    as T); ``column_error_per_view``: the same per view (weight not applied)."""
+    as T); ``column_error_per_view``: the same per view (weight not applied); ``T_tangent``
+    (pixels x 2 elements, mm): the tangential-flux term of the emission profile, when it has one
+    (:attr:`fluxcli.optics.transfer.TransferResult.T_tangent`)."""
     with write_artefact(path, "transfer", config_sha256=config_sha256, provenance=provenance) as f:
         write_csr(f.create_group("T"), T)
         f["T"].attrs["unit"] = "dimensionless (fraction of element power reaching the pixel)"
         f["T"].attrs["pixel_order"] = "row-major [row, col]; flat index row * nx + col"
         if column_error is not None:
             put(f, "T/column_error", np.asarray(column_error, float))
+        if T_tangent is not None:
+            write_csr(f.create_group("T_tangent"), T_tangent)
+            f["T_tangent"].attrs["unit"] = ("mm (per unit of -grad_t M / M per element power; column 2j + a: along the "
+                                            "face's in-plane unit vector a, fluxcli.optics.emission.face_frames)")
         write_surface(f.create_group("surface"), surface)
         occ = f.create_group("occluders")
         for k, o in enumerate(occluders):
@@ -91,6 +97,13 @@ def load_T(path: Path) -> sp.csr_matrix:
     """The combined T (CSR, pixels x elements) of one cached pose."""
     with open_artefact(path, "transfer") as f:
         return read_csr(f["T"])
+
+
+def load_T_tangent(path: Path) -> sp.csr_matrix | None:
+    """The tangential-flux matrix (pixels x 2 elements, column 2j + a) of one cached pose, or
+    None when its emission profile has no tangential term."""
+    with open_artefact(path, "transfer") as f:
+        return read_csr(f["T_tangent"]) if "T_tangent" in f else None
 
 
 def load_column_error(path: Path) -> np.ndarray | None:

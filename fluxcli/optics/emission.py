@@ -18,6 +18,11 @@ Profiles (docs/design.md, "Emission"):
     unpolarised Fresnel reflectance (Haskell et al. 1994), carried out through the surface by
     Fresnel transmission at the internal angle theta' (sin theta = n sin theta') and the n^2
     change of radiance; then normalised.
+    With it (on by default) the tangential flux of the same diffusion field: where the
+    exitance varies along the surface the light leaves tilted away from where it is
+    brighter, ``L_t(r, s) = -p(theta) g(theta) grad_t M . s`` with
+    ``g = (1 + 3 mu' / A) / (n mu_t' (1 + 3 mu' / 2A))`` (mm), mu_t' = mu_a + mu_s'; see
+    :func:`tangent_length` and docs/design.md, "Emission: the tangential flux".
 ``table``
     a measured or computed curve (angle from the normal in degrees, or cos theta) -> relative
     radiance, interpolated linearly and normalised.
@@ -33,6 +38,7 @@ import numpy as np
 
 N_TABLE = 4097  # ray weights are tabulated on mu = cos(theta) = k / (N_TABLE - 1), linear in between
 CHECK_DEG = (30.0, 45.0, 60.0, 70.0, 75.0, 80.0)  # where reports and notices quote the curve
+TANGENT_LAYOUT = "face-frame-2"  # how T_tangent is stored (2 in-plane components per face): in its cache key
 
 
 # ------------------------------------------------------------------ Fresnel and the boundary
@@ -105,6 +111,22 @@ class Profile:
     table: np.ndarray = field(repr=False)
     refractive_index: float | None = None
     source: str | None = None  # a table's file name, for reports
+    # the tangential-flux term (diffuse only): pi p(theta) g(theta) on the same mu grid, mm; empty: off
+    tangent: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+    reduced_scattering_per_mm: float | None = None
+    absorption_per_mm: float | None = None
+
+    @property
+    def has_tangent(self) -> bool:
+        return len(self.tangent) > 0
+
+    def tangent_weight(self, cos_theta) -> np.ndarray:
+        """``pi p(theta) g(theta)`` (mm) at ``cos_theta``: a ray's tangential weight per unit
+        of ``-grad_t M / M . s_o`` (0 behind the surface, or when the term is off)."""
+        mu = np.asarray(cos_theta, float)
+        if not self.has_tangent:
+            return np.zeros_like(mu)
+        return np.where(mu > 0, interp_weight(self.tangent, np.clip(mu, 0.0, 1.0)), 0.0)
 
     @property
     def is_lambertian(self) -> bool:
@@ -136,10 +158,16 @@ class Profile:
         out = {"model": self.model, "weights_sha256": hashlib.sha256(self.table.tobytes()).hexdigest()}
         if self.refractive_index is not None:
             out["refractive_index"] = float(self.refractive_index)
+        if self.has_tangent:  # absent when off: the key of a diffuse T before the term existed
+            out["tangent_sha256"] = hashlib.sha256(self.tangent.tobytes()).hexdigest()
+            out["tangent_layout"] = TANGENT_LAYOUT
         return out
 
     def describe(self) -> str:
         if self.model == "diffuse":
+            if self.has_tangent:
+                return (f"diffuse (refractive index {self.refractive_index:g}) with its tangential flux "
+                        f"(mu_s' {self.reduced_scattering_per_mm:g} /mm, mu_a {self.absorption_per_mm:g} /mm)")
             return f"diffuse (refractive index {self.refractive_index:g})"
         if self.model == "table":
             return f"table ({self.source})" if self.source else "table"
@@ -174,12 +202,62 @@ def lambertian() -> Profile:
     return Profile("lambertian", np.zeros(0))
 
 
-def diffuse(refractive_index: float = 1.40) -> Profile:
+# The tangential term's default medium: a reduced scattering coefficient of ~1 /mm is the
+# order of soft tissue and of tissue phantoms in the red / near infrared (Jacques 2013, Phys.
+# Med. Biol. 58 R37: mu_s' ~ 0.5-2 /mm for most soft tissues at 600-800 nm), and 0.01 /mm
+# absorption that of a phantom (it enters only through mu_t' = mu_a + mu_s').
+DEFAULT_REDUCED_SCATTERING_PER_MM = 1.0
+DEFAULT_ABSORPTION_PER_MM = 0.01
+
+
+def tangent_length(cos_theta: np.ndarray, n: float, transport_per_mm: float) -> np.ndarray:
+    """The length ``g(theta)`` (mm) that turns the relative exitance gradient into the
+    tangential part of the radiance leaving the surface: outside,
+    ``L = M p(theta) (1 - g(theta) grad_t M / M . s_o)``, with
+
+        g = (l / n) (1 + 3 mu' / A) / (1 + 3 mu' / 2A),   l = 1 / mu_t',
+
+    mu' the cosine inside (Snell), A the Robin coefficient (:func:`boundary_A`).
+
+    Derivation (docs/design.md, "Emission: the tangential flux"): the radiance reaching the
+    surface from inside along s_i is the scattering source ``mu_s phi / 4pi`` integrated back
+    along the ray, ``int phi(r - s s_i) e^{-mu_t s} mu_s ds / 4pi``, with the half-space
+    diffusion field near the surface ``phi = (z + z_b) m(x)`` (z depth, z_b = 2 A D the
+    extrapolation length, D = l / 3).  Its normal part is P1's ``phi/4pi (1 + 3 mu' / 2A)``
+    (the profile p); its tangential part, ``-(l / 4pi) (z_b + 2 mu' l) s_i,t . grad m``, holds
+    the tangential gradient at the depth the light comes from, which grows as (z + z_b): P1's
+    ``3 J_t . s_i / 4pi`` (J_t = -D grad_t phi at the surface) is the z_b term alone, short by
+    the factor (1 + 3 mu' / A) (about 2 at n 1.40, 3.5 at n 1).  Through the surface
+    ``s_i,t = s_o,t / n`` (Snell) and grad m / m = grad M / M (M proportional to phi(0)).
+    Checked against the photons of fluxcli.montecarlo (tests/test_emission.py): the drift of
+    the exit directions away from the source matches this g within a few per cent at n 1.00
+    and 1.40, where P1's is a factor 2-3.5 short."""
+    mu = np.clip(np.asarray(cos_theta, float), 0.0, 1.0)
+    mu_in = np.sqrt(1.0 - (1.0 - mu * mu) / n**2)
+    A = boundary_A(n)
+    return (1.0 + 3.0 * mu_in / A) / (n * transport_per_mm * (1.0 + 3.0 * mu_in / (2.0 * A)))
+
+
+def diffuse(refractive_index: float = 1.40, *, tangential: bool = False,
+            reduced_scattering_per_mm: float = DEFAULT_REDUCED_SCATTERING_PER_MM,
+            absorption_per_mm: float = DEFAULT_ABSORPTION_PER_MM) -> Profile:
+    """The diffusion-theory profile; with ``tangential`` also the tangential-flux term of a
+    medium with these coefficients (the profile itself does not depend on them)."""
     n = float(refractive_index)
     if not (np.isfinite(n) and n >= 1.0):
         raise ValueError(f"refractive index must be a number >= 1, got {refractive_index}")
     mu = np.linspace(0.0, 1.0, N_TABLE)
-    return Profile("diffuse", _normalised(diffuse_radiance(mu, n)), refractive_index=n)
+    table = _normalised(diffuse_radiance(mu, n))
+    if not tangential:
+        return Profile("diffuse", table, refractive_index=n)
+    mus, mua = float(reduced_scattering_per_mm), float(absorption_per_mm)
+    if not (np.isfinite(mus) and mus > 0):
+        raise ValueError(f"reduced_scattering_per_mm must be a number > 0, got {reduced_scattering_per_mm}")
+    if not (np.isfinite(mua) and mua >= 0):
+        raise ValueError(f"absorption_per_mm must be a number >= 0, got {absorption_per_mm}")
+    tangent = np.ascontiguousarray(table * tangent_length(mu, n, mus + mua))
+    return Profile("diffuse", table, refractive_index=n, tangent=tangent, reduced_scattering_per_mm=mus,
+                   absorption_per_mm=mua)
 
 
 def table(x, radiance, *, unit: str = "deg", source: str | None = None) -> Profile:
@@ -264,7 +342,9 @@ def profile(model) -> Profile:
     if kind == "lambertian":
         return lambertian()
     if kind == "diffuse":
-        return diffuse(get("refractive_index", 1.40))
+        return diffuse(get("refractive_index", 1.40), tangential=bool(get("tangential_flux", True)),
+                       reduced_scattering_per_mm=get("reduced_scattering_per_mm", DEFAULT_REDUCED_SCATTERING_PER_MM),
+                       absorption_per_mm=get("absorption_per_mm", DEFAULT_ABSORPTION_PER_MM))
     if kind == "table":
         return table(get("angles"), get("radiance"), unit=get("unit", "deg"))
     raise ValueError(f"unknown emission model {kind!r} (lambertian, diffuse or table)")
@@ -277,3 +357,107 @@ def share_beyond(weights: np.ndarray, cos_theta: np.ndarray, degrees: float) -> 
     if not tot > 0:
         return float("nan")
     return float(np.sum(w[np.asarray(cos_theta) < np.cos(np.radians(degrees))])) / tot
+
+
+def face_frames(face_vertices_mm: np.ndarray) -> np.ndarray:
+    """Two in-plane unit vectors per triangle (F, 2, 3): e1 along its first edge, e2 = n x e1.
+    They turn with the surface (a rigid placement turns them as it turns the face), so the
+    tangential matrix T holds in these components is the same for the subject's own surface
+    and for any pose of it.  Degenerate faces get zeros."""
+    tri = np.asarray(face_vertices_mm, float)
+    e1 = tri[:, 1] - tri[:, 0]
+    nvec = np.cross(e1, tri[:, 2] - tri[:, 0])
+    l1 = np.linalg.norm(e1, axis=1)
+    ln = np.linalg.norm(nvec, axis=1)
+    good = (l1 > 0) & (ln > 0)
+    e1 = np.divide(e1, l1[:, None], out=np.zeros_like(e1), where=good[:, None])
+    nhat = np.divide(nvec, ln[:, None], out=np.zeros_like(nvec), where=good[:, None])
+    return np.stack([e1, np.cross(nhat, e1)], axis=1)
+
+
+def tangent_operator(surface, levels: int = 1):
+    """The tangential term's map from vertex unknowns to the fine faces T is built on
+    (:meth:`fluxcli.surface.mesh.Surface.vertex_basis`, same orderings): sparse
+    (2 n_fine, n_vertices), row 2f + a, column v: ``-S_f grad phi_v|_f . e_a / A_v`` (mm), e_a
+    the fine face's in-plane unit vectors (:func:`face_frames`, the components T holds).
+
+    With exitance linear within each face, ``M = sum_v phi_v u_v / A_v`` (u_v the lumped power
+    of vertex v, A_v = int phi_v dS), its gradient on fine face f is the constant
+    ``sum_v grad phi_v|_f u_v / A_v`` (the hat's gradient on the coarse face f lies in), in the
+    face's plane.  The light the term sends to pixel i is ``-S_f grad_t M|_f . T_tangent[i, f]``;
+    so T per vertex gains ``T_tangent @ tangent_operator``.  Per-element (or per-face) unknowns
+    have no gradient inside an element: the term does not act on them."""
+    import scipy.sparse as sp
+
+    levels = int(levels)
+    fine, _ = surface.refined(levels)
+    vb = surface.vertex_basis(levels)
+    ok = surface.element_of_face >= 0
+    _, local = np.unique(surface.faces[ok], return_inverse=True)
+    local = local.reshape(-1, 3)
+    coarse = np.flatnonzero(np.tile(ok, 4**levels)) % len(surface.faces)  # refined(): children of i at t F + i
+    rank = np.cumsum(ok) - 1
+    tri = surface.vertices_mm[surface.faces[coarse]]  # (n_fine, 3, 3): the coarse face of each fine one
+    fine_ok = fine.element_of_face >= 0
+    S_f = fine.face_areas_mm2[fine_ok]
+    frames = face_frames(fine.face_vertices_mm[fine_ok])
+    nvec = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    two_a = np.linalg.norm(nvec, axis=1)
+    good = two_a > 0
+    nhat = np.divide(nvec, two_a[:, None], out=np.zeros_like(nvec), where=good[:, None])
+    inv_av = np.divide(1.0, vb.areas_mm2, out=np.zeros_like(vb.areas_mm2), where=vb.areas_mm2 > 0)
+    n_fine, n_v = len(S_f), len(vb.areas_mm2)
+    rows, cols, vals = [], [], []
+    for k in range(3):  # grad phi_k = n x (p_{k+2} - p_{k+1}) / 2a, pointing from the opposite edge to p_k
+        edge = tri[:, (k + 2) % 3] - tri[:, (k + 1) % 3]
+        grad = np.divide(np.cross(nhat, edge), two_a[:, None], out=np.zeros_like(edge), where=good[:, None])
+        v = local[rank[coarse], k]
+        for a in range(2):
+            rows.append(2 * np.arange(n_fine) + a)
+            cols.append(v)
+            vals.append(-S_f * np.einsum("ij,ij->i", grad, frames[:, a]) * inv_av[v])
+    G = sp.coo_array((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(2 * n_fine, n_v))
+    return sp.csr_array(G.tocsr())
+
+
+def tangent_light(surface, power_per_element: np.ndarray, same_plane_cos: float = 0.8) -> np.ndarray:
+    """What a forward image adds for the tangential flux of a truth given as power per face
+    (``surface`` one face per element, as ``Surface.refined``): ``-S_f grad_t M|_f`` in each
+    face's frame (:func:`face_frames`), (2 n_faces,), so that ``T_tangent @ this`` is the light
+    the term sends to each pixel.  grad_t M on face f is the least-squares gradient of the
+    exitances of the faces around it (sharing a vertex) that face nearly the same way
+    (normals within ~37 deg: a box's other faces do not count, a faceted cylinder's
+    neighbours do), in f's plane: exact for an exitance linear on a plane, borders included."""
+    ok = surface.element_of_face >= 0
+    faces = surface.faces[ok]
+    el = surface.element_of_face[ok]
+    S = surface.face_areas_mm2[ok]
+    nrm = surface.face_normals[ok]
+    cen = surface.vertices_mm[faces].mean(axis=1)
+    frames = face_frames(surface.vertices_mm[faces])
+    M = np.divide(np.asarray(power_per_element, float)[el], S, out=np.zeros(len(S)), where=S > 0)
+    F = len(faces)
+    # (face, face sharing one of its vertices) pairs, through the faces around each vertex
+    corner_v, corner_f = faces.ravel(), np.repeat(np.arange(F), 3)
+    order = np.argsort(corner_v, kind="stable")
+    sv, sf = corner_v[order], corner_f[order]
+    start = np.searchsorted(sv, corner_v, side="left")
+    count = np.searchsorted(sv, corner_v, side="right") - start
+    pf = np.repeat(corner_f, count)
+    pg = sf[np.repeat(start, count) + (np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count))]
+    keep = (pf != pg) & (np.einsum("ij,ij->i", nrm[pf], nrm[pg]) >= same_plane_cos)
+    pf, pg = pf[keep], pg[keep]
+    d = np.einsum("iaj,ij->ia", frames[pf], cen[pg] - cen[pf])  # in f's frame
+    dm = M[pg] - M[pf]
+    a11 = np.bincount(pf, d[:, 0] * d[:, 0], F)
+    a12 = np.bincount(pf, d[:, 0] * d[:, 1], F)
+    a22 = np.bincount(pf, d[:, 1] * d[:, 1], F)
+    b1 = np.bincount(pf, d[:, 0] * dm, F)
+    b2 = np.bincount(pf, d[:, 1] * dm, F)
+    det = a11 * a22 - a12 * a12
+    good = det > 1e-12 * np.maximum(a11 + a22, 1e-300) ** 2
+    g1 = np.divide(a22 * b1 - a12 * b2, det, out=np.zeros(F), where=good)
+    g2 = np.divide(a11 * b2 - a12 * b1, det, out=np.zeros(F), where=good)
+    out = np.zeros((surface.n_elements, 2))
+    out[el] = -S[:, None] * np.stack([g1, g2], axis=1)
+    return out.ravel()

@@ -83,6 +83,12 @@ class TransferResult:
     stats: dict[str, dict[str, float]] = field(default_factory=dict)
     column_error_per_view: list[np.ndarray] = field(default_factory=list)  # per view, L1 error estimate per column
     column_error: np.ndarray | None = None  # of T: sum over views of weight x view's estimate
+    # the tangential-flux term (emission profiles with one): (n_pixels, 2 n_elements), column 2j + a
+    # the component along the face's in-plane unit vector a (emission.face_frames) of the sum over
+    # rays of weight x g x direction (mm); for an element of several faces each in its own face's
+    # frame (meaningful for one face per element, as the vertex basis's fine T); sum of weight x view's
+    T_tangent: sp.csr_matrix | None = None
+    T_tangent_per_view: list = field(default_factory=list)
 
 
 # ------------------------------------------------------------------ surface sampling
@@ -204,7 +210,7 @@ class _PairFilter:
         self.rays_cast = 0
 
     def __call__(self, P, N, L, pix, w, elem, axial_p):
-        """Keep the visible pairs; returns (pix, elem, w)."""
+        """Keep the visible pairs; returns (pix, elem, w); their indices are left in ``self.kept``."""
         view, cam, eps = self.view, self.view.camera, self.eps
         keep = (w > 0) & (pix >= 0)
         keep[keep] &= cam.passes_apertures(P[keep], L[keep], axial_p[keep])
@@ -239,6 +245,7 @@ class _PairFilter:
                 blocked[g] = b1 | b2
                 self.rays_cast += 2 * len(g)
         vis = idx[~blocked]
+        self.kept = vis
         return pix[vis], elem[vis], w[vis]
 
 
@@ -318,6 +325,8 @@ class _LensPlan:
     target: float  # adaptive rounds: the column error target (0: one round)
     n_cap: int  # adaptive rounds: lens samples per surface sample, at most
     emis: np.ndarray = field(default_factory=lambda: np.zeros(0))  # ray weights pi p on cos theta (empty: Lambertian)
+    tang: np.ndarray = field(default_factory=lambda: np.zeros(0))  # tangential weights pi p g, mm (empty: off)
+    tframe: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 3)))  # per sample its face's frame
 
 
 def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: int,
@@ -394,7 +403,8 @@ def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: in
                      np.ascontiguousarray(disk_unit), np.ascontiguousarray(square_unit), np.ascontiguousarray(jitter),
                      chunks, int(n_lens.sum()), clear, _spins(E, turn_patterns),
                      margin, float(s.target_column_error),
-                     int(s.lens_samples_max), _emission_table(emission))
+                     int(s.lens_samples_max), _emission_table(emission), _tangent_table(emission),
+                     _frames(surface, F, emission))
 
 
 def _emission_table(emission: Profile | None) -> np.ndarray:
@@ -402,6 +412,41 @@ def _emission_table(emission: Profile | None) -> np.ndarray:
     if emission is None or emission.is_lambertian:
         return np.zeros(0)
     return np.ascontiguousarray(emission.table, np.float64)
+
+
+def _tangent_table(emission: Profile | None) -> np.ndarray:
+    """The kernel's tangential-weight table: empty (no tangential term) or pi p g on the cos grid."""
+    if emission is None or not emission.has_tangent:
+        return np.zeros(0)
+    return np.ascontiguousarray(emission.tangent, np.float64)
+
+
+def _frames(surface: Surface, faces: np.ndarray, emission: Profile | None) -> np.ndarray:
+    """Per sample the in-plane unit vectors of its face (S, 2, 3); (0, 2, 3) when the term is off."""
+    if emission is None or not emission.has_tangent:
+        return np.zeros((0, 2, 3))
+    from .emission import face_frames
+
+    return np.ascontiguousarray(face_frames(surface.face_vertices_mm[faces]))
+
+
+def _tangent_csr(results: list, n_pix: int, n_el: int) -> sp.csr_matrix:
+    """The chunks' tangential values as (n_pix, 2 n_el), column 2j + a (whole elements per chunk,
+    pixels sorted within each column, as the scalar T)."""
+    rows, cols, vals = [], [], []
+    for r in results:
+        elements, starts, pix, tval = r[0], r[1], r[2], r[8]
+        col = np.repeat(elements, np.diff(starts))
+        for a in range(2):
+            rows.append(pix)
+            cols.append(2 * col + a)
+            vals.append(tval[:, a])
+    if not rows:
+        return sp.csr_matrix((n_pix, 2 * n_el))
+    T = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                      shape=(n_pix, 2 * n_el)).tocsr()
+    T.eliminate_zeros()
+    return T
 
 
 def _spins(elem: np.ndarray, turn: bool = True) -> np.ndarray:
@@ -442,9 +487,10 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
                rays_per_batch: int, threads: int, progress: Callable[[float], None] | None,
                checkpoint: "Checkpoint | None", view_index: int,
                tree: "visibility.LazyTree | None" = None,
-               turn_patterns: bool = True, emission: Profile | None = None) -> tuple[sp.csr_matrix, np.ndarray, dict]:
+               turn_patterns: bool = True, emission: Profile | None = None) -> tuple:
     """One view's T by the lens estimator: chunks of whole elements cast on ``threads``
-    threads, columns placed by element (independent of which thread finished first)."""
+    threads, columns placed by element (independent of which thread finished first).
+    Returns T, column errors, stats and the tangential matrix (None when the term is off)."""
     cam = view.camera
     n_pix = cam.nx * cam.ny
     shape = (n_pix, surface.n_elements)
@@ -454,7 +500,8 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
     if plan is None or not plan.chunks or scene.native is None:
         if plan is not None and plan.chunks and scene.native is None:
             raise ValueError("nothing to cast against: the scene has no triangles")
-        return sp.csr_matrix(shape), err, {"rays": 0.0, "surface_samples": 0.0, "rays_evaluated": 0.0}
+        tan = sp.csr_matrix((n_pix, 2 * surface.n_elements)) if emission is not None and emission.has_tangent else None
+        return sp.csr_matrix(shape), err, {"rays": 0.0, "surface_samples": 0.0, "rays_evaluated": 0.0}, tan
     run = _lens_runner(view, scene, plan, eps)
     rays_of = [int(plan.n_lens[a:b].sum()) for a, b in plan.chunks]
     if checkpoint is not None and not 0 < checkpoint.rays_per_block < plan.rays:
@@ -494,7 +541,8 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
     T.eliminate_zeros()
     stats = {"rays": float(sum(r[5] for r in results)), "surface_samples": float(len(plan.P)),
              "rays_evaluated": float(sum(r[6] for r in results))}
-    return T.tocsr(), err, stats
+    tan = _tangent_csr(results, n_pix, surface.n_elements) if len(plan.tang) else None
+    return T.tocsr(), err, stats, tan
 
 
 _NO_RECORD = np.zeros((0, 7), np.float32)
@@ -521,12 +569,13 @@ def _lens_runner(view: View, scene: OcclusionScene, plan: _LensPlan, eps: float)
         if not hasattr(scratch, "even"):
             scratch.even, scratch.odd = np.zeros(n_pix), np.zeros(n_pix)
             scratch.mark, scratch.touched = np.zeros(n_pix, np.bool_), np.zeros(n_pix, np.int32)
+            scratch.tan = np.zeros((n_pix if len(plan.tang) else 0, 2))
         return transfer_kernel.lens_columns(
             nat.occluded16, nat.scene, cam_arr, mir, ap_dist, ap_r2, eps, plan.P, plan.N, plan.G, plan.dA,
             plan.elem, plan.lo, plan.hi, plan.dc, plan.disk_r, plan.use_box, plan.n_lens, plan.pat_off, plan.disk_unit,
             plan.square_unit, plan.jitter, chunk[0], chunk[1], n_pix, cam.nx, cam.ny,
             scratch.even, scratch.odd, scratch.mark, scratch.touched, _NO_RECORD, plan.clear, plan.margin_mm,
-            plan.target, plan.n_cap, plan.spin, plan.emis)
+            plan.target, plan.n_cap, plan.spin, plan.emis, plan.tang, scratch.tan, plan.tframe)
 
     return run
 
@@ -603,10 +652,11 @@ def _pairwise_pairs(surface: Surface, view: View, s: PairwiseSampling, rays_per_
     faces = _candidate_faces(surface, view)
     if len(faces) == 0:
         return
-    P, N, E, W, _ = sample_faces(surface, faces, np.full(len(faces), s.surface_subdivisions))
+    P, N, E, W, _, F = sample_faces(surface, faces, np.full(len(faces), s.surface_subdivisions), return_faces=True)
     z = cam.axial(P)
     front = (z > 0) & (np.einsum("ij,ij->i", N, cam.center_mm - P) > -cam.aperture_radius_mm)
-    P, N, E, W, z = P[front], N[front], E[front], W[front], z[front]
+    P, N, E, W, z, F = P[front], N[front], E[front], W[front], z[front], F[front]
+    frames = _frames(surface, F, emission)
     k = s.pixel_subdivisions
     sub_pitch = cam.focal_pixel_mm / k
     dA_vd = sub_pitch**2
@@ -658,11 +708,15 @@ def _pairwise_pairs(surface: Surface, view: View, s: PairwiseSampling, rays_per_
             dv = X - p
             r2 = np.einsum("ij,ij->i", dv, dv)
             w = np.where(in_lens & (cos_s > 0), cos_s * cos_d / (np.pi * r2), 0.0) * dA_vd * W[ii]
+            wt = None
+            if emission is not None and emission.has_tangent:  # along the ray leaving the real surface
+                wt = ((w * emission.tangent_weight(np.where(in_lens, cos_s, 0.0)) / dl)[:, None]
+                      * np.einsum("ij,iaj->ia", d, frames[ii]))  # in the face's frame
             if emission is not None and not emission.is_lambertian:  # theta_s at the real surface, both views
                 w = w * emission.weight(np.where(in_lens, cos_s, 0.0))
         pix = (rr // k) * cam.nx + (cc // k)
         pix = np.where(inbox, pix, -1)
-        yield p, nn, L, pix, w, E[ii], zz, len(i), len(ii)
+        yield p, nn, L, pix, w, E[ii], zz, len(i), len(ii), wt
 
 
 class Checkpoint:
@@ -748,20 +802,21 @@ def build_transfer(
         tree = visibility.LazyTree(v, f, _piece_mm(surface, v))
     n_pix = views[0].camera.nx * views[0].camera.ny
     shape = (n_pix, surface.n_elements)
-    per_view, errors, stats = [], [], {}
+    per_view, errors, stats, tangents = [], [], {}, []
     for k, view in enumerate(views):
         def sub(fraction, k=k):
             if progress:
                 progress((k + fraction) / len(views))
 
         if estimator == "lens":
-            T, err, st = _lens_view(surface, view, scene, lens_sampling, ray_offset_mm, rays_per_batch, threads,
-                                    sub, checkpoint, k, tree, turn_patterns, emission)
+            T, err, st, tan = _lens_view(surface, view, scene, lens_sampling, ray_offset_mm, rays_per_batch, threads,
+                                         sub, checkpoint, k, tree, turn_patterns, emission)
         else:
-            T, st = _pairwise_view(surface, view, scene, pairwise_sampling, ray_offset_mm, rays_per_batch, shape,
-                                   sub, emission)
+            T, st, tan = _pairwise_view(surface, view, scene, pairwise_sampling, ray_offset_mm, rays_per_batch, shape,
+                                        sub, emission)
             err = np.full(surface.n_elements, np.nan)
         per_view.append(T)
+        tangents.append(tan)
         errors.append(err)
         stats[view.name] = st
         sub(1.0)
@@ -770,7 +825,14 @@ def build_transfer(
         total = total + T * view.weight
     # the views' errors add at most (triangle inequality)
     total_err = sum(e * view.weight for e, view in zip(errors, views))
-    return TransferResult(list(views), per_view, total.tocsr(), stats, errors, total_err)
+    total_tan = None
+    if emission is not None and emission.has_tangent:
+        total_tan = tangents[0] * views[0].weight
+        for Tt, view in zip(tangents[1:], views[1:]):
+            total_tan = total_tan + Tt * view.weight
+        total_tan = total_tan.tocsr()
+    return TransferResult(list(views), per_view, total.tocsr(), stats, errors, total_err, total_tan,
+                          tangents if total_tan is not None else [])
 
 
 def _piece_mm(surface: Surface, vertices_mm: np.ndarray) -> float:
@@ -789,12 +851,14 @@ def _pairwise_view(surface: Surface, view: View, scene: OcclusionScene, s: Pairw
     gen = _pairwise_pairs(surface, view, s, rays_per_batch, emission)
     todo = next(gen, 0)  # the generator announces how many pairs it will evaluate
     done, n_samples = 0, 0
-    parts = []
-    for P, N, L, pix, w, elem, zz, n_s, n_rays in gen:
+    parts, tparts = [], []
+    for P, N, L, pix, w, elem, zz, n_s, n_rays, wt in gen:
         n_samples += n_s
         done += n_rays
         pix, elem, w = filt(P, N, L, pix, w, elem, zz)
         parts.append((pix, elem, w))
+        if wt is not None:
+            tparts.append((pix, elem, wt[filt.kept]))
         if todo:
             progress(min(done / todo, 1.0))
     # one COO -> CSR conversion (duplicates summed once, in a fixed order)
@@ -804,7 +868,18 @@ def _pairwise_view(surface: Surface, view: View, scene: OcclusionScene, s: Pairw
     T = sp.coo_matrix((w, (pix, elem)), shape=shape).tocsr()
     T.sum_duplicates()
     T.eliminate_zeros()
-    return T, {"rays": float(filt.rays_cast), "surface_samples": float(n_samples), "rays_evaluated": float(done)}
+    tan = None
+    if emission is not None and emission.has_tangent:
+        rows = [p for p, _, _ in tparts for _ in range(2)]
+        cols = [2 * e + a for _, e, _ in tparts for a in range(2)]
+        vals = [t[:, a] for _, _, t in tparts for a in range(2)]
+        tan = sp.coo_matrix((np.concatenate(vals) if vals else np.zeros(0),
+                             (np.concatenate(rows) if rows else np.zeros(0, np.int64),
+                              np.concatenate(cols) if cols else np.zeros(0, np.int64))),
+                            shape=(shape[0], 2 * shape[1])).tocsr()
+        tan.sum_duplicates()
+        tan.eliminate_zeros()
+    return T, {"rays": float(filt.rays_cast), "surface_samples": float(n_samples), "rays_evaluated": float(done)}, tan
 
 
 def views_for(camera: ThinLensCamera, mirrors: list[tuple[str, PlaneMirror, float]]) -> list[View]:

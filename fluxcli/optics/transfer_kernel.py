@@ -31,7 +31,7 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
                  P, N, G, dA, elem, lo, hi, dc, disk_r, use_box, n_lens, pat_off,
                  disk_unit, square_unit, jitter, s0, s1, n_pix, nx, ny,
                  acc_even, acc_odd, mark, touched, record, clear, margin, target, n_cap, spin,
-                 emis):
+                 emis, tang, acc_t, tframe):
     """Columns of the elements whose samples are ``[s0, s1)`` (whole elements, sorted).
 
     Parameters
@@ -67,6 +67,15 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
         no multiplication, the arithmetic of a Lambertian T is unchanged).  theta_s is the
         angle at the real surface between its normal and the ray leaving it (for a mirror view
         the ray towards the virtual lens point runs along the real surface -> mirror segment).
+    tang, acc_t, tframe : the tangential-flux term (:attr:`fluxcli.optics.emission.Profile.tangent`):
+        ray weights ``pi p g`` (mm) on the same cos grid, or (0,) when off; per-thread scratch
+        (n_pix, 2) (zero on entry, left so), or (0, 2) when off; and per sample the two in-plane
+        unit vectors of its face (S, 2, 3) (:func:`fluxcli.optics.emission.face_frames`: they
+        turn with the subject, so the values do not depend on the pose's placement).  Each ray
+        adds its geometric weight x ``tang(cos theta_s)`` x the components of its unit direction
+        leaving the real surface along those two vectors into the pixel's 2-vector: the
+        column's ``-grad_t M . (that)`` (times the face area) is the light the term sends there.
+        The scalar weights are computed exactly as without it.
     target, n_cap : adaptive sampling.  An element's samples are cast in rounds: round 0
         takes lens samples ``[0, n_lens)`` of each sample's nested pattern, round p
         ``[n_lens 2^(p-1), n_lens 2^p)`` (the weights of all rounds so far halved, exactly);
@@ -78,13 +87,15 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
     Returns
     -------
     (elements (K,), column starts (K + 1,), pixel (nnz,), value (nnz,), column error (K,),
-    rays cast, rays evaluated, segments recorded)
+    rays cast, rays evaluated, segments recorded, tangential values (nnz, 2) or (0, 2) when off)
     """
     pk, pku, valid = new_packet()
     pk2, pku2, _ = new_packet()
     seg2 = np.empty((_QUEUE, 7), np.float64)  # mirror views: the mirror -> lens segment of each queued ray
     q_pix = np.empty(_QUEUE, np.int64)
     q_w = np.empty(_QUEUE, np.float64)
+    use_t = len(tang) > 0
+    q_t = np.zeros((_QUEUE, 2), np.float64)  # the tangential weights of each queued ray (face frame)
     q_odd = np.empty(_QUEUE, np.int64)
     q_slot = np.empty(_QUEUE, np.int64)  # the ray's slot in the packet, -1 when known clear
     q_need2 = np.empty(_QUEUE, np.bool_)  # mirror views: the mirror -> lens segment must be cast
@@ -103,6 +114,7 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
     cap = max(n_rays, 1)  # grows when later rounds touch more pixels
     out_pix = np.empty(cap, np.int32)
     out_val = np.empty(cap, np.float64)
+    out_t = np.empty((cap if use_t else 0, 2), np.float64)
     n_el = 1
     for s in range(s0 + 1, s1):
         if elem[s] != elem[s - 1]:
@@ -178,6 +190,9 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
                         continue
                     cos_l = -(vx * ax + vy * ay + vz * az) * inv
                     w = cos_s * cos_l / (math.pi * r2) * dA_s
+                    wt = 0.0
+                    if use_t:
+                        wt = w * emission_weight(tang, cos_s) * inv
                     if len(emis) > 0:
                         w *= emission_weight(emis, cos_s)
                     if not w > 0:
@@ -259,18 +274,21 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
                         seg2[m, 3], seg2[m, 4], seg2[m, 5], seg2[m, 6] = e2x, e2y, e2z, l2 - eps
                     q_pix[m] = pix
                     q_w[m] = w
+                    if use_t:  # along the ray leaving the real surface (to the lens, or to the mirror)
+                        q_t[m, 0] = wt * (vx * tframe[s, 0, 0] + vy * tframe[s, 0, 1] + vz * tframe[s, 0, 2])
+                        q_t[m, 1] = wt * (vx * tframe[s, 1, 0] + vy * tframe[s, 1, 1] + vz * tframe[s, 1, 2])
                     q_odd[m] = k % 2
                     m += 1
                     if n_slot == 16 or m == _QUEUE:
                         cast, n_touched, n_rec = _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, n_slot, has_mirror, seg2,
                                                         q_pix, q_w, q_odd, q_slot, q_need2, acc_even, acc_odd, mark, touched,
-                                                        n_touched, cast, record, n_rec)
+                                                        n_touched, cast, record, n_rec, use_t, q_t, acc_t)
                         m = 0
                         n_slot = 0
                 if m > 0:  # the surface point's last rays
                     cast, n_touched, n_rec = _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, n_slot, has_mirror,
                                                     seg2, q_pix, q_w, q_odd, q_slot, q_need2, acc_even, acc_odd, mark,
-                                                    touched, n_touched, cast, record, n_rec)
+                                                    touched, n_touched, cast, record, n_rec, use_t, q_t, acc_t)
                     m = 0
                     n_slot = 0
             if rnd >= last_round:
@@ -287,6 +305,9 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
                 q = touched[i]
                 acc_even[q] *= 0.5
                 acc_odd[q] *= 0.5
+                if use_t:
+                    acc_t[q, 0] *= 0.5
+                    acc_t[q, 1] *= 0.5
             rnd += 1
         # the element's column is complete
         if nnz + n_touched > len(out_pix):
@@ -296,12 +317,20 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
             p2[:nnz] = out_pix[:nnz]
             v2[:nnz] = out_val[:nnz]
             out_pix, out_val = p2, v2
+            if use_t:
+                t2 = np.empty((grown, 2), np.float64)
+                t2[:nnz] = out_t[:nnz]
+                out_t = t2
         order = np.sort(touched[:n_touched])
         err = 0.0
         for i in range(n_touched):
             q = order[i]
             out_pix[nnz] = q
             out_val[nnz] = acc_even[q] + acc_odd[q]
+            if use_t:
+                out_t[nnz, 0], out_t[nnz, 1] = acc_t[q, 0], acc_t[q, 1]
+                acc_t[q, 0] = 0.0
+                acc_t[q, 1] = 0.0
             err += abs(acc_even[q] - acc_odd[q])
             nnz += 1
             acc_even[q] = 0.0
@@ -313,7 +342,8 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
         starts[k_el] = nnz
         n_touched = 0
         e0 = e1
-    return elements, starts, out_pix[:nnz].copy(), out_val[:nnz].copy(), col_err, cast, n_rays, n_rec
+    return (elements, starts, out_pix[:nnz].copy(), out_val[:nnz].copy(), col_err, cast, n_rays, n_rec,
+            out_t[:nnz].copy() if use_t else out_t)
 
 
 @nb.njit(nogil=True, cache=True, inline="always")
@@ -335,7 +365,7 @@ def _record(record, i, ox, oy, oz, dx, dy, dz, length):
 
 @nb.njit(nogil=True, cache=True)
 def _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, n_slot, has_mirror, seg2, q_pix, q_w, q_odd, q_slot, q_need2,
-           acc_even, acc_odd, mark, touched, n_touched, cast, record, n_rec):
+           acc_even, acc_odd, mark, touched, n_touched, cast, record, n_rec, use_t, q_t, acc_t):
     """Cast the ``n_slot`` packed rays of the ``m`` queued ones (the others are known clear; for
     a mirror view then the mirror -> lens segments of those that reach the mirror and are not
     known clear, 16 at a time) and add the visible ones, in queue order, into the column."""
@@ -380,4 +410,7 @@ def _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, n_slot, has_mirror, seg2, 
                 acc_odd[pix] += q_w[j]
             else:
                 acc_even[pix] += q_w[j]
+            if use_t:
+                acc_t[pix, 0] += q_t[j, 0]
+                acc_t[pix, 1] += q_t[j, 1]
     return cast, n_touched, n_rec

@@ -205,10 +205,17 @@ class SimulatedScene:
             from ..truth import forward_transfer, truth_refinement  # the forward T and truth, as simulate uses
 
             rot = (self.cfg.model.subject.poses or C.Poses()).rotations_deg[0]
-            T = ensure_pose_T(self.cfg, Pose(key[0], float(rot)), forward_transfer(self.cfg), self.placer,
-                              refine=truth_refinement(self.cfg.model.simulate))
+            refine = truth_refinement(self.cfg.model.simulate)
+            T, T_tangent = ensure_pose_T(self.cfg, Pose(key[0], float(rot)), forward_transfer(self.cfg), self.placer,
+                                         refine=refine, tangent=True)
             nx, ny = self.cfg.model.system.camera.pixels
-            self._images[key] = (T @ self.fine_rate(name)[0]).reshape(ny, nx)
+            rate = self.fine_rate(name)[0]
+            image = T @ rate
+            if T_tangent is not None and refine > 0:  # the emission's tangential flux, as simulate renders it
+                from ..optics.emission import tangent_light
+
+                image = np.maximum(image + T_tangent @ tangent_light(self.placer.surface.refined(refine)[0], rate), 0.0)
+            self._images[key] = image.reshape(ny, nx)
         return self._images[key]
 
 

@@ -25,7 +25,7 @@ from ..errors import UserError
 from ..imaging import noise as N
 from ..imaging.imagefiles import write_image
 from ..optics.transfer import ALGORITHM_VERSION
-from ..artefacts.transfer import load_T
+from ..artefacts.transfer import load_T, load_T_tangent
 from ..pipeline import (cache_dir, check_folders, check_memory, emccd_model, ensure_T, geometry_of, plan,
                         provenance, without_emission)
 from .context import RunContext
@@ -102,8 +102,16 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     clean = np.zeros((L, P, ny, nx), np.float32)
     noisy = np.zeros((L, R, P, ny, nx), np.float32)
     counts = np.zeros((L, R, P, ny, nx), np.uint16) if sim.noise.model == "emccd" else None
+    tangent = None  # the emission's tangential flux (diffuse): the truth's gradient, once
     for k, (scene, pt) in enumerate(todo):
         a1 = load_T(pt.path) @ fine_power  # the truth varies within the elements
+        T_tangent = load_T_tangent(pt.path) if truth_refinement(sim) > 0 else None  # one face per column
+        if T_tangent is not None:
+            from ..optics.emission import tangent_light
+
+            if tangent is None:
+                tangent = tangent_light(surface.refined(truth_refinement(sim))[0], fine_power)
+            a1 = np.maximum(a1 + T_tangent @ tangent, 0.0)
         for li in range(L):
             a = a1 * scale[li]
             clean[li, k] = a.reshape(ny, nx)
