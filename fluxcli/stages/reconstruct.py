@@ -732,7 +732,8 @@ def _describe(m: C.MethodSettings) -> str:
 
 # what `unknowns: auto` and the solvers do; a reconstruction made by an older version is redone
 SOLVER_VERSION = ("2026-11 vertex basis, cotangent prior, provisional UPRE, isolated spikes left out, exact non-negative "
-                  "steps, linear_elements beyond 2500 vertices, discrepancy where UPRE interpolates")
+                  "steps, linear_elements beyond 2500 vertices, discrepancy where UPRE interpolates, no element unknown where "
+                  "only the element's edges are seen")
 
 
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:

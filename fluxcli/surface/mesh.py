@@ -357,10 +357,11 @@ class ElementHats:
             ratio = np.where(d_fr > 0, d_own / d_fr, np.inf)
         return np.where(np.asarray(b.prolong.sum(axis=0)).ravel()[:n_e] > 0, ratio, np.nan)
 
-    def seen_basis(self, included, fine_sight, min_own_sight: float = OWN_SIGHT_MIN) -> "HatBasis":
+    def seen_basis(self, included, fine_sight, min_own_sight: float | None = None) -> "HatBasis":
         """:meth:`basis` for the ``included`` elements less those whose own faces the camera
-        hardly sees (:meth:`own_sight` below ``min_own_sight``); their vertices shared with
-        the rest keep unknowns of their own (rim vertices), as on vertices.
+        hardly sees (:meth:`own_sight` below ``min_own_sight``, default :data:`OWN_SIGHT_MIN`);
+        their vertices shared with the rest keep unknowns of their own (rim vertices), as on
+        vertices.
 
         An element unknown is constant over the element's inner vertices, so its value,
         pinned by the light the camera sees at the vertices it shares with seen neighbours,
@@ -369,12 +370,13 @@ class ElementHats:
         a pose at 1/200 of a side element's sensitivity) that is an extrapolation the data
         never see, and with λ small (the joint solve of two poses) it put 6 % of the total
         there. A rim vertex's light stays within one face of what the camera sees."""
+        kappa = OWN_SIGHT_MIN if min_own_sight is None else float(min_own_sight)
         inc = np.ones(self.share.shape[1], bool) if included is None else np.array(included, bool)
         b = self.basis(inc)
         if self.to_fine is None or self.fine_to_elements is None:
             return b
         for _ in range(8):  # dropping an element only raises its neighbours' own sight: a few passes
-            drop = inc & (self.own_sight(b, fine_sight) < min_own_sight)
+            drop = inc & (self.own_sight(b, fine_sight) < kappa)
             if not drop.any():
                 break
             inc &= ~drop
