@@ -330,21 +330,27 @@ class ElementHats:
 
     def own_sight(self, b: "HatBasis", fine_sight: np.ndarray) -> np.ndarray:
         """Per element unknown of ``b``: how well the camera sees the light it puts on its own
-        faces, relative to the light it puts on its neighbours' faces (the hats of the
-        vertices it shares with them reach one face into each).
+        faces along its border, relative to the light it puts across the border on its
+        neighbours' faces. Both through the hats of the vertices it shares with its
+        neighbours, which reach one face into each side: the sensitivity is compared across
+        the border at the scale of a face, not of an element.
 
         ``fine_sight`` (n_fine,) is the detection per photon of each fine face (T's column
-        sums over the pixels used). With ``d_own`` the photons detected per photon the
-        unknown puts on its own faces and ``d_fringe`` the same on its neighbours' faces,
-        returns ``d_own / d_fringe`` (inf where the unknown has no fringe or the fringe is
-        not seen; NaN for an element that is not an unknown of ``b``). About 1 where the
-        sensitivity varies smoothly over the surface, linearly in view angle included; far
-        below 1 where the element's own faces are hidden (occluded, facing away) and the
-        data see only the vertices it shares with seen elements."""
+        sums over the pixels used). With ``d_own`` the photons detected per photon the shared
+        vertices' hats put on the element's own faces and ``d_fringe`` the same on its
+        neighbours' faces, returns ``d_own / d_fringe`` (inf where the unknown has no fringe
+        or the fringe is not seen; NaN for an element that is not an unknown of ``b``). About
+        1 where the sensitivity is continuous across the border, view angles towards the
+        silhouette included (a face's step in cos θ); far below 1 across a step in it: a
+        crease or an occlusion edge beyond which the element's own faces are hidden (facing
+        away, or behind something), so that the data see only the vertices it shares with
+        seen elements."""
         import scipy.sparse as sp
 
         n_e = self.share.shape[1]
-        fine_pow = sp.csr_array(self.to_fine @ sp.csr_array(b.prolong[:, :n_e]))  # (n_fine, n_e) photons
+        shared = np.diff(sp.csr_array(self.share).indptr) >= 2  # a vertex whose hat lies on 2+ elements
+        border = sp.csr_array(sp.diags_array(shared.astype(np.float64)) @ sp.csr_array(b.prolong[:, :n_e]))
+        fine_pow = sp.csr_array(self.to_fine @ border)  # (n_fine, n_e) photons of the shared vertices' hats
         seen = sp.csr_array(fine_pow.multiply(np.asarray(fine_sight, np.float64)[:, None]))
         F = sp.csr_array(self.fine_to_elements.T)  # (n_e, n_fine)
         photons, detected = sp.csr_array(F @ fine_pow), sp.csr_array(F @ seen)  # (n_e elements, n_e unknowns)
