@@ -387,7 +387,8 @@ class Grid:
         if k is not None:
             return self.maps[k]
         m = self.maps[0]
-        return replace(m, T=sp.vstack([x.T for x in self.maps]).tocsr())
+        return replace(m, T=sp.vstack([x.T for x in self.maps]).tocsr(),
+                       T_fine=None if m.T_fine is None else sp.vstack([x.T_fine for x in self.maps]).tocsr())
 
 
 @dataclass
@@ -401,6 +402,7 @@ class ElementMap:
     adjacency: sp.csr_matrix
     areas: np.ndarray
     hats: object = None  # linear_elements: the T given is per vertex; run_method makes the element unknowns
+    T_fine: object = None  # linear_elements: (n_pixels, n_fine) T per face of the refined surface (what each face is seen)
 
 
 @dataclass
@@ -434,7 +436,7 @@ class VertexMap:
 
     def element_map(self, T_fine) -> ElementMap:
         return ElementMap(self.to_elements, sp.csr_array(T_fine @ self.fine_to_elements), self.adjacency, self.areas,
-                          self.hats)
+                          self.hats, None if self.hats is None else sp.csr_array(T_fine))
 
 
 def make_grid(cfg: C.LoadedConfig, ctx: RunContext, surface, unknowns: str) -> Grid:
@@ -447,7 +449,7 @@ def make_grid(cfg: C.LoadedConfig, ctx: RunContext, surface, unknowns: str) -> G
                                   shape=(fine_parent.size, surface.n_elements))
         stiffness, areas, hats = vb.stiffness, vb.areas_mm2, None
         if unknowns == "linear_elements":  # one unknown per element, still linear within faces
-            hats = vb.per_element()
+            hats = vb.per_element(fine_to_el)
             stiffness, areas = None, None  # per solve: the unknowns depend on the elements the pixels see
         vmap = VertexMap(vb.to_fine, fine_to_el, vb.to_elements, surface.element_adjacency(), surface.element_areas_mm2,
                          hats)
@@ -510,8 +512,13 @@ def element_unknowns(T_vertices, valid, emap: ElementMap):
 
     hats = emap.hats
     keep = np.asarray(valid).ravel()
-    b = hats.basis(observed(sp.csr_array(emap.T[keep]), DEFAULT_REL_THRESHOLD))  # the elements' own T
-    return sp.csr_array(T_vertices @ b.prolong), replace(emap, to_elements=b.to_elements, hats=None), b.stiffness, b.areas_mm2
+    included = observed(sp.csr_array(emap.T[keep]), DEFAULT_REL_THRESHOLD)  # the elements' own T
+    if emap.T_fine is None:
+        b = hats.basis(included)
+    else:  # less the elements the camera sees only the edges of (ElementHats.seen_basis)
+        b = hats.seen_basis(included, np.asarray(sp.csr_array(emap.T_fine[keep]).sum(axis=0)).ravel())
+    return (sp.csr_array(T_vertices @ b.prolong), replace(emap, to_elements=b.to_elements, hats=None, T_fine=None),
+            b.stiffness, b.areas_mm2)
 
 
 def _on_elements(res, keep, emap: ElementMap):
@@ -742,7 +749,8 @@ def _describe(m: C.MethodSettings) -> str:
 
 # what `unknowns: auto` and the solvers do; a reconstruction made by an older version is redone
 SOLVER_VERSION = ("2026-11 vertex basis, cotangent prior, provisional UPRE, isolated spikes left out, exact non-negative "
-                  "steps, linear_elements beyond 2500 vertices, discrepancy where UPRE interpolates")
+                  "steps, linear_elements beyond 2500 vertices, discrepancy where UPRE interpolates, no element unknown where "
+                  "only the element's edges are seen")
 
 
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:

@@ -257,11 +257,13 @@ class VertexBasis:
     def n_vertices(self) -> int:
         return len(self.areas_mm2)
 
-    def per_element(self) -> "ElementHats":
+    def per_element(self, fine_to_elements=None) -> "ElementHats":
         """One unknown per element with the exitance still linear within each face and
         continuous across edges: the exitance at a vertex is the mean of the element values
         around it, each weighted by the share of the vertex's hat that lies on that element
-        (:class:`ElementHats`)."""
+        (:class:`ElementHats`). ``fine_to_elements`` (sparse (n_fine, n_elements), 1 where a
+        face of :attr:`fine` lies on the element) lets :meth:`ElementHats.seen_basis` tell an
+        element the camera sees from one it only sees the edges of."""
         import scipy.sparse as sp
 
         A = np.asarray(self.areas_mm2, dtype=np.float64)
@@ -270,7 +272,11 @@ class VertexBasis:
         K = sp.csr_array(self.stiffness if self.stiffness is not None else self.adjacency)
         L = sp.csr_array(sp.diags_array(np.asarray(K.sum(axis=1)).ravel()) - K)
         boundary = np.zeros(len(A), bool) if self.on_boundary is None else np.asarray(self.on_boundary, bool)
-        return ElementHats(share, A, S, L, sp.csr_array(self.to_elements), boundary)
+        return ElementHats(share, A, S, L, sp.csr_array(self.to_elements), boundary, sp.csr_array(self.to_fine),
+                           None if fine_to_elements is None else sp.csr_array(fine_to_elements))
+
+
+OWN_SIGHT_MIN = 0.25  # ElementHats.seen_basis: an element seen at < 1/4 of its fringe's rate has no unknown
 
 
 @dataclass(frozen=True)
@@ -307,6 +313,10 @@ class ElementHats:
     vertex_to_elements : sparse (n_elements, n_vertices), element power per photon of a
         vertex's lumped power (:attr:`VertexBasis.to_elements`).
     on_boundary : (n_vertices,) bool, on the edge of an open surface.
+    to_fine : sparse (n_fine, n_vertices), power of each face of :attr:`VertexBasis.fine`
+        per photon of a vertex's lumped power.
+    fine_to_elements : sparse (n_fine, n_elements), 1 where a fine face lies on the element
+        (None: :meth:`seen_basis` cannot test the elements and is :meth:`basis`).
     """
 
     share: object
@@ -315,6 +325,69 @@ class ElementHats:
     laplacian: object
     vertex_to_elements: object
     on_boundary: np.ndarray
+    to_fine: object = None
+    fine_to_elements: object = None
+
+    def own_sight(self, b: "HatBasis", fine_sight: np.ndarray) -> np.ndarray:
+        """Per element unknown of ``b``: how well the camera sees the light it puts on its own
+        faces along its border, relative to the light it puts across the border on its
+        neighbours' faces. Both through the hats of the vertices it shares with its
+        neighbours, which reach one face into each side: the sensitivity is compared across
+        the border at the scale of a face, not of an element.
+
+        ``fine_sight`` (n_fine,) is the detection per photon of each fine face (T's column
+        sums over the pixels used). With ``d_own`` the photons detected per photon the shared
+        vertices' hats put on the element's own faces and ``d_fringe`` the same on its
+        neighbours' faces, returns ``d_own / d_fringe`` (inf where the unknown has no fringe
+        or the fringe is not seen; NaN for an element that is not an unknown of ``b``). About
+        1 where the sensitivity is continuous across the border, view angles towards the
+        silhouette included (a face's step in cos θ); far below 1 across a step in it: a
+        crease or an occlusion edge beyond which the element's own faces are hidden (facing
+        away, or behind something), so that the data see only the vertices it shares with
+        seen elements."""
+        import scipy.sparse as sp
+
+        n_e = self.share.shape[1]
+        shared = np.diff(sp.csr_array(self.share).indptr) >= 2  # a vertex whose hat lies on 2+ elements
+        border = sp.csr_array(sp.diags_array(shared.astype(np.float64)) @ sp.csr_array(b.prolong[:, :n_e]))
+        fine_pow = sp.csr_array(self.to_fine @ border)  # (n_fine, n_e) photons of the shared vertices' hats
+        seen = sp.csr_array(fine_pow.multiply(np.asarray(fine_sight, np.float64)[:, None]))
+        F = sp.csr_array(self.fine_to_elements.T)  # (n_e, n_fine)
+        photons, detected = sp.csr_array(F @ fine_pow), sp.csr_array(F @ seen)  # (n_e elements, n_e unknowns)
+        own_p, own_d = photons.diagonal(), detected.diagonal()
+        fr_p = np.asarray(photons.sum(axis=0)).ravel() - own_p
+        fr_d = np.asarray(detected.sum(axis=0)).ravel() - own_d
+        with np.errstate(invalid="ignore", divide="ignore"):
+            d_own = np.where(own_p > 0, own_d / own_p, 0.0)
+            d_fr = np.where(fr_p > 0, fr_d / fr_p, 0.0)
+            ratio = np.where(d_fr > 0, d_own / d_fr, np.inf)
+        return np.where(np.asarray(b.prolong.sum(axis=0)).ravel()[:n_e] > 0, ratio, np.nan)
+
+    def seen_basis(self, included, fine_sight, min_own_sight: float | None = None) -> "HatBasis":
+        """:meth:`basis` for the ``included`` elements less those whose own faces the camera
+        hardly sees (:meth:`own_sight` below ``min_own_sight``, default :data:`OWN_SIGHT_MIN`);
+        their vertices shared with the rest keep unknowns of their own (rim vertices), as on
+        vertices.
+
+        An element unknown is constant over the element's inner vertices, so its value,
+        pinned by the light the camera sees at the vertices it shares with seen neighbours,
+        is spread over its whole area. Where its own faces are hidden (demo-rig's captured
+        surface: the flat underside that closes it on the stage, seen by the grazing edge of
+        a pose at 1/200 of a side element's sensitivity) that is an extrapolation the data
+        never see, and with λ small (the joint solve of two poses) it put 6 % of the total
+        there. A rim vertex's light stays within one face of what the camera sees."""
+        kappa = OWN_SIGHT_MIN if min_own_sight is None else float(min_own_sight)
+        inc = np.ones(self.share.shape[1], bool) if included is None else np.array(included, bool)
+        b = self.basis(inc)
+        if self.to_fine is None or self.fine_to_elements is None:
+            return b
+        for _ in range(8):  # dropping an element only raises its neighbours' own sight: a few passes
+            drop = inc & (self.own_sight(b, fine_sight) < kappa)
+            if not drop.any():
+                break
+            inc &= ~drop
+            b = self.basis(inc)
+        return b
 
     def basis(self, included=None) -> "HatBasis":
         """The unknowns for the elements ``included`` (bool (n_elements,); None: all)."""
