@@ -218,13 +218,19 @@ def test_a_device_that_never_answers_exits_2_naming_it_and_keeps_the_file(refere
     assert committed[:kept].all() and not committed[kept:].any()
 
 
-def test_reconstruct_from_the_capture_recovers_the_total(reference, tmp_path):
+def _reconstruct_from_capture(reference, tmp_path):
+    """The reference capture's config, reconstructing from its capture.h5 (open filter): (ref_path, cfg path)."""
     cfg, ref_path = reference
     cfg = copy.deepcopy(cfg)
     cfg["workdir"] = str(ref_path.parent)
     cfg["reconstruct"] = {"images": {"capture": "capture.h5", "filter": "open"}}
     p = tmp_path / "cfg.yaml"
     p.write_text(yaml.safe_dump(cfg))
+    return ref_path, p, cfg
+
+
+def test_reconstruct_from_the_capture_recovers_the_total(reference, tmp_path):
+    ref_path, p, cfg = _reconstruct_from_capture(reference, tmp_path)
     r = run("reconstruct", p)
     assert r.exit_code == 0, r.output
     with h5py.File(ref_path.parent / "reconstruction.h5", "r") as f:
@@ -437,12 +443,7 @@ def test_the_record_shows_the_sensor_as_the_frames_were_taken(reference, tmp_pat
     from fluxcli import config as C
     from fluxcli.stages.outputs import sensor_row
 
-    cfg, ref_path = reference
-    cfg = copy.deepcopy(cfg)
-    cfg["workdir"] = str(ref_path.parent)
-    cfg["reconstruct"] = {"images": {"capture": "capture.h5", "filter": "open"}}
-    p = tmp_path / "cfg.yaml"
-    p.write_text(yaml.safe_dump(cfg))
+    ref_path, p, cfg = _reconstruct_from_capture(reference, tmp_path)
     loaded = C.load_config(p)
     assert loaded.model.system.camera.sensor.em_gain == 300.0  # what the config says
     label, text = sensor_row(loaded)

@@ -23,17 +23,10 @@ def _chi2(T, a, b):
 
 
 def _blur_chain(n=300, m=300, seed=0):
-    """test_smooth's chain: n unknowns under m blurred pixels, Poisson counts of a bump on a floor."""
-    from fluxcli.inverse.smooth import exitance_prior
+    """test_smooth's chain (tests/chains.py)."""
+    from chains import blur_chain
 
-    rng = np.random.default_rng(seed)
-    x, px = np.linspace(0, 1, n), np.linspace(0, 1, m)
-    T = np.exp(-((px[:, None] - x[None, :]) / 0.01) ** 2)
-    T /= T.sum(axis=1, keepdims=True) / 0.5
-    truth = 1e3 * np.exp(-((x - 0.4) / 0.1) ** 2) + 10
-    a = rng.poisson(T @ truth).astype(float)
-    adj = sp.diags_array([np.ones(n - 1), np.ones(n - 1)], offsets=[-1, 1]).tocsr()
-    return sp.csr_array(T), a, adj, exitance_prior(adj, np.ones(n, bool)), truth
+    return blur_chain(n, m, seed)
 
 
 def test_the_iterated_solve_near_lambda_zero_is_no_worse_than_nnls():

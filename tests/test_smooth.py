@@ -88,18 +88,10 @@ def test_smooth_needs_an_adjacency():
 
 def _chain_problem(n=300, m=300, seed=0):
     """A 1-D chain of n unknowns under m blurred pixels, Poisson counts of a bump on a floor."""
-    import scipy.sparse as sp
+    from chains import blur_chain
 
-    from fluxcli.inverse.smooth import exitance_prior
-
-    rng = np.random.default_rng(seed)
-    x, px = np.linspace(0, 1, n), np.linspace(0, 1, m)
-    T = np.exp(-((px[:, None] - x[None, :]) / 0.01) ** 2)
-    T /= T.sum(axis=1, keepdims=True) / 0.5
-    truth = 1e3 * np.exp(-((x - 0.4) / 0.1) ** 2) + 10
-    a = rng.poisson(T @ truth).astype(float)
-    R = exitance_prior(sp.diags([np.ones(n - 1), np.ones(n - 1)], [-1, 1]), np.ones(n, bool))
-    return sp.csr_array(T), a, R, truth
+    T, a, _, R, truth = blur_chain(n, m, seed)
+    return T, a, R, truth
 
 
 def test_a_provisional_pass_whose_gcv_runs_off_the_grid_falls_back_to_the_noise_model():
