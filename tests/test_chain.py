@@ -54,7 +54,10 @@ def lambertian_collection(path: Path, camera: dict, height_mm: float) -> np.ndar
 
 
 def test_calibrate_recovers_the_sample_camera(chain_calibrated):
-    """data-samples' grid frames were ray traced with truth.yaml's camera."""
+    """data-samples' grid frames were ray traced with truth.yaml's camera.  The bars are what the
+    rest of the chain needs (f and the lens distance to 0.1 % move a total by ~0.2 %), not the
+    fit's own sigma: on these frames f and lens z sit 4-6 of their stated sigmas from
+    truth.yaml (f 23.909 +- 0.002 mm against 23.9), so "within its sigma" would fail."""
     cam = _camera(chain_calibrated)
     lens, pose = cam["lens"], cam["pose"]
     assert lens["focal_length_mm"] == pytest.approx(TRUTH["lens"]["focal_length_mm"], rel=1e-3)
