@@ -1,6 +1,8 @@
 """``fluxmap <stage> CONFIG.yaml``: parse, load the config, call a stage, map errors to exit codes.
 
-Exit codes: 0 success, 2 bad input (config, files, arguments), 130 interrupted.
+Exit codes: 0 success, 2 bad input (a ``UserError``: config, files, arguments; also out of memory and
+an operating-system error naming a file or a full/read-only disk), 1 a bug (any other exception, with its
+traceback), 130 interrupted, 143 terminated.
 """
 
 from __future__ import annotations
@@ -97,10 +99,8 @@ def _guard(body: Callable[[], None]) -> None:
     old = _signals()
     try:
         body()
-    except UserError as e:
+    except UserError as e:  # the only exception that means "bad input"; a plain ValueError is a bug
         _fail(str(e))
-    except ValueError as e:  # the science packages' word for "these numbers cannot be used"
-        _fail(f"invalid input: {e}")
     except MemoryError:
         _fail("out of memory: the problem is larger than this machine can hold; use fewer pixels "
               "(system.camera.pixels), fewer elements (subject.surface) or fewer poses (subject.poses).")

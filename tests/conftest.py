@@ -71,3 +71,93 @@ def fw102c_port(request):
 @pytest.fixture
 def labjack_port(request):
     return _real_port(request, "--labjack", "lab jack")
+
+
+# ----------------------------------------------------------------------------- the six stages chained (issue 23)
+# calibrate -> capture-surface -> build-T -> simulate -> reconstruct -> report, once per session, on
+# data-samples/: the camera calibrated from three of the sample grid frames (configs/calibrate.yaml) is
+# the camera of a simulated rig (read out 4 x 4 binned, 64 x 64) that captures a glowing cylinder at two
+# stage heights; build-T, simulate and reconstruct (from the capture) use that camera; report draws it.
+# Each fixture runs one stage on the artefacts of the one before; tests/test_chain.py checks each link.
+CHAIN_GRID_FRAMES = (0, 3, 6)  # z = -39, -5, 21 mm of configs/calibrate.yaml (all seven: twice the time)
+CHAIN_BINNING = 4
+
+
+class ChainRun:
+    """The chained run so far: ``folder`` (root), ``config`` (the dict), ``path`` (its YAML),
+    ``workdir`` (the artefacts), ``calibration`` (calibrate's workdir), ``outputs`` (stage -> CLI output)."""
+
+    def __init__(self, folder: Path, calibration: Path):
+        self.folder, self.calibration = folder, calibration
+        self.workdir = folder / "run"
+        self.path = folder / "chain.yaml"  # the rig's config, used by every stage after calibrate
+        self.config: dict = {}
+        self.outputs: dict[str, str] = {}
+
+    def run(self, stage: str, path: Path | None = None) -> "ChainRun":
+        from typer.testing import CliRunner
+
+        from fluxcli.cli import app
+
+        r = CliRunner().invoke(app, [stage, str(path or self.path)])
+        assert r.exit_code == 0, f"fluxmap {stage}: exit {r.exit_code}\n{r.output}"
+        self.outputs[stage] = " ".join(r.output.split())
+        return self
+
+
+def chain_config(run: ChainRun) -> dict:
+    """The rig, the subject and the stages' settings, on the camera calibrate wrote."""
+    return {
+        "workdir": str(run.workdir),
+        "system": {"camera": {"file": str(run.calibration / "camera.yaml"),  # lens and pose as calibrated
+                              "pixels": [256 // CHAIN_BINNING] * 2, "pixel_pitch_mm": 0.052 * CHAIN_BINNING},
+                   "stage": {"top_z_mm": 0.0, "size_mm": [60, 30], "thickness_mm": 5}},
+        "subject": {"surface": {"phantom": "cylinder", "radius_mm": 8, "length_mm": 24, "n_angular": 16, "n_axial": 6},
+                    "poses": {"heights_mm": [0, 5]}},
+        "transfer": {"cache_dir": str(run.folder / "Tcache")},
+        "simulate": {"flux": {"kind": "gaussian", "width_mm": 4.0, "peak_photons": 1e7},  # photons per 1 s
+                     "noise": {"model": "poisson", "exposure_s": 1.0, "peaks_photons": [1e6], "repeats": 1, "seed": 5}},
+        "rig": {"time_scale": 0.02,
+                "filter_wheel": {"port": "pty", "positions": 6, "filters": {"open": 1}},
+                "stage": {"port": "pty", "counts_per_mm": 134737.0, "travel_mm": [0.0, 50.0]},
+                "camera": {"backend": "simulated", "binning": CHAIN_BINNING}},
+        "capture": {"heights_mm": [0, 5], "filters": ["open"], "exposure_s": 1.0, "em_gain": 100.0, "repeats": 2,
+                    "darks": 2, "seed": 3},
+        "reconstruct": {"images": {"capture": "capture.h5", "filter": "open"}},
+    }
+
+
+@pytest.fixture(scope="session")
+def chain_calibrated(tmp_path_factory) -> ChainRun:
+    """1. calibrate: the sample camera from three of data-samples/calibration's grid frames."""
+    folder = tmp_path_factory.mktemp("chain")
+    run = ChainRun(folder, folder / "calibration")
+    cal = yaml.safe_load((ROOT / "configs" / "calibrate.yaml").read_text())
+    cal["workdir"] = str(run.calibration)
+    frames = [cal["calibrate"]["images"][k] for k in CHAIN_GRID_FRAMES]
+    cal["calibrate"]["images"] = [{**im, "file": str((ROOT / "configs" / im["file"]).resolve())} for im in frames]
+    (folder / "calibrate.yaml").write_text(yaml.safe_dump(cal))
+    run.run("calibrate", folder / "calibrate.yaml")
+    run.config = chain_config(run)
+    run.path.write_text(yaml.safe_dump(run.config))
+    return run
+
+
+def _chain_link(previous: str, stage: str, doc: str):
+    """A session fixture running ``stage`` on the chain after fixture ``previous``."""
+    @pytest.fixture(scope="session")
+    def link(request) -> ChainRun:
+        return request.getfixturevalue(previous).run(stage)
+
+    link.__doc__ = doc
+    return link
+
+
+chain_captured = _chain_link("chain_calibrated", "capture-surface",
+                             "2. capture-surface: the simulated rig's devices and camera take the plan's frames (capture.h5).")
+chain_transfer = _chain_link("chain_captured", "build-T", "3. build-T with the calibrated camera.")
+chain_simulated = _chain_link("chain_transfer", "simulate",
+                              "4. simulate: the truth the rig's camera saw (simulation.h5) and simulated images of it.")
+chain_reconstructed = _chain_link("chain_simulated", "reconstruct",
+                                  "5. reconstruct from the captured frames (capture.h5, filter open).")
+chain_reported = _chain_link("chain_reconstructed", "report", "6. report: figures, summary.json and the HTML page.")

@@ -17,6 +17,7 @@ import sysconfig
 from pathlib import Path
 
 import pytest
+import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 SYSTEM_PYTHON = Path("/usr/bin/python3")
@@ -91,3 +92,23 @@ def test_kernels_compile_uncached_when_nothing_is_writable(tmp_path):
     assert out.stdout.split() == ["off", "6"]
     assert "no writable folder for numba's kernel cache" in out.stderr
     assert not list(tmp_path.glob("**/*.nbi"))  # nothing was cached
+
+
+@needs_nobody
+def test_fluxmap_simulate_runs_as_a_user_who_can_write_neither_install_nor_home(open_dir):
+    """The issue's case itself: `setpriv --reuid=65534 fluxmap simulate` with HOME pointing nowhere,
+    the install folder (this checkout) not writable by that user: the stage runs to its artefact,
+    its kernels cached in a private folder under TMPDIR, and nothing is written into the install."""
+    from tiny_pipeline import tiny_config
+
+    assert not (ROOT / "fluxcli").stat().st_mode & 0o002 and (ROOT / "fluxcli").stat().st_uid != 65534
+    before = {p for p in (ROOT / "fluxcli").rglob("*")}
+    cfg = tiny_config(open_dir)
+    (open_dir / "cfg.yaml").write_text(yaml.safe_dump(cfg))
+    code = "import sys\nfrom fluxcli.cli import main\nsys.argv = ['fluxmap', 'simulate', 'cfg.yaml', '-q']\nmain()\n"
+    out = _as_nobody(code, open_dir, tmpdir=open_dir)
+    assert out.returncode == 0, out.stderr
+    assert "Traceback" not in out.stderr and "cannot cache" not in out.stderr
+    assert (open_dir / "run" / "simulation.h5").is_file()
+    assert list((open_dir / "fluxmap-numba-cache-65534").rglob("*.nbi"))  # the private cache took the kernels
+    assert {p for p in (ROOT / "fluxcli").rglob("*")} == before  # nothing written into the install
