@@ -1,7 +1,7 @@
 """The transfer artefacts: one T file per pose (a content-addressed cache entry) and the index.
 
 The cache is a folder of ``<key>.h5`` files, ``key`` the sha256 of everything T depends
-on (:func:`fluxcli.pipeline.key_parts`).  An entry that cannot be read (a killed run, a
+on (:func:`fluxcli.transfer_cache.key_parts`).  An entry that cannot be read (a killed run, a
 corrupt chunk: every chunk carries a Fletcher-32 checksum) is reported by
 :func:`check_entry` so that the caller rebuilds it; :func:`load_T` of a corrupt entry
 names the file and the remedy.
