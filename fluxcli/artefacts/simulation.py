@@ -19,6 +19,7 @@ from .kinds import SURFACE_DATASETS, Dataset, Kind, attribute, datasets_of, quan
 from .pieces import read_surface, write_surface
 from .store import Provenance, open_artefact, put, write_artefact
 
+FILE_NAME = "simulation.h5"  # in the workdir
 IMAGE_LAYOUT = "noisy[level, repeat, pose, row, col]; noiseless[level, pose, row, col]"
 _PACKED = dict(compression="gzip", fletcher32=True)
 

@@ -19,6 +19,7 @@ from .kinds import SURFACE_DATASETS, Kind, attribute, datasets_of, quantity, reg
 from .pieces import read_surface, write_surface
 from .store import Provenance, open_artefact, put, write_artefact
 
+FILE_NAME = "surface.h5"  # in the workdir (capture-surface)
 DECODE_UNITS = {"phase": "rad", "column_px": "projector px"}
 
 

@@ -20,6 +20,9 @@ from .pieces import read_csr, write_csr, write_surface
 from .store import Provenance, open_artefact, portable_path, put, recorded_seconds, write_artefact
 
 
+INDEX_FILE_NAME = "transfer.h5"  # build-T's index, in the workdir
+
+
 def entry_path(cache_dir: Path, key: str) -> Path:
     return Path(cache_dir) / f"{key}.h5"
 

@@ -23,7 +23,7 @@ from .plans import transfer_plan
 def run(cfg: LoadedConfig, ctx: RunContext) -> Path:
     check_folders(cfg)
     tp = transfer_plan(cfg)  # validates the geometry before anything is printed
-    index = cfg.workdir / "transfer.h5"
+    index = cfg.workdir / AT.INDEX_FILE_NAME
     ctx.say(f"build-T: {len(tp.poses)} pose(s), {tp.placer.surface.n_elements} elements, views "
             f"{', '.join(v.name for v in tp.views)}, estimator {tp.transfer.estimator}, cache {tp.cache_dir}")
     results = ensure(tp, ctx)

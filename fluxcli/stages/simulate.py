@@ -51,7 +51,7 @@ class SimulatePlan:
 def plan_simulation(cfg: C.LoadedConfig) -> SimulatePlan:
     """The config as :class:`SimulatePlan`; a UserError for an inverse crime not asked for."""
     sim, m = cfg.model.simulate, cfg.model
-    out = cfg.workdir / "simulation.h5"
+    out = cfg.workdir / AS.FILE_NAME
     if isinstance(sim.flux, C.MonteCarloFlux):
         tp = transfer_plan(cfg)  # its scenes: no T is built
         digest = A.inputs_digest(system=m.system.model_dump(mode="json"),
