@@ -15,7 +15,6 @@ which the mirror on that side sees.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
