@@ -68,7 +68,7 @@ def one_pose(cluster, repeats: int, sets: tuple[str, ...] = (), what: str = "pap
     """One pose's build-T three ways in the same run: local (--jobs 2: one process, 2 threads),
     on the cluster as one task, and on the cluster split into block tasks; ``sets``: --set
     overrides of the pose's config."""
-    from fluxcli import pipeline
+    from fluxcli.transfer_cache import cluster as pipeline  # where the cluster build lives
     from run import row
 
     times: dict[str, list[float]] = {"local": [], "task": [], "blocks": []}

@@ -50,7 +50,7 @@ sys.path.insert(0, str(ROOT))
 from fluxcli.config import load_config  # noqa: E402
 from fluxcli.optics import transfer as TR  # noqa: E402
 from fluxcli.optics.transfer import LensSampling, PairwiseSampling, build_transfer  # noqa: E402
-from fluxcli.pipeline import plan  # noqa: E402
+from fluxcli.stages.plans import plan  # noqa: E402
 
 # the converged reference: 3x the surface samples per pixel length (9x per area), 8x the
 # lens samples per blur pixel and at least 256 lens samples per surface point (one round)

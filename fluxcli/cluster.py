@@ -2,7 +2,7 @@
 
 The independent work of a run — one T per pose (build-T, simulate's forward T, the T
 reconstruct needs), or, when the poses are fewer than the workers' threads, blocks of one
-pose's T (:func:`fluxcli.pipeline._build_on_cluster`), and the cells of a reconstruction
+pose's T (:func:`fluxcli.transfer_cache.build_on_cluster`), and the cells of a reconstruction
 sweep — goes to the workers of a running ``dask scheduler`` instead of local processes;
 without an address nothing here is used and ``--jobs`` runs local processes as before.
 

@@ -114,18 +114,16 @@ class SubjectPlacer:
             lo, hi = surf.bounds_mm()
             point, axis = (lo + hi) / 2, np.array([1.0, 0, 0])
         else:  # surface artefact from capture-surface
-            from .artefacts import read_surface
-            import h5py
+            from .artefacts import surface as AS
 
             path = cfg.resolve(s.artefact)
             if not path.is_file():
                 raise UserError(f"subject.surface.artefact: {path} does not exist; it is made by "
                                 f"'fluxmap capture-surface' (capture.surface), run that first.")
             try:
-                with h5py.File(path, "r") as f:
-                    surf = read_surface(f["surface"])
-            except (OSError, KeyError) as e:
-                raise UserError(f"subject.surface.artefact: {path} holds no readable /surface group ({e}).") from None
+                surf = AS.read(path, decode=False).surface
+            except UserError as e:
+                raise UserError(f"subject.surface.artefact: {e}") from None
             try:
                 surf, self.notes = validated(surf.vertices_mm, surf.faces, surf.element_of_face, surf.n_elements,
                                              name=str(path), element_ids=surf.element_ids)

@@ -16,20 +16,33 @@ import numpy as np
 
 from . import artefacts as A
 from . import config as C
+from .artefacts import tetmesh as AM
 from .diffusion.surface_flux import element_power_from_sources
 from .errors import UserError
 from .optics.raycast import OcclusionScene
+from .resources import check_memory
 from .surface.mesh import Surface
-from .pipeline import check_memory
 
 
-def forward_transfer(cfg: C.LoadedConfig) -> C.Transfer:
-    """The forward T's sampling: as configured, or finer than reconstruction's in every
-    sampling key (and built on the refined surface the truth lives on)."""
-    sim = cfg.model.simulate
+@dataclass(frozen=True)
+class TruthPlan:
+    """What the ground truth is made from: ``simulate.flux``, how often the truth surface is
+    refined, where tetrahedral meshes are cached and shipped, and a per-element file's path
+    (relative paths resolved; :func:`fluxcli.stages.plans.truth_plan`)."""
+
+    flux: object  # one of the simulate.flux models (fluxcli.config)
+    refinement: int  # each triangle split into 4 this often (truth_refinement)
+    mesh_cache: Path  # <workdir>/cache/mesh
+    mesh_dir: Path | None = None  # simulate.flux.mesh_dir: meshes kept with the config
+    flux_file: Path | None = None  # simulate.flux.path (kind file)
+
+
+def forward_transfer(sim: C.Simulate, transfer: C.Transfer) -> C.Transfer:
+    """The forward T's sampling: ``sim.transfer`` as configured, or finer than reconstruction's
+    ``transfer`` in every sampling key (and built on the refined surface the truth lives on)."""
     if sim.transfer is not None:
         return sim.transfer
-    tr = cfg.model.transfer
+    tr = transfer
     return tr.model_copy(update={
         "lens": tr.lens.model_copy(update={
             "surface_samples_per_pixel": 2 * tr.lens.surface_samples_per_pixel,
@@ -45,10 +58,10 @@ def forward_transfer(cfg: C.LoadedConfig) -> C.Transfer:
 
 
 # ------------------------------------------------------------------ ground truth
-def truth_power(cfg: C.LoadedConfig, surface: Surface) -> tuple[np.ndarray, dict]:
+def truth_power(truth: TruthPlan, surface: Surface) -> tuple[np.ndarray, dict]:
     """Power per element (photons per exposure) of the subject at rest, and notes: the
     fine truth (:func:`truth_fine`) summed per element."""
-    fine, parent, notes = truth_fine(cfg, surface)
+    fine, parent, notes = truth_fine(truth, surface)
     return np.bincount(parent, weights=fine, minlength=surface.n_elements), notes
 
 
@@ -60,14 +73,14 @@ def truth_refinement(sim: C.Simulate) -> int:
     return 0 if sim.allow_inverse_crime else 1
 
 
-def truth_fine(cfg: C.LoadedConfig, surface: Surface) -> tuple[np.ndarray, np.ndarray, dict]:
+def truth_fine(truth: TruthPlan, surface: Surface) -> tuple[np.ndarray, np.ndarray, dict]:
     """The truth on a surface finer than the reconstruction's elements (no inverse crime):
     power per face of ``surface.refined(simulate.truth_refinement)``, with the element each
     fine face belongs to. Gaussian, uniform and diffusion truths vary within an element;
     a per-element file can only be spread by area (constant exitance within the element)."""
-    levels = truth_refinement(cfg.model.simulate)
+    levels = truth.refinement
     fine, parent = surface.refined(levels)
-    flux = cfg.model.simulate.flux
+    flux = truth.flux
     if isinstance(flux, C.GaussianFlux):
         # exitance J(x) = exp(-|x - c|²/2w²) integrated over the fine faces, scaled so the
         # brightest element emits peak_photons
@@ -79,21 +92,18 @@ def truth_fine(cfg: C.LoadedConfig, surface: Surface) -> tuple[np.ndarray, np.nd
         return p * flux.peak_photons / per_element.max(), parent, {"center_mm": centre.tolist(),
                                                                    "truth_refinement": levels}
     if isinstance(flux, C.DiffusionFlux):
-        p, notes = _diffusion_truth(flux, surface, cfg.workdir / "cache" / "mesh", fine=fine,
-                                    shipped=cfg.resolve(flux.mesh_dir) if flux.mesh_dir is not None else None)
+        p, notes = _diffusion_truth(flux, surface, truth.mesh_cache, fine=fine, shipped=truth.mesh_dir)
         return p, parent, notes | {"truth_refinement": levels}
-    per_element, notes = _truth_per_element(cfg, surface)
+    per_element, notes = _truth_per_element(flux, surface, truth.flux_file)
     share = fine.element_areas_mm2 / surface.element_areas_mm2[parent]
     return per_element[parent] * share, parent, notes | {"truth_refinement": levels}
 
 
-def _truth_per_element(cfg: C.LoadedConfig, surface: Surface) -> tuple[np.ndarray, dict]:
-    flux = cfg.model.simulate.flux
+def _truth_per_element(flux, surface: Surface, path: Path | None) -> tuple[np.ndarray, dict]:
     areas = surface.element_areas_mm2
     if isinstance(flux, C.UniformFlux):
         return flux.exitance_photons_per_mm2 * areas, {}
     if isinstance(flux, C.FileFlux):
-        path = cfg.resolve(flux.path)
         if not path.is_file():
             raise UserError(f"simulate.flux.path: file {path} does not exist.")
         try:
@@ -208,8 +218,8 @@ def _diffusion_truth(flux: C.DiffusionFlux, surface: Surface, mesh_cache: Path, 
     mesh = None
     if path.is_file():
         try:
-            with A.open_artefact(path, "tetmesh") as f:
-                mesh = (f["nodes"][()], f["tets"][()])
+            stored = AM.read(path)
+            mesh = (stored.nodes_mm, stored.tets)
         except UserError as e:
             warnings.warn(f"the cached tetrahedral mesh is unreadable and is remade: {e}")
             mesh = None
@@ -220,9 +230,7 @@ def _diffusion_truth(flux: C.DiffusionFlux, surface: Surface, mesh_cache: Path, 
             mesh = tetrahedralize(surface.vertices_mm, surface.faces, edge_length_mm=flux.mesh_edge_mm)
         except ValueError as e:
             raise UserError(f"simulate.flux: {e}") from None
-        with A.write_artefact(path, "tetmesh") as f:
-            A.put(f, "nodes", mesh[0])
-            A.put(f, "tets", mesh[1])
+        AM.write(path, AM.TetMesh(mesh[0], mesh[1]))
         made = True
     else:
         made = False
@@ -276,10 +284,13 @@ class MonteCarloTruth:
     notes: dict
 
 
-def montecarlo_truth(cfg: C.LoadedConfig, placer, scenes: list, views: list, say=lambda s: None) -> MonteCarloTruth:
-    """Transport ``simulate.flux.n_photons`` photons once through the phantom (its own frame)
-    and make, batch by batch, the truth per fine face and the image of every pose (``scenes``:
-    :class:`fluxcli.scene.PlacedScene` per pose; ``views``: direct first, then mirrors)."""
+def montecarlo_truth(flux: C.MonteCarloFlux, shape, refinement: int, ray_offset_mm: float, placer, scenes: list,
+                     views: list, say=lambda s: None) -> MonteCarloTruth:
+    """Transport ``flux.n_photons`` photons once through the phantom ``shape``
+    (:func:`montecarlo_shape`, its own frame) and make, batch by batch, the truth per face of
+    its surface refined ``refinement`` times and the image of every pose (``scenes``:
+    :class:`fluxcli.scene.PlacedScene` per pose; ``views``: direct first, then mirrors; rays
+    leave surfaces ``ray_offset_mm`` off, as T's do)."""
     import time
 
     from .montecarlo import camera as MC_cam
@@ -287,15 +298,13 @@ def montecarlo_truth(cfg: C.LoadedConfig, placer, scenes: list, views: list, say
     from .montecarlo import transport as MC
     from .surface.mesh import merge
 
-    flux = cfg.model.simulate.flux
-    shape = montecarlo_shape(cfg.model.subject.surface)
     medium = MC.Medium(flux.mua_per_mm, flux.mus_per_mm, flux.g, flux.refractive_index)
     src = np.asarray(flux.position_mm, float)
     if shape.depth_mm(src[None])[0] <= flux.radius_mm:
         raise UserError(f"simulate.flux.position_mm: the source {src.tolist()} mm (radius {flux.radius_mm:g} mm) is not "
                         f"inside the phantom (its own frame: centred at the origin, half sizes "
                         f"{list(shape.half_mm)} mm along x, y, z).")
-    levels = truth_refinement(cfg.model.simulate)
+    levels = refinement
     fine, parent = placer.own_surface.refined(levels)
     fine_scene = OcclusionScene(fine.vertices_mm, fine.faces)
     cam = views[0].camera
@@ -305,7 +314,7 @@ def montecarlo_truth(cfg: C.LoadedConfig, placer, scenes: list, views: list, say
                  "simulate.flux.batch_photons, subject.poses or system.camera.pixels")
     placements = [placer.placement(s.pose) for s in scenes]
     occl = [OcclusionScene(*merge(s.surface, *s.occluders)) for s in scenes]
-    offset = cfg.model.transfer.ray_offset_mm
+    offset = ray_offset_mm
     images = np.zeros((P, cam.nx * cam.ny), np.int64)
     reached, on_sensor = np.zeros((P, V), np.int64), np.zeros((P, V), np.int64)
     fine_power = np.zeros(fine.n_elements)

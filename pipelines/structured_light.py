@@ -49,11 +49,11 @@ def misses(r: dict) -> list[str]:
 
 def run(outdir: str = "runs/structured-light") -> dict:
     from fluxcli.artefacts import Provenance
-    from fluxcli.pipeline import decode_datasets
     from fluxcli.report import sections_report
     from fluxcli.report.surface_figures import add_surface_section
-    from fluxcli.stages.structured_light import (merge_points, paper_like_rig, simulate_scan, surface_from_points,
-                                                  write_surface_artefact)
+    from fluxcli.artefacts.surface import write_surface_artefact
+    from fluxcli.structured.scan import decode_by_view, merge_points, surface_from_points
+    from fluxcli.structured.simulated_rig import paper_like_rig, simulate_scan
     from fluxcli.structured.mesh import capture_metrics, distances_to_surface
 
     rig = paper_like_rig()
@@ -75,7 +75,7 @@ def run(outdir: str = "runs/structured-light") -> dict:
                   "removed_outliers": merged.n_removed_outliers, "seconds": round(time.time() - t0, 1)})
         surface_h5 = write_surface_artefact(out / "surface.h5", mesh, points=merged, distance_to_truth_mm=d, truth=truth,
                                             metrics={k: v for k, v in r.items() if not isinstance(v, list)},
-                                            decode=decode_datasets(scan.scans, names, views, rig.camera, mirrors),
+                                            decode=decode_by_view(scan.scans, names, views, rig.camera, mirrors),
                                             provenance=Provenance(geometry={"rig": rig.describe(), "subject": name}))
         sections_report(out / "report", f"structured light: {name}",
                         [lambda page, save: {"surface": add_surface_section(page, save, surface_h5)}])

@@ -387,7 +387,8 @@ def test_the_simulated_camera_renders_a_truth_finer_than_the_elements(reference,
     per_element = scene.power_rate("open")
     assert np.allclose(np.bincount(parent, weights=fine, minlength=n), per_element, rtol=1e-12)
     image = scene.emission(0.0, "open")
-    T_el = ensure_pose_T(scene.cfg, Pose(0.0, 0.0), forward_transfer(scene.cfg), scene.placer)
+    T_el = ensure_pose_T(scene.cfg, Pose(0.0, 0.0), forward_transfer(scene.cfg.model.simulate, scene.cfg.model.transfer),
+                         scene.placer)
     constant = (T_el @ per_element).reshape(image.shape)
     assert image.sum() == pytest.approx(constant.sum(), rel=0.01)
     assert np.abs(image - constant).max() > 0.05 * image.max()

@@ -117,9 +117,9 @@ def _die_in_first_save(marker: str) -> None:
     lost mid-write would; the nanny starts a fresh worker and the scheduler runs the task again."""
     import os
 
-    from fluxcli import pipeline
+    from fluxcli.transfer_cache.build import PartialFiles
 
-    real = pipeline.PartialFiles.save
+    real = PartialFiles.save
 
     def save(self, view, spans, results):
         try:
@@ -133,15 +133,14 @@ def _die_in_first_save(marker: str) -> None:
         temp_name(self._path(view, spans)).write_bytes(b"PK\x03\x04 torn")
         os._exit(1)
 
-    pipeline.PartialFiles.save = save
+    save.real = real
+    PartialFiles.save = save
 
 
 def _restore_save() -> None:
-    import importlib
+    from fluxcli.transfer_cache.build import PartialFiles
 
-    from fluxcli import pipeline
-
-    importlib.reload(pipeline)  # the surviving worker's PartialFiles.save, as it was
+    PartialFiles.save = getattr(PartialFiles.save, "real", PartialFiles.save)  # the surviving worker's, as it was
 
 
 def test_one_pose_is_split_into_blocks_on_the_cluster_and_merged_to_the_local_bytes(tmp_path, monkeypatch, cluster):
@@ -151,7 +150,7 @@ def test_one_pose_is_split_into_blocks_on_the_cluster_and_merged_to_the_local_by
     from distributed import Client
 
     import fluxcli.cluster as FC
-    from fluxcli import pipeline
+    from fluxcli.transfer_cache import cluster as TC
 
     monkeypatch.setenv("SOURCE_DATE_EPOCH", EPOCH)
     cfg = _one_pose_config(tmp_path)
@@ -161,12 +160,12 @@ def test_one_pose_is_split_into_blocks_on_the_cluster_and_merged_to_the_local_by
     for d in ("cache", "run"):
         shutil.rmtree(tmp_path / d)
 
-    monkeypatch.setattr(pipeline, "CLUSTER_MIN_BLOCK_RAYS", 1)  # the tiny pose is ~1e5 rays
+    monkeypatch.setattr(TC, "CLUSTER_MIN_BLOCK_RAYS", 1)  # the tiny pose is ~1e5 rays
     tasks, seen = [], []
-    real_run, real_drain = pipeline.run_tasks, FC._EventQueue.drain
+    real_run, real_drain = TC.run_tasks, FC._EventQueue.drain
 
     def spy_run(fn, arglists, **kw):
-        tasks.extend([a[0].__name__ for a in arglists if a[0] is not pipeline._plan_view] if fn is pipeline._call
+        tasks.extend([a[0].__name__ for a in arglists if a[0] is not TC._plan_view] if fn is TC._call
                      else [])
         return real_run(fn, arglists, **kw)
 
@@ -175,7 +174,7 @@ def test_one_pose_is_split_into_blocks_on_the_cluster_and_merged_to_the_local_by
             seen.append(ev)
             yield ev
 
-    monkeypatch.setattr(pipeline, "run_tasks", spy_run)
+    monkeypatch.setattr(TC, "run_tasks", spy_run)
     monkeypatch.setattr(FC._EventQueue, "drain", spy_drain)
     _build_T(cfg, ["--scheduler", cluster.scheduler_address])
     assert len(tasks) >= 3 and set(tasks) == {"_build_block"}, tasks
@@ -202,29 +201,30 @@ def test_one_pose_is_split_into_blocks_on_the_cluster_and_merged_to_the_local_by
 def test_a_block_task_run_twice_writes_the_same_bytes_and_does_not_cast_again(tmp_path, monkeypatch):
     """Retry safety of one block task, in this process: the second run finds the file and
     leaves it as it is; a block cast anew (the file removed) makes the same bytes."""
-    from fluxcli import pipeline
     from fluxcli.config import load_config
     from fluxcli.optics.transfer import LensSampling, lens_blocks, lens_chunks, lens_plan
+    from fluxcli.stages.plans import plan
+    from fluxcli.transfer_cache import cluster as TC
 
     c = load_config(_one_pose_config(tmp_path))
-    views, _, todo = pipeline.plan(c)
+    views, _, todo = plan(c)
     scene, pt = todo[0]
     tr = c.model.transfer
     plan = lens_plan(scene.surface, views[0], LensSampling(**tr.lens.model_dump()), tr.rays_per_batch)
     blocks = lens_blocks(*lens_chunks(plan), plan.rays // 3)
     assert len(blocks) >= 3
-    scene_file = pipeline.PartialFiles(pt.path.parent, pt.path.stem).save_scene(scene)
-    pipeline._build_block(scene_file, views, tr, pt.path, 0, blocks[1], plan.rays // 3)
+    scene_file = TC.PartialFiles(pt.path.parent, pt.path.stem).save_scene(scene)
+    TC._build_block(scene_file, views, tr, pt.path, 0, blocks[1], plan.rays // 3)
     (part,) = pt.path.parent.glob("*.part/view*.npz")
     first = part.read_bytes()
     casts = []
-    monkeypatch.setattr(pipeline, "cast_lens_block", lambda *a, **k: casts.append(1))
-    pipeline._build_block(scene_file, views, tr, pt.path, 0, blocks[1], plan.rays // 3)
+    monkeypatch.setattr(TC, "cast_lens_block", lambda *a, **k: casts.append(1))
+    TC._build_block(scene_file, views, tr, pt.path, 0, blocks[1], plan.rays // 3)
     assert casts == [] and part.read_bytes() == first
     monkeypatch.undo()
-    pipeline._worker_scenes.clear()  # as on a fresh worker: scene and plan made again
+    TC._worker_scenes.clear()  # as on a fresh worker: scene and plan made again
     part.unlink()
-    pipeline._build_block(scene_file, views, tr, pt.path, 0, blocks[1], plan.rays // 3)
+    TC._build_block(scene_file, views, tr, pt.path, 0, blocks[1], plan.rays // 3)
     assert part.read_bytes() == first
 
 

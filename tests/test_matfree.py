@@ -216,7 +216,7 @@ def test_reconstruct_no_longer_refuses_a_large_mesh_for_smooth(write_config, min
     said = []
     ctx = RunContext(quiet=True)
     monkeypatch.setattr(ctx, "say", said.append)
-    monkeypatch.setattr(pipeline, "available_memory_bytes", lambda: 16e9)
+    monkeypatch.setattr("fluxcli.resources.available_memory_bytes", lambda: 16e9)
     loaded = load_config(write_config(cfg), [])
     _, placer, todo = pipeline.plan(loaded)
     R._check_solver_size(loaded, ctx, placer.surface, len(todo))

@@ -53,7 +53,7 @@ def test_gaussian_truth_images_and_determinism(write_config, sim_config, tmp_pat
 
         # ... on the refined surface the truth lives on (finer than the elements), whose
         # faces sum back to the elements' truth
-        _, _, todo = plan(cfg, forward_transfer(cfg), unknowns="refined:1")
+        _, _, todo = plan(cfg, forward_transfer(cfg.model.simulate, cfg.model.transfer), unknowns="refined:1")
         _, _, todo_rec = plan(cfg)
         assert [t.key for _, t in todo] != [t.key for _, t in todo_rec]
         fine, parent = f["truth/power_fine"][()], f["truth/fine_parent"][()]

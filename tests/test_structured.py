@@ -296,7 +296,8 @@ def test_surface_artefact_is_what_subject_surface_artefact_reads(sphere_scan, tm
     and placed where it was measured (a mesh stays where its file puts it)."""
     from fluxcli.config import load_config
     from fluxcli.scene import SubjectPlacer
-    from fluxcli.stages.structured_light import merge_points, surface_from_points, write_surface_artefact
+    from fluxcli.artefacts.surface import write_surface_artefact
+    from fluxcli.structured.scan import merge_points, surface_from_points
 
     R, centre, surf, scans, *_ = sphere_scan
     merged = merge_points(scans, floor_z_mm=0.0)
@@ -384,7 +385,8 @@ def test_report_shows_the_captured_surface_over_the_truth(sphere_scan, tmp_path,
     from typer.testing import CliRunner
 
     from fluxcli.cli import app
-    from fluxcli.pipeline import decode_datasets, write_surface_artefact
+    from fluxcli.artefacts.surface import write_surface_artefact
+    from fluxcli.structured.scan import decode_by_view as decode_datasets
     from fluxcli.structured.mesh import capture_metrics, distances_to_surface
     from fluxcli.structured.scan import merge_points, surface_from_points
 

@@ -139,7 +139,7 @@ def test_an_interrupted_build_resumes_from_its_blocks_to_the_same_bytes():
 
 
 def test_partial_files_resume_a_pose_and_are_removed_when_it_is_written(tmp_path, monkeypatch):
-    from fluxcli import pipeline
+    from fluxcli.transfer_cache import build as B
     from fluxcli.artefacts import transfer as AT
     from fluxcli.config import Transfer
     from fluxcli.scene import PlacedScene, Pose
@@ -149,12 +149,12 @@ def test_partial_files_resume_a_pose_and_are_removed_when_it_is_written(tmp_path
     tr = Transfer(rays_per_batch=2000)
     target = tmp_path / "abc.h5"
     whole = tmp_path / "whole.h5"
-    monkeypatch.setattr(pipeline, "CHECKPOINT_RAYS", 6000)
+    monkeypatch.setattr(B, "CHECKPOINT_RAYS", 6000)
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
-    pipeline._build_and_store(scene, views, tr, whole, "x")
+    B.build_and_store(scene, views, tr, whole, "x")
 
     calls = {"n": 0}
-    real_save = pipeline.PartialFiles.save
+    real_save = B.PartialFiles.save
 
     def save_then_die(self, view, spans, results):
         real_save(self, view, spans, results)
@@ -162,26 +162,26 @@ def test_partial_files_resume_a_pose_and_are_removed_when_it_is_written(tmp_path
         if calls["n"] == 2:
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(pipeline.PartialFiles, "save", save_then_die)
+    monkeypatch.setattr(B.PartialFiles, "save", save_then_die)
     with pytest.raises(KeyboardInterrupt):
-        pipeline._build_and_store(scene, views, tr, target, "x")
+        B.build_and_store(scene, views, tr, target, "x")
     part = tmp_path / "abc.part"
     assert len(list(part.glob("*.npz"))) == 2 and not target.exists()
-    monkeypatch.setattr(pipeline.PartialFiles, "save", real_save)
+    monkeypatch.setattr(B.PartialFiles, "save", real_save)
     # a rerun with another chunking must not take blocks that hold other samples
     other = tmp_path / "other.h5"
-    pipeline._build_and_store(scene, views, Transfer(rays_per_batch=1500), other, "x")
+    B.build_and_store(scene, views, Transfer(rays_per_batch=1500), other, "x")
     assert AT.load_T(other).data.tobytes() == AT.load_T(whole).data.tobytes()
     import shutil
 
     shutil.copytree(part, tmp_path / "other.part")
-    pipeline._build_and_store(scene, views, Transfer(rays_per_batch=1500), other, "x")
+    B.build_and_store(scene, views, Transfer(rays_per_batch=1500), other, "x")
     assert AT.load_T(other).data.tobytes() == AT.load_T(whole).data.tobytes() and not (tmp_path / "other.part").exists()
     loaded = []
-    real_load = pipeline.PartialFiles.load
-    monkeypatch.setattr(pipeline.PartialFiles, "load",
+    real_load = B.PartialFiles.load
+    monkeypatch.setattr(B.PartialFiles, "load",
                         lambda self, v, b: loaded.append(real_load(self, v, b) is not None) or real_load(self, v, b))
-    pipeline._build_and_store(scene, views, tr, target, "x")
+    B.build_and_store(scene, views, tr, target, "x")
     assert sum(loaded) == 2
     assert not part.exists()
     a, b = AT.load_T(target), AT.load_T(whole)

@@ -4,12 +4,13 @@ Writers take units from here (:func:`fluxcli.artefacts.put`), readers check that
 required dataset is present when a file is opened (an incomplete file is named with the
 missing dataset and the stage that remakes it), and ``fluxmap info`` prints these
 descriptions next to what a file holds.  A new artefact kind is one more :class:`Kind`
-in :data:`KINDS` (calibration, capture and surface are added by their stages).
+in :data:`KINDS`; a kind with a container module (``simulation``, ``surface``, ``tetmesh``)
+registers itself there, its datasets made from the container's fields.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import MISSING, dataclass, field, fields
 
 
 @dataclass(frozen=True)
@@ -80,37 +81,6 @@ register(Kind("transfer-index", 2, "fluxmap build-T", "which T-cache entry belon
     Dataset("efficiency", "dimensionless", "collection efficiency [pose, view]"),
 )))
 
-register(Kind("simulation", 2, "fluxmap simulate", "ground-truth surface flux and simulated images", (
-    *_SURFACE,
-    Dataset("truth/power", "photons per exposure, per element", "ground truth at rest"),
-    Dataset("truth/exitance", "photons mm^-2 per exposure", "power / element area"),
-    Dataset("truth/levels_peak_photons", "photons", "brightest element's power at each signal level"),
-    Dataset("truth/level_scale", "", "truth at level l = power * level_scale[l]"),
-    Dataset("truth/power_fine", "photons per exposure, per fine face",
-            "the truth on the refined surface the images were made from (summed per element = truth/power)",
-            required=False),
-    Dataset("truth/fine_parent", "", "element of each fine face", required=False),
-    Dataset("poses/heights_mm", "mm", "stage height of each pose"),
-    Dataset("poses/rotations_deg", "deg", "rotation of each pose"),
-    Dataset("poses/T_fwd_keys", "", "forward T of each pose (T-cache key)"),
-    Dataset("images/noiseless", "photons", "noiseless[level, pose, row, col]"),
-    Dataset("images/noisy", "photons", "noisy[level, repeat, pose, row, col]"),
-    Dataset("images/counts", "ADC counts", "EMCCD counts[level, repeat, pose, row, col]", required=False),
-    Dataset("images/max_snr", "", "sqrt(max a) per level and pose (the paper's Table 1)"),
-    Dataset("montecarlo/photons_per_element", "photons", "Monte Carlo truth: photons that left through each element",
-            required=False),
-    Dataset("montecarlo/exit_angle_histogram", "photons", "escaped photons per bin of angle from the normal (in air)",
-            required=False),
-    Dataset("montecarlo/exit_angle_edges_deg", "deg", "bin edges of the exit-angle histogram", required=False),
-    Dataset("montecarlo/reached_lens", "photons", "[pose, view] photons that crossed the lens unobstructed",
-            required=False),
-    Dataset("montecarlo/on_sensor", "photons", "[pose, view] ... and landed on a pixel", required=False),
-    Dataset("montecarlo/photons/position_mm", "mm", "exit point of every escaping photon, phantom's own frame",
-            required=False),
-    Dataset("montecarlo/photons/direction", "", "its unit direction in air, phantom's own frame", required=False),
-    Dataset("montecarlo/photons/face", "", "face of the refined surface it left through (-1: none)", required=False),
-)))
-
 register(Kind("reconstruction", 2, "fluxmap reconstruct", "surface flux reconstructed from images", (
     *_SURFACE,
     Dataset("flux/power", "photons per element (NaN: unobserved)", "the result (joint over poses when several)"),
@@ -164,12 +134,6 @@ register(Kind("reconstruction", 2, "fluxmap reconstruct", "surface flux reconstr
     Dataset("filters", "", "several filters in one run: /filters/<name>/{flux, per_pose_power, rois, ...}",
             required=False),
 )))
-
-register(Kind("tetmesh", 1, "fluxmap simulate", "tetrahedral mesh of the subject (cached by content)", (
-    Dataset("nodes", "mm", "node positions (N, 3)"),
-    Dataset("tets", "", "tetrahedra (M, 4)"),
-)))
-
 
 register(Kind("calibration", 1, "fluxmap calibrate", "camera model from grid images, sensor from frames", (
     Dataset("camera_yaml", "", "the camera.yaml written beside this file (text)"),
@@ -229,17 +193,25 @@ register(Kind("capture", 1, "fluxmap capture-surface", "emission images acquired
     Dataset("calibration/em_gain", "", "EM gain read back", required=False),
 )))
 
-# --- structured-light surface (issue 12): what `subject.surface: {artefact: ...}` reads
-register(Kind("surface", 1, "fluxmap capture-surface (structured light)",
-              "the subject's closed surface measured by structured light, in world coordinates", (
-    *_SURFACE,
-    Dataset("points/positions_mm", "mm", "triangulated points the surface was built from (n, 3)", required=False),
-    Dataset("points/view", "", "view each point was seen in: 0 direct, j through mirror j-1 (attribute view_names: their names)", required=False),
-    Dataset("points/projector", "", "index of the projector that coded each point", required=False),
-    Dataset("points/distance_to_truth_mm", "mm", "simulated rig: each point's distance to the true surface", required=False),
-    Dataset("truth/vertices", "mm", "simulated rig: the true surface the capture is measured against", required=False),
-    Dataset("metrics", "", "simulated rig: attributes points, within_0.1mm/0.2mm/0.4mm, median_distance_mm, "
-            "covered_fraction_1mm, volume/area (mm^3, mm^2) and their errors against the truth", required=False),
-    Dataset("decode", "", "decode/<view>/<projector>/{phase (wrapped, rad), column_px (decoded projector column, "
-            "px), mask (1: decoded and triangulated)} per camera pixel [row, col] of the pattern frames", required=False),
-)))
+# ------------------------------------------------------------------ containers (one module per kind)
+def quantity(path: str, unit: str = "", meaning: str = "", *, required: bool = True, default=MISSING,
+             default_factory=MISSING):
+    """A container field stored as dataset (or group) ``path``, with its unit and meaning: what
+    the kind's schema lists (:func:`datasets_of`) and :func:`fluxcli.artefacts.put` writes."""
+    return field(default=default, default_factory=default_factory,
+                 metadata={"path": path, "unit": unit, "meaning": meaning, "required": required})
+
+
+def attribute(where: str, unit: str = "", meaning: str = "", *, default=MISSING, default_factory=MISSING):
+    """A container field stored as HDF5 attribute ``where`` (``group@name``; ``@name`` at the root)."""
+    return field(default=default, default_factory=default_factory,
+                 metadata={"attribute": where, "unit": unit, "meaning": meaning})
+
+
+def datasets_of(container) -> tuple[Dataset, ...]:
+    """The datasets a container class declares (its :func:`quantity` fields, in order)."""
+    return tuple(Dataset(f.metadata["path"], f.metadata["unit"], f.metadata["meaning"], f.metadata["required"])
+                 for f in fields(container) if "path" in f.metadata)
+
+
+SURFACE_DATASETS = _SURFACE

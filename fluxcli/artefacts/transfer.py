@@ -1,7 +1,7 @@
 """The transfer artefacts: one T file per pose (a content-addressed cache entry) and the index.
 
 The cache is a folder of ``<key>.h5`` files, ``key`` the sha256 of everything T depends
-on (:func:`fluxcli.pipeline.key_parts`).  An entry that cannot be read (a killed run, a
+on (:func:`fluxcli.transfer_cache.key_parts`).  An entry that cannot be read (a killed run, a
 corrupt chunk: every chunk carries a Fletcher-32 checksum) is reported by
 :func:`check_entry` so that the caller rebuilds it; :func:`load_T` of a corrupt entry
 names the file and the remedy.
@@ -18,6 +18,9 @@ import scipy.sparse as sp
 from ..errors import UserError
 from .pieces import read_csr, write_csr, write_surface
 from .store import Provenance, open_artefact, portable_path, put, recorded_seconds, write_artefact
+
+
+INDEX_FILE_NAME = "transfer.h5"  # build-T's index, in the workdir
 
 
 def entry_path(cache_dir: Path, key: str) -> Path:

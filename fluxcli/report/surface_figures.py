@@ -14,7 +14,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable
 
-import h5py
 import numpy as np
 from matplotlib.figure import Figure
 
@@ -104,38 +103,26 @@ def distance_map_figure(mesh_vertices_mm, mesh_faces, vertex_distance_mm, truth_
     return fig
 
 
-def _read_surface(g) -> tuple[np.ndarray, np.ndarray]:
-    return g["vertices"][()], g["faces"][()]
-
-
 def add_surface_section(page, save: Callable, surface_h5: Path, *, plotly_loaded: bool = False) -> dict:
     """Append the surface-capture section to a report page; returns the numbers it shows.
 
     ``plotly_loaded``: the page already holds plotly.js (the flux map's 3-D view), so the
     distance map does not embed it a second time."""
+    from ..artefacts import surface as AS
     from ..structured.mesh import distances_to_surface
     from ..surface.mesh import Surface
 
     summary: dict = {}
-    with h5py.File(surface_h5, "r") as f:
-        page.section("surface", "Surface capture (structured light)")
-        verts, faces = _read_surface(f["surface"])
-        metrics = {k: (v.item() if hasattr(v, "item") else v) for k, v in f["metrics"].attrs.items()} if "metrics" in f else {}
-        pts = f["points/positions_mm"][()] if "points/positions_mm" in f else None
-        dist = f["points/distance_to_truth_mm"][()] if "points/distance_to_truth_mm" in f else None
-        views_of_points = f["points/view"][()] if "points/view" in f else None
-        point_views = [str(v) for v in f["points"].attrs.get("view_names", [])] if "points" in f else []
-        truth = _read_surface(f["truth"]) if "truth" in f else None
-        decode, views, projectors = {}, [], []
-        if "decode" in f:
-            for v in f["decode"]:
-                views.append(v)
-                for p in f["decode"][v]:
-                    if p not in projectors:
-                        projectors.append(p)
-                    g = f["decode"][v][p]
-                    decode[(v, p)] = {"phase": g["phase"][()], "mask": g["mask"][()]}
-            views.sort(key=lambda v: point_views.index(v) if v in point_views else len(point_views))
+    cs = AS.read(surface_h5)
+    page.section("surface", "Surface capture (structured light)")
+    verts, faces = cs.surface.vertices_mm, cs.surface.faces
+    metrics = cs.metrics
+    pts, dist, views_of_points, point_views = cs.points_mm, cs.distance_to_truth_mm, cs.point_view, cs.view_names
+    truth = (cs.truth.vertices_mm, cs.truth.faces) if cs.truth is not None else None
+    decode = {key: {"phase": maps["phase"], "mask": maps["mask"]} for key, maps in cs.decode.items()}
+    views = list(dict.fromkeys(v for v, _ in cs.decode))
+    projectors = list(dict.fromkeys(p for _, p in cs.decode))
+    views.sort(key=lambda v: point_views.index(v) if v in point_views else len(point_views))
     mesh = Surface(verts, faces, np.arange(len(faces)), len(faces))
     summary = {"faces": int(len(faces)), "area_mm2": float(mesh.face_areas_mm2.sum()), "closed": bool(mesh.is_closed)}
     summary.update(metrics)

@@ -14,30 +14,36 @@ from pathlib import Path
 from ..artefacts import transfer as AT
 from ..artefacts.transfer import load_T, read_summary  # noqa: F401  (public names of this stage's output)
 from ..config import LoadedConfig
-from ..pipeline import PoseT, check_folders, cache_dir, ensure_T, key_parts, plan, provenance, summarise  # noqa: F401
+from ..transfer_cache import PoseT, TransferPlan, ensure, key_parts, summarise  # noqa: F401
 from .context import RunContext
+from .plans import cache_dir, check_folders, plan, provenance  # noqa: F401  (as before: importable from here)
+from .plans import transfer_plan
 
 
 def run(cfg: LoadedConfig, ctx: RunContext) -> Path:
     check_folders(cfg)
-    views, placer, todo = plan(cfg)  # validates the geometry before anything is printed
-    ctx.say(f"build-T: {len(todo)} pose(s), {placer.surface.n_elements} elements, views "
-            f"{', '.join(v.name for v in views)}, estimator {cfg.model.transfer.estimator}, cache {cache_dir(cfg)}")
-    views, placer, todo, results = ensure_T(cfg, ctx)
-    names = [v.name for v in views]
+    tp = transfer_plan(cfg)  # validates the geometry before anything is printed
+    index = cfg.workdir / AT.INDEX_FILE_NAME
+    ctx.say(f"build-T: {len(tp.poses)} pose(s), {tp.placer.surface.n_elements} elements, views "
+            f"{', '.join(v.name for v in tp.views)}, estimator {tp.transfer.estimator}, cache {tp.cache_dir}")
+    results = ensure(tp, ctx)
+    write_index(index, tp, results, ctx)
+    return index
+
+
+def write_index(index: Path, tp: TransferPlan, results: dict[str, dict], ctx: RunContext) -> None:
+    """Print each pose's build and efficiency per view, and write the transfer index."""
+    names = [v.name for v in tp.views]
     rows = []
-    for s, p in todo:
+    for s, p in tp.poses:
         r = results[p.key]
         rows.append([p.pose.height_mm, p.pose.rotation_deg, "cache hit" if r["cached"] else f"{r['seconds']:.1f} s",
                      r["nnz"], *[r["efficiency"][n] for n in names]])
     ctx.table(["height_mm", "rotation_deg", "build", "nnz", *[f"eff {n}" for n in names]], rows)
-    index = cfg.workdir / "transfer.h5"
-    prov = provenance(cfg, placer.surface.digest())
-    AT.write_index(index, heights_mm=[p.pose.height_mm for _, p in todo],
-                   rotations_deg=[p.pose.rotation_deg for _, p in todo], keys=[p.key for _, p in todo],
-                   paths=[p.path for _, p in todo],
-                   efficiency_pv=[[results[p.key]["efficiency"][n] for n in names] for _, p in todo],
-                   view_names=names, estimator=cfg.model.transfer.estimator, config_sha256=cfg.sha256,
-                   provenance=prov)
+    AT.write_index(index, heights_mm=[p.pose.height_mm for _, p in tp.poses],
+                   rotations_deg=[p.pose.rotation_deg for _, p in tp.poses], keys=[p.key for _, p in tp.poses],
+                   paths=[p.path for _, p in tp.poses],
+                   efficiency_pv=[[results[p.key]["efficiency"][n] for n in names] for _, p in tp.poses],
+                   view_names=names, estimator=tp.transfer.estimator, config_sha256=tp.config_sha256,
+                   provenance=tp.provenance)
     ctx.say(f"index written to {index}")
-    return index

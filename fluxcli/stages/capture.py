@@ -132,12 +132,12 @@ class SimulatedScene:
         facets no smooth exitance explains (χ²/pixel 2.5 on the demo rig's true mesh)."""
         if name not in self._rates:
             from ..truth import truth_fine
+            from .plans import truth_plan
 
             spec = self.light.get(name)
             m = self.cfg.model
-            sim = m.simulate.model_copy(update={"flux": self._flux_for(name, spec)})
-            cfg = C.LoadedConfig(m.model_copy(update={"simulate": sim}), self.cfg.path, self.cfg.raw)
-            fine, parent, _ = truth_fine(cfg, self.placer.surface)  # a negligible FEM undershoot is clipped there
+            truth = truth_plan(self.cfg, self._flux_for(name, spec))
+            fine, parent, _ = truth_fine(truth, self.placer.surface)  # a negligible FEM undershoot is clipped there
             transmission = 1.0 if spec is None else spec.transmission
             self._rates[name] = (fine * transmission / m.simulate.noise.exposure_s, parent)
         return self._rates[name]
@@ -206,7 +206,8 @@ class SimulatedScene:
 
             rot = (self.cfg.model.subject.poses or C.Poses()).rotations_deg[0]
             refine = truth_refinement(self.cfg.model.simulate)
-            T, T_tangent = ensure_pose_T(self.cfg, Pose(key[0], float(rot)), forward_transfer(self.cfg), self.placer,
+            T, T_tangent = ensure_pose_T(self.cfg, Pose(key[0], float(rot)),
+                                         forward_transfer(self.cfg.model.simulate, self.cfg.model.transfer), self.placer,
                                          refine=refine, tangent=True)
             nx, ny = self.cfg.model.system.camera.pixels
             rate = self.fine_rate(name)[0]
@@ -563,7 +564,9 @@ def _make_surface(cfg: C.LoadedConfig, ctx: RunContext, sf: C.CaptureSurface, sc
     """Decode the pattern frames of ``capture_path``, triangulate, mesh, write ``surface.h5``."""
     from ..acquisition import read_patterns
     from ..hardware.projector import projector_model
-    from ..pipeline import decode_datasets, emccd_model, provenance, write_surface_artefact
+    from ..artefacts.surface import write_surface_artefact
+    from ..structured.scan import decode_by_view
+    from .plans import emccd_model, provenance
     from ..scene import mirror_names, plane_mirrors
     from ..structured.mesh import capture_metrics, distances_to_surface
     from ..structured.scan import merge_points, points_from_frames, surface_from_points
@@ -593,7 +596,7 @@ def _make_surface(cfg: C.LoadedConfig, ctx: RunContext, sf: C.CaptureSurface, sc
                                       min_modulation_fraction=sf.min_modulation_fraction)
             scans.append(scan)
             tick()
-    decode = decode_datasets(scans, list(pc.projectors), views, camera, mirrors)
+    decode = decode_by_view(scans, list(pc.projectors), views, camera, mirrors)
     h = pc.height_mm
     floor = (m.system.stage.top_z_mm + h) if m.system.stage is not None else None
     merged = merge_points(scans, floor_z_mm=-np.inf if floor is None else floor)

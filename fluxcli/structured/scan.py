@@ -21,7 +21,8 @@ from .projector import Projector
 from .render import PatternRenderer
 from .triangulate import chief_rays, triangulate_columns
 
-__all__ = ["simulate_frames", "ScanPoints", "points_from_frames", "MergedPoints", "merge_points", "surface_from_points"]
+__all__ = ["simulate_frames", "ScanPoints", "points_from_frames", "decode_by_view", "MergedPoints", "merge_points",
+           "surface_from_points"]
 
 
 def simulate_frames(renderer: PatternRenderer, patterns: PatternSet, *, photons_white: float, ambient_photons: float,
@@ -78,6 +79,27 @@ def points_from_frames(photons: np.ndarray, patterns: PatternSet, camera: ThinLe
         view[todo[ok]] = j
     ok = np.isfinite(P[:, 0])
     return ScanPoints(P[ok], V[ok], pix[ok], view[ok], dec)
+
+
+def decode_by_view(scans: list[ScanPoints], projector_names: list[str], view_names: list[str], camera: ThinLensCamera,
+                   mirrors: list[PlaneMirror]) -> dict:
+    """``{(view, projector): {"phase", "column_px", "mask"}}`` (the ``surface`` artefact's ``/decode``): each
+    projector's decoding (:class:`ScanPoints`) split by the view each camera pixel
+    looks through (its chief ray: direct, or reflected in a mirror); mask 1 where a point was triangulated."""
+    origins, _, _ = chief_rays(camera, mirrors)
+    view_of_pixel = np.zeros(camera.ny * camera.nx, int)
+    for j in range(1, len(view_names)):
+        view_of_pixel[np.isfinite(origins[j, :, 0])] = j
+    out = {}
+    for name, scan in zip(projector_names, scans):
+        used = np.zeros(view_of_pixel.size, bool)
+        used[scan.pixel] = True
+        for j, v in enumerate(view_names):
+            here = view_of_pixel == j
+            out[(v, name)] = {"phase": np.where(here, scan.decoded.wrapped_phase.ravel(), np.nan).reshape(camera.ny, camera.nx),
+                              "column_px": np.where(here, scan.decoded.column_px.ravel(), np.nan).reshape(camera.ny, camera.nx),
+                              "mask": (here & used).astype(np.uint8).reshape(camera.ny, camera.nx)}
+    return out
 
 
 @dataclass

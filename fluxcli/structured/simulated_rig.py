@@ -1,8 +1,9 @@
-"""Structured-light capture on the simulated rig: scan, points, closed mesh, ``surface.h5``.
+"""A stand-alone simulated structured-light rig (the paper's): render, decode, triangulate.
 
-Glue between :mod:`fluxcli.structured` (the science) and the artefacts.  Not yet wired into
-``capture-surface`` (the ``capture.surface:`` block and its frames in ``capture.h5`` are
-still to do): ``pipelines/structured_light.py`` drives it (``make structured-light``).
+What ``pipelines/structured_light.py`` (``make structured-light``) measures the capture's
+accuracy with, against a known true surface.  ``fluxmap capture-surface`` is what makes a
+``surface.h5`` from a config's rig (simulated or real); both write it through
+:func:`fluxcli.artefacts.surface.write`.
 
 The rig of :func:`paper_like_rig`: the camera of ``configs/demo-rig.yaml`` unbinned
 (384 x 384), two 45-degree mirrors beside the stage (the paper's rig), two projectors
@@ -14,18 +15,16 @@ which the mirror on that side sees.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from ..pipeline import write_surface_artefact  # noqa: F401 (re-exported for pipelines/)
 from ..imaging import noise as N
 from ..optics.camera import PlaneMirror, ThinLensCamera
-from ..structured.patterns import PatternSet, column_patterns
-from ..structured.projector import Projector
-from ..structured.render import PatternRenderer
-from ..structured.scan import MergedPoints, ScanPoints, merge_points, points_from_frames, simulate_frames, surface_from_points  # noqa: F401 (re-exported for pipelines/)
 from ..surface.mesh import Surface, box
+from .patterns import PatternSet, column_patterns
+from .projector import Projector
+from .render import PatternRenderer
+from .scan import ScanPoints, points_from_frames, simulate_frames
 
 
 @dataclass

@@ -1,0 +1,96 @@
+"""From a loaded config to the typed parts the floors below take: the T cache's plan, the
+provenance an artefact records, the folders to check, the sensor model.
+
+Only stage commands call these (they hold the config); everything below them takes what
+these return, never the config.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .. import artefacts as A
+from ..artefacts import provenance as AP
+from ..config import FileFlux, LoadedConfig, Sensor, Transfer, emission_profile
+from ..imaging import noise as N
+from ..resources import check_folders as _check_folders
+from ..scene import Pose, SubjectPlacer, poses_from_config, views_from_config
+from ..transfer_cache import TransferPlan, ensure, place, pose_T, with_columns
+from ..truth import TruthPlan, truth_refinement
+
+
+def cache_dir(cfg: LoadedConfig) -> Path:
+    """The T cache: ``transfer.cache_dir``, else ``<workdir>/cache/T``."""
+    return cfg.resolve(cfg.model.transfer.cache_dir) if cfg.model.transfer.cache_dir else cfg.workdir / "cache" / "T"
+
+
+def check_folders(cfg: LoadedConfig, *, cache: bool = True) -> None:
+    """The workdir (and the T cache) must be writable before a stage computes anything."""
+    _check_folders(cfg.workdir, cache_dir(cfg) if cache else None,
+                   "transfer.cache_dir" if cfg.model.transfer.cache_dir else "workdir")
+
+
+def geometry_of(cfg: LoadedConfig, surface_sha256: str | None = None) -> dict:
+    """The set-up an artefact of this config is made for (:func:`fluxcli.artefacts.provenance.geometry_of`)."""
+    return AP.geometry_of(cfg.model.system, cfg.model.subject, lambda: emission_profile(cfg).key(), surface_sha256)
+
+
+def provenance(cfg: LoadedConfig, surface_sha256: str | None = None) -> A.Provenance:
+    """The provenance an artefact of this config records: the resolved config and its geometry."""
+    return AP.provenance_of(cfg.model.model_dump(mode="json", by_alias=True), geometry_of(cfg, surface_sha256))
+
+
+def emccd_model(sensor: Sensor, exposure_s: float) -> N.EMCCDModel:
+    """The EMCCD noise model of ``system.camera.sensor`` at an exposure."""
+    return N.EMCCDModel(**sensor.model_dump(), exposure_s=exposure_s)
+
+
+def transfer_plan(cfg: LoadedConfig, transfer: Transfer | None = None, unknowns: str = "elements") -> TransferPlan:
+    """What this config asks of the T cache: views, placer, per pose its placed scene and entry.
+
+    ``transfer`` overrides ``cfg.model.transfer`` (simulate builds a finer T this way);
+    ``unknowns="sub_elements"`` gives T's columns per sub-element (Surface.unknowns),
+    ``"refined:n"`` per face of the surface refined n times (Surface.refined)."""
+    tr = transfer or cfg.model.transfer
+    views = views_from_config(cfg.model.system)
+    placer = SubjectPlacer(cfg)
+    cdir = cache_dir(cfg)
+    poses = place(placer, cfg.model.system, poses_from_config(cfg.model.subject), views, tr, cdir, unknowns)
+    return TransferPlan(views, placer, poses, tr, cdir, cfg.sha256, provenance(cfg, placer.surface.digest()),
+                        emission_assumed=cfg.model.subject is not None and cfg.model.subject.emission is None)
+
+
+# ------------------------------------------------------------------ the former pipeline's cfg-taking calls
+def plan(cfg: LoadedConfig, transfer: Transfer | None = None, unknowns: str = "elements"):
+    """``(views, placer, [(scene, PoseT)])`` of :func:`transfer_plan`."""
+    tp = transfer_plan(cfg, transfer, unknowns)
+    return tp.views, tp.placer, tp.poses
+
+
+def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: str = "building T",
+             unknowns: str = "elements"):
+    """Every pose's T in the cache (:func:`fluxcli.transfer_cache.ensure`): views, placer,
+    [(scene, PoseT)], and per key a summary dict (cached, seconds, nnz, efficiency per view)."""
+    tp = transfer_plan(cfg, transfer, unknowns)
+    return tp.views, tp.placer, tp.poses, ensure(tp, ctx, label)
+
+
+def ensure_pose_T(cfg: LoadedConfig, pose: Pose, transfer: Transfer | None = None,
+                  placer: SubjectPlacer | None = None, refine: int = 0, tangent: bool = False):
+    """T (CSR) of one pose that need not be in ``subject.poses`` (:func:`fluxcli.transfer_cache.pose_T`);
+    with ``refine`` its columns are the faces of the surface refined that often; with ``tangent``
+    also its tangential-flux matrix: (T, T_tangent)."""
+    views = views_from_config(cfg.model.system)
+    scene = with_columns((placer or SubjectPlacer(cfg)).scene(pose, cfg.model.system), f"refined:{refine}")
+    return pose_T(scene, views, transfer or cfg.model.transfer, cache_dir(cfg), cfg.sha256, provenance(cfg), tangent)
+
+
+def truth_plan(cfg: LoadedConfig, flux=None) -> TruthPlan:
+    """What ``simulate.flux`` (or ``flux`` in its place: the simulated rig's per-filter truth)
+    makes the ground truth from, its paths resolved."""
+    sim = cfg.model.simulate
+    flux = flux if flux is not None else sim.flux
+    mesh_dir = getattr(flux, "mesh_dir", None)
+    return TruthPlan(flux, truth_refinement(sim), cfg.workdir / "cache" / "mesh",
+                     cfg.resolve(mesh_dir) if mesh_dir is not None else None,
+                     cfg.resolve(flux.path) if isinstance(flux, FileFlux) else None)
