@@ -763,7 +763,7 @@ def _run_smooth(P, lam, rule, opts):
 # and the simulated rig's captured surface (5 576 vertices for 302 elements) went from about a
 # minute to many.  Below the cap (every battery case, ≤ ~1 700 vertices) the exact steps cost
 # seconds.  Beyond, `unknowns: auto` solves on a basis sized by the elements (`linear_elements`,
-# stages.reconstruct.resolve_unknowns), so the default's unknowns stay under this cap up to 2 500
+# inverse.unknowns.resolve_unknowns), so the default's unknowns stay under this cap up to 2 500
 # elements (issue 25's scene: 1 168 elements plus the rim, ~3 s of CPU direct, ~6 s with mirrors).
 EXACT_MAX_UNKNOWNS = 2500
 

@@ -14,6 +14,7 @@ from typing import Callable
 
 from .. import artefacts as A
 from .. import config as C
+from ..artefacts.reconstruction import FILENAME as RECONSTRUCTION_FILE
 from ..pipeline import check_folders, ensure_T, geometry_of, plan, provenance
 from ._radiometric import assumed_qe_warning, counts_in
 from .outputs import reconstruction_exposure_s, simulation_exposure_s
@@ -147,7 +148,7 @@ def plan_of(cfg: C.LoadedConfig) -> ReconstructPlan:
         return ensure_T(_with_system(cfg, system), replace(ctx, force=False), label=label, unknowns=unknowns)
 
     return ReconstructPlan(
-        config_path=cfg.path, config_sha256=cfg.sha256, workdir=cfg.workdir, output=cfg.workdir / "reconstruction.h5",
+        config_path=cfg.path, config_sha256=cfg.sha256, workdir=cfg.workdir, output=cfg.workdir / RECONSTRUCTION_FILE,
         images=images, settings=rc.settings(), noise=rc.noise, read_noise_photons=rc.read_noise_photons,
         joint=rc.joint, sweep=rc.sweep, filters=filters,
         main_filter=filters[0] if filters else getattr(src, "filter", None),
