@@ -531,3 +531,15 @@ def read_for_study(path: Path, filter_name: str) -> StudyView:
                          for name in json.loads(f["filters"].attrs["order"])
                          for h in [f[f"filters/{name}"]] if "rois" in h]
         return StudyView(unchanged(f), _read(f), "rois" in f, pp["heights_mm"][()], pp["rotations_deg"][()], parts)
+
+
+def read_warnings(path: Path) -> tuple[list[str], int | None]:
+    """The warnings reconstruct stored (/warnings) and the number of poorly observed elements
+    (/flux/observation == 1; None where the file does not hold them)."""
+    out, poor = [], None
+    with open_artefact(path, KIND) as f:
+        if "warnings" in f:
+            out = [w.decode() if isinstance(w, bytes) else str(w) for w in np.atleast_1d(f["warnings"][()])]
+        if "flux" in f and "observation" in f["flux"]:
+            poor = int(np.sum(f["flux/observation"][()] == 1))
+    return out, poor
