@@ -131,12 +131,18 @@ def simulation_vtp(sim_path: Path, out_path: Path, *, exposure_s: float | None) 
 
 
 def export_3d(cfg: C.LoadedConfig, ctx, artefact: Path) -> Path:
-    """The ``.vtp`` beside a reconstruction or simulation artefact (the stages' one-line call)."""
+    """The ``.vtp`` beside a reconstruction or simulation artefact (simulate's one-line call;
+    reconstruct calls :func:`export_reconstruction` with its plan's parts)."""
     artefact = Path(artefact)
     if artefact.stem == "reconstruction":
         return export_reconstruction(ctx, artefact, reconstruction_exposure_s(cfg.model.reconstruct.images,
                                                                               cfg.model.simulate), cfg.path)
-    out = simulation_vtp(artefact, artefact.parent / "simulation_truth.vtp", exposure_s=simulation_exposure_s(cfg.model.simulate))
+    return export_simulation(ctx, artefact, simulation_exposure_s(cfg.model.simulate))
+
+
+def export_simulation(ctx, artefact: Path, exposure_s: float | None) -> Path:
+    """``simulation_truth.vtp`` beside ``artefact`` (``exposure_s``: the simulated exposure the config states)."""
+    out = simulation_vtp(artefact, artefact.parent / "simulation_truth.vtp", exposure_s=exposure_s)
     ctx.say(f"3-D surface for ParaView/pyvista: {out}")
     return out
 

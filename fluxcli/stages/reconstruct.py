@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import artefacts as A
+from .. import config as C
 from ..artefacts import reconstruction as RA
 from ..imaging.spikes import (MAX_SPIKE_SHARE, SPIKE_ISOLATION, SPIKE_SIGMA, SPIKE_SPREAD,  # noqa: F401 (importers)
                               describe_pixels, isolated_spikes, reject_spikes, residual_spread)
@@ -44,7 +45,8 @@ from .outputs import export_reconstruction
 from .rois import RoiMeter
 
 
-def run(cfg, ctx: RunContext) -> Path:
+def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
+    """The command: the run plan once, then :func:`reconstruct` unless the artefact is up to date."""
     plan = plan_of(cfg)
     if not ctx.force and A.is_up_to_date(plan.output, "reconstruction", plan.digest):
         ctx.say(f"reconstruct: {plan.output} is up to date (--force to redo)")
