@@ -49,28 +49,29 @@ def run(repeats: int = 3) -> list[dict]:
     from fluxcli import config as C
     from fluxcli.config import load_config
     from fluxcli.inverse import error_l1
-    from fluxcli.pipeline import plan
     from fluxcli.stages.context import RunContext
     from fluxcli.workers import blas_threads
-    from fluxcli.stages.reconstruct import describe, load_inputs, make_grid, photon_noise, resolve_unknowns, run_method
+    from fluxcli.inverse.solve import describe, run_method
+    from fluxcli.inverse.unknowns import resolve_unknowns
+    from fluxcli.stages.reconstruct import load_inputs, make_grid, noise_of, plan_of
     from run import row
 
     cfg = load_config(CONFIG, [])
     built = _ensure_artefacts(cfg)
     ctx = RunContext(quiet=True)
-    _, placer, todo = plan(cfg)
-    surface = placer.surface
-    inp = load_inputs(cfg, len(todo), surface.n_elements, surface.digest(), [pt.pose for _, pt in todo])
-    grid = make_grid(cfg, ctx, surface, "elements")
+    rp = plan_of(cfg)  # the reconstruct stage's run plan
+    todo, surface = rp.todo, rp.placer.surface
+    inp = load_inputs(rp.images, len(todo), surface.n_elements, rp.geometry, rp.config_path, [pt.pose for _, pt in todo])
+    grid = make_grid(rp.build_T, ctx, surface, "elements")
     grids = {"elements": grid}  # per kind of unknowns, as the reconstruct stage makes them
 
     def grid_for(m):
         if m.unknowns not in grids:
-            grids[m.unknowns] = make_grid(cfg, ctx, surface, m.unknowns)
+            grids[m.unknowns] = make_grid(rp.build_T, ctx, surface, m.unknowns)
         return grids[m.unknowns]
-    noise = photon_noise(cfg, inp.noise_kind, inp.exposure_s, inp.frames_averaged)
-    cam = cfg.model.system.camera
-    default = resolve_unknowns(cfg.model.reconstruct.settings(), surface, cam)
+    noise = noise_of(rp, inp)
+    cam = rp.camera
+    default = resolve_unknowns(rp.settings, surface, cam)
     methods = [("default", default),
                ("paper", C.MethodSettings(method="paper", **{"lambda": 0.1})),
                ("backprojection", C.MethodSettings(method="backprojection")),

@@ -15,6 +15,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, ValidationError, field_validator, model_validator
 
 from .errors import UserError
+from .inverse.methods import METHODS
 
 Vec3 = tuple[float, float, float]
 
@@ -545,11 +546,11 @@ class Simulate(Model):
 
 
 # --------------------------------------------------------------------------- reconstruct
-Method = Literal["backprojection", "paper", "tikhonov", "nnls", "weighted_lsq", "mlem", "smooth"]
+Method = Literal[METHODS]  # the method registry's names (fluxcli.inverse.methods.REGISTRY)
 
 
 class MethodSettings(Model):
-    method: Method = Field("smooth", description="smooth (default) | backprojection | paper | tikhonov | nnls | weighted_lsq | mlem.")
+    method: Method = Field("smooth", description=" | ".join(["smooth (default)", *(n for n in METHODS if n != "smooth")]) + ".")
     lam: float | Literal["auto"] = Field("auto", alias="lambda",
                                           description="Regularisation in the paper's relative units, or auto: lambda~ = lambda max diag(T'WT), "
                                                       "W = I for paper, W = 1/sigma^2 of the noise model for smooth (so a "

@@ -249,15 +249,15 @@ def test_an_assumed_quantum_efficiency_is_warned_where_counts_become_photons(cal
     folder, *_ = calibrated
     use = tmp_path / "use.yaml"
     use.write_text(yaml.safe_dump({"system": {"camera": str(folder / "out" / "camera.yaml")}}))
-    line = assumed_qe_warning(C.load_config(use), "reconstruct")
+    line = assumed_qe_warning(C.load_config(use).model.system, "reconstruct")
     assert line is not None and "quantum_efficiency 0.8 is assumed" in line and "\n" not in line
     # a value the user states beside the file is theirs: no warning from the file's mark
     use.write_text(yaml.safe_dump({"system": {"camera": {"file": str(folder / "out" / "camera.yaml"),
                                                          "sensor": {"quantum_efficiency": 0.93}}}}))
-    assert assumed_qe_warning(C.load_config(use), "reconstruct") is None
+    assert assumed_qe_warning(C.load_config(use).model.system, "reconstruct") is None
     # no value at all on a real camera's counts: fluxmap's default is an assumption too
     use.write_text(yaml.safe_dump({"system": {"camera": {"pixels": [8, 8], "pixel_pitch_mm": 0.1}}}))
-    assert "fluxmap default 0.9" in assumed_qe_warning(C.load_config(use), "reconstruct")
+    assert "fluxmap default 0.9" in assumed_qe_warning(C.load_config(use).model.system, "reconstruct")
 
 
 def test_reconstruct_from_count_images_warns_an_assumed_qe_once(write_config, minimal_config, tmp_path):

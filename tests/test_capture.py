@@ -447,6 +447,8 @@ def test_the_record_shows_the_sensor_as_the_frames_were_taken(reference, tmp_pat
     ref_path, p, cfg = _reconstruct_from_capture(reference, tmp_path)
     loaded = C.load_config(p)
     assert loaded.model.system.camera.sensor.em_gain == 300.0  # what the config says
-    label, text = sensor_row(loaded)
+    from fluxcli.stages.outputs import capture_path
+
+    label, text = sensor_row(loaded.model.system.camera.sensor, loaded.model.reconstruct.images, capture_path(loaded))
     assert label == "sensor" and "as the frames were taken" in text and "em_gain 100;" in text
     assert "em_gain 300" not in text

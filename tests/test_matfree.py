@@ -219,10 +219,12 @@ def test_reconstruct_no_longer_refuses_a_large_mesh_for_smooth(write_config, min
     monkeypatch.setattr("fluxcli.resources.available_memory_bytes", lambda: 16e9)
     loaded = load_config(write_config(cfg), [])
     _, placer, todo = pipeline.plan(loaded)
-    R._check_solver_size(loaded, ctx, placer.surface, len(todo))
+    rc = loaded.model.reconstruct
+    R.check_solver_size(rc.settings(), rc.sweep, loaded.model.system.camera.pixels, ctx, placer.surface, len(todo))
     assert any("matrix-free" in s for s in said)
     need = float(said[-1].split("about ")[1].split(" GB")[0])
     assert 0.5 < need < 4  # ~2 GB at 62 500 elements, against 125 GB dense
     cfg["reconstruct"] = {"method": "nnls"}
     with pytest.raises(UserError, match="would need about"):
-        R._check_solver_size(load_config(write_config(cfg), []), ctx, placer.surface, len(todo))
+        R.check_solver_size(load_config(write_config(cfg), []).model.reconstruct.settings(), None,
+                            loaded.model.system.camera.pixels, ctx, placer.surface, len(todo))

@@ -280,7 +280,7 @@ def test_cell_array_roi_reads_the_mesh_files_integer_array(tmp_path):
         "subject": {"surface": {"mesh": "m.vtk"}}}))
     cfg = load_config(tmp_path / "c.yaml")
     surf = SubjectPlacer(cfg).surface
-    got = cell_array_of_elements(cfg, surf, "region", "rois[0]")
+    got = cell_array_of_elements(cfg.resolve(cfg.model.subject.surface.mesh), surf, "region", "rois[0]")
     upper = s.element_centroids_mm[:, 2] > 5  # per element of the file, by its ids
     ids = surf.element_ids if surf.element_ids is not None else np.arange(surf.n_elements)
     np.testing.assert_array_equal(got, upper[ids].astype(np.int64))

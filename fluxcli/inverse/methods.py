@@ -668,18 +668,38 @@ class MethodSpec:
     solve: object  # (Problem, lam, lam_rule, opts) -> dict
     options: frozenset
     default_lam: float | None  # None: the method takes no λ
-    lam_rules: tuple
+    lam_rules: tuple  # the automatic λ rules it takes (empty: no λ from reconstruct.lambda / lambda_rule)
+    from_settings: tuple = ()  # (solver option, reconstruct setting) pairs the stage passes on
+    dense: bool = False  # forms T'WT (n x n) densely: reconstruct checks the memory before it solves
+    nonnegative_data: bool = False  # a Poisson likelihood: bias-subtracted counts below zero are clipped to 0
 
 
 REGISTRY: dict[str, MethodSpec] = {}
 
 
-def register(name: str, *, options=(), default_lam=None, lam_rules=()):
+def register(name: str, *, options=(), default_lam=None, lam_rules=(), from_settings=(), dense=False,
+             nonnegative_data=False):
     """Add a method to :data:`REGISTRY` (decorator)."""
     def deco(fn):
-        REGISTRY[name] = MethodSpec(name, fn, frozenset(options), default_lam, tuple(lam_rules))
+        REGISTRY[name] = MethodSpec(name, fn, frozenset(options), default_lam, tuple(lam_rules), tuple(from_settings),
+                                    dense, nonnegative_data)
         return fn
     return deco
+
+
+def solver_options(method: str, settings) -> dict:
+    """The keyword arguments :func:`reconstruct` takes for ``method`` from reconstruct's settings
+    (``settings``: lam — a number or "auto" —, lambda_rule and the spec's ``from_settings``)."""
+    spec = REGISTRY[method]
+    kw: dict = {}
+    if spec.lam_rules:
+        if settings.lam == "auto":
+            kw["lam_rule"] = settings.lambda_rule
+        else:
+            kw["lam"] = float(settings.lam)
+    for option, key in spec.from_settings:
+        kw[option] = getattr(settings, key)
+    return kw
 
 
 _RULE_OPTS = ("lambdas", "tau", "gamma")
@@ -704,7 +724,8 @@ def _filtered(P, *, prior, k, tol, lam, rule, opts, weighted, free_level=False, 
             "covariance": out.covariance}
 
 
-@register("paper", options=("max_iter", "tol", *_RULE_OPTS), default_lam=10.0, lam_rules=("gcv", "lcurve", "discrepancy"))
+@register("paper", options=("max_iter", "tol", *_RULE_OPTS), default_lam=10.0, lam_rules=("gcv", "lcurve", "discrepancy"),
+          from_settings=(("max_iter", "max_iter"), ("tol", "tol")), dense=True)
 def _run_paper(P, lam, rule, opts):
     # the paper's unweighted scheme; an automatic λ is chosen on its own filter factors
     return _filtered(P, prior=None, k=c.check_positive_int(opts.get("max_iter", 10), "max_iter"),
@@ -716,7 +737,7 @@ SMOOTH_SOLVERS = ("auto", "dense", "matfree")
 
 
 @register("smooth", options=("adjacency", "n_iter", "solver", *_RULE_OPTS), default_lam=None,
-          lam_rules=("gcv", "lcurve", "discrepancy"))
+          lam_rules=("gcv", "lcurve", "discrepancy"), from_settings=(("n_iter", "max_iter"),), dense=True)
 def _run_smooth(P, lam, rule, opts):
     from fluxcli.inverse.matfree import DENSE_MAX_UNKNOWNS
     from fluxcli.inverse.smooth import exitance_prior
@@ -742,7 +763,7 @@ def _run_smooth(P, lam, rule, opts):
 # and the simulated rig's captured surface (5 576 vertices for 302 elements) went from about a
 # minute to many.  Below the cap (every battery case, ≤ ~1 700 vertices) the exact steps cost
 # seconds.  Beyond, `unknowns: auto` solves on a basis sized by the elements (`linear_elements`,
-# stages.reconstruct.resolve_unknowns), so the default's unknowns stay under this cap up to 2 500
+# inverse.unknowns.resolve_unknowns), so the default's unknowns stay under this cap up to 2 500
 # elements (issue 25's scene: 1 168 elements plus the rim, ~3 s of CPU direct, ~6 s with mirrors).
 EXACT_MAX_UNKNOWNS = 2500
 
@@ -775,14 +796,14 @@ def _lam_from_rule(P, lam, rule, opts, weighted):
     return choice.lam, choice
 
 
-@register("tikhonov", options=_RULE_OPTS, default_lam=0.0, lam_rules=("gcv", "lcurve", "discrepancy"))
+@register("tikhonov", options=_RULE_OPTS, default_lam=0.0, lam_rules=("gcv", "lcurve", "discrepancy"), dense=True)
 def _run_tikhonov(P, lam, rule, opts):
     lam, choice = _lam_from_rule(P, lam, rule, opts, False)
     b, it, conv, lam_abs = _tikhonov(P.T_obs, P.a, lam, None)
     return {"power": b, "lam": lam, "lam_absolute": lam_abs, "iterations": it, "converged": conv, "choice": choice}
 
 
-@register("nnls", options=("weights", *_RULE_OPTS), default_lam=0.0, lam_rules=("gcv", "lcurve", "discrepancy"))
+@register("nnls", options=("weights", *_RULE_OPTS), default_lam=0.0, lam_rules=("gcv", "lcurve", "discrepancy"), dense=True)
 def _run_nnls(P, lam, rule, opts):
     lam, choice = _lam_from_rule(P, lam, rule, opts, False)
     w = opts.get("weights")
@@ -792,7 +813,7 @@ def _run_nnls(P, lam, rule, opts):
     return {"power": b, "lam": lam, "lam_absolute": lam_abs, "iterations": it, "converged": conv, "choice": choice}
 
 
-@register("weighted_lsq", options=_RULE_OPTS, default_lam=0.0, lam_rules=("gcv", "lcurve", "discrepancy"))
+@register("weighted_lsq", options=_RULE_OPTS, default_lam=0.0, lam_rules=("gcv", "lcurve", "discrepancy"), dense=True)
 def _run_weighted_lsq(P, lam, rule, opts):
     if P.sigma2 is None and P.variance is None:
         raise ValueError("method 'weighted_lsq' needs the noise variance sigma2 (photons²) or a noise model.")
@@ -810,7 +831,8 @@ def _run_weighted_lsq(P, lam, rule, opts):
             "weighted": True}
 
 
-@register("mlem", options=("n_iter", "background", "smooth", "adjacency", "rel_tol"))
+@register("mlem", options=("n_iter", "background", "smooth", "adjacency", "rel_tol"), from_settings=(("n_iter", "n_iter"),),
+          nonnegative_data=True)
 def _run_mlem(P, lam, rule, opts):
     if np.any(P.a < 0):
         raise ValueError("image a (photons) must be non-negative for MLEM (Poisson counts).")

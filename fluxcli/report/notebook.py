@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import artefacts as A
 from ..surface.units import element_quantities
 
 CHI2_FAR = (0.5, 2.0)  # chi^2/pixel outside this band: the noise model or the fit is off
@@ -37,13 +36,9 @@ def observed_share(pose_observed, power) -> np.ndarray:
 def artefact_warnings(reconstruction: Path) -> tuple[list[str], int | None]:
     """The warnings ``reconstruct`` stored (``/warnings``) and the number of poorly observed
     elements (``/flux/observation`` == 1), where the artefact holds them."""
-    out, poor = [], None
-    with A.open_artefact(reconstruction, "reconstruction") as f:
-        if "warnings" in f:
-            out = [w.decode() if isinstance(w, bytes) else str(w) for w in np.atleast_1d(f["warnings"][()])]
-        if "flux" in f and "observation" in f["flux"]:
-            poor = int(np.sum(f["flux/observation"][()] == 1))
-    return out, poor
+    from ..artefacts.reconstruction import read_warnings
+
+    return read_warnings(reconstruction)
 
 
 def warnings_for(study, summary: dict) -> list[str]:
@@ -144,8 +139,10 @@ def add_3d_view(page, study, *, rig=None, exposure_s: float | None = None) -> No
         layers["exitance (photons/s/mm²)"] = q["exitance_photons_per_s_per_mm2"]
     else:
         layers["exitance (photons/mm² per exposure)"] = q["exitance_photons_per_mm2"]
-    with A.open_artefact(study.reconstruction_path, "reconstruction") as f:
-        sigma = np.where(study.observed, f["flux/sigma"][()], np.nan) if "sigma" in f["flux"] else None
+    from ..artefacts.reconstruction import read_maps
+
+    maps = read_maps(study.reconstruction_path)
+    sigma = np.where(study.observed, maps.sigma, np.nan) if maps.sigma is not None else None
     if sigma is not None and np.isfinite(sigma).any():
         per = (1.0 / exposure_s, "photons/s") if exposure_s is not None else (1.0, "photons per exposure")
         layers[f"uncertainty σ of the power ({per[1]}, 1 sd)"] = sigma * per[0]
@@ -158,12 +155,9 @@ def add_3d_view(page, study, *, rig=None, exposure_s: float | None = None) -> No
                                   else "exitance (photons/mm² per exposure)")] = qt[key]
     s = study.surface
     outlines = None
-    with A.open_artefact(study.reconstruction_path, "reconstruction") as f:
-        if "rois" in f:  # regions of interest on the map shown (the last map: joint, or the only pose)
-            from ..quantify.rois import read_group
-
-            r = read_group(f["rois"])
-            outlines = {n: r["members"][i, -1] for i, n in enumerate(r["names"])}
+    if maps.rois is not None:  # regions of interest on the map shown (the last map: joint, or the only pose)
+        r = maps.rois
+        outlines = {n: r["members"][i, -1] for i, n in enumerate(r["names"])}
     fig = view3d.flux_figure(s.vertices_mm, s.faces, s.element_of_face, study.observed, layers, rig=rig,
                              title="joint reconstruction, subject at rest" if study.joint else "reconstruction",
                              outlines=outlines)

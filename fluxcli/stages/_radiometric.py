@@ -145,24 +145,23 @@ def radiometric_from_capture(cal, ctx: RunContext, *, bit_depth: int = 16) -> R.
                       max_counts=float(2**bit_depth - 1))
 
 
-def counts_in(cfg: C.LoadedConfig) -> bool | None:
+def counts_in(im, rig) -> bool | None:
     """Whether reconstruct turns counts into photons: True for a real camera's counts (a capture
     of a real camera, image files in counts), False for a simulated camera's capture (its QE is
-    the simulation's own), None when its images are photons already."""
-    im = cfg.model.reconstruct.images if cfg.model.reconstruct is not None else None
+    the simulation's own), None when its images are photons already.  ``im``: reconstruct.images
+    (None: simulated images); ``rig``: the config's ``rig`` section or None."""
     if isinstance(im, C.CaptureSource):
-        rig = cfg.model.rig
         return not (rig is None or rig.camera is None or rig.camera.backend == "simulated")
     if isinstance(im, C.ImageFiles) and im.units == "counts":
         return True
     return None
 
 
-def assumed_qe_warning(cfg: C.LoadedConfig, stage: str, *, real_counts: bool | None = True) -> str | None:
+def assumed_qe_warning(system: C.System | None, stage: str, *, real_counts: bool | None = True) -> str | None:
     """The one-line warning of a stage that turns counts into photons when the quantum efficiency
     is assumed: camera.yaml's ``camera.assumed`` says so, or (``real_counts``: a real camera's
-    counts) the config gives no value and fluxmap's default is used.  None: nothing to warn."""
-    system = cfg.model.system
+    counts) the config gives no value and fluxmap's default is used.  None: nothing to warn.
+    ``system``: the config's ``system`` section."""
     if system is None or real_counts is None:
         return None
     cam = system.camera
@@ -244,17 +243,16 @@ def read_radiometric_maps(path: Path, key: str, shape: tuple[int, int]) -> dict[
         ``bias_counts_map``, ``dark_e_per_s_map``, ``flat_map``: arrays (ny, nx) or None
         when that map was not measured.
     """
+    from ..artefacts.radiometric import read_maps
+
     try:
-        f = h5py.File(path, "r")
+        maps = read_maps(path, GROUP, tuple(MAPS))
     except (OSError, FileNotFoundError) as e:
         reason = "it does not exist" if not Path(path).is_file() else f"it is not a readable HDF5 file ({e})"
         raise UserError(f"{key}: cannot read {path}: {reason}.") from None
-    with f:
-        if GROUP not in f:
-            raise UserError(f"{key}: {path} holds no /{GROUP} group; run 'fluxmap calibrate' with "
-                            f"{KEY} inputs to make one.")
-        g = f[GROUP]
-        maps = {name: (g[name][()] if name in g else None) for name in MAPS}
+    if maps is None:
+        raise UserError(f"{key}: {path} holds no /{GROUP} group; run 'fluxmap calibrate' with "
+                        f"{KEY} inputs to make one.")
     for name, arr in maps.items():
         if arr is not None and (arr.ndim != 2 or not np.all(np.isfinite(arr))):
             raise UserError(f"{key}: the {name} in {path} is not a 2-D map of finite numbers; calibrate again.")

@@ -13,16 +13,15 @@ is not false.  The count of T builds is printed before they start.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass, field, replace
 
-import h5py
 import numpy as np
 import scipy.sparse as sp
 
 from .. import config as C
+from ..imaging.fit_shift import shifts, with_shift_warnings  # noqa: F401 (reconstruct's)
 from ..quantify import budget as Q
 
 
@@ -146,10 +145,10 @@ def gain_relative(system: C.System) -> float | None:
     return unc.gain_relative if unc is not None else None
 
 
-def wanted(cfg: C.LoadedConfig) -> bool:
+def wanted(system: C.System, calibration_budget: bool) -> bool:
     """Whether reconstruct computes the regularisation and calibration parts."""
-    s = cfg.model.system
-    return bool(cfg.model.reconstruct.calibration_budget and (s.camera.uncertainty is not None or any(
+    s = system
+    return bool(calibration_budget and (s.camera.uncertainty is not None or any(
         m.normal_sigma_deg or m.offset_sigma_mm for m in s.mirrors)))
 
 
@@ -202,41 +201,25 @@ def noise_only(meter: TotalMeter, per_pose, joint, labels: list[str], exposure_s
     return Budget(totals, [], exposure_s=exposure_s)
 
 
-def shifts(per_pose, inp, noise) -> list:
-    """The shift test on each pose's fit (measured, fitted, valid, the noise model's variance)."""
-    out = []
-    for k, (r, fitted) in enumerate(per_pose):
-        var = noise.variance(np.where(np.isfinite(fitted), np.maximum(fitted, 0.0), 0.0))
-        out.append(Q.image_shift(inp.images[k], fitted, inp.valid[k], var))
-    return out
-
-
-def with_shift_warnings(per_pose, shifts_: list, labels: list[str]):
-    """Each pose's result with the shift warning added to its warnings (where the test fires)."""
-    out = []
-    for (r, fitted), s, lab in zip(per_pose, shifts_, labels):
-        w = Q.shift_warning(lab, s, r.chi2_per_pixel)
-        out.append((replace(r, warnings=tuple(r.warnings) + (w,)) if w else r, fitted))
-    return out
-
-
-def error_budget(cfg: C.LoadedConfig, ctx, surface, m: C.MethodSettings, gm, inp, noise, per_pose, joint, todo,
-                 scale: float, meter: TotalMeter, exposure_s, rois=None) -> Budget:
+def error_budget(system: C.System, calibration_budget: bool, build_T, ctx, surface, m: C.MethodSettings, gm, inp,
+                 noise, per_pose, joint, todo, scale: float, meter: TotalMeter, exposure_s, rois=None) -> Budget:
     """The budget of every total: photon noise always; with the calibration's σ given, the
     regularisation (λ halved and doubled) and the calibration (one T per parameter at +1 σ,
     each pose solved again at its own λ).  With ``rois`` (the run's RoiMeter, which measured
     each solve) every region's total gets its regularisation and calibration σ too, over the
-    region's members as measured on the solve as used."""
-    from .reconstruct import make_grid, run_method
+    region's members as measured on the solve as used.  ``system``: the rig whose calibrated
+    parameters move; ``build_T``: the run plan's T builder."""
+    from ..inverse.solve import run_method
+    from ._reconstruct_grid import make_grid
 
     labels = [pt.pose.label for _, pt in todo]
     b = noise_only(meter, per_pose, joint, labels, exposure_s)
-    b.shifts = shifts(per_pose, inp, noise)
-    if not wanted(cfg):
+    b.shifts = shifts(per_pose, inp.images, inp.valid, noise)
+    if not wanted(system, calibration_budget):
         return b
-    params = parameters(cfg.model.system)
+    params = parameters(system)
     b.parameters = [(n, s, u) for n, s, u, _ in params]
-    b.gain_relative = gain_relative(cfg.model.system)
+    b.gain_relative = gain_relative(system)
     b.t_builds = len(params) * len(todo)
     ctx.say(f"error budget: {len(params)} calibrated parameter(s) moved by +1 sd: {b.t_builds} T builds "
             f"({len(params)} x {len(todo)} pose(s); the T cache keeps them, a rerun only solves), then each pose "
@@ -270,10 +253,9 @@ def error_budget(cfg: C.LoadedConfig, ctx, surface, m: C.MethodSettings, gm, inp
         step("lambda doubled", advance=True)
         double = each(gm.Ts, gm.parts, 2.0)
         moved_all = []
-        for name, _, _, system in params:
+        for name, _, _, moved in params:
             step(f"T with {name} + 1 sd", advance=True)
-            cfg_i = C.LoadedConfig(cfg.model.model_copy(update={"system": system}), cfg.path, cfg.raw)
-            g = make_grid(cfg_i, quiet, surface, m.unknowns)
+            g = make_grid(build_T, quiet, surface, m.unknowns, moved)
             moved_all.append(each(g.Ts, g.parts, 1.0))
         step("done", advance=True)
     # the totals (each over its own observed elements), then each region's (over its members)
@@ -302,31 +284,3 @@ def error_budget(cfg: C.LoadedConfig, ctx, surface, m: C.MethodSettings, gm, inp
     if n_roi:
         b.roi_sigma_regularisation, b.roi_sigma_calibration = roi_reg, roi_cal
     return b
-
-
-def write(g: h5py.Group, b: Budget) -> None:
-    """``/budget`` of reconstruction.h5: per total (poses, then joint) its σ by cause."""
-    g.attrs["meaning"] = ("1 sd of each total (photons per exposure) by cause: photon noise sqrt(w'Cw); "
-                          "regularisation max |t(lambda/2) - t|, |t(2 lambda) - t|; calibration sqrt(sum_i delta_i^2 "
-                          "+ (t gain_relative)^2) with delta_i the total's change when T is rebuilt with parameter i "
-                          "moved by +1 sd (same lambda); sigma = the three in quadrature (NaN: not computed)")
-    g.attrs["labels"] = json.dumps([t.label for t in b.totals])
-    g.attrs["t_builds"] = b.t_builds
-    g.attrs["gain_relative"] = b.gain_relative if b.gain_relative is not None else np.nan
-    g.attrs["parameters"] = json.dumps([{"name": n, "sigma": s, "unit": u} for n, s, u in b.parameters])
-    for key in ("total", "sigma_noise", "sigma_regularisation", "sigma_calibration", "sigma"):
-        g.create_dataset(key, data=np.array([getattr(t, key) for t in b.totals], float)).attrs["unit"] = "photons"
-    if b.parameters:
-        g.create_dataset("deltas", data=np.array([[t.deltas.get(n, np.nan) for n, _, _ in b.parameters]
-                                                  for t in b.totals], float)).attrs["layout"] = "deltas[total, parameter] photons"
-    if b.roi_names:
-        r = g.create_group("rois")
-        r.attrs["names"] = json.dumps(b.roi_names)
-        r.attrs["layout"] = "[roi, total] in the order of /budget/labels (poses, then joint); photons per exposure"
-        r.create_dataset("sigma_regularisation", data=b.roi_sigma_regularisation).attrs["unit"] = "photons"
-        r.create_dataset("sigma_calibration", data=b.roi_sigma_calibration).attrs["unit"] = "photons"
-    if b.shifts:
-        g.create_dataset("shift_px", data=np.array([[s.dx_px, s.dy_px] for s in b.shifts], float)).attrs["meaning"] = \
-            "per pose: the shift (x, y pixels) of the fitted image that best explains the residual"
-        g.create_dataset("shift_z", data=np.array([s.z for s in b.shifts], float)).attrs["meaning"] = \
-            f"per pose: |shift| in units of its standard error; warned above {Q.SHIFT_Z:g} (and {Q.SHIFT_MIN_PX:g} px)"

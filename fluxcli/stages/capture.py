@@ -584,7 +584,7 @@ def _make_surface(cfg: C.LoadedConfig, ctx: RunContext, sf: C.CaptureSurface, sc
     mirrors = plane_mirrors(m.system)
     views = ["direct"] + mirror_names(m.system)
     photons = pc.photons(emccd_model(m.system.camera.sensor, pc.exposure_s))
-    warning = assumed_qe_warning(cfg, "capture-surface", real_counts=scene is None)
+    warning = assumed_qe_warning(cfg.model.system, "capture-surface", real_counts=scene is None)
     if warning:
         ctx.say(warning)
     scans = []

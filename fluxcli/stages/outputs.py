@@ -27,44 +27,44 @@ def _given(model, key: str) -> bool:
     return model is not None and key in model.model_fields_set
 
 
-def simulation_exposure_s(cfg: C.LoadedConfig) -> float | None:
-    """The simulated exposure when the config states it (the schema's default is not a measurement)."""
-    sim = cfg.model.simulate
+def simulation_exposure_s(sim) -> float | None:
+    """The simulated exposure when the config states it (the schema's default is not a measurement);
+    ``sim``: the config's ``simulate`` section, or None."""
     return float(sim.noise.exposure_s) if sim is not None and _given(sim.noise, "exposure_s") else None
 
 
-def reconstruction_exposure_s(cfg: C.LoadedConfig) -> float | None:
-    """The exposure of the images reconstructed: the image files', else the simulation's."""
-    rc = cfg.model.reconstruct
-    if rc.images is not None:  # image files, or a capture (whose exposure_s picks one of its exposures)
-        t = getattr(rc.images, "exposure_s", None)
-        return float(t) if t is not None and _given(rc.images, "exposure_s") else None
-    return simulation_exposure_s(cfg)
+def reconstruction_exposure_s(images, sim) -> float | None:
+    """The exposure of the images reconstructed: the image files', else the simulation's
+    (``images``: reconstruct.images or None; ``sim``: the ``simulate`` section or None)."""
+    if images is not None:  # image files, or a capture (whose exposure_s picks one of its exposures)
+        t = getattr(images, "exposure_s", None)
+        return float(t) if t is not None and _given(images, "exposure_s") else None
+    return simulation_exposure_s(sim)
 
 
-def rate_exposure_s(cfg: C.LoadedConfig, rec_path: Path | None = None) -> float | None:
+def recorded_rate_exposure_s(stated: float | None, rec_path: Path, config_path: Path) -> float | None:
     """The exposure that turns a reconstruction's photons into photons/s, as ``reconstruct``
     recorded it (a capture's frames, else the config's stated exposure), not as the config says
     now: a rate must not change when the config is edited after the fact.
 
     A config that now states another exposure than the one recorded is refused (UserError
     naming both); an artefact from before the exposure was recorded falls back to the config.
+    ``stated``: the exposure the config states now (s, None: none).
     """
-    rec_path = Path(rec_path) if rec_path is not None else cfg.workdir / "reconstruction.h5"
-    stated = reconstruction_exposure_s(cfg)
+    from ..artefacts.reconstruction import recorded_exposure
+
     if not rec_path.is_file():
         return stated
-    with A.open_artefact(rec_path, "reconstruction") as f:
-        if "rate_exposure_s" not in f.attrs:
-            return stated
-        recorded = float(f.attrs["rate_exposure_s"])
-        source = str(f.attrs.get("rate_exposure_source", "reconstruct"))
+    got = recorded_exposure(rec_path)
+    if got is None:
+        return stated
+    recorded, source = got
     recorded_t = None if not np.isfinite(recorded) else recorded
     if stated is not None and (recorded_t is None or abs(stated - recorded_t) > 1e-9 * max(stated, recorded_t)):
         was = f"{recorded_t:g} s ({source})" if recorded_t is not None else "no exposure time (per exposure, no rates)"
         raise UserError(f"the config states an exposure of {stated:g} s (reconstruct.images.exposure_s or "
                         f"simulate.noise.exposure_s) but {rec_path} was reconstructed with {was}: a rate cannot be "
-                        f"changed after the fact. Remove the override, or run 'fluxmap reconstruct {cfg.path} --force' "
+                        f"changed after the fact. Remove the override, or run 'fluxmap reconstruct {config_path} --force' "
                         f"with the exposure the images were taken at.")
     return recorded_t
 
@@ -77,33 +77,12 @@ def _quantities(prefix: str, power, areas, exposure_s, sigma=None) -> tuple[dict
 def reconstruction_vtp(rec_path: Path, out_path: Path, *, exposure_s: float | None) -> Path:
     """Write the reconstruction (joint over poses when there are several) and, where the
     artefact holds them, the ground truth and each pose's own reconstruction."""
-    with A.open_artefact(rec_path, "reconstruction") as f:
-        surface = A.read_surface(f["surface"])
-        fl = f["flux"]
-        observed = fl["observed"][()].astype(bool)
-        power = np.where(observed, fl["power"][()], np.nan)
-        sigma = np.where(observed, fl["sigma"][()], np.nan) if "sigma" in fl else None
-        truth = f["truth/power"][()] if "truth" in f and "power" in f["truth"] else None
-        pp = f["per_pose"] if "per_pose" in f else None
-        pose_power = pp["power"][()] if pp is not None and "power" in pp else None
-        pose_obs = pp["observed"][()].astype(bool) if pp is not None and "observed" in pp else None
-        method = str(f.attrs.get("method", ""))
-        joint = bool(fl.attrs.get("joint_over_poses", False))
-        rois = None
-        if "rois" in f:  # one cell array per region of interest (the last map's: joint, or the only pose)
-            from ..quantify.rois import read_group
+    from ..artefacts.reconstruction import read_maps
 
-            rois = read_group(f["rois"])
-        per_filter = {}
-        if "filters" in f:  # several filters in one reconstruct: each filter's map
-            import json
-
-            for name in json.loads(f["filters"].attrs["order"]):
-                fo = f[f"filters/{name}/flux"]
-                per_filter[name] = np.where(fo["observed"][()].astype(bool), fo["power"][()], np.nan)
-        head = fl["headline_total"] if "headline_total" in fl else None
-        headline = (float(head[()]), str(head.attrs.get("over", "")), str(head.attrs.get("reason", ""))) \
-            if head is not None else None
+    r = read_maps(rec_path)
+    surface, power, observed, sigma, truth = r.surface, r.power, r.observed, r.sigma, r.truth
+    pose_power, pose_obs, method, joint = r.pose_power, r.pose_observed, r.method, r.joint_over_poses
+    rois, per_filter, headline = r.rois, r.per_filter, r.headline
     areas = surface.element_areas_mm2
     arrays, units = _quantities("", power, areas, exposure_s, sigma)
     if truth is not None:
@@ -152,25 +131,39 @@ def simulation_vtp(sim_path: Path, out_path: Path, *, exposure_s: float | None) 
 
 
 def export_3d(cfg: C.LoadedConfig, ctx, artefact: Path) -> Path:
-    """The ``.vtp`` beside a reconstruction or simulation artefact (the stages' one-line call)."""
+    """The ``.vtp`` beside a reconstruction or simulation artefact (simulate's one-line call;
+    reconstruct calls :func:`export_reconstruction` with its plan's parts)."""
     artefact = Path(artefact)
     if artefact.stem == "reconstruction":
-        out = reconstruction_vtp(artefact, artefact.with_suffix(".vtp"), exposure_s=rate_exposure_s(cfg, artefact))
-    else:
-        out = simulation_vtp(artefact, artefact.parent / "simulation_truth.vtp", exposure_s=simulation_exposure_s(cfg))
+        return export_reconstruction(ctx, artefact, reconstruction_exposure_s(cfg.model.reconstruct.images,
+                                                                              cfg.model.simulate), cfg.path)
+    return export_simulation(ctx, artefact, simulation_exposure_s(cfg.model.simulate))
+
+
+def export_simulation(ctx, artefact: Path, exposure_s: float | None) -> Path:
+    """``simulation_truth.vtp`` beside ``artefact`` (``exposure_s``: the simulated exposure the config states)."""
+    out = simulation_vtp(artefact, artefact.parent / "simulation_truth.vtp", exposure_s=exposure_s)
+    ctx.say(f"3-D surface for ParaView/pyvista: {out}")
+    return out
+
+
+def export_reconstruction(ctx, artefact: Path, stated_exposure_s: float | None, config_path: Path) -> Path:
+    """``reconstruction.vtp`` beside ``artefact``, in rates at the exposure it recorded."""
+    out = reconstruction_vtp(artefact, artefact.with_suffix(".vtp"),
+                             exposure_s=recorded_rate_exposure_s(stated_exposure_s, artefact, config_path))
     ctx.say(f"3-D surface for ParaView/pyvista: {out}")
     return out
 
 
 # ------------------------------------------------------------------ what the report records
-def rig_of(cfg: C.LoadedConfig):
-    """The camera and mirrors as the report's 3-D view draws them."""
+def rig_of(system: C.System):
+    """The camera and mirrors (``system``: the config's rig) as the report's 3-D view draws them."""
     from ..report.view3d import Rig
     from ..scene import camera_from_config, mirror_names, plane_mirrors
 
-    cam = camera_from_config(cfg.model.system.camera)
+    cam = camera_from_config(system.camera)
     mirrors = []
-    for name, m in zip(mirror_names(cfg.model.system), plane_mirrors(cfg.model.system)):
+    for name, m in zip(mirror_names(system), plane_mirrors(system)):
         u, v = m.axis_u * m.half_size_mm[0], m.axis_v * m.half_size_mm[1]
         mirrors.append((name, np.array([m.center_mm - u - v, m.center_mm + u - v, m.center_mm + u + v,
                                         m.center_mm - u + v])))
@@ -178,8 +171,16 @@ def rig_of(cfg: C.LoadedConfig):
                (cam.nx * cam.focal_pixel_mm, cam.ny * cam.focal_pixel_mm), mirrors)
 
 
-def record_of(cfg: C.LoadedConfig, digests: dict[str, str]) -> list[tuple[str, str]]:
-    """(label, value) rows: the settings and files a result was made with, for the report's record."""
+def capture_path(cfg: C.LoadedConfig) -> Path:
+    """reconstruct.images.capture, resolved (:func:`._reconstruct_plan.capture_path`)."""
+    from ._reconstruct_plan import capture_path as resolved
+
+    return resolved(cfg)
+
+
+def record_of(cfg: C.LoadedConfig, digests: dict[str, str], exposure_s: float | None) -> list[tuple[str, str]]:
+    """(label, value) rows: the settings and files a result was made with, for the report's record
+    (the whole config: it is the record of the config; ``exposure_s``: the rate's, as recorded)."""
     m = cfg.model
     cam = m.system.camera
     lens = cam.lens
@@ -193,13 +194,14 @@ def record_of(cfg: C.LoadedConfig, digests: dict[str, str]) -> list[tuple[str, s
                      + (f" (f/{lens.f_number:g})" if lens.f_number else "")
                      + f", focused {lens.focus_distance_mm:g} mm in front"),
             ("apertures", ", ".join(f"⌀{a.diameter_mm:g} mm at {a.distance_mm:g} mm" for a in cam.apertures) or "none"),
-            sensor_row(cfg),
+            sensor_row(cam.sensor, m.reconstruct.images,
+                       capture_path(cfg) if hasattr(m.reconstruct.images, "capture") else None),
             ("mirrors", "; ".join(f"{mm.name or f'mirror{k}'}: centre {list(mm.center_mm)} mm, normal "
                                   f"{list(mm.normal)}, {mm.size_mm[0]:g} × {mm.size_mm[1]:g} mm, reflectance "
                                   f"{mm.reflectance:g}" for k, mm in enumerate(m.system.mirrors)) or "none"),
             ("poses", f"heights {list((m.subject.poses or C.Poses()).heights_mm)} mm × rotations "
                       f"{list((m.subject.poses or C.Poses()).rotations_deg)}°")]
-    t = rate_exposure_s(cfg)
+    t = exposure_s
     rows.append(("exposure", f"{t:g} s" if t is not None else "not given (quantities per exposure; no rates)"))
     rc = m.reconstruct
     if rc.images is not None and not hasattr(rc.images, "files"):  # a capture artefact
@@ -236,17 +238,15 @@ def frames_settings(capture: Path, filter_name: str | None) -> dict:
         return {}
 
 
-def sensor_row(cfg: C.LoadedConfig) -> tuple[str, str]:
-    """The record's sensor row: the settings as used.  For a capture, the EM gain, exposure and
-    temperature the frames were read out at (capture.h5, per frame); the config's sensor model
-    for the rest (QE, conversion gain, noise), which is what converts counts to photons."""
-    sensor = cfg.model.system.camera.sensor.model_dump()
-    rc = cfg.model.reconstruct
-    if rc.images is not None and hasattr(rc.images, "capture"):
-        from .reconstruct import _capture_path
-
-        src = rc.images
-        used = frames_settings(_capture_path(cfg), src.filters[0] if src.filters else src.filter)
+def sensor_row(sensor_settings: C.Sensor, images, capture: Path | None) -> tuple[str, str]:
+    """The record's sensor row: the settings as used.  For a capture (``images``: reconstruct.images,
+    ``capture``: its capture.h5), the EM gain, exposure and temperature the frames were read out at
+    (per frame); the config's sensor model for the rest (QE, conversion gain, noise), which is what
+    converts counts to photons."""
+    sensor = sensor_settings.model_dump()
+    if images is not None and hasattr(images, "capture"):
+        src = images
+        used = frames_settings(capture, src.filters[0] if src.filters else src.filter)
         if used.get("em_gain"):
             sensor.pop("em_gain", None)
             shown = "; ".join(f"{k} {', '.join(f'{v:g}' for v in vals)}" for k, vals in used.items() if vals)

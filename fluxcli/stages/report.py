@@ -23,11 +23,12 @@ import numpy as np
 from .. import artefacts as A
 from .. import config as C
 from .. import report as R
+from ..artefacts import reconstruction as RA
 from ..errors import UserError
 from ..pipeline import check_writable, geometry_of
 from ..scene import SubjectPlacer
 from .context import RunContext
-from .outputs import rate_exposure_s, record_of, rig_of
+from .outputs import reconstruction_exposure_s, recorded_rate_exposure_s, record_of, rig_of
 
 
 _GEOMETRY = ("system", "system.camera.lens", "system.camera.pose", "subject")
@@ -35,11 +36,15 @@ _GEOMETRY = ("system", "system.camera.lens", "system.camera.pose", "subject")
 
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     rs = cfg.model.report
-    rec = cfg.workdir / "reconstruction.h5"
+    rec = cfg.workdir / RA.FILENAME
     cal = cfg.workdir / "calibration.h5"
-    surf = _surface_artefact(cfg)
+    subject_surface = cfg.model.subject.surface if cfg.model.subject is not None else None
+    surf = _surface_artefact([cfg.captured_surface_path, cfg.workdir / "surface.h5"]
+                             + ([cfg.resolve(subject_surface.artefact)]
+                                if getattr(subject_surface, "artefact", None) is not None else []))
     if not rec.is_file() and (cal.is_file() or surf is not None):
-        return _sections_only(cfg, cal if cal.is_file() else None, surf, ctx)
+        return _sections_only(cfg.workdir / "report", rs.title or cfg.path.stem, cal if cal.is_file() else None, surf,
+                              ctx)
     C.require(cfg, "report", _GEOMETRY)
     if not rec.is_file():
         raise UserError(f"report: {rec} does not exist; run 'fluxmap reconstruct {cfg.path}' first "
@@ -60,10 +65,9 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         ctx.say(f"report: up to date ({index}); --force redraws it")
         return index
 
-    with A.open_artefact(rec, "reconstruction") as f:  # the result must be the one this config describes
-        prov = A.read_provenance(f)
-        A.check_geometry(rec, prov, geometry_of(cfg, SubjectPlacer(cfg).surface.digest()),
-                         remedy=f"Run 'fluxmap reconstruct {cfg.path}' again")
+    prov = RA.read_provenance(rec)  # the result must be the one this config describes
+    A.check_geometry(rec, prov, geometry_of(cfg, SubjectPlacer(cfg).surface.digest()),
+                     remedy=f"Run 'fluxmap reconstruct {cfg.path}' again")
     used = prov.input_files.get("simulation.h5", {}).get("sha256")
     same_sim = sim.is_file() and used is not None and used == inputs.get("simulation.h5")
     if sim.is_file() and used is not None and not same_sim:
@@ -76,13 +80,16 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
                         f"'fluxmap reconstruct {cfg.path} --force'.")
     _check_slice(study, geometry, rs.slice_axial_mm)
     _remove_old_figures(out_dir)
+    exposure_s = recorded_rate_exposure_s(reconstruction_exposure_s(cfg.model.reconstruct.images, cfg.model.simulate),
+                                          rec, cfg.path)  # as reconstruct recorded it
     ctx.say(f"report: {study.n_poses} pose(s), {study.surface.n_elements} elements, method {study.method}")
     index, summary = R.make_report(study, out_dir, title=rs.title or cfg.path.stem, geometry=geometry,
                                    slice_axial_mm=rs.slice_axial_mm, surface_views=rs.surface_views,
                                    extra={"provenance": {"inputs": inputs, "settings": settings}},
                                    sections=_rois_section(rec) + ([_calibration_section(cal)] if cal.is_file() else [])
                                    + ([_surface_section(surf, plotly_loaded=True)] if surf is not None else []),
-                                   record=record_of(cfg, inputs), rig=rig_of(cfg), exposure_s=rate_exposure_s(cfg, rec))
+                                   record=record_of(cfg, inputs, exposure_s), rig=rig_of(cfg.model.system),
+                                   exposure_s=exposure_s)
     for note in summary["notes"]:
         ctx.say(f"note: {note}")
     sp = summary["spreads"]
@@ -133,13 +140,10 @@ def _calibration_section(cal: Path):
     return add
 
 
-def _surface_artefact(cfg: C.LoadedConfig) -> Path | None:
-    """The structured-light surface this run measured (capture-surface's ``surface.h5``), or the one
-    ``subject.surface.artefact`` names; None when there is none."""
-    candidates = [cfg.captured_surface_path, cfg.workdir / "surface.h5"]
-    s = cfg.model.subject.surface if cfg.model.subject is not None else None
-    if getattr(s, "artefact", None) is not None:
-        candidates.append(cfg.resolve(s.artefact))
+def _surface_artefact(candidates: list) -> Path | None:
+    """The first of ``candidates`` that exists: the structured-light surface this run measured
+    (capture-surface's ``surface.h5``), or the one ``subject.surface.artefact`` names; None when
+    there is none."""
     return next((p for p in candidates if p is not None and p.is_file()), None)
 
 
@@ -151,9 +155,9 @@ def _surface_section(surf: Path, *, plotly_loaded: bool):
     return add
 
 
-def _sections_only(cfg: C.LoadedConfig, cal: Path | None, surf: Path | None, ctx: RunContext) -> Path:
+def _sections_only(out_dir: Path, title: str, cal: Path | None, surf: Path | None, ctx: RunContext) -> Path:
     """No reconstruction yet (a calibrate-only or capture-surface-only workdir): the calibration
-    and surface sections alone."""
+    and surface sections alone, into ``out_dir`` under ``title``."""
     inputs = {}
     if cal is not None:
         with A.open_artefact(cal, "calibration"):
@@ -163,11 +167,10 @@ def _sections_only(cfg: C.LoadedConfig, cal: Path | None, surf: Path | None, ctx
         with A.open_artefact(surf, "surface"):
             pass
         inputs["surface.h5"] = A.file_sha256(surf)
-    out_dir = cfg.workdir / "report"
     check_writable(out_dir, "workdir")
     sections = ([_calibration_section(cal)] if cal is not None else []) + (
         [_surface_section(surf, plotly_loaded=False)] if surf is not None else [])
-    index, summary = R.sections_report(out_dir, cfg.model.report.title or cfg.path.stem, sections,
+    index, summary = R.sections_report(out_dir, title, sections,
                                        extra={"provenance": {"inputs": inputs}})
     ctx.say(f"report: {' and '.join(k.split('.')[0] for k in inputs)}, {len(summary['figures'])} figure(s); open {index}")
     return index
@@ -175,18 +178,13 @@ def _sections_only(cfg: C.LoadedConfig, cal: Path | None, surf: Path | None, ctx
 
 def _rois_section(rec: Path) -> list:
     """The regions of interest (issue 24): a table per region and map, numbers into summary.json."""
-    from ..quantify.rois import NUMBER_KEYS, read_group
+    from ..artefacts.reconstruction import read_roi_spectrum
+    from ..quantify.rois import NUMBER_KEYS
 
-    with A.open_artefact(rec, "reconstruction") as f:
-        if "rois" not in f:
-            return []
-        r = read_group(f["rois"])
-        spectrum = {}  # filter -> (transmission, ROI numbers) when several filters were reconstructed
-        if "filters" in f:
-            for name in json.loads(f["filters"].attrs["order"]):
-                if "rois" in f[f"filters/{name}"]:
-                    spectrum[name] = (float(f[f"filters/{name}"].attrs["transmission"]),
-                                      read_group(f[f"filters/{name}/rois"]))
+    # spectrum: filter -> (transmission, ROI numbers) when several filters were reconstructed
+    r, spectrum = read_roi_spectrum(rec)
+    if r is None:
+        return []
 
     def add(page, save):
         unit = "photons/s" if r["exposure_s"] is not None else "photons per exposure"

@@ -16,27 +16,27 @@ import h5py
 import numpy as np
 
 from .. import artefacts as A
-from .. import config as C
 from ..errors import UserError
 from ..quantify import rois as Q
 
 
-def regions(cfg: C.LoadedConfig) -> list[Q.Region]:
+def regions(rois) -> list[Q.Region]:
+    """The config's ``rois:`` (C.Roi, in order) as the science's regions."""
     return [Q.Region(name=r.name, kind=r.kind, center_mm=r.center_mm, radius_mm=r.radius_mm, min_mm=r.min_mm,
                      max_mm=r.max_mm, fraction=r.fraction, array=r.array, value=r.value, ids=r.ids)
-            for r in cfg.model.rois]
+            for r in rois]
 
 
-def cell_array_of_elements(cfg: C.LoadedConfig, surface, name: str, where: str) -> np.ndarray:
+def cell_array_of_elements(mesh: Path | None, surface, name: str, where: str) -> np.ndarray:
     """(n_elements,) int: the mesh file's integer cell array ``name`` per element (the value
-    of most of its area where its triangles disagree)."""
-    s = cfg.model.subject.surface
-    if not isinstance(s, C.MeshSurface):
+    of most of its area where its triangles disagree); ``mesh``: subject.surface.mesh resolved
+    (None: the surface is not a mesh file)."""
+    if mesh is None:
         raise UserError(f"{where}: a cell_array ROI reads an integer cell array of the mesh file; subject.surface "
                         "is not a mesh file (give subject.surface.mesh, or use a sphere, box, disc or elements ROI).")
     import pyvista as pv
 
-    path = cfg.resolve(s.mesh)
+    path = Path(mesh)
     mesh = pv.read(str(path))
     if isinstance(mesh, pv.MultiBlock):
         mesh = mesh.combine()
@@ -66,8 +66,9 @@ def cell_array_of_elements(cfg: C.LoadedConfig, surface, name: str, where: str) 
 class RoiMeter:
     """Measures the config's regions on each reconstruction of a run."""
 
-    def __init__(self, cfg: C.LoadedConfig, surface, exposure_s: float | None):
-        self.regions = regions(cfg)
+    def __init__(self, rois, mesh: Path | None, surface, exposure_s: float | None):
+        """``rois``: the config's regions (C.Roi); ``mesh``: the mesh file cell_array regions read."""
+        self.regions = regions(rois)
         self.surface = surface
         self.areas = surface.element_areas_mm2
         self.exposure_s = exposure_s
@@ -76,7 +77,7 @@ class RoiMeter:
             where = f"rois[{k}] ({r.name})"
             if r.needs_map:
                 continue
-            cells = cell_array_of_elements(cfg, surface, r.array, where) if r.kind == "cell_array" else None
+            cells = cell_array_of_elements(mesh, surface, r.array, where) if r.kind == "cell_array" else None
             self.fixed[r.name] = Q.members(r, surface, cell_array=cells)
         self.labels: list[str] = []
         self.poses: list[tuple] = []

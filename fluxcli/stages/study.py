@@ -33,9 +33,8 @@ from pydantic import Field, ValidationError, model_validator
 
 from .. import artefacts as A
 from .. import config as C
-from ..artefacts.digest import unchanged
+from ..artefacts.reconstruction import read_for_study
 from ..errors import UserError
-from ..quantify import rois as Q
 from ..quantify.study import Session, setup_differences, setup_of, study_rows
 from .context import RunContext
 
@@ -87,44 +86,35 @@ def read_session(s: StudySession, k: int, base: Path) -> list[Session]:
     after the fact."""
     path = s.artefact if s.artefact.is_absolute() else (base / s.artefact).resolve()
     where = f"sessions[{k}] ({s.name})"
-    with A.open_artefact(path, "reconstruction") as f:
-        same = unchanged(f)
-        if same is None:
-            raise UserError(f"{where}: {path} records no digest of its results (made by an older fluxmap), so it "
-                            "cannot be checked; reconstruct it again.")
-        if not same:
-            raise UserError(f"{where}: {path} was changed after it was written: its results no longer match the "
-                            "digest recorded when reconstruct made it. Refusing it; reconstruct it again from its images.")
-        prov = A.read_provenance(f)
-        for name, rec in prov.input_files.items():
-            p = path.parent / rec.get("path", "")
-            if p.is_file() and A.file_sha256(p) != rec.get("sha256"):
-                raise UserError(f"{where}: {p} ({name}) changed after {path} was made from it; the reconstruction no "
-                                "longer matches its input. Refusing it; reconstruct it again.")
-        if "rois" not in f:
-            raise UserError(f"{where}: {path} holds no regions of interest; give rois: in its config and reconstruct "
-                            "it again.")
-        pp = f["per_pose"]
-        # one reconstruct of several filters: a session per filter (the study file's filter is the artefact's)
-        parts = [(s.filter, f["rois"], f["truth/power"][()] if "truth" in f and "power" in f["truth"] else None,
-                  pp["direct_roi_photons"][()])]
-        if "filters" in f:
-            parts = [(name, h["rois"], h["truth_power"][()] if "truth_power" in h else None, h["direct_roi_photons"][()])
-                     for name in json.loads(f["filters"].attrs["order"])
-                     for h in [f[f"filters/{name}"]] if "rois" in h]
-        out = []
-        for filt, g, power, direct in parts:
-            rois = Q.read_group(g)
-            truth = None
-            if power is not None:
-                t = rois["exposure_s"] if rois["exposure_s"] is not None else 1.0
-                truth = {n: float(power[rois["members"][i, -1]].sum()) / t for i, n in enumerate(rois["names"])}
-            label = s.name if len(parts) == 1 else f"{s.label or s.subject + ' ' + ('day ' + format(s.day, 'g') if s.day is not None else s.date)} {filt}"
-            out.append(Session(label=label, subject=s.subject, day=s.day, date=s.date, filter=filt, artefact=str(path),
-                               rois=rois, direct_image_photons=direct, heights_mm=pp["heights_mm"][()],
-                               rotations_deg=pp["rotations_deg"][()],
-                               setup=setup_of(prov.config, prov.input_files), truth_rois=truth))
-        return out
+    view = read_for_study(path, s.filter)
+    if view.unchanged is None:
+        raise UserError(f"{where}: {path} records no digest of its results (made by an older fluxmap), so it "
+                        "cannot be checked; reconstruct it again.")
+    if not view.unchanged:
+        raise UserError(f"{where}: {path} was changed after it was written: its results no longer match the "
+                        "digest recorded when reconstruct made it. Refusing it; reconstruct it again from its images.")
+    prov = view.provenance
+    for name, rec in prov.input_files.items():
+        p = path.parent / rec.get("path", "")
+        if p.is_file() and A.file_sha256(p) != rec.get("sha256"):
+            raise UserError(f"{where}: {p} ({name}) changed after {path} was made from it; the reconstruction no "
+                            "longer matches its input. Refusing it; reconstruct it again.")
+    if not view.has_rois:
+        raise UserError(f"{where}: {path} holds no regions of interest; give rois: in its config and reconstruct "
+                        "it again.")
+    parts = view.parts
+    out = []
+    for filt, rois, power, direct in parts:
+        truth = None
+        if power is not None:
+            t = rois["exposure_s"] if rois["exposure_s"] is not None else 1.0
+            truth = {n: float(power[rois["members"][i, -1]].sum()) / t for i, n in enumerate(rois["names"])}
+        label = s.name if len(parts) == 1 else f"{s.label or s.subject + ' ' + ('day ' + format(s.day, 'g') if s.day is not None else s.date)} {filt}"
+        out.append(Session(label=label, subject=s.subject, day=s.day, date=s.date, filter=filt, artefact=str(path),
+                           rois=rois, direct_image_photons=direct, heights_mm=view.heights_mm,
+                           rotations_deg=view.rotations_deg,
+                           setup=setup_of(prov.config, prov.input_files), truth_rois=truth))
+    return out
 
 
 def _keep(session: Session, names: tuple[str, ...], where: str) -> Session:

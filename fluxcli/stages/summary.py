@@ -15,44 +15,25 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import artefacts as A
+from ..artefacts import reconstruction as RA
 from .. import config as C
 from ..errors import UserError
 from .context import RunContext
 from ..report import spread
 from ..report.notebook import observed_share
-from .outputs import rate_exposure_s
+from .outputs import reconstruction_exposure_s, recorded_rate_exposure_s
 
 
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> None:
-    rec = cfg.workdir / "reconstruction.h5"
+    rec = cfg.workdir / RA.FILENAME
     if not rec.is_file():
         raise UserError(f"summary: {rec} does not exist; run 'fluxmap reconstruct {cfg.path}' first.")
-    with A.open_artefact(rec, "reconstruction") as f:
-        pp = f["per_pose"]
-        heights, rots = pp["heights_mm"][()], pp["rotations_deg"][()]
-        roi = pp["direct_roi_photons"][()] if "direct_roi_photons" in pp else None
-        totals = pp["total"][()]
-        # issue 25: where the observed total is not pinned down, the headline is over well-observed elements
-        heads = pp["headline_total"][()] if "headline_total" in pp else totals
-        why = [w.decode() if isinstance(w, bytes) else str(w) for w in pp["headline_reason"][()]] \
-            if "headline_reason" in pp else [""] * len(totals)
-        pose_obs = pp["observed"][()].astype(bool)
-        power = np.where(f["flux/observed"][()].astype(bool), f["flux/power"][()], np.nan)
-        joint = bool(f["flux"].attrs.get("joint_over_poses", False))
-        truth = f["truth/power"][()] if "truth" in f else None
-        error = float(f["truth"].attrs["error"]) if truth is not None and "error" in f["truth"].attrs else None
-        budget = None
-        if "budget" in f:  # each total's σ by cause (reconstruct's error budget)
-            from ..quantify.budget import read_group as read_budget
-
-            budget = read_budget(f["budget"])
-        rois = None
-        if "rois" in f:
-            from ..quantify.rois import read_group
-
-            rois = read_group(f["rois"])
-    t = rate_exposure_s(cfg, rec)
+    r = RA.read_summary(rec)
+    heights, rots, roi, totals = r.heights_mm, r.rotations_deg, r.direct_roi_photons, r.totals
+    heads, why, pose_obs, power, joint = r.headline_total, r.headline_reason, r.pose_observed, r.power, r.joint_over_poses
+    truth, error, budget, rois = r.truth, r.error, r.budget, r.rois
+    t = recorded_rate_exposure_s(reconstruction_exposure_s(cfg.model.reconstruct.images, cfg.model.simulate), rec,
+                                 cfg.path)  # as reconstruct recorded it
     rate, unit = (1.0 / t, "photons/s") if t is not None else (1.0, "photons per exposure")
     share = observed_share(pose_obs, truth if truth is not None else power)
     share_name = ("share observed (of the true light)" if truth is not None

@@ -1,0 +1,66 @@
+"""Issue 21, item 2: how much of a reconstruction rests on grazing views, and whether its
+residual is structured by viewing angle (:mod:`fluxcli.inverse.diagnostics`).
+
+Per pose (and jointly) the share of the observed light seen beyond 60 and 75 deg from the
+normal and the share of the total resting on such views; the warnings are added to the
+poses' results (and the joint solve's).  T per view is read from each pose's T cache file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from ..artefacts.reconstruction import Emission
+from ..artefacts.transfer import load_view
+from ..optics.emission import CHECK_DEG
+from . import diagnostics as D
+
+
+def emission_checks(profile, views, todo, per_pose, joint, images, valid, noise, mismatch: str | None = None
+                    ) -> tuple[list, object, list[str], Emission]:
+    """``profile``: the emission model; ``views``: the camera views; ``todo``: per pose (placed
+    scene, T plan); ``per_pose``: [(Result, fitted image)]; ``images``/``valid``: [pose, ny, nx];
+    ``mismatch``: a warning for the first pose (images simulated under another emission model).
+    Returns the poses and joint result with the warnings added, the console lines and the record."""
+    prof = profile
+    deg = np.linspace(0.0, 90.0, 181)
+    weights = [v.weight for v in views]
+    centres = [v.camera.center_mm for v in views]
+    light, totals, slopes, out, all_T, all_ang = [], [], [], [], [], []
+    for k, ((res, fitted), (scene, pt)) in enumerate(zip(per_pose, todo)):
+        Tv = [load_view(pt.path, v) for v in range(len(views))]
+        ang = D.element_angles(scene.surface, centres, prof.weight)
+        light.append(D.grazing_shares(Tv, weights, res.power, ang))
+        totals.append(D.total_shares(Tv, weights, res.power, ang))
+        px = D.pixel_angles(Tv, weights, res.power, ang)
+        model = np.nan_to_num(fitted.ravel())
+        st = D.angle_structure(images[k].ravel(), model, noise.variance(model), px, valid[k].ravel())
+        warns = tuple(w for w in (D.grazing_warning(totals[-1]), D.structure_warning(st, prof.describe()),
+                                  mismatch if k == 0 else None) if w)
+        out.append((replace(res, warnings=tuple(res.warnings) + warns), fitted) if warns else (res, fitted))
+        slopes.append([np.nan, np.nan] if st is None else [st.slope_per_10deg, st.t])
+        if joint is not None:
+            all_T += Tv
+            all_ang.append(ang)
+    record = Emission(prof.model, prof.describe(), np.nan if prof.refractive_index is None else prof.refractive_index,
+                      prof.source or "", deg, prof.radiance(np.radians(deg)), np.array(D.BANDS_DEG), np.array(light),
+                      np.array(totals), np.array(slopes))
+    lines = [f"emission model: {prof.describe()}"
+             + ("" if prof.is_lambertian else " (L/L0 " + ", ".join(
+                 f"{r:.2f} at {a:g} deg" for a, r in zip(CHECK_DEG[::2], prof.radiance(np.radians(CHECK_DEG[::2]))))
+                + ")")]
+    lines += [f"seen at grazing angles, pose {pt.pose.label}: light {D.describe_shares(li)}; "
+              f"total {D.describe_shares(to)}" for li, to, (_, pt) in zip(light, totals, todo)]
+    if joint is not None:
+        ang = D.ElementAngles(np.concatenate([a.mean_deg for a in all_ang]), np.concatenate([a.beyond for a in all_ang]))
+        jl = D.grazing_shares(all_T, weights * len(todo), joint.power, ang)
+        jt = D.total_shares(all_T, weights * len(todo), joint.power, ang)
+        record.joint_light_beyond_deg, record.joint_total_beyond_deg = jl, jt
+        lines.append(f"seen at grazing angles, all poses jointly: light {D.describe_shares(jl)}; "
+                     f"total {D.describe_shares(jt)}")
+        w = D.grazing_warning(jt)
+        if w:
+            joint = replace(joint, warnings=tuple(joint.warnings) + (w,))
+    return out, joint, lines, record
