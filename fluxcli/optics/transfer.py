@@ -405,8 +405,8 @@ def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: in
         flags = visibility.clear_faces(occ, surface.face_vertices_mm[used], surface.face_normals[used],
                                        cam.center_mm, cam.aperture_radius_mm, ray_offset_mm, view.mirror)
         clear = np.ascontiguousarray(flags[at])
-    return _LensPlan(points, normals, edges, ray_area, element.astype(np.int64), box_lo, box_hi, disk_center, disk_radius,
-                     use_box, n_lens, pat_off,
+    return _LensPlan(points, normals, edges, ray_area, element.astype(np.int64), box_lo, box_hi, disk_center,
+                     disk_radius, use_box, n_lens, pat_off,
                      np.ascontiguousarray(disk_unit), np.ascontiguousarray(square_unit), np.ascontiguousarray(jitter),
                      chunks, int(n_lens.sum()), clear, _spins(element, turn_patterns),
                      margin, float(s.target_column_error),
@@ -657,18 +657,20 @@ def _pairwise_pairs(surface: Surface, view: View, s: PairwiseSampling, rays_per_
     faces = _candidate_faces(surface, view)
     if len(faces) == 0:
         return
-    P, N, E, W, _, F = sample_faces(surface, faces, np.full(len(faces), s.surface_subdivisions), return_faces=True)
-    z = cam.axial(P)
-    front = (z > 0) & (np.einsum("ij,ij->i", N, cam.center_mm - P) > -cam.aperture_radius_mm)
-    P, N, E, W, z, F = P[front], N[front], E[front], W[front], z[front], F[front]
-    frames = _frames(surface, F, emission)
+    n_sub = np.full(len(faces), s.surface_subdivisions)
+    points, normals, element, area_share, _, face = sample_faces(surface, faces, n_sub, return_faces=True)
+    depth = cam.axial(points)
+    front = (depth > 0) & (np.einsum("ij,ij->i", normals, cam.center_mm - points) > -cam.aperture_radius_mm)
+    points, normals, element, area_share, depth, face = (points[front], normals[front], element[front],
+                                                         area_share[front], depth[front], face[front])
+    frames = _frames(surface, face, emission)
     sub = s.pixel_subdivisions  # sub-pixels per pixel along each axis
     sub_pitch = cam.focal_pixel_mm / sub
     dA_vd = sub_pitch**2
     u, R = cam.focus_distance_mm, cam.aperture_radius_mm
     # the lines from a point through the lens disk meet the focal plane in a disk
-    centre = cam.focal_plane_hit(P, np.broadcast_to(cam.center_mm, P.shape), z)
-    radius = R * np.abs(1 - u / z)
+    centre = cam.focal_plane_hit(points, np.broadcast_to(cam.center_mm, points.shape), depth)
+    radius = R * np.abs(1 - u / depth)
     ccol, crow = cam.pixel_coords(centre)
     ccol, crow = ccol * sub, crow * sub  # in sub-pixel units
     rs = radius / sub_pitch
@@ -700,7 +702,7 @@ def _pairwise_pairs(surface: Surface, view: View, s: PairwiseSampling, rays_per_
         inbox = (cc <= np.repeat(c1[i], rep)) & (rr <= np.repeat(r1[i], rep))
         X = o + sub_pitch * (((cc + 0.5) - cam.nx * sub / 2)[:, None] * cam.right
                              + ((rr + 0.5) - cam.ny * sub / 2)[:, None] * cam.down)
-        p, nn, zz = P[ii], N[ii], z[ii]
+        p, nn, zz = points[ii], normals[ii], depth[ii]
         # the line's crossing of the lens plane (axial 0): from X (axial u) towards p
         with np.errstate(divide="ignore", invalid="ignore"):
             L = X + (u / (u - zz))[:, None] * (p - X)
@@ -712,7 +714,7 @@ def _pairwise_pairs(surface: Surface, view: View, s: PairwiseSampling, rays_per_
             cos_d = np.abs(d @ cam.axis) / dl
             dv = X - p
             r2 = np.einsum("ij,ij->i", dv, dv)
-            w = np.where(in_lens & (cos_s > 0), cos_s * cos_d / (np.pi * r2), 0.0) * dA_vd * W[ii]
+            w = np.where(in_lens & (cos_s > 0), cos_s * cos_d / (np.pi * r2), 0.0) * dA_vd * area_share[ii]
             wt = None
             if emission is not None and emission.has_tangent:  # along the ray leaving the real surface
                 wt = ((w * emission.tangent_weight(np.where(in_lens, cos_s, 0.0)) / dl)[:, None]
@@ -721,7 +723,7 @@ def _pairwise_pairs(surface: Surface, view: View, s: PairwiseSampling, rays_per_
                 w = w * emission.weight(np.where(in_lens, cos_s, 0.0))
         pix = (rr // sub) * cam.nx + (cc // sub)
         pix = np.where(inbox, pix, -1)
-        yield p, nn, L, pix, w, E[ii], zz, len(i), len(ii), wt
+        yield p, nn, L, pix, w, element[ii], zz, len(i), len(ii), wt
 
 
 class Checkpoint:
