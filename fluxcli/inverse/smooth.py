@@ -41,8 +41,9 @@ def observed_adjacency(adjacency, mask: np.ndarray) -> sp.csr_array:
 
 def graph_laplacian(adjacency, mask: np.ndarray, *, dense: bool = False):
     """The weighted graph Laplacian ``L = diag(A1) − A`` of the observed elements: the one
-    Laplacian of fluxmap (the smoothness prior of ``smooth``/``paper`` and MLEM's one-step-late
-    penalty are built on it).
+    Laplacian of fluxmap: the smoothness prior of ``smooth`` (dense, :func:`exitance_prior`, and
+    matrix-free, :func:`fluxcli.inverse.matfree.sparse_exitance_prior`) and MLEM's one-step-late
+    penalty are built on it.
 
     ``bᵀLb = Σ_edges A_ij (b_i − b_j)²`` (each edge once), so ``L`` has zero row sums and is
     positive semi-definite.
