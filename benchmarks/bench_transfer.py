@@ -121,12 +121,11 @@ def record_rays(scene, views, sampling: LensSampling = LensSampling()) -> np.nda
         n_pix = cam.nx * cam.ny
         rec = np.zeros((2 * p.rays, 7), np.float32)
         res = transfer_kernel.lens_columns(
-            nat.occluded16, nat.scene, np.array([*cam.center_mm, *cam.axis, *cam.right, *cam.down, cam.focus_distance_mm,
-                                  cam.focal_pixel_mm, cam.aperture_radius_mm**2, 0.0, 0.0]),
-            np.array([1.0, *m.center_mm, *m.normal, *m.axis_u, *m.axis_v, *m.half_size_mm]) if m else np.zeros(15),
+            nat.occluded16, nat.scene, transfer_kernel.camera_record(cam), transfer_kernel.mirror_record(m),
             np.array([a.distance_mm for a in cam.apertures], float), np.array([a.radius_mm**2 for a in cam.apertures]),
-            1e-3, p.P, p.N, p.G, p.dA, p.elem, p.lo, p.hi, p.dc, p.disk_r, p.use_box, p.n_lens, p.pat_off,
-            p.disk_unit, p.square_unit, p.jitter, 0, len(p.P), n_pix, cam.nx, cam.ny, np.zeros(n_pix),
+            1e-3, p.points_mm, p.normals, p.edges_mm, p.ray_area_mm2, p.element, p.box_lo_mm, p.box_hi_mm,
+            p.disk_center_mm, p.disk_radius_mm, p.use_box, p.n_lens, p.pat_off,
+            p.disk_unit, p.square_unit, p.jitter, 0, len(p.points_mm), n_pix, cam.nx, cam.ny, np.zeros(n_pix),
             np.zeros(n_pix), np.zeros(n_pix, np.bool_), np.zeros(n_pix, np.int32), rec, p.clear,
             p.margin_mm, p.target, p.n_cap, p.spin, p.emis, p.tang, np.zeros((0, 2)), p.tframe)
         out.append(rec[:res[7]])

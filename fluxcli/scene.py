@@ -20,6 +20,7 @@ from .optics.camera import Aperture, PlaneMirror, ThinLensCamera
 from .optics.emission import Profile
 from .optics.transfer import View, views_for
 from .surface import phantoms
+from .surface.geometry import rotation_matrix as _rotation
 from .surface.mesh import Surface, box, read_mesh_checked, rectangle, validated
 
 
@@ -74,13 +75,6 @@ def views_from_config(system: C.System) -> list[View]:
 def poses_from_config(subject: C.Subject) -> list[Pose]:
     p = subject.poses or C.Poses()
     return [Pose(float(h), float(r)) for h in p.heights_mm for r in p.rotations_deg]
-
-
-def _rotation(axis: np.ndarray, angle_deg: float) -> np.ndarray:
-    a = np.asarray(axis, float) / np.linalg.norm(axis)
-    t = np.deg2rad(angle_deg)
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + np.sin(t) * K + (1 - np.cos(t)) * K @ K
 
 
 class SubjectPlacer:

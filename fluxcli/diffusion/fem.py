@@ -21,6 +21,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.spatial import cKDTree
 
+from ..surface.geometry import triangle_areas
 from .mesh import boundary_faces, tet_volumes_mm3
 
 __all__ = ["nirfast_A", "DiffusionModel", "ball_quadrature", "AMG_ABOVE_NODES", "SOLVERS"]
@@ -166,7 +167,7 @@ class DiffusionModel:
             raise ValueError("tets must all have positive volume (orient them as tetrahedralize does).")
         self.boundary_faces = boundary_faces(tets)
         self.boundary_nodes = np.unique(self.boundary_faces)
-        self.boundary_areas_mm2 = _triangle_areas(nodes_mm, self.boundary_faces)
+        self.boundary_areas_mm2 = triangle_areas(nodes_mm[self.boundary_faces])
 
         self._stiffness_plus_absorption = self._assemble_volume()
         self._boundary_mass = _assemble_surface_mass(
@@ -464,11 +465,6 @@ class DiffusionModel:
         """
         local = np.searchsorted(self.boundary_nodes, self.boundary_faces)
         return self.nodes_mm[self.boundary_nodes], local
-
-
-def _triangle_areas(vertices_mm, faces):
-    p = vertices_mm[faces]
-    return 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
 
 
 def _assemble_surface_mass(vertices_mm, faces, areas_mm2, n_nodes):

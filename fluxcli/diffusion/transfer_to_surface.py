@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..surface.geometry import triangle_areas
+
 __all__ = ["exitance_to_elements", "closest_points_on_triangles"]
 
 
@@ -168,12 +170,12 @@ def exitance_to_elements(
 
     # Exact total of the linear interpolant on the tet boundary.
     b_tri = bv[bf]
-    b_area = 0.5 * np.linalg.norm(np.cross(b_tri[:, 1] - b_tri[:, 0], b_tri[:, 2] - b_tri[:, 0]), axis=1)
+    b_area = triangle_areas(b_tri)
     total = b_area @ j2[bf].mean(axis=1)  # (n_sources,)
 
     # Sub-triangle centroid quadrature on the reconstruction faces.
     s_tri = sv[sf]
-    s_area = 0.5 * np.linalg.norm(np.cross(s_tri[:, 1] - s_tri[:, 0], s_tri[:, 2] - s_tri[:, 0]), axis=1)
+    s_area = triangle_areas(s_tri)
     q_bary = _subtriangle_centroids(int(n_subdivisions))
     points = np.einsum("qi,fij->fqj", q_bary, s_tri).reshape(-1, 3)
     face_idx, bary, _ = closest_points_on_triangles(points, bv, bf)

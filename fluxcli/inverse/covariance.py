@@ -8,21 +8,18 @@ Every covariance here is an operator with one method, ``variance_of(weights)``: 
 photons² (n_functionals,).  A matrix-free estimator (probing, Lanczos) for large problems
 can stand in anywhere with the same method.
 
-- :class:`fluxcli.inverse.spectral.FilterCovariance`: the spectral filter methods (paper,
-  smooth), exact for the linear filter, from the eigendecomposition they solved on;
-- :class:`DenseCovariance`: the other Tikhonov-family estimators (tikhonov, nnls,
-  weighted_lsq; MLEM as the weighted λ = 0 estimator), ``H⁻¹ K H⁻¹`` as in
-  :func:`fluxcli.inverse.regularisation.uncertainty` (``kind="sampling"``);
+- :class:`fluxcli.inverse.spectral.FilterCovariance`: the one engine, exact for the linear filter
+  (paper, smooth: from the eigendecomposition they solved on);
+- the other Tikhonov-family estimators (tikhonov, nnls, weighted_lsq; MLEM as the weighted
+  λ = 0 estimator) use the same engine with ``k = 1`` and ``R = I``
+  (:func:`fluxcli.inverse.regularisation.linear_covariance`, made on first use by :class:`Deferred`);
 - :class:`OnObserved` and :class:`Mapped` change the unknowns the weights run over.
 """
 
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg as sla
 import scipy.sparse as sp
-
-from fluxcli.inverse import _common as c
 
 
 def _rows(weights):
@@ -31,42 +28,16 @@ def _rows(weights):
     return W, one
 
 
-class DenseCovariance:
-    """``C = H⁻¹ K H⁻¹`` of the linear estimator ``b = H⁻¹TᵀWa``, ``H = TᵀWT + λ̃I``,
-    ``K = TᵀWΣWT`` (= ``TᵀWT`` when ``W = Σ⁻¹``), on the observed unknowns.
+class Deferred:
+    """A covariance made on first use by ``make()`` (most reconstructions never ask for one)."""
 
-    Parameters
-    ----------
-    T_obs : sparse (m, n_obs), dimensionless.
-    sigma2 : (m,) photons², the noise variance of the pixels.
-    lam : relative λ (``λ̃ = lam × max diag TᵀWT``).
-    weighted : the estimator weights the fit by ``W = 1/sigma2`` (else ``W = I``)."""
-
-    def __init__(self, T_obs, sigma2, lam: float, weighted: bool):
-        self._args = (sp.csr_array(T_obs), np.asarray(sigma2, float), float(lam), bool(weighted))
-        self._cf = self._pinv = self._K = None
-
-    def _factor(self):  # on first use: most reconstructions never ask
-        T_obs, sigma2, lam, weighted = self._args
-        G, _ = c.normal_equations(T_obs, np.zeros(T_obs.shape[0]), 1.0 / sigma2 if weighted else None)
-        H = G + lam * c.lam_scale(G) * np.eye(G.shape[0])
-        self._K = G if weighted else c.normal_equations(T_obs, np.zeros(T_obs.shape[0]), sigma2)[0]
-        self._cf = c.try_cholesky(H)
-        if self._cf is None:  # singular (λ = 0 and unknowns the data cannot tell apart): pseudo-inverse
-            w, V = np.linalg.eigh(H)
-            keep = w > max(w.max(), 0.0) * len(w) * np.finfo(float).eps
-            self._pinv = (V[:, keep] / w[keep]) @ V[:, keep].T
-
-    def _solve(self, X):
-        if self._K is None:
-            self._factor()
-        return sla.cho_solve(self._cf, X, check_finite=False) if self._cf is not None else self._pinv @ X
+    def __init__(self, make):
+        self._make, self._inner = make, None
 
     def variance_of(self, weights) -> np.ndarray:
-        W, one = _rows(weights)
-        Z = self._solve(np.asarray(W.T.toarray() if sp.issparse(W) else W.T))  # H⁻¹ wᵀ, (n_obs, g)
-        var = np.einsum("ig,ig->g", Z, self._K @ Z)
-        return var[0] if one else var
+        if self._inner is None:
+            self._inner = self._make()
+        return self._inner.variance_of(weights)
 
 
 class OnObserved:

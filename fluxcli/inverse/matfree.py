@@ -45,7 +45,7 @@ import scipy.sparse.linalg as spla
 
 from fluxcli.inverse import spectral as S
 from fluxcli.inverse.filtered import Filtered, halved_and_doubled, level_and_fit
-from fluxcli.inverse.smooth import observed_adjacency
+from fluxcli.inverse.smooth import graph_laplacian, observed_adjacency
 
 DENSE_MAX_UNKNOWNS = 6000  # auto: the dense engine up to here (exact, ~14 s at 5880), this path beyond
 TRACE_PROBES = 16
@@ -81,7 +81,7 @@ def sparse_exitance_prior(adjacency, mask: np.ndarray, areas=None, ridge: float 
         if S_.shape != mask.shape or not np.all(S_[mask] > 0):
             raise ValueError(f"areas must be ({mask.size},) and > 0 on observed elements.")
         d = S_[mask].mean() / S_[mask]
-    L = (sp.diags_array(deg) - A) * unit + ridge * sp.eye_array(n_obs)
+    L = graph_laplacian(A, np.ones(n_obs, bool)) * unit + ridge * sp.eye_array(n_obs)
     Dg = sp.diags_array(d)
     R = sp.csc_array(Dg @ L @ Dg)
     up = sp.triu(sp.coo_array(A), k=1)

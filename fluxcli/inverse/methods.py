@@ -34,6 +34,7 @@ import scipy.optimize as sopt
 import scipy.sparse as sp
 
 from fluxcli.inverse import _common as c
+from fluxcli.inverse.smooth import exitance_scaling, graph_laplacian, on_exitance
 
 __all__ = [
     "METHODS",
@@ -466,27 +467,9 @@ def _mlem_info(T, a, *, n_iter, background, smooth, adjacency, rel_tol, rel_thre
     if smooth > 0:
         if adjacency is None:
             raise ValueError("smooth > 0 needs an element adjacency matrix (adjacency=...).")
-        laplacian = _laplacian(adjacency, mask)
+        laplacian = graph_laplacian(adjacency, mask)
     b, it, conv, lam_abs = _mlem(T_obs, a, n_iter, background, smooth, laplacian, rel_tol)
     return c.scatter(b, mask), it, conv, lam_abs
-
-
-def _laplacian(adjacency, mask):
-    n = mask.size
-    if not sp.issparse(adjacency):
-        adjacency = np.asarray(adjacency, dtype=np.float64)
-    A = sp.csr_array(adjacency, dtype=np.float64)
-    if A.shape != (n, n):
-        raise ValueError(f"adjacency must have shape ({n}, {n}), got {A.shape}.")
-    if A.nnz and (not np.all(np.isfinite(A.data)) or A.data.min() < 0):
-        raise ValueError("adjacency must be finite and non-negative.")
-    if abs(A - A.T).sum() > 1e-12 * max(abs(A).sum(), 1.0):
-        raise ValueError("adjacency must be symmetric.")
-    A = sp.csr_array(A[mask][:, mask])
-    A.setdiag(0)
-    A.eliminate_zeros()
-    degree = np.asarray(A.sum(axis=1)).ravel()
-    return sp.csr_array(sp.diags_array(degree) - A)
 
 
 # ------------------------------------------------------------------- entry point
@@ -846,19 +829,9 @@ def _run_mlem(P, lam, rule, opts):
         adjacency = opts.get("adjacency", P.adjacency)
         if adjacency is None:
             raise ValueError("smooth > 0 needs an element adjacency matrix (adjacency=...).")
-        lap = _exitance_laplacian(adjacency, P.mask, P.areas)
+        lap = on_exitance(graph_laplacian(adjacency, P.mask), exitance_scaling(P.areas, P.mask))
     b, it, conv, lam_abs = _mlem(P.T_obs, P.a, n_iter, background, smooth, lap, rel_tol)
     return {"power": b, "iterations": it, "converged": conv, "weighted": True, "lam": 0.0}
-
-
-def _exitance_laplacian(adjacency, mask, areas):
-    """MLEM's smoothing acts on exitance J = b/S: the penalty JᵀLJ is bᵀDLDb, D = S̄/S."""
-    L = _laplacian(adjacency, mask)
-    if areas is None:
-        return L
-    S = np.asarray(areas, float)[mask]
-    d = sp.diags_array(S.mean() / S)
-    return sp.csr_array(d @ L @ d)
 
 
 METHODS = tuple(REGISTRY)
@@ -959,23 +932,25 @@ def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | 
 
         chi2 = chi2_per_pixel(a[rows], fitted[rows], var[rows])
     lam_used = out.get("lam", 0.0)
+    covariance = out.get("covariance")
     if "sigma" in out:
         sigma = c.scatter(out["sigma"], mask)
     elif var is not None and not out.get("no_sigma"):
         # the scatter of the linear estimator at the method's λ (uncertainty, kind="sampling");
         # MLEM as the weighted λ = 0 estimator (inverse Fisher information at the model image)
-        from fluxcli.inverse.regularisation import uncertainty
+        from fluxcli.inverse.regularisation import linear_covariance
 
-        weighted = bool(out.get("weighted"))
-        sigma = uncertainty(T, a, power, sigma2=var, lam=lam_used if method != "mlem" else 0.0,
-                            weighted=weighted, kind="sampling", rel_threshold=rel_threshold)
+        covariance = linear_covariance(T_obs, var, lam_used if method != "mlem" else 0.0, bool(out.get("weighted")))
+        sigma = c.scatter(np.sqrt(np.maximum(covariance.variance_of(sp.identity(T_obs.shape[1], format="csr")), 0.0)),
+                          mask)
     else:
         sigma = np.full(power.shape, np.nan)
-    covariance = out.get("covariance")
     if covariance is None and var is not None and not out.get("no_sigma"):
-        from fluxcli.inverse.covariance import DenseCovariance
+        from fluxcli.inverse.covariance import Deferred
+        from fluxcli.inverse.regularisation import linear_covariance
 
-        covariance = DenseCovariance(T_obs, var, lam_used if method != "mlem" else 0.0, bool(out.get("weighted")))
+        lam_lin, weighted = (lam_used if method != "mlem" else 0.0), bool(out.get("weighted"))
+        covariance = Deferred(lambda: linear_covariance(T_obs, var, lam_lin, weighted))  # most runs never ask
     if covariance is not None:
         from fluxcli.inverse.covariance import OnObserved
 

@@ -14,13 +14,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg as sla
 import scipy.sparse as sp
 
 from fluxcli.inverse import _common as c
-from fluxcli.inverse.spectral import Spectrum, _pick
+from fluxcli.inverse.spectral import FilterCovariance, Spectrum, _pick
 
-__all__ = ["LAMBDA_RULES", "LambdaChoice", "choose_lambda", "uncertainty"]
+__all__ = ["LAMBDA_RULES", "LambdaChoice", "choose_lambda", "linear_covariance", "uncertainty"]
 
 LAMBDA_RULES = ("gcv", "lcurve", "discrepancy")
 
@@ -231,26 +230,25 @@ def uncertainty(T, a, b_hat, *, sigma2, lam: float, weighted: bool = True,
         sigma2 = np.maximum(T_obs @ b_hat[mask], 1.0)
     sigma2 = c.as_pixels(sigma2, T.shape[0], "noise variance sigma2 (photons²)",
                          positive=True, allow_scalar=True)
-    weights = 1.0 / sigma2 if weighted else None
-    G, _ = c.normal_equations(T_obs, a, weights)
-    H = G + lam * c.lam_scale(G) * np.eye(G.shape[0])
+    cov = linear_covariance(T_obs, sigma2, lam, weighted, kind=kind)
+    return c.scatter(np.sqrt(np.maximum(cov.variance_of(sp.identity(T_obs.shape[1], format="csr")), 0.0)), mask)
 
-    n = H.shape[0]
-    cf = c.try_cholesky(H)
-    if cf is not None:
-        Hinv = sla.cho_solve(cf, np.eye(n), check_finite=False)
-        undetermined = np.zeros(n, dtype=bool)
-    else:
-        w, V = np.linalg.eigh(H)
-        keep = w > max(w.max(), 0.0) * n * np.finfo(float).eps
-        Hinv = (V[:, keep] / w[keep]) @ V[:, keep].T
-        undetermined = np.sum(V[:, ~keep] ** 2, axis=1) > 1e-12
 
-    if kind == "posterior":
-        var = np.diag(Hinv).copy()
-    else:
-        K = G if weighted else c.normal_equations(T_obs, a, sigma2)[0]
-        var = np.sum((Hinv @ K) * Hinv, axis=1)
-    std = np.sqrt(np.clip(var, 0.0, None))
-    std[undetermined] = np.inf
-    return c.scatter(std, mask)
+def linear_covariance(T_obs, sigma2, lam: float, weighted: bool, *, kind: str = "sampling") -> FilterCovariance:
+    """The covariance of the Tikhonov estimator ``b = H⁻¹TᵀWa``, ``H = TᵀWT + λ̃I``
+    (``λ̃ = lam × max diag TᵀWT``), as an operator (``variance_of(weights)``), from the one
+    spectral engine (:class:`fluxcli.inverse.spectral.Spectrum` with ``k = 1`` and ``R = I``).
+
+    Parameters
+    ----------
+    T_obs : sparse (n_pixels, n_obs), the observed columns, dimensionless.
+    sigma2 : (n_pixels,) photons², the noise variance of the pixels.
+    lam : relative λ (0 for MLEM, taken as the weighted λ = 0 estimator).
+    weighted : the estimator weights the fit by ``W = 1/sigma2`` (else ``W = I``).
+    kind : "sampling" (the scatter under the noise) or "posterior" (``H⁻¹``, weighted only).
+    """
+    T_obs = sp.csr_array(T_obs)
+    rows = c.covered_rows(T_obs)
+    T_cov, s2 = sp.csr_array(T_obs[rows]), np.asarray(sigma2, float)[rows]
+    spec = Spectrum(T_cov, np.zeros(T_cov.shape[0]), 1.0 / s2 if weighted else None)
+    return FilterCovariance(spec, lam * spec.scale, 1, None if weighted else s2, kind=kind)

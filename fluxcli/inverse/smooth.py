@@ -39,16 +39,75 @@ def observed_adjacency(adjacency, mask: np.ndarray) -> sp.csr_array:
     return A
 
 
-def element_laplacian(adjacency, mask: np.ndarray, ridge: float = 1e-3) -> np.ndarray:
-    """Dense weighted graph Laplacian ``diag(A1) − A`` of the observed elements, scaled to
-    unit max diagonal, plus ``ridge`` times the identity (so it is positive definite).
+def graph_laplacian(adjacency, mask: np.ndarray, *, dense: bool = False):
+    """The weighted graph Laplacian ``L = diag(A1) − A`` of the observed elements: the one
+    Laplacian of fluxmap: the smoothness prior of ``smooth`` (dense, :func:`exitance_prior`, and
+    matrix-free, :func:`fluxcli.inverse.matfree.sparse_exitance_prior`) and MLEM's one-step-late
+    penalty are built on it.
 
-    ``adjacency`` holds the edge weights: 1 where elements touch (Surface.element_adjacency),
-    or the cotangent weights of a vertex basis (Surface.vertex_basis().stiffness), for which
-    the Laplacian is the exact ``∫|∇J|² dS`` of an exitance linear within faces."""
-    A = observed_adjacency(adjacency, mask).toarray()
-    L = np.diag(A.sum(axis=1)) - A
-    peak = L.diagonal().max()
+    ``bᵀLb = Σ_edges A_ij (b_i − b_j)²`` (each edge once), so ``L`` has zero row sums and is
+    positive semi-definite.
+
+    Parameters
+    ----------
+    adjacency : (n_elements, n_elements) sparse or dense, symmetric edge weights ≥ 0: 1 where
+        two elements touch (``Surface.element_adjacency``), or the cotangent weights of a vertex
+        basis (``Surface.vertex_basis().stiffness``), for which ``bᵀLb`` is the exact
+        ``∫|∇J|² dS`` of a field linear within faces.  Edges to unobserved elements and the
+        diagonal are dropped.
+    mask : (n_elements,) bool, the observed elements.
+    dense : return an ndarray (the degrees then summed as numpy sums a dense row, so the
+        dense prior keeps its bits) instead of a sparse matrix.
+
+    Returns
+    -------
+    sparse csr or ndarray (n_obs, n_obs), the unit of the weights.
+    """
+    A = sp.csr_array(adjacency, dtype=np.float64)
+    if A.shape == (mask.size, mask.size) and abs(A - A.T).sum() > 1e-12 * max(abs(A).sum(), 1.0):
+        raise ValueError("adjacency must be symmetric.")
+    A = observed_adjacency(A, mask)
+    if dense:
+        A = A.toarray()
+        return np.diag(A.sum(axis=1)) - A
+    degree = np.asarray(A.sum(axis=1)).ravel()
+    return sp.csr_array(sp.diags_array(degree) - A)
+
+
+def exitance_scaling(areas, mask: np.ndarray) -> np.ndarray | None:
+    """``d_j = S̄/S_j`` over the observed elements (``S̄`` their mean area): a prior ``JᵀLJ`` on
+    exitance ``J = b/S`` is ``bᵀ D L D b`` on power, ``D = diag(d)``.  None for ``areas`` None
+    (equal areas, ``D = I``).
+
+    Parameters
+    ----------
+    areas : (n_elements,) mm², > 0 on observed elements, or None.
+    mask : (n_elements,) bool, the observed elements.
+    """
+    if areas is None:
+        return None
+    S = np.asarray(areas, dtype=np.float64)
+    if S.shape != mask.shape or not np.all(S[mask] > 0):
+        raise ValueError(f"areas must be ({mask.size},) and > 0 on observed elements.")
+    return S[mask].mean() / S[mask]
+
+
+def on_exitance(L, d):
+    """``D L D`` with ``D = diag(d)`` (:func:`exitance_scaling`), for a dense or sparse ``L``;
+    ``L`` itself when ``d`` is None."""
+    if d is None:
+        return L
+    if sp.issparse(L):
+        D = sp.diags_array(d)
+        return sp.csr_array(D @ L @ D)
+    return d[:, None] * L * d[None, :]
+
+
+def element_laplacian(adjacency, mask: np.ndarray, ridge: float = 1e-3) -> np.ndarray:
+    """:func:`graph_laplacian` as a dense matrix scaled to unit max diagonal, plus ``ridge``
+    times the identity (so it is positive definite)."""
+    L = graph_laplacian(adjacency, mask, dense=True)
+    peak = L.diagonal().max() if len(L) else 0.0
     return (L / peak if peak > 0 else L) + ridge * np.eye(len(L))
 
 
@@ -71,14 +130,7 @@ def exitance_prior(adjacency, mask: np.ndarray, areas=None, ridge: float = 1e-3)
     -------
     (n_obs, n_obs) symmetric positive definite matrix.
     """
-    L = element_laplacian(adjacency, mask, ridge)
-    if areas is None:
-        return L
-    S = np.asarray(areas, dtype=np.float64)
-    if S.shape != mask.shape or not np.all(S[mask] > 0):
-        raise ValueError(f"areas must be ({mask.size},) and > 0 on observed elements.")
-    d = S[mask].mean() / S[mask]
-    return d[:, None] * L * d[None, :]
+    return on_exitance(element_laplacian(adjacency, mask, ridge), exitance_scaling(areas, mask))
 
 
 def smooth_iterated(T, a, *, adjacency, lam: float | None = None, n_iter: int = 10, gamma: float = 1.0,

@@ -103,34 +103,59 @@ class Spectrum:
         _, fos = self.factors(lam_abs, k)
         return self.V @ (fos * self.coef)
 
-    def sigma(self, lam_abs: float, k: int = 1, sigma2=None, sums=None) -> np.ndarray:
+    def sigma(self, lam_abs: float, k: int = 1, sigma2=None, sums=None, kind: str = "sampling") -> np.ndarray:
         """Standard deviation (n_obs,) of the filtered estimator under noise, photons.
 
         ``sigma2`` (m,) is the per-pixel noise variance in photons²; None means the
         weights already are ``1/σ²`` (then the covariance is ``V diag(f²/s) Vᵀ``).
         ``sums`` (n_groups, n_obs), optional: the standard deviation of these sums of
-        the estimate instead (sub-elements summed per element, covariances included)."""
+        the estimate instead (sub-elements summed per element, covariances included).
+        ``kind``: see :meth:`variance_of`."""
         return np.sqrt(np.maximum(self.variance_of(
-            sp.identity(len(self.s), format="csr") if sums is None else sums, lam_abs, k, sigma2), 0.0))
+            sp.identity(len(self.s), format="csr") if sums is None else sums, lam_abs, k, sigma2, kind), 0.0))
 
-    def variance_of(self, weights, lam_abs: float, k: int = 1, sigma2=None) -> np.ndarray:
+    def variance_of(self, weights, lam_abs: float, k: int = 1, sigma2=None, kind: str = "sampling") -> np.ndarray:
         """Variance ``wᵀ C w`` of linear functionals ``w·b_λ`` of the filtered estimator,
         photons² (the covariances between unknowns included: a region's total is not the
-        sum of its per-element σ).
+        sum of its per-element σ).  The one uncertainty engine of fluxmap
+        (:func:`fluxcli.inverse.regularisation.uncertainty` is its Tikhonov case).
 
         ``weights`` (n_obs,) or (n_functionals, n_obs), dense or sparse; ``sigma2`` as in
-        :meth:`sigma`.  Returns (n_functionals,) (a scalar's shape for one functional)."""
+        :meth:`sigma`.  ``kind``:
+
+        - ``"sampling"``: ``C`` is the covariance of the estimator under the noise,
+          ``M TᵀWΣWT Mᵀ`` with ``M = V diag(f/s) Vᵀ`` (``V diag(f²/s) Vᵀ`` when ``W = Σ⁻¹``);
+        - ``"posterior"`` (``k = 1``, weights ``1/σ²``): ``C = (G + λ̃R)⁻¹ = V diag(1/(s + λ̃)) Vᵀ``,
+          the posterior covariance of the Gaussian model with prior ``b ~ N(0, (λ̃R)⁻¹)``.
+
+        With ``lam_abs = 0`` the modes the data do not determine (``s ≈ 0``) are left out
+        (the pseudo-inverse) and a functional that has weight on them gets an infinite
+        variance.  Returns (n_functionals,) (a scalar's shape for one functional)."""
+        if kind not in ("sampling", "posterior"):
+            raise ValueError(f"kind must be 'sampling' or 'posterior', got {kind!r}.")
         one = not sp.issparse(weights) and np.ndim(weights) == 1
         W = sp.csr_array(weights) if sp.issparse(weights) else np.atleast_2d(np.asarray(weights, float))
-        f, fos = self.factors(lam_abs, k)
         AV = np.asarray(W @ self.V)
-        if sigma2 is None:
-            var = (AV**2) @ (f * fos)
+        singular = lam_abs <= 0 and not self.pos.all()
+        if kind == "posterior":
+            if lam_abs > 0:
+                inv = 1.0 / (self.s + float(lam_abs))
+            else:
+                inv = np.where(self.pos, 1.0 / np.where(self.pos, self.s, 1.0), 0.0)
+            var = (AV**2) @ inv
         else:
-            M = (AV * fos) @ self.V.T
-            TW = self.T if self.weights is None else sp.csr_array(sp.diags_array(self.weights) @ self.T)
-            C = TW.T @ sp.csr_array(sp.diags_array(sigma2) @ TW)  # sparse (elements that share pixels), symmetric
-            var = np.einsum("ij,ji->i", M, C @ M.T)  # diag(M C Mᵀ): sparse x dense, not a 3-operand O(n³) einsum
+            f, fos = self.factors(lam_abs, k)
+            if singular:  # the pseudo-inverse: undetermined modes are not estimated (their variance: below)
+                f, fos = np.where(self.pos, f, 0.0), np.where(self.pos, fos, 0.0)
+            if sigma2 is None:
+                var = (AV**2) @ (f * fos)
+            else:
+                M = (AV * fos) @ self.V.T
+                TW = self.T if self.weights is None else sp.csr_array(sp.diags_array(self.weights) @ self.T)
+                C = TW.T @ sp.csr_array(sp.diags_array(sigma2) @ TW)  # sparse (elements that share pixels), symmetric
+                var = np.einsum("ij,ji->i", M, C @ M.T)  # diag(M C Mᵀ): sparse x dense, not a 3-operand O(n³) einsum
+        if singular:
+            var = np.where(np.sum(AV[:, ~self.pos] ** 2, axis=1) > 1e-12, np.inf, var)
         return var[0] if one else var
 
 
@@ -143,11 +168,13 @@ class FilterCovariance:
     ``level²``.  The linear approximation: the clipping at zero is ignored (see
     :meth:`Spectrum.sigma`)."""
 
-    def __init__(self, spec: Spectrum, lam_abs: float, k: int, sigma2=None, level: float = 1.0):
+    def __init__(self, spec: Spectrum, lam_abs: float, k: int, sigma2=None, level: float = 1.0,
+                 kind: str = "sampling"):
         self.spec, self.lam_abs, self.k, self.sigma2, self.level = spec, float(lam_abs), int(k), sigma2, float(level)
+        self.kind = kind
 
     def variance_of(self, weights) -> np.ndarray:
-        return self.spec.variance_of(weights, self.lam_abs, self.k, self.sigma2) * self.level**2
+        return self.spec.variance_of(weights, self.lam_abs, self.k, self.sigma2, self.kind) * self.level**2
 
 
 @dataclass

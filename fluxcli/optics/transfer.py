@@ -127,13 +127,13 @@ def sample_faces(surface: Surface, face_ids: np.ndarray, n_sub: np.ndarray, retu
         out_f.append(np.repeat(f, n * n))
         bary, sign = subtriangle_barycentrics(int(n))
         p = np.einsum("kc,fcd->fkd", bary, tri[f]).reshape(-1, 3)
-        k = len(bary)
-        e = np.repeat(surface.element_of_face[f], k)
+        per_face = len(bary)  # samples per face
+        e = np.repeat(surface.element_of_face[f], per_face)
         edges = np.stack([tri[f, 1] - tri[f, 0], tri[f, 2] - tri[f, 0]], axis=1) / n  # (F, 2, 3)
         out_p.append(p)
-        out_n.append(np.repeat(normals[f], k, axis=0))
+        out_n.append(np.repeat(normals[f], per_face, axis=0))
         out_e.append(e)
-        out_w.append(np.repeat(areas[f] / (n * n), k) / el_area[e])
+        out_w.append(np.repeat(areas[f] / (n * n), per_face) / el_area[e])
         out_edges.append((edges[:, None] * sign[None, :, None, None]).reshape(-1, 2, 3))
     if not out_p:
         z = np.zeros((0, 3))
@@ -147,8 +147,8 @@ def sample_faces(surface: Surface, face_ids: np.ndarray, n_sub: np.ndarray, retu
 def square_points(n: int) -> np.ndarray:
     """``n`` well-spread points of the unit square (Roberts' R2 sequence), shape (n, 2)."""
     g = 1.32471795724474602596
-    k = np.arange(n) + 0.5
-    return np.column_stack([(k / g) % 1.0, (k / g**2) % 1.0])
+    i = np.arange(n) + 0.5
+    return np.column_stack([(i / g) % 1.0, (i / g**2) % 1.0])
 
 
 def triangle_jitter(n: int) -> np.ndarray:
@@ -302,18 +302,18 @@ class _LensPlan:
     """Per surface sample (sorted by element) everything the compiled loop needs, and the
     chunks of whole elements it is cast in."""
 
-    P: np.ndarray
-    N: np.ndarray
-    G: np.ndarray
-    dA: np.ndarray
-    elem: np.ndarray
-    lo: np.ndarray
-    hi: np.ndarray
-    dc: np.ndarray
-    disk_r: np.ndarray
-    use_box: np.ndarray
-    n_lens: np.ndarray
-    pat_off: np.ndarray
+    points_mm: np.ndarray  # (S, 3) the sample's point (a sub-triangle's centroid)
+    normals: np.ndarray  # (S, 3) its face's unit normal
+    edges_mm: np.ndarray  # (S, 2, 3) its sub-triangle's edges (each ray jitters its point within)
+    ray_area_mm2: np.ndarray  # (S,) lens-plane area per lens sample x the sample's share of its element's area
+    element: np.ndarray  # (S,) int64, non-decreasing
+    box_lo_mm: np.ndarray  # (S, 2) lens-plane box (right, down) of the lens points whose rays reach the sensor
+    box_hi_mm: np.ndarray  # (S, 2)
+    disk_center_mm: np.ndarray  # (S, 2) the aperture disk seen from the sample, on the lens plane
+    disk_radius_mm: np.ndarray  # (S,)
+    use_box: np.ndarray  # (S,) bool: sample the box (smaller than the disk) rather than the disk
+    n_lens: np.ndarray  # (S,) lens samples of the first round
+    pat_off: np.ndarray  # (S,) where its lens pattern starts in the concatenated patterns
     disk_unit: np.ndarray
     square_unit: np.ndarray
     jitter: np.ndarray
@@ -342,46 +342,52 @@ def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: in
     if len(faces) == 0:
         return None
     n_sub = _lens_subdivisions(surface, faces, cam, s)
-    P, N, E, W, G, F = sample_faces(surface, faces, n_sub, return_faces=True)
-    z = cam.axial(P)
-    front = (z > 0) & (np.einsum("ij,ij->i", N, cam.center_mm - P) > -cam.aperture_radius_mm)
-    P, N, E, W, z, G, F = P[front], N[front], E[front], W[front], z[front], G[front], F[front]
-    disk_c, disk_r = _sampling_disks(cam, P, z)
-    # Clip the sampling to the lens points whose rays land on the sensor: the focal-plane
-    # hit is X = k L + (u/z) p (lateral, k = 1 - u/z), so the sensor's preimage on the lens
-    # plane is a rectangle.  A line sensor or a point near the image edge then needs only
-    # a sliver of the lens.  Jitter moves p by up to one sub-triangle: pad for it.
+    points, normals, element, area_share, edges, face = sample_faces(surface, faces, n_sub, return_faces=True)
+    depth = cam.axial(points)
+    front = (depth > 0) & (np.einsum("ij,ij->i", normals, cam.center_mm - points) > -cam.aperture_radius_mm)
+    points, normals, element, area_share, depth, edges, face = (
+        points[front], normals[front], element[front], area_share[front], depth[front], edges[front], face[front])
+    disk_world, disk_radius = _sampling_disks(cam, points, depth)
+    # Clip the sampling to the lens points whose rays land on the sensor: the ray from the
+    # surface point p (at depth z) through the lens point L meets the focal plane (depth u) at
+    # X = (1 - u/z) L + (u/z) p (lateral), so the sensor's preimage on the lens plane is a
+    # rectangle.  ``to_focus`` = u/z is where along lens -> p the focal plane lies; ``defocus``
+    # = 1 - u/z scales the lens disk into the blur on the focal plane (0: in focus).  A line
+    # sensor or a point near the image edge then needs only a sliver of the lens.  Jitter moves
+    # p by up to one sub-triangle: pad for it.
     u, pf = cam.focus_distance_mm, cam.focal_pixel_mm
-    sc = u / z
-    k = 1 - sc
-    lat = np.stack([(P - cam.center_mm) @ cam.right, (P - cam.center_mm) @ cam.down], axis=1)
-    dc = np.stack([disk_c @ cam.right, disk_c @ cam.down], axis=1)
+    to_focus = u / depth
+    defocus = 1 - to_focus
+    lateral = np.stack([(points - cam.center_mm) @ cam.right, (points - cam.center_mm) @ cam.down], axis=1)
+    disk_center = np.stack([disk_world @ cam.right, disk_world @ cam.down], axis=1)  # lens plane
     half = np.array([cam.nx, cam.ny]) * pf / 2
-    grain = np.linalg.norm(G, axis=2).max(axis=1)
+    grain = np.linalg.norm(edges, axis=2).max(axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        ends = (np.stack([-half, half])[:, None, :] - sc[None, :, None] * lat[None]) / k[None, :, None]
-        pad = (sc * grain / np.abs(k))[:, None]
-        lo = np.maximum(np.min(ends, axis=0) - pad, dc - disk_r[:, None])  # inf - inf where focused: replaced below
-        hi = np.minimum(np.max(ends, axis=0) + pad, dc + disk_r[:, None])
-    focused = ~np.isfinite(ends).all(axis=(0, 2))  # k = 0: all rays meet at one focal point
-    lo[focused], hi[focused] = (dc - disk_r[:, None])[focused], (dc + disk_r[:, None])[focused]
-    hits = np.flatnonzero(np.all(hi > lo, axis=1) | focused)
+        ends = (np.stack([-half, half])[:, None, :] - to_focus[None, :, None] * lateral[None]) / defocus[None, :, None]
+        pad = (to_focus * grain / np.abs(defocus))[:, None]
+        box_lo = np.maximum(np.min(ends, axis=0) - pad, disk_center - disk_radius[:, None])  # inf - inf where focused
+        box_hi = np.minimum(np.max(ends, axis=0) + pad, disk_center + disk_radius[:, None])
+    focused = ~np.isfinite(ends).all(axis=(0, 2))  # defocus 0: all rays meet at one focal point
+    box_lo[focused] = (disk_center - disk_radius[:, None])[focused]
+    box_hi[focused] = (disk_center + disk_radius[:, None])[focused]
+    hits = np.flatnonzero(np.all(box_hi > box_lo, axis=1) | focused)
     # grouped by element (stable: the sampling order within an element is kept), so that each
     # element's column is finished in one piece; one gather per array
-    keep = hits[np.argsort(E[hits], kind="stable")]
-    P, N, E, W, z, G, F, lo, hi, dc, disk_r, k = (np.ascontiguousarray(x[keep])
-                                                  for x in (P, N, E, W, z, G, F, lo, hi, dc, disk_r, k))
-    box_area = np.prod(hi - lo, axis=1)
-    use_box = box_area < 0.6 * np.pi * disk_r**2
+    keep = hits[np.argsort(element[hits], kind="stable")]
+    (points, normals, element, area_share, depth, edges, face, box_lo, box_hi, disk_center, disk_radius,
+     defocus) = (np.ascontiguousarray(x[keep]) for x in (points, normals, element, area_share, depth, edges, face,
+                                                         box_lo, box_hi, disk_center, disk_radius, defocus))
+    box_area = np.prod(box_hi - box_lo, axis=1)
+    use_box = box_area < 0.6 * np.pi * disk_radius**2
     # the blur the sampled region paints, in pixels: sample its area at the requested density
-    extent_px = np.where(use_box[:, None], (hi - lo), 2 * disk_r[:, None]) * np.abs(k)[:, None] / pf
+    extent_px = np.where(use_box[:, None], (box_hi - box_lo), 2 * disk_radius[:, None]) * np.abs(defocus)[:, None] / pf
     painted = np.prod(np.maximum(extent_px, 1.0), axis=1)
     want = np.clip(np.ceil(s.lens_samples_per_blur_pixel * painted), s.lens_samples_min, s.lens_samples_max)
     # quantise to powers of two above the minimum, so that few patterns serve all samples
     level = np.ceil(np.log2(want / s.lens_samples_min)).astype(int)
     n_lens = np.minimum(s.lens_samples_min * 2**level, s.lens_samples_max).astype(np.int64)
-    area = np.where(use_box, box_area, np.pi * disk_r**2)
-    dA = area / n_lens * W
+    area = np.where(use_box, box_area, np.pi * disk_radius**2)
+    ray_area = area / n_lens * area_share
     # one pattern per distinct count, with its adaptive rounds: lens disk, box and surface jitter
     counts = np.unique(n_lens)
     pats = [lens_pattern(int(n), s.lens_samples_max if s.target_column_error > 0 else int(n)) for n in counts]
@@ -389,22 +395,23 @@ def _lens_plan(surface: Surface, view: View, s: LensSampling, rays_per_batch: in
     pat_off = starts[np.searchsorted(counts, n_lens)]
     disk_unit, square_unit, jitter = ((np.concatenate([p[i] for p in pats]) if pats else np.zeros((0, 2)))
                                       for i in range(3))
-    chunks = _element_chunks(E, n_lens, rays_per_batch)
-    clear = np.zeros(len(P), np.uint8)
+    chunks = _element_chunks(element, n_lens, rays_per_batch)
+    clear = np.zeros(len(points), np.uint8)
     margin = visibility.MARGIN_MM
-    if tree is not None and len(P) and n_lens.sum() >= visibility.MIN_RAYS_PER_FACE * len(faces):
-        used, at = np.unique(F, return_inverse=True)
+    if tree is not None and len(points) and n_lens.sum() >= visibility.MIN_RAYS_PER_FACE * len(faces):
+        used, at = np.unique(face, return_inverse=True)
         occ = tree.get()
         margin = occ.margin_mm
         flags = visibility.clear_faces(occ, surface.face_vertices_mm[used], surface.face_normals[used],
                                        cam.center_mm, cam.aperture_radius_mm, ray_offset_mm, view.mirror)
         clear = np.ascontiguousarray(flags[at])
-    return _LensPlan(P, N, G, dA, E.astype(np.int64), lo, hi, dc, disk_r, use_box, n_lens, pat_off,
+    return _LensPlan(points, normals, edges, ray_area, element.astype(np.int64), box_lo, box_hi, disk_center,
+                     disk_radius, use_box, n_lens, pat_off,
                      np.ascontiguousarray(disk_unit), np.ascontiguousarray(square_unit), np.ascontiguousarray(jitter),
-                     chunks, int(n_lens.sum()), clear, _spins(E, turn_patterns),
+                     chunks, int(n_lens.sum()), clear, _spins(element, turn_patterns),
                      margin, float(s.target_column_error),
                      int(s.lens_samples_max), _emission_table(emission), _tangent_table(emission),
-                     _frames(surface, F, emission))
+                     _frames(surface, face, emission))
 
 
 def _emission_table(emission: Profile | None) -> np.ndarray:
@@ -539,7 +546,7 @@ def _lens_view(surface: Surface, view: View, scene: OcclusionScene, s: LensSampl
     val = np.concatenate([r[3] for r in results])
     T = sp.csc_matrix((val, pix, indptr), shape=shape)
     T.eliminate_zeros()
-    stats = {"rays": float(sum(r[5] for r in results)), "surface_samples": float(len(plan.P)),
+    stats = {"rays": float(sum(r[5] for r in results)), "surface_samples": float(len(plan.points_mm)),
              "rays_evaluated": float(sum(r[6] for r in results))}
     tan = _tangent_csr(results, n_pix, surface.n_elements) if len(plan.tang) else None
     return T.tocsr(), err, stats, tan
@@ -556,11 +563,8 @@ def _lens_runner(view: View, scene: OcclusionScene, plan: _LensPlan, eps: float)
     cam = view.camera
     n_pix = cam.nx * cam.ny
     nat = scene.native
-    cam_arr = np.array([*cam.center_mm, *cam.axis, *cam.right, *cam.down, cam.focus_distance_mm,
-                        cam.focal_pixel_mm, cam.aperture_radius_mm**2, 0.0, 0.0])
-    m = view.mirror
-    mir = (np.array([1.0, *m.center_mm, *m.normal, *m.axis_u, *m.axis_v, *m.half_size_mm]) if m is not None
-           else np.zeros(15))
+    camera = transfer_kernel.camera_record(cam)
+    mirror = transfer_kernel.mirror_record(view.mirror)
     ap_dist = np.array([a.distance_mm for a in cam.apertures], float)
     ap_r2 = np.array([a.radius_mm**2 for a in cam.apertures], float)
     scratch = threading.local()
@@ -571,8 +575,9 @@ def _lens_runner(view: View, scene: OcclusionScene, plan: _LensPlan, eps: float)
             scratch.mark, scratch.touched = np.zeros(n_pix, np.bool_), np.zeros(n_pix, np.int32)
             scratch.tan = np.zeros((n_pix if len(plan.tang) else 0, 2))
         return transfer_kernel.lens_columns(
-            nat.occluded16, nat.scene, cam_arr, mir, ap_dist, ap_r2, eps, plan.P, plan.N, plan.G, plan.dA,
-            plan.elem, plan.lo, plan.hi, plan.dc, plan.disk_r, plan.use_box, plan.n_lens, plan.pat_off, plan.disk_unit,
+            nat.occluded16, nat.scene, camera, mirror, ap_dist, ap_r2, eps, plan.points_mm, plan.normals,
+            plan.edges_mm, plan.ray_area_mm2, plan.element, plan.box_lo_mm, plan.box_hi_mm, plan.disk_center_mm,
+            plan.disk_radius_mm, plan.use_box, plan.n_lens, plan.pat_off, plan.disk_unit,
             plan.square_unit, plan.jitter, chunk[0], chunk[1], n_pix, cam.nx, cam.ny,
             scratch.even, scratch.odd, scratch.mark, scratch.touched, _NO_RECORD, plan.clear, plan.margin_mm,
             plan.target, plan.n_cap, plan.spin, plan.emis, plan.tang, scratch.tan, plan.tframe)
@@ -652,26 +657,28 @@ def _pairwise_pairs(surface: Surface, view: View, s: PairwiseSampling, rays_per_
     faces = _candidate_faces(surface, view)
     if len(faces) == 0:
         return
-    P, N, E, W, _, F = sample_faces(surface, faces, np.full(len(faces), s.surface_subdivisions), return_faces=True)
-    z = cam.axial(P)
-    front = (z > 0) & (np.einsum("ij,ij->i", N, cam.center_mm - P) > -cam.aperture_radius_mm)
-    P, N, E, W, z, F = P[front], N[front], E[front], W[front], z[front], F[front]
-    frames = _frames(surface, F, emission)
-    k = s.pixel_subdivisions
-    sub_pitch = cam.focal_pixel_mm / k
+    n_sub = np.full(len(faces), s.surface_subdivisions)
+    points, normals, element, area_share, _, face = sample_faces(surface, faces, n_sub, return_faces=True)
+    depth = cam.axial(points)
+    front = (depth > 0) & (np.einsum("ij,ij->i", normals, cam.center_mm - points) > -cam.aperture_radius_mm)
+    points, normals, element, area_share, depth, face = (points[front], normals[front], element[front],
+                                                         area_share[front], depth[front], face[front])
+    frames = _frames(surface, face, emission)
+    sub = s.pixel_subdivisions  # sub-pixels per pixel along each axis
+    sub_pitch = cam.focal_pixel_mm / sub
     dA_vd = sub_pitch**2
     u, R = cam.focus_distance_mm, cam.aperture_radius_mm
     # the lines from a point through the lens disk meet the focal plane in a disk
-    centre = cam.focal_plane_hit(P, np.broadcast_to(cam.center_mm, P.shape), z)
-    radius = R * np.abs(1 - u / z)
+    centre = cam.focal_plane_hit(points, np.broadcast_to(cam.center_mm, points.shape), depth)
+    radius = R * np.abs(1 - u / depth)
     ccol, crow = cam.pixel_coords(centre)
-    ccol, crow = ccol * k, crow * k  # in sub-pixel units
+    ccol, crow = ccol * sub, crow * sub  # in sub-pixel units
     rs = radius / sub_pitch
-    c0 = np.clip(np.floor(ccol - rs - 0.5).astype(int), 0, cam.nx * k - 1)
-    c1 = np.clip(np.ceil(ccol + rs - 0.5).astype(int), 0, cam.nx * k - 1)
-    r0 = np.clip(np.floor(crow - rs - 0.5).astype(int), 0, cam.ny * k - 1)
-    r1 = np.clip(np.ceil(crow + rs - 0.5).astype(int), 0, cam.ny * k - 1)
-    onsensor = (ccol + rs >= 0) & (ccol - rs <= cam.nx * k) & (crow + rs >= 0) & (crow - rs <= cam.ny * k)
+    c0 = np.clip(np.floor(ccol - rs - 0.5).astype(int), 0, cam.nx * sub - 1)
+    c1 = np.clip(np.ceil(ccol + rs - 0.5).astype(int), 0, cam.nx * sub - 1)
+    r0 = np.clip(np.floor(crow - rs - 0.5).astype(int), 0, cam.ny * sub - 1)
+    r1 = np.clip(np.ceil(crow + rs - 0.5).astype(int), 0, cam.ny * sub - 1)
+    onsensor = (ccol + rs >= 0) & (ccol - rs <= cam.nx * sub) & (crow + rs >= 0) & (crow - rs <= cam.ny * sub)
     wc, wr = c1 - c0 + 1, r1 - r0 + 1
     box = np.where(onsensor, wc * wr, 0)
     order = np.argsort(box, kind="stable")
@@ -693,9 +700,9 @@ def _pairwise_pairs(surface: Surface, view: View, s: PairwiseSampling, rays_per_
         rep = bw * bh
         ii = np.repeat(i, rep)
         inbox = (cc <= np.repeat(c1[i], rep)) & (rr <= np.repeat(r1[i], rep))
-        X = o + sub_pitch * (((cc + 0.5) - cam.nx * k / 2)[:, None] * cam.right
-                             + ((rr + 0.5) - cam.ny * k / 2)[:, None] * cam.down)
-        p, nn, zz = P[ii], N[ii], z[ii]
+        X = o + sub_pitch * (((cc + 0.5) - cam.nx * sub / 2)[:, None] * cam.right
+                             + ((rr + 0.5) - cam.ny * sub / 2)[:, None] * cam.down)
+        p, nn, zz = points[ii], normals[ii], depth[ii]
         # the line's crossing of the lens plane (axial 0): from X (axial u) towards p
         with np.errstate(divide="ignore", invalid="ignore"):
             L = X + (u / (u - zz))[:, None] * (p - X)
@@ -707,16 +714,16 @@ def _pairwise_pairs(surface: Surface, view: View, s: PairwiseSampling, rays_per_
             cos_d = np.abs(d @ cam.axis) / dl
             dv = X - p
             r2 = np.einsum("ij,ij->i", dv, dv)
-            w = np.where(in_lens & (cos_s > 0), cos_s * cos_d / (np.pi * r2), 0.0) * dA_vd * W[ii]
+            w = np.where(in_lens & (cos_s > 0), cos_s * cos_d / (np.pi * r2), 0.0) * dA_vd * area_share[ii]
             wt = None
             if emission is not None and emission.has_tangent:  # along the ray leaving the real surface
                 wt = ((w * emission.tangent_weight(np.where(in_lens, cos_s, 0.0)) / dl)[:, None]
                       * np.einsum("ij,iaj->ia", d, frames[ii]))  # in the face's frame
             if emission is not None and not emission.is_lambertian:  # theta_s at the real surface, both views
                 w = w * emission.weight(np.where(in_lens, cos_s, 0.0))
-        pix = (rr // k) * cam.nx + (cc // k)
+        pix = (rr // sub) * cam.nx + (cc // sub)
         pix = np.where(inbox, pix, -1)
-        yield p, nn, L, pix, w, E[ii], zz, len(i), len(ii), wt
+        yield p, nn, L, pix, w, element[ii], zz, len(i), len(ii), wt
 
 
 class Checkpoint:
@@ -803,14 +810,14 @@ def build_transfer(
     n_pix = views[0].camera.nx * views[0].camera.ny
     shape = (n_pix, surface.n_elements)
     per_view, errors, stats, tangents = [], [], {}, []
-    for k, view in enumerate(views):
-        def sub(fraction, k=k):
+    for i_view, view in enumerate(views):
+        def sub(fraction, i_view=i_view):
             if progress:
-                progress((k + fraction) / len(views))
+                progress((i_view + fraction) / len(views))
 
         if estimator == "lens":
             T, err, st, tan = _lens_view(surface, view, scene, lens_sampling, ray_offset_mm, rays_per_batch, threads,
-                                         sub, checkpoint, k, tree, turn_patterns, emission)
+                                         sub, checkpoint, i_view, tree, turn_patterns, emission)
         else:
             T, st, tan = _pairwise_view(surface, view, scene, pairwise_sampling, ray_offset_mm, rays_per_batch, shape,
                                         sub, emission)

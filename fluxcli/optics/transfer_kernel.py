@@ -25,10 +25,45 @@ from .embree_native import new_packet, packet_cast, packet_put
 
 _QUEUE = 64  # rays queued before a flush (known-clear ones need no packet slot)
 
+_F8 = np.float64
+# The camera as the kernel reads it (one record: numba reads a field at a fixed offset, as it
+# read a slot of the array this replaces): lens centre, optical axis (towards the subject), the
+# sensor's right and down directions (world, unit), the focus distance u (mm), a pixel's pitch
+# on the focal plane (mm) and the lens aperture's radius squared (mm^2).
+CAMERA = np.dtype([("center_x", _F8), ("center_y", _F8), ("center_z", _F8),
+                   ("axis_x", _F8), ("axis_y", _F8), ("axis_z", _F8),
+                   ("right_x", _F8), ("right_y", _F8), ("right_z", _F8),
+                   ("down_x", _F8), ("down_y", _F8), ("down_z", _F8),
+                   ("focus_distance_mm", _F8), ("focal_pixel_mm", _F8), ("aperture_radius2_mm2", _F8)])
+# The mirror of a mirror view: ``present`` 0 for the direct view (then nothing else is read),
+# its centre (mm), unit normal, the two unit in-plane axes and the half sizes along them (mm).
+MIRROR = np.dtype([("present", _F8), ("center_x", _F8), ("center_y", _F8), ("center_z", _F8),
+                   ("normal_x", _F8), ("normal_y", _F8), ("normal_z", _F8),
+                   ("axis_u_x", _F8), ("axis_u_y", _F8), ("axis_u_z", _F8),
+                   ("axis_v_x", _F8), ("axis_v_y", _F8), ("axis_v_z", _F8),
+                   ("half_u_mm", _F8), ("half_v_mm", _F8)])
+
+
+def camera_record(cam) -> np.record:
+    """The :data:`CAMERA` record of a :class:`fluxcli.optics.camera.ThinLensCamera`."""
+    rec = np.zeros(1, CAMERA)
+    rec[0] = (*cam.center_mm, *cam.axis, *cam.right, *cam.down, cam.focus_distance_mm, cam.focal_pixel_mm,
+              cam.aperture_radius_mm**2)
+    return rec[0]
+
+
+def mirror_record(mirror) -> np.record:
+    """The :data:`MIRROR` record of a :class:`fluxcli.optics.camera.PlaneMirror`, or of no mirror (None)."""
+    rec = np.zeros(1, MIRROR)
+    if mirror is not None:
+        rec[0] = (1.0, *mirror.center_mm, *mirror.normal, *mirror.axis_u, *mirror.axis_v, *mirror.half_size_mm)
+    return rec[0]
+
 
 @nb.njit(nogil=True, cache=True)
-def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
-                 P, N, G, dA, elem, lo, hi, dc, disk_r, use_box, n_lens, pat_off,
+def lens_columns(fn16, scene, cam, mirror, ap_dist, ap_r2, eps,
+                 points, normals, edges, ray_area, element, box_lo, box_hi, disk_center, disk_radius, use_box,
+                 n_lens, pat_off,
                  disk_unit, square_unit, jitter, s0, s1, n_pix, nx, ny,
                  acc_even, acc_odd, mark, touched, record, clear, margin, target, n_cap, spin,
                  emis, tang, acc_t, tframe):
@@ -38,15 +73,17 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
     ----------
     fn16, scene : addresses of rtcOccluded16 and of the scene
         (:attr:`fluxcli.optics.raycast.OcclusionScene.native`).
-    cam : float64 (17,): centre (3), axis (3), right (3), down (3), u_mm, focal pixel mm,
-        aperture radius^2 mm^2, 0, 0 (padding).
-    mir : float64 (15,): 0 or 1 (a mirror view), centre (3), normal (3), axis_u (3),
-        axis_v (3), half sizes (2) mm.
+    cam : a :data:`CAMERA` record (:func:`camera_record`).
+    mirror : a :data:`MIRROR` record (:func:`mirror_record`; ``present`` 0 for the direct view).
     ap_dist, ap_r2 : extra apertures: distance (mm) and radius^2 (mm^2).
-    P, N, G : sample points (S, 3) mm, normals (S, 3), sub-triangle edges (S, 2, 3) mm.
-    dA : lens-plane area per lens sample x element-area fraction (S,) mm^2.
-    elem : element of each sample (S,), non-decreasing over ``[s0, s1)``.
-    lo, hi, dc, disk_r, use_box : per-sample lens sampling region (lens-plane mm).
+    points, normals, edges : per surface sample its point (S, 3) mm, the face's unit normal (S, 3)
+        and the two edges of its sub-triangle (S, 2, 3) mm (each ray jitters its own point in it).
+    ray_area : lens-plane area per lens sample x the sample's fraction of its element's area (S,) mm^2.
+    element : element of each sample (S,), non-decreasing over ``[s0, s1)``.
+    box_lo, box_hi, disk_center, disk_radius, use_box : per sample its lens sampling region in
+        lens-plane coordinates (right, down; mm): the box of lens points whose rays reach the
+        sensor (S, 2), the disk of the aperture seen from the sample (centre (S, 2), radius (S,)),
+        and whether the box (True) or the disk is sampled.
     n_lens, pat_off : lens samples per surface sample, and where its pattern starts.
     disk_unit, square_unit, jitter : the patterns (M, 2), concatenated per count.
     acc_even, acc_odd, mark, touched : per-thread scratch of n_pix (zero / False on entry,
@@ -63,7 +100,7 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
         pattern and the shift (mod 1) given to its square pattern, so that the samples of an
         element do not all use the same lens points (their lens errors then average out).
     emis : float64 (M,): the emission profile's ray weights pi p(theta_s) on cos theta_s =
-        k / (M - 1) (:class:`fluxcli.optics.emission.Profile`), or (0,) for Lambertian (weight 1:
+        i / (M - 1) (:class:`fluxcli.optics.emission.Profile`), or (0,) for Lambertian (weight 1:
         no multiplication, the arithmetic of a Lambertian T is unchanged).  theta_s is the
         angle at the real surface between its normal and the ray leaving it (for a mirror view
         the ray towards the virtual lens point runs along the real surface -> mirror segment).
@@ -101,13 +138,17 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
     q_need2 = np.empty(_QUEUE, np.bool_)  # mirror views: the mirror -> lens segment must be cast
     m = 0  # rays queued
     n_slot = 0  # of them, in the packet
-    cx, cy, cz = cam[0], cam[1], cam[2]
-    ax, ay, az = cam[3], cam[4], cam[5]
-    rx, ry, rz = cam[6], cam[7], cam[8]
-    dx_, dy_, dz_ = cam[9], cam[10], cam[11]
-    u, pf, R2 = cam[12], cam[13], cam[14]
+    cx, cy, cz = cam.center_x, cam.center_y, cam.center_z
+    ax, ay, az = cam.axis_x, cam.axis_y, cam.axis_z
+    rx, ry, rz = cam.right_x, cam.right_y, cam.right_z
+    dx_, dy_, dz_ = cam.down_x, cam.down_y, cam.down_z
+    u, pf, R2 = cam.focus_distance_mm, cam.focal_pixel_mm, cam.aperture_radius2_mm2
     fx, fy, fz = cx + u * ax, cy + u * ay, cz + u * az  # focal-plane centre
-    has_mirror = mir[0] > 0
+    has_mirror = mirror.present > 0
+    mcx, mcy, mcz = mirror.center_x, mirror.center_y, mirror.center_z
+    mnx, mny, mnz = mirror.normal_x, mirror.normal_y, mirror.normal_z
+    mux, muy, muz, half_u = mirror.axis_u_x, mirror.axis_u_y, mirror.axis_u_z, mirror.half_u_mm
+    mvx, mvy, mvz, half_v = mirror.axis_v_x, mirror.axis_v_y, mirror.axis_v_z, mirror.half_v_mm
     n_rays = 0
     for s in range(s0, s1):
         n_rays += n_lens[s]
@@ -117,7 +158,7 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
     out_t = np.empty((cap if use_t else 0, 2), np.float64)
     n_el = 1
     for s in range(s0 + 1, s1):
-        if elem[s] != elem[s - 1]:
+        if element[s] != element[s - 1]:
             n_el += 1
     elements = np.empty(n_el, np.int64)
     starts = np.zeros(n_el + 1, np.int64)
@@ -131,7 +172,7 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
     e0 = s0  # the element's samples are [e0, e1)
     while e0 < s1:
         e1 = e0 + 1
-        while e1 < s1 and elem[e1] == elem[e0]:
+        while e1 < s1 and element[e1] == element[e0]:
             e1 += 1
         last_round = 0
         if target > 0:
@@ -145,32 +186,32 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
         while True:
             scale = 1.0 / (1 << rnd)
             for s in range(e0, e1):
-                px, py, pz = P[s, 0], P[s, 1], P[s, 2]
-                nx_, ny_, nz_ = N[s, 0], N[s, 1], N[s, 2]
-                k_start = 0 if rnd == 0 else n_lens[s] << (rnd - 1)
-                k_end = n_lens[s] << rnd
-                n_rays += k_end - k_start
+                px, py, pz = points[s, 0], points[s, 1], points[s, 2]
+                nx_, ny_, nz_ = normals[s, 0], normals[s, 1], normals[s, 2]
+                lens_start = 0 if rnd == 0 else n_lens[s] << (rnd - 1)
+                lens_end = n_lens[s] << rnd
+                n_rays += lens_end - lens_start
                 base = pat_off[s]
-                r = disk_r[s]
-                dA_s = dA[s] * scale
+                r = disk_radius[s]
+                dA_s = ray_area[s] * scale
                 clear1 = (clear[s] & 1) != 0
                 clear2 = (clear[s] & 2) != 0
-                for k in range(k_start, k_end):
+                for i_lens in range(lens_start, lens_end):
                     # the lens point, in lens-plane coordinates (right, down) then in the world
                     if use_box[s]:
-                        ux_ = square_unit[base + k, 0] + spin[s, 2]
-                        uy_ = square_unit[base + k, 1] + spin[s, 3]
+                        ux_ = square_unit[base + i_lens, 0] + spin[s, 2]
+                        uy_ = square_unit[base + i_lens, 1] + spin[s, 3]
                         ux_ -= math.floor(ux_)
                         uy_ -= math.floor(uy_)
-                        ox2 = lo[s, 0] + (hi[s, 0] - lo[s, 0]) * ux_
-                        oy2 = lo[s, 1] + (hi[s, 1] - lo[s, 1]) * uy_
-                        ex, ey = ox2 - dc[s, 0], oy2 - dc[s, 1]
+                        ox2 = box_lo[s, 0] + (box_hi[s, 0] - box_lo[s, 0]) * ux_
+                        oy2 = box_lo[s, 1] + (box_hi[s, 1] - box_lo[s, 1]) * uy_
+                        ex, ey = ox2 - disk_center[s, 0], oy2 - disk_center[s, 1]
                         if ex * ex + ey * ey > r * r:
                             continue
                     else:
-                        du, dv = disk_unit[base + k, 0], disk_unit[base + k, 1]
-                        ox2 = dc[s, 0] + r * (spin[s, 0] * du - spin[s, 1] * dv)
-                        oy2 = dc[s, 1] + r * (spin[s, 1] * du + spin[s, 0] * dv)
+                        du, dv = disk_unit[base + i_lens, 0], disk_unit[base + i_lens, 1]
+                        ox2 = disk_center[s, 0] + r * (spin[s, 0] * du - spin[s, 1] * dv)
+                        oy2 = disk_center[s, 1] + r * (spin[s, 1] * du + spin[s, 0] * dv)
                     offx = ox2 * rx + oy2 * dx_
                     offy = ox2 * ry + oy2 * dy_
                     offz = ox2 * rz + oy2 * dz_
@@ -178,10 +219,10 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
                         continue
                     Lx, Ly, Lz = cx + offx, cy + offy, cz + offz
                     # the surface point: this ray's own point of the sample's sub-triangle
-                    ja, jb = jitter[base + k, 0], jitter[base + k, 1]
-                    qx = px + ja * G[s, 0, 0] + jb * G[s, 1, 0]
-                    qy = py + ja * G[s, 0, 1] + jb * G[s, 1, 1]
-                    qz = pz + ja * G[s, 0, 2] + jb * G[s, 1, 2]
+                    ja, jb = jitter[base + i_lens, 0], jitter[base + i_lens, 1]
+                    qx = px + ja * edges[s, 0, 0] + jb * edges[s, 1, 0]
+                    qy = py + ja * edges[s, 0, 1] + jb * edges[s, 1, 1]
+                    qz = pz + ja * edges[s, 0, 2] + jb * edges[s, 1, 2]
                     vx, vy, vz = Lx - qx, Ly - qy, Lz - qz
                     r2 = vx * vx + vy * vy + vz * vz
                     inv = 1.0 / math.sqrt(r2)
@@ -238,18 +279,17 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
                             q_slot[m] = n_slot
                             n_slot += 1
                     else:
-                        mnx, mny, mnz = mir[4], mir[5], mir[6]
                         denom = ux * mnx + uy * mny + uz * mnz
-                        tm = ((mir[1] - Ox) * mnx + (mir[2] - Oy) * mny + (mir[3] - Oz) * mnz) / denom
+                        tm = ((mcx - Ox) * mnx + (mcy - Oy) * mny + (mcz - Oz) * mnz) / denom
                         if not (tm > 0 and tm < 1):
                             continue
                         Mx, My, Mz = Ox + tm * ux, Oy + tm * uy, Oz + tm * uz
-                        m0, m1, m2 = Mx - mir[1], My - mir[2], Mz - mir[3]
-                        if abs(m0 * mir[7] + m1 * mir[8] + m2 * mir[9]) > mir[13]:
+                        m0, m1, m2 = Mx - mcx, My - mcy, Mz - mcz  # the hit, from the mirror's centre
+                        if abs(m0 * mux + m1 * muy + m2 * muz) > half_u:
                             continue
-                        if abs(m0 * mir[10] + m1 * mir[11] + m2 * mir[12]) > mir[14]:
+                        if abs(m0 * mvx + m1 * mvy + m2 * mvz) > half_v:
                             continue
-                        dist = (Lx - mir[1]) * mnx + (Ly - mir[2]) * mny + (Lz - mir[3]) * mnz
+                        dist = (Lx - mcx) * mnx + (Ly - mcy) * mny + (Lz - mcz) * mnz
                         Rx, Ry, Rz = Lx - 2 * dist * mnx, Ly - 2 * dist * mny, Lz - 2 * dist * mnz  # the real lens point
                         s1x, s1y, s1z = Mx - Ox, My - Oy, Mz - Oz
                         l1 = math.sqrt(s1x * s1x + s1y * s1y + s1z * s1z)
@@ -277,7 +317,7 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
                     if use_t:  # along the ray leaving the real surface (to the lens, or to the mirror)
                         q_t[m, 0] = wt * (vx * tframe[s, 0, 0] + vy * tframe[s, 0, 1] + vz * tframe[s, 0, 2])
                         q_t[m, 1] = wt * (vx * tframe[s, 1, 0] + vy * tframe[s, 1, 1] + vz * tframe[s, 1, 2])
-                    q_odd[m] = k % 2
+                    q_odd[m] = i_lens % 2
                     m += 1
                     if n_slot == 16 or m == _QUEUE:
                         cast, n_touched, n_rec = _flush(fn16, scene, pk, pku, valid, pk2, pku2, m, n_slot, has_mirror, seg2,
@@ -336,7 +376,7 @@ def lens_columns(fn16, scene, cam, mir, ap_dist, ap_r2, eps,
             acc_even[q] = 0.0
             acc_odd[q] = 0.0
             mark[q] = False
-        elements[k_el] = elem[e0]
+        elements[k_el] = element[e0]
         col_err[k_el] = err
         k_el += 1
         starts[k_el] = nnz

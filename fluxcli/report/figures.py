@@ -21,6 +21,8 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 from matplotlib.ticker import FixedLocator, FuncFormatter, MultipleLocator, NullFormatter
 
+from ..surface.geometry import rotation_matrix as _rotation
+
 EXITANCE = ("exitance", "photons mm$^{-2}$")
 PHOTONS_LABEL = "photons per pixel"
 ANGLE_LABEL = "angle about the subject's axis (°, 0 = facing the camera at rest)"
@@ -244,13 +246,6 @@ def exitance_limits(pose_exitance, exitance, truth_exitance=None) -> tuple[float
     finite = [np.nanmin(v) for v in (pose_exitance, exitance) if np.any(np.isfinite(v))]
     vmin = float(min(0.0, *finite)) if finite else 0.0
     return vmin, vmax, bool(np.nanmax(pose_exitance) > vmax * 1.0001) if np.any(np.isfinite(pose_exitance)) else False
-
-
-def _rotation(axis, angle_deg) -> np.ndarray:
-    a = np.asarray(axis, float) / np.linalg.norm(axis)
-    t = np.deg2rad(angle_deg)
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + np.sin(t) * K + (1 - np.cos(t)) * K @ K
 
 
 def surface_panels(study, geometry, truth_exitance, labels) -> tuple[list[Panel], list[Panel]]:

@@ -13,7 +13,6 @@ is not false.  The count of T builds is printed before they start.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field, replace
 
@@ -23,6 +22,7 @@ import scipy.sparse as sp
 from .. import config as C
 from ..imaging.fit_shift import shifts, with_shift_warnings  # noqa: F401 (reconstruct's)
 from ..quantify import budget as Q
+from ..surface.geometry import rotation_matrix
 
 
 # ------------------------------------------------------------------ photon noise, on every run
@@ -71,10 +71,7 @@ class Both:
 # ------------------------------------------------------------------ the calibration's parameters
 def _rotate(v, axis, angle_deg: float) -> tuple[float, float, float]:
     """``v`` rotated by ``angle_deg`` about the unit ``axis`` (Rodrigues)."""
-    v, k = np.asarray(v, float), np.asarray(axis, float) / np.linalg.norm(axis)
-    a = math.radians(angle_deg)
-    out = v * math.cos(a) + np.cross(k, v) * math.sin(a) + k * (k @ v) * (1 - math.cos(a))
-    return tuple(float(x) for x in out)
+    return tuple(float(x) for x in rotation_matrix(axis, angle_deg) @ np.asarray(v, float))
 
 
 def _with_camera(system: C.System, **parts) -> C.System:

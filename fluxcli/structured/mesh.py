@@ -23,6 +23,7 @@ import warnings
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..surface.geometry import triangle_areas
 from ..surface.mesh import Surface
 
 __all__ = ["estimate_normals", "remove_outliers", "closed_surface", "distances_to_surface", "coverage",
@@ -135,7 +136,7 @@ def closed_surface(points_mm: np.ndarray, normals: np.ndarray, *, floor_z_mm: fl
     else:
         from scipy.cluster.vq import kmeans2
 
-        area = 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum()
+        area = triangle_areas(t).sum()
         n_el = int(np.clip(round(area / element_size_mm**2), 1, len(faces)))
         cent = verts[faces].mean(1)
         _, elem = kmeans2(cent, n_el, minit="++", seed=seed)

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .geometry import triangle_areas
+
 
 @dataclass(frozen=True)
 class Surface:
@@ -47,8 +49,7 @@ class Surface:
 
     @property
     def face_areas_mm2(self) -> np.ndarray:
-        t = self.face_vertices_mm
-        return 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
+        return triangle_areas(self.face_vertices_mm)
 
     @property
     def face_normals(self) -> np.ndarray:
@@ -643,7 +644,7 @@ def validated(vertices_mm, faces, element_of_face, n_elements: int, *, name: str
         raise ValueError(f"{name}: face {k} uses vertex index {int(f[k][out[k]][0])}, but there are only "
                          f"{len(v)} vertices (indices 0 to {len(v) - 1})")
     t = v[f]
-    area = 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
+    area = triangle_areas(t)
     scale = float(np.ptp(v, axis=0).max()) if len(v) else 0.0
     degenerate = (area <= 1e-12 * max(scale, 1e-300) ** 2) | (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
     if degenerate.any():
