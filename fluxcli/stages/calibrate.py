@@ -20,7 +20,6 @@ calibrated (Moreno & Taubin's local homographies: :mod:`fluxcli.structured.calib
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -29,6 +28,7 @@ import yaml
 
 from .. import artefacts as A
 from .. import config as C
+from ..artefacts import calibration as AC
 from ..calibration.fit import BLUR_WARN_PX, CalibrationError, GeometricCalibration, calibrate_geometry
 from ..calibration.mirrors import MirrorFit, refine_mirrors
 from ..errors import UserError
@@ -36,7 +36,7 @@ from ..hardware.projector import projector_model
 from ..imaging.imagefiles import read_image
 from ..pipeline import provenance
 from ..structured import calibrate as SC
-from ._radiometric import radiometric_from_capture, run_radiometric, section_files, write_radiometric
+from ._radiometric import radiometric_from_capture, run_radiometric, section_files
 from .context import RunContext
 
 
@@ -103,19 +103,10 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
             cam.lens is None):
         ctx.say("calibrate: warning: the aperture was not measured (a checkerboard gives no per-dot blur); "
                 "camera.yaml's lens has no aperture: add f_number or aperture_diameter_mm to it before use")
-    with A.write_artefact(out, "calibration", config_sha256=cfg.sha256, provenance=prov) as f:
-        f.attrs["inputs_digest"] = digest
-        if truth_errors is not None:  # simulated rig: how far the calibration is from the camera that made the frames
-            f.attrs["truth_errors"] = json.dumps(truth_errors)
-        f.create_dataset("camera_yaml", data=text)
-        if geo is not None:
-            _write_geometric(f.create_group("geometric"), geo, src, images)
-        if mirrors:
-            _write_mirrors(f.create_group("mirrors"), mirrors)
-        if rad is not None:
-            write_radiometric(f.create_group("radiometric"), rad)
-        if projectors:
-            _write_projectors(f.create_group("projectors"), projectors)
+    AC.write(out, AC.Calibration(text, digest, truth_errors,
+                                 AC.Geometric(geo, src.grid.model_dump(mode="json"), src.labels, images)
+                                 if geo is not None else None, mirrors, rad, projectors),
+             config_sha256=cfg.sha256, provenance=prov)
     A.write_text(yaml_out, text)
     ctx.say(f"calibrate: camera written to {yaml_out} (use it as  system: {{camera: {yaml_out}}})")
     return out
@@ -254,52 +245,6 @@ def _summary(geo: GeometricCalibration, ctx: RunContext) -> None:
         ctx.say(f"calibrate: warning: {w}")
 
 
-def _write_geometric(g, geo: GeometricCalibration, src: GridSource, images) -> None:
-    c = geo.camera
-    g.create_dataset("lens_center_mm", data=c.center_mm).attrs["unit"] = "mm"
-    g.create_dataset("rotation", data=c.rotation)
-    for name, value, unit in (("image_distance_mm", c.image_distance_mm, "mm"),
-                              ("focal_length_mm", geo.focal_length_mm, "mm"),
-                              ("focus_distance_mm", geo.focus_distance_mm, "mm"),
-                              ("focus_distance_from_measure_mm", geo.focus_distance_from_measure_mm, "mm"),
-                              ("focal_plane_z_mm", geo.focal_plane_z_mm, "mm"),
-                              ("aperture_diameter_mm", geo.aperture_diameter_mm, "mm"),
-                              ("dot_diameter_mm", geo.dot_diameter_mm, "mm"),
-                              ("rms_px", geo.rms_px, "px"), ("rms_mm", geo.rms_mm, "mm"),
-                              ("pixel_pitch_mm", c.pixel_pitch_mm, "mm")):
-        g.attrs[name] = float(value)
-        g.attrs[f"{name}_unit"] = unit
-    g.attrs["pixels"] = np.array([c.nx, c.ny])
-    g.attrs["grid"] = json.dumps(src.grid.model_dump(mode="json"))
-    g.attrs["warnings"] = json.dumps(geo.warnings)
-    sg = g.create_group("sigma")
-    for k, v in geo.sigma.items():
-        sg.attrs[k] = float(v)
-    if geo.blur is not None:
-        b = g.create_group("blur_fit")
-        for k in ("focus_distance_mm", "focus_distance_sigma_mm", "k_px_mm", "k_sigma", "floor_px", "rms_px"):
-            b.attrs[k] = float(getattr(geo.blur, k))
-        b.attrs["model"] = "D_px = hypot(k_px_mm * (1/z - 1/u), floor_px), z axial distance (mm)"
-    if geo.focus is not None:
-        fc = g.create_group("focus_fit")
-        fc.attrs["params"] = geo.focus.params
-        fc.attrs["model"] = "F = p0 + p1 / (1 + ((1/z - p2) / p3)^2), z mean axial distance (mm)"
-        fc.attrs["focus_distance_mm"] = geo.focus.focus_distance_mm
-    ims = g.create_group("images")
-    for k, im in enumerate(geo.images):
-        h = ims.create_group(str(k))
-        h.attrs["plane_z_mm"] = im.plane_z_mm
-        h.attrs["file"] = src.labels[k]
-        h.attrs["focus_measure"] = im.focus_measure
-        h.attrs["notes"] = json.dumps(im.notes)
-        h.create_dataset("image", data=np.asarray(images[k], np.float32), compression="gzip", shuffle=True)
-        for name, arr, unit in (("ij", im.ij, ""), ("xy_px", im.xy_px, "px (col, row), pixel centres at integers"),
-                                ("residual_px", im.residual_px, "px, measured - model"),
-                                ("residual_mm", im.residual_mm, "mm on the grid plane"),
-                                ("blur_diameter_px", im.blur_diameter_px, "px"), ("axial_mm", im.axial_mm, "mm")):
-            h.create_dataset(name, data=arr).attrs["unit"] = unit
-
-
 # ------------------------------------------------------------------ mirrors
 def _mirrors(src: GridSource, system: C.System, geo: GeometricCalibration, images, ctx) -> list[MirrorFit]:
     g = src.grid
@@ -318,17 +263,6 @@ def _mirrors(src: GridSource, system: C.System, geo: GeometricCalibration, image
         for w in fit.warnings:
             ctx.say(f"calibrate: warning: mirror {k}: {w}")
     return fits
-
-
-def _write_mirrors(g, mirrors: list[MirrorFit]) -> None:
-    for k, m in enumerate(mirrors):
-        h = g.create_group(str(k))
-        h.create_dataset("center_mm", data=m.center_mm).attrs["unit"] = "mm"
-        h.create_dataset("normal", data=m.normal)
-        h.attrs["rms_px"] = m.rms_px
-        h.attrs["n_points"] = m.n_points
-        h.attrs["normal_sigma_deg"] = m.normal_sigma_deg
-        h.attrs["offset_sigma_mm"] = m.offset_sigma_mm
 
 
 # ------------------------------------------------------------------ camera.yaml
@@ -666,22 +600,3 @@ def _projector_summary(fit: ProjectorFit, ctx) -> None:
                 f"rotation {t['rotation_error_deg']:.3f} deg, fx {t['focal_error']:+.2%}, gamma {t['gamma_error']:+.3f}")
     if r.rms_px > 0.5:
         ctx.say(f"calibrate: warning: projector {fit.name}: RMS reprojection {r.rms_px:.2f} projector px > 0.5")
-
-
-def _write_projectors(g, fits: list[ProjectorFit]) -> None:
-    for k, fit in enumerate(fits):
-        h = g.create_group(str(k))
-        r = fit.result
-        h.attrs["name"] = fit.name
-        h.attrs["block"] = json.dumps(fit.block)
-        h.attrs["rms_px"] = r.rms_px
-        h.attrs["rejected"] = r.rejected
-        h.attrs["gamma_measured"] = fit.gamma_measured
-        h.attrs["heights_mm"] = np.asarray(fit.heights_mm, float)
-        h.attrs["valid_fraction"] = np.asarray(fit.valid_fraction, float)
-        for name, arr, unit in (("points_mm", r.points_mm, "mm, world"), ("uv_px", r.uv_px, "projector px, measured"),
-                                ("residual_px", r.residual_px, "projector px, measured - model"),
-                                ("plane", r.plane, "index into heights_mm")):
-            h.create_dataset(name, data=arr).attrs["unit"] = unit
-        if fit.truth is not None:
-            h.attrs["truth"] = json.dumps(fit.truth)
