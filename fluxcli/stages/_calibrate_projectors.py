@@ -137,7 +137,7 @@ def fit_projectors(sec: C.Calibrate, cam: C.Camera, geo: GeometricCalibration, f
             ctx.say(f"calibrate: warning: projector {name}: gamma could not be measured (too few decoded pixels); 1 assumed")
         try:
             res = SC.calibrate_projector(planes, width_px=w, height_px=h, gamma=gamma, half_window=pc.half_window_px)
-        except ValueError as e:
+        except SC.ProjectorFitError as e:  # only the fit's own refusal is bad input; any other error is a bug
             raise UserError(f"calibrate.projectors[{k}] ({name}): {e}; check that the board is lit by the projector "
                             "in the frames and that min_contrast_fraction is not too high.") from None
         fit = ProjectorFit(name, res, _projector_block(res.projector), bool(pc.gamma is None and gamma_meas),

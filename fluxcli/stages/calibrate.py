@@ -29,7 +29,7 @@ from .. import artefacts as A
 from .. import config as C
 from ..artefacts import calibration as AC
 from ..calibration.fit import CalibrationError, GeometricCalibration, calibrate_geometry
-from ..calibration.mirrors import MirrorFit, refine_mirrors
+from ..calibration.mirrors import MirrorFit, MirrorFitError, refine_mirrors
 from ..errors import UserError
 from ..imaging.imagefiles import read_image
 from ._calibrate_plan import CalibratePlan, plan_of  # noqa: F401
@@ -227,7 +227,7 @@ def _mirrors(src: GridSource, system: C.System, geo: GeometricCalibration, image
             fit = refine_mirrors(images, heights, geo.camera, center_mm=np.array(m.center_mm), normal=np.array(m.normal),
                                  axis=np.array(m.axis), size_mm=tuple(m.size_mm), pitch_mm=g.pitch_mm,
                                  shape=tuple(g.shape))
-        except ValueError as e:
+        except MirrorFitError as e:  # only the fit's own refusal is bad input; any other error is a bug
             raise UserError(f"system.mirrors[{k}]: the grid could not be used in this mirror's view: {e}") from None
         fits.append(fit)
         ctx.say(f"calibrate: mirror {m.name or f'mirror{k}'}: {fit.n_points} points, RMS {fit.rms_px:.3f} px; "
