@@ -9,14 +9,9 @@ the Gray-code + phase-shift sequence, the other projectors black), then the dark
 exposure, ``repeats`` emission frames.  Emission frame ``k`` of the plan has slot ``k`` in
 ``capture.h5``, pattern frame ``k`` slot ``k`` of ``/patterns``;
 
-the layout is :mod:`fluxcli.artefacts.capture`'s (the only code that opens the file).
-
-Why it survives a kill at any instant: the skeleton is written in full (every dataset
-contiguous and allocated, zero-filled) under a temporary name and renamed into place, so
-``capture.h5`` either does not exist or has all of its structure; afterwards a frame only
-overwrites bytes inside storage that already exists (no HDF5 metadata changes), is flushed
-and fsync'ed, and only then is its ``committed`` flag set (and flushed and fsync'ed
-again).  A frame whose flag is not set is discarded on resume and taken again.
+the layout, and why the file survives a kill at any instant (skeleton first, then each
+frame fsync'ed before its ``committed`` flag), are :mod:`fluxcli.artefacts.capture`'s, the
+only code that opens the file.
 """
 
 from __future__ import annotations
