@@ -12,11 +12,15 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .. import artefacts as A
 from .. import config as C
 from ..artefacts.capture import FILE_NAME as CAPTURE_FILE
 from ..errors import UserError
+
+if TYPE_CHECKING:
+    from ..acquisition import SurfacePlan
 
 # Test hook: sleep this long between the steps of creating capture.h5, so that the kill
 # test can land SIGKILLs inside the creation window.  0 (unset) in normal use.
@@ -67,8 +71,11 @@ def plan_of(cfg: C.LoadedConfig) -> CapturePlan:
     """Check ``capture:`` and ``rig:`` (UserError naming the key) and resolve the run."""
     from .plans import provenance
 
-    cap, rig = _check(cfg)
+    cap, rig = _check(cfg.model.capture, cfg.model.rig, cfg.path)
     cc = rig.camera or C.RigCamera()
+    if cap.calibration is not None and cc.backend == "simulated":
+        C.require(cfg, "capture.calibration with the simulated camera (it renders with the true camera)",
+                  ("system", "system.camera.lens", "system.camera.pose"))
     # a calibration-only capture has no subject to render
     scene = scene_parts(cfg) if cc.backend == "simulated" and cap.heights_mm else None
     sf = cap.surface
@@ -132,14 +139,14 @@ def truth_config(cfg: C.LoadedConfig) -> C.LoadedConfig:
                           cfg.path, cfg.raw)
 
 
-def _check(cfg: C.LoadedConfig) -> tuple[C.Capture, C.Rig]:
-    cap, rig = cfg.model.capture, cfg.model.rig
+def _check(cap: C.Capture | None, rig: C.Rig | None, config_path: Path) -> tuple[C.Capture, C.Rig]:
+    """``capture:`` against ``rig:`` (the devices it drives, their ranges), UserError naming the key."""
     if cap is None:
-        raise UserError(f"config {cfg.path}: 'capture' is missing: the plan (heights_mm, filters, exposure_s, "
+        raise UserError(f"config {config_path}: 'capture' is missing: the plan (heights_mm, filters, exposure_s, "
                         "em_gain, repeats, darks).")
     if rig is None or rig.stage is None or rig.filter_wheel is None:
         missing = "rig" if rig is None else "rig.stage" if rig.stage is None else "rig.filter_wheel"
-        raise UserError(f"config {cfg.path}: '{missing}' is missing; capture-surface drives the stage, the filter "
+        raise UserError(f"config {config_path}: '{missing}' is missing; capture-surface drives the stage, the filter "
                         "wheel and the camera.")
     unknown = [f for f in cap.filters if f not in rig.filter_wheel.filters] if cap.heights_mm else []
     if unknown:
@@ -152,11 +159,11 @@ def _check(cfg: C.LoadedConfig) -> tuple[C.Capture, C.Rig]:
     if cap.surface is not None:
         _check_surface(cap.surface, rig)
     if cap.calibration is not None:
-        _check_calibration(cfg, cap.calibration, rig)
+        _check_calibration(cap.calibration, rig)
     return cap, rig
 
 
-def _check_calibration(cfg: C.LoadedConfig, cal: C.CaptureCalibration, rig: C.Rig) -> None:
+def _check_calibration(cal: C.CaptureCalibration, rig: C.Rig) -> None:
     wheel = rig.filter_wheel.filters
     for key, name in (("filter", cal.filter if (cal.flats or cal.ptc) else None),
                       ("grid.filter", cal.grid.filter if cal.grid else None)):
@@ -180,9 +187,6 @@ def _check_calibration(cfg: C.LoadedConfig, cal: C.CaptureCalibration, rig: C.Ri
         raise UserError(f"capture.calibration: bias, flat and gain-off PTC frames are taken at EM gain 1, below "
                         f"rig.camera.em_gain_range [{g_lo:g}, {g_hi:g}]; set the range's low end to 1 if the camera "
                         "allows it.")
-    if cc.backend == "simulated":
-        C.require(cfg, "capture.calibration with the simulated camera (it renders with the true camera)",
-                  ("system", "system.camera.lens", "system.camera.pose"))
 
 
 def _check_surface(sf: C.CaptureSurface, rig: C.Rig) -> None:
