@@ -24,7 +24,7 @@ AGAINST_TOLERANCE = 0.02
 
 def truth_total(path: Path) -> float | None:
     """Photons per exposure the simulated subject emitted, from the capture the reconstruction read."""
-    from fluxcli.acquisition import read_capture
+    from fluxcli.artefacts.capture import read_capture
 
     with h5py.File(path, "r") as f:
         if "truth" in f:  # reconstructed on the true surface: the truth per element is there

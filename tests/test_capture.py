@@ -162,7 +162,7 @@ def test_ctrl_c_stops_at_a_frame_boundary_and_leaves_the_devices_safe(reference,
     from fluxcli.acquisition import CaptureFile, Interrupted, Plan, RigDevices, acquire
     from fluxcli.config import load_config
     from fluxcli.hardware.rig import open_devices, start_simulators
-    from fluxcli.stages.capture import SimulatedScene, _camera
+    from fluxcli.stages.capture import SimulatedScene, _camera, plan_of
 
     cfg_dict, ref_path = reference
     cfg_dict = copy.deepcopy(cfg_dict)
@@ -173,7 +173,7 @@ def test_ctrl_c_stops_at_a_frame_boundary_and_leaves_the_devices_safe(reference,
     sims = start_simulators(rig)
     wheel, stage = open_devices(rig, {n: s.url for n, s in sims.items()})
     try:
-        cam = _camera(cfg, cap, rig, sims, wheel, stage, SimulatedScene(cfg))
+        cam = _camera(plan_of(cfg), sims, wheel, stage, SimulatedScene(cfg))
         plan = Plan(tuple(cap.heights_mm), tuple(cap.filters), cap.exposures_s, cap.em_gain, cap.repeats, cap.darks,
                     cap.seed, cam.shape)
         out = CaptureFile.create(tmp_path / "capture.h5", plan)
@@ -379,7 +379,8 @@ def test_the_simulated_camera_renders_a_truth_finer_than_the_elements(reference,
     cfg_dict["system"]["camera"] |= {"pixels": [64, 64], "pixel_pitch_mm": 0.05}  # resolves the elements
     p = tmp_path / "cfg.yaml"
     p.write_text(yaml.safe_dump(cfg_dict))
-    scene = SimulatedScene(load_config(p))
+    cfg = load_config(p)  # no rig.camera.true_surface: the scene renders this config's subject
+    scene = SimulatedScene(cfg)
     fine, parent = scene.fine_rate("open")
     surface = scene.placer.surface
     n = surface.n_elements
@@ -387,7 +388,7 @@ def test_the_simulated_camera_renders_a_truth_finer_than_the_elements(reference,
     per_element = scene.power_rate("open")
     assert np.allclose(np.bincount(parent, weights=fine, minlength=n), per_element, rtol=1e-12)
     image = scene.emission(0.0, "open")
-    T_el = ensure_pose_T(scene.cfg, Pose(0.0, 0.0), forward_transfer(scene.cfg.model.simulate, scene.cfg.model.transfer),
+    T_el = ensure_pose_T(cfg, Pose(0.0, 0.0), forward_transfer(cfg.model.simulate, cfg.model.transfer),
                          scene.placer)
     constant = (T_el @ per_element).reshape(image.shape)
     assert image.sum() == pytest.approx(constant.sum(), rel=0.01)

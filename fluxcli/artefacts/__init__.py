@@ -7,7 +7,8 @@
 - :mod:`.transfer`: T files (the content-addressed T cache) and the transfer index;
 - :mod:`.info`: what ``fluxmap info ARTEFACT`` prints;
 - :mod:`.provenance`: the set-up an artefact records it was made for;
-- one module per kind with a container: :mod:`.simulation`, :mod:`.surface`, :mod:`.tetmesh`.
+- one module per kind with a container: :mod:`.simulation`, :mod:`.surface`, :mod:`.tetmesh`,
+  :mod:`.capture` (the durable frame-by-frame writer and the readers), :mod:`.calibration`.
 """
 
 from .atomic import atomic_path, clean_stale_temps, write_bytes, write_text

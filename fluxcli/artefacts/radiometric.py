@@ -1,6 +1,6 @@
 """The radiometric maps of a calibration.h5 (``/radiometric``), read back for reconstruct.
 
-Written by ``fluxmap calibrate`` (:func:`fluxcli.stages._radiometric.write_radiometric`);
+Written by ``fluxmap calibrate`` (:func:`fluxcli.artefacts.calibration.write_radiometric`);
 read here without the artefact checks, since a calibration file made by other tools with
 only that group is accepted.
 """

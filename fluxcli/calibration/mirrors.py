@@ -19,6 +19,10 @@ from .geometry import CameraGeometry, grid_points_mm
 from .grid import blob_points, to_unit
 
 
+class MirrorFitError(ValueError):
+    """The grid cannot be used in a mirror's view (too few points matched): bad input, not a bug."""
+
+
 @dataclass
 class MirrorFit:
     center_mm: np.ndarray
@@ -138,7 +142,8 @@ def refine_mirrors(images: list[np.ndarray], heights_mm: list[float], camera: Ca
     for radius_frac in (0.45, 0.3, 0.2, 0.2):
         W, Q, _ = match(x, radius_frac)
         if not W or sum(len(w) for w in W) < min_points:
-            raise ValueError(f"only {sum(len(w) for w in W) if W else 0} grid points were matched in the mirror's "
+            raise MirrorFitError(f"only {sum(len(w) for w in W) if W else 0} grid points were matched in the "
+                                 "mirror's "
                              "view (the approximate mirror in system.mirrors may be too far off, or the grid is not "
                              "seen in it)")
         Wm, Qm = np.concatenate(W), np.concatenate(Q)

@@ -8,11 +8,9 @@ projector, its reprojection residuals over the panel and per height.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Callable
 
-import h5py
 import numpy as np
 from matplotlib.figure import Figure
 
@@ -127,27 +125,22 @@ def projector_residuals_figure(name: str, uv_px: np.ndarray, residual_px: np.nda
     return fig
 
 
-def _projector_section(page, save: Callable, g) -> dict:
+def _projector_section(page, save: Callable, projectors: list) -> dict:
     out = {}
     rows = []
-    for k in sorted(g, key=int):
-        h = g[k]
-        name = str(h.attrs["name"])
-        block = json.loads(h.attrs["block"])
-        heights = [float(x) for x in h.attrs["heights_mm"]]
-        truth = json.loads(h.attrs["truth"]) if "truth" in h.attrs else None
-        out[name] = {"rms_px": float(h.attrs["rms_px"]), "points": int(len(h["uv_px"])), "rejected": int(h.attrs["rejected"]),
-                     "gamma": block["gamma"], "gamma_measured": bool(h.attrs["gamma_measured"]),
+    for h in projectors:
+        name, block, heights, truth = h.name, h.block, h.heights_mm, h.truth
+        out[name] = {"rms_px": h.rms_px, "points": int(len(h.uv_px)), "rejected": h.rejected,
+                     "gamma": block["gamma"], "gamma_measured": h.gamma_measured,
                      "center_mm": block["pose"]["center_mm"], "focal_px": block["focal_px"],
-                     "valid_fraction": [float(x) for x in h.attrs["valid_fraction"]]}
+                     "valid_fraction": h.valid_fraction}
         if truth is not None:
             out[name]["against_truth"] = {k2: v for k2, v in truth.items() if k2 != "block"}
         err = (f"{truth['center_error_mm']:.3f} mm / {truth['rotation_error_deg']:.3f} deg" if truth is not None else "-")
-        rows.append([name, f"{len(h['uv_px'])} ({int(h.attrs['rejected'])} rejected)", f"{float(h.attrs['rms_px']):.3f}",
+        rows.append([name, f"{len(h.uv_px)} ({h.rejected} rejected)", f"{h.rms_px:.3f}",
                      f"{block['focal_px'][0]:.1f}, {block['focal_px'][1]:.1f}", f"{block['distortion'][0]:.4f}, {block['distortion'][1]:.4f}",
-                     f"{block['gamma']:.3f}" + (" (measured)" if h.attrs["gamma_measured"] else ""), err])
-        fig = projector_residuals_figure(name, h["uv_px"][()], h["residual_px"][()], h["plane"][()], heights,
-                                         tuple(block["pixels"]))
+                     f"{block['gamma']:.3f}" + (" (measured)" if h.gamma_measured else ""), err])
+        fig = projector_residuals_figure(name, h.uv_px, h.residual_px, h.plane, heights, tuple(block["pixels"]))
         page.figure(save(fig, f"calibration_projector_{name}.png"),
                     f"Projector {name}: reprojection residuals of the board points (measured by local homographies "
                     "around each grid point - fitted model), per height.")
@@ -158,64 +151,59 @@ def _projector_section(page, save: Callable, g) -> dict:
 
 def add_calibration_section(page, save: Callable, calibration_h5: Path) -> dict:
     """Append the calibration section to a report page; returns the numbers it shows (for summary.json)."""
+    from ..artefacts import calibration as AC
+
     summary: dict = {}
-    with h5py.File(calibration_h5, "r") as f:
-        page.section("calibration", "Calibration")
-        page.text("The camera model fitted by `fluxmap calibrate`; the camera.yaml it wrote:")
-        page.parts.append("<pre>" + __import__("html").escape(f["camera_yaml"][()].decode()
-                                                                if isinstance(f["camera_yaml"][()], bytes)
-                                                                else str(f["camera_yaml"][()])) + "</pre>")
-        if "geometric" in f:
-            g = f["geometric"]
-            ims = [g["images"][k] for k in sorted(g["images"], key=int)]
-            heights = [float(h.attrs["plane_z_mm"]) for h in ims]
-            xy = [h["xy_px"][()] for h in ims]
-            res = [h["residual_px"][()] for h in ims]
-            summary = {k: float(g.attrs[k]) for k in ("focal_length_mm", "focus_distance_mm", "aperture_diameter_mm",
-                                                      "image_distance_mm", "rms_px", "rms_mm", "focal_plane_z_mm")}
-            summary["lens_center_mm"] = g["lens_center_mm"][()].tolist()
-            summary["sigma"] = {k: float(v) for k, v in g["sigma"].attrs.items()}
-            summary["warnings"] = json.loads(g.attrs["warnings"])
-            page.table(["quantity", "value", "1 sigma"], [
-                ["focal length f (mm)", f"{summary['focal_length_mm']:.4f}", f"{summary['sigma'].get('focal_length_mm', np.nan):.2g}"],
-                ["focus distance u (mm)", f"{summary['focus_distance_mm']:.3f}", f"{summary['sigma'].get('focus_distance_mm', np.nan):.2g}"],
-                ["aperture diameter (mm)", f"{summary['aperture_diameter_mm']:.3f}", f"{summary['sigma'].get('aperture_diameter_mm', np.nan):.2g}"],
-                ["image distance v (mm)", f"{summary['image_distance_mm']:.4f}", f"{summary['sigma'].get('image_distance_mm', np.nan):.2g}"],
-                ["RMS reprojection (px / mm)", f"{summary['rms_px']:.3f} / {summary['rms_mm']:.4f}", ""],
-            ])
-            if all("image" in h for h in ims):
-                fig = detections_figure([h["image"][()] for h in ims], xy, res, heights)
-                page.figure(save(fig, "calibration_detections.png"), "Detected grid points and residuals per image.")
-            shape = tuple(int(x) for x in g.attrs["pixels"][::-1])
-            page.figure(save(residuals_figure(xy, res, heights, shape), "calibration_residuals.png"),
-                        "Reprojection residuals (measured - model).")
-            blur = dict(g["blur_fit"].attrs) if "blur_fit" in g else None
-            fp = g["focus_fit"].attrs["params"] if "focus_fit" in g else None
-            fa = np.array([float(np.mean(h["axial_mm"][()])) for h in ims])
-            fm = np.array([float(h.attrs["focus_measure"]) for h in ims])
-            fig = focus_figure([h["axial_mm"][()] for h in ims], [h["blur_diameter_px"][()] for h in ims], heights,
-                               blur_fit=blur, focus_axial_mm=fa, focus_measure=fm, focus_params=fp,
-                               focus_distance_mm=summary["focus_distance_mm"])
-            page.figure(save(fig, "calibration_focus.png"), "Blur and sharpness against height, with the fits.")
-            for w in summary["warnings"]:
-                page.parts.append(f'<p class="note">{__import__("html").escape(w)}</p>')
-        if "radiometric" in f:
-            from .radiometry_figures import ptc_figure, sensor_maps_figure
+    cal = AC.read(calibration_h5)
+    page.section("calibration", "Calibration")
+    page.text("The camera model fitted by `fluxmap calibrate`; the camera.yaml it wrote:")
+    page.parts.append("<pre>" + __import__("html").escape(cal.camera_yaml) + "</pre>")
+    g = cal.geometric
+    if g is not None:
+        ims = g.images
+        heights = [h.plane_z_mm for h in ims]
+        xy = [h.xy_px for h in ims]
+        res = [h.residual_px for h in ims]
+        summary = dict(g.values)
+        summary["lens_center_mm"] = g.lens_center_mm
+        summary["sigma"] = dict(g.sigma)
+        summary["warnings"] = list(g.warnings)
+        page.table(["quantity", "value", "1 sigma"], [
+            ["focal length f (mm)", f"{summary['focal_length_mm']:.4f}", f"{summary['sigma'].get('focal_length_mm', np.nan):.2g}"],
+            ["focus distance u (mm)", f"{summary['focus_distance_mm']:.3f}", f"{summary['sigma'].get('focus_distance_mm', np.nan):.2g}"],
+            ["aperture diameter (mm)", f"{summary['aperture_diameter_mm']:.3f}", f"{summary['sigma'].get('aperture_diameter_mm', np.nan):.2g}"],
+            ["image distance v (mm)", f"{summary['image_distance_mm']:.4f}", f"{summary['sigma'].get('image_distance_mm', np.nan):.2g}"],
+            ["RMS reprojection (px / mm)", f"{summary['rms_px']:.3f} / {summary['rms_mm']:.4f}", ""],
+        ])
+        if all(h.image is not None for h in ims):
+            fig = detections_figure([h.image for h in ims], xy, res, heights)
+            page.figure(save(fig, "calibration_detections.png"), "Detected grid points and residuals per image.")
+        shape = tuple(reversed(g.pixels))
+        page.figure(save(residuals_figure(xy, res, heights, shape), "calibration_residuals.png"),
+                    "Reprojection residuals (measured - model).")
+        fa = np.array([float(np.mean(h.axial_mm)) for h in ims])
+        fm = np.array([h.focus_measure for h in ims])
+        fig = focus_figure([h.axial_mm for h in ims], [h.blur_diameter_px for h in ims], heights,
+                           blur_fit=g.blur_fit, focus_axial_mm=fa, focus_measure=fm, focus_params=g.focus_params,
+                           focus_distance_mm=summary["focus_distance_mm"])
+        page.figure(save(fig, "calibration_focus.png"), "Blur and sharpness against height, with the fits.")
+        for w in summary["warnings"]:
+            page.parts.append(f'<p class="note">{__import__("html").escape(w)}</p>')
+    r = cal.radiometric
+    if r is not None:
+        from .radiometry_figures import ptc_figure, sensor_maps_figure
 
-            r = f["radiometric"]
-            ptc = {name: {k: r["ptc"][name][k][()] for k in r["ptc"][name]} for name in r["ptc"]}
+        def val(name):
+            v = r.scalars.get(name)
+            return None if v is None or not np.isfinite(v) else float(v)
 
-            def val(name):
-                v = r.attrs.get(name)
-                return None if v is None or not np.isfinite(v) else float(v)
-
-            fig = ptc_figure(ptc, electrons_per_count=val("electrons_per_count"), em_gain=val("em_gain"),
-                             read_noise_counts=val("read_noise_counts"))
-            page.figure(save(fig, "calibration_ptc.png"), "Photon-transfer curve.")
-            maps = {k: r[k][()] for k in ("bias_counts_map", "dark_e_per_s_map", "flat_map") if k in r}
-            if maps:
-                page.figure(save(sensor_maps_figure(maps), "calibration_sensor_maps.png"), "Sensor maps.")
-            summary["radiometric"] = {k: val(k) for k in ("electrons_per_count", "em_gain", "read_noise_e", "bias_counts")}
-        if "projectors" in f:
-            summary["projectors"] = _projector_section(page, save, f["projectors"])
+        fig = ptc_figure(r.ptc, electrons_per_count=val("electrons_per_count"), em_gain=val("em_gain"),
+                         read_noise_counts=val("read_noise_counts"))
+        page.figure(save(fig, "calibration_ptc.png"), "Photon-transfer curve.")
+        maps = {k: r.maps[k] for k in ("bias_counts_map", "dark_e_per_s_map", "flat_map") if k in r.maps}
+        if maps:
+            page.figure(save(sensor_maps_figure(maps), "calibration_sensor_maps.png"), "Sensor maps.")
+        summary["radiometric"] = {k: val(k) for k in ("electrons_per_count", "em_gain", "read_noise_e", "bias_counts")}
+    if cal.projectors:
+        summary["projectors"] = _projector_section(page, save, cal.projectors)
     return summary

@@ -3,7 +3,7 @@ and the ``/radiometric`` group of ``calibration.h5``.
 
 - :func:`run_radiometric` reads the frames a :class:`~fluxcli.config.Radiometric` section
   names and runs :func:`fluxcli.calibration.radiometry.calibrate_radiometric`;
-- :func:`write_radiometric` stores a result in an HDF5 group (the one layout, with units);
+- :func:`write_radiometric` (:mod:`fluxcli.artefacts.calibration`'s, re-exported) stores a result;
 - :func:`read_radiometric_maps` gives ``reconstruct`` the bias, dark and flat maps back.
 
 Bad files (missing, unreadable, of another size) raise :class:`~fluxcli.errors.UserError`
@@ -15,33 +15,17 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable
 
-import h5py
 import numpy as np
 
 from .. import config as C
 from ..calibration import radiometry as R
 from ..errors import UserError
 from ..imaging.imagefiles import read_image
+from ..artefacts.calibration import MAPS, SCALARS, write_radiometric  # noqa: F401  (re-exported)
 from .context import RunContext
 
 KEY = "calibrate.radiometric"
 GROUP = "radiometric"
-MAPS = {  # dataset name in /radiometric -> unit
-    "bias_counts_map": "counts",
-    "dark_e_per_s_map": "electrons/s per pixel",
-    "flat_map": "relative response, mean 1",
-}
-SCALARS = {  # attribute of /radiometric -> unit
-    "electrons_per_count": "electrons/count",
-    "em_gain": "1",
-    "em_gain_from_ratio": "1",
-    "em_gain_from_ptc": "1",
-    "read_noise_counts": "counts rms",
-    "read_noise_e": "electrons rms",
-    "bias_counts": "counts",
-    "dark_current_e_per_s": "electrons/s per pixel",
-    "cic_e_per_pixel": "electrons per pixel per frame",
-}
 
 
 def section_files(section: C.Radiometric) -> list[Path]:
@@ -184,45 +168,6 @@ def summary_rows(result: R.RadiometricResult) -> list[list[str]]:
             sigma = getattr(result, f"{name}_sigma")
             rows.append([f"{name} ({unit})", f"{value:.5g}", f"{sigma:.2g}" if sigma is not None else "-"])
     return rows
-
-
-def write_radiometric(group: h5py.Group, result: R.RadiometricResult) -> None:
-    """Store ``result`` in ``group`` (normally ``/radiometric`` of calibration.h5).
-
-    Layout: attributes ``<name>`` and ``<name>_sigma`` for each scalar (``SCALARS``, NaN
-    when not measured) with ``<name>_unit``; datasets ``bias_counts_map``,
-    ``dark_e_per_s_map``, ``flat_map`` when measured (attribute ``unit``); one subgroup
-    per PTC series in ``ptc/`` with datasets ``exposure_s``, ``mean_counts``,
-    ``variance_counts2``, ``variance_sigma_counts2``, ``n_pixels`` and scalar datasets
-    ``slope_counts``, ``intercept_counts2`` (and their ``*_sigma*``), ``em_gain_on``;
-    attribute ``warnings`` (JSON list) and ``sensor_block`` (JSON).
-    """
-    import json
-
-    for name, unit in SCALARS.items():
-        value, sigma = getattr(result, name), getattr(result, f"{name}_sigma")
-        group.attrs[name] = np.nan if value is None else float(value)
-        group.attrs[f"{name}_sigma"] = np.nan if sigma is None else float(sigma)
-        group.attrs[f"{name}_unit"] = unit
-    group.attrs["excess_noise_factor_squared"] = float(result.excess_noise_factor_squared)
-    group.attrs["warnings"] = json.dumps(result.warnings)
-    group.attrs["sensor_block"] = json.dumps(result.sensor_block())
-    for name, unit in MAPS.items():
-        arr = getattr(result, name)
-        if arr is not None:
-            group.create_dataset(name, data=np.asarray(arr, dtype=np.float64), compression="gzip").attrs["unit"] = unit
-    ptc = group.create_group("ptc")
-    for name, s in result.ptc.items():
-        g = ptc.create_group(name)
-        for field, unit in (("exposure_s", "s"), ("mean_counts", "counts above bias"),
-                            ("variance_counts2", "counts^2"), ("variance_sigma_counts2", "counts^2 (1 sigma)"),
-                            ("n_pixels", "pixels")):
-            g.create_dataset(field, data=getattr(s, field)).attrs["unit"] = unit
-        g.create_dataset("illumination", data=np.array(s.illumination, dtype=h5py.string_dtype()))
-        for field in ("slope_counts", "slope_sigma_counts", "intercept_counts2", "intercept_sigma_counts2",
-                      "reduced_chi2"):
-            g.create_dataset(field, data=float(getattr(s, field)))
-        g.create_dataset("em_gain_on", data=bool(s.em_gain_on))
 
 
 def read_radiometric_maps(path: Path, key: str, shape: tuple[int, int]) -> dict[str, np.ndarray | None]:

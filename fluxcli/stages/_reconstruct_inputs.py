@@ -46,7 +46,7 @@ def simulation_path(im) -> Path:
 def from_capture(im, n_elements: int, filter_name: str | None = None) -> Inputs:
     """One image per pose (= stage height) from a capture: darks subtracted, counts -> photons
     (``filter_name``: this filter's frames; default the first of reconstruct.images.filters, else .filter)."""
-    from ..acquisition import read_capture
+    from ..artefacts.capture import read_capture
 
     path = im.capture
     src = im.source

@@ -34,6 +34,7 @@ class Rig:
 
 
 def rig_of(cfg: C.LoadedConfig) -> C.Rig:
+    """``rig:`` of the config, refused (exit 2) when it names no device: the commands' one look at the config."""
     rig = cfg.model.rig
     if rig is None or (rig.filter_wheel is None and rig.stage is None and rig.camera is None and not rig.projectors):
         raise UserError(f"config {cfg.path}: 'rig' names no device (filter_wheel, stage, camera, projectors).")
@@ -41,14 +42,14 @@ def rig_of(cfg: C.LoadedConfig) -> C.Rig:
 
 
 @contextlib.contextmanager
-def open_rig(cfg: C.LoadedConfig, *, keep_going: bool):
+def open_rig(rig: C.Rig, system: C.System | None, *, keep_going: bool):
     """Open every configured device.  ``keep_going``: a device that does not answer is noted
     in ``Rig.failed`` (by its config key) and the others are still opened; otherwise its
     DeviceError propagates (exit 2).  Everything opened is closed, simulators stopped, the
-    camera's shutter closed on the way out."""
+    camera's shutter closed on the way out.  ``rig`` as :func:`rig_of` checked it; ``system``
+    gives the simulated camera its sensor and pixels."""
     from ..hardware.rig import open_filter_wheel, open_stage, start_simulators
 
-    rig = rig_of(cfg)
     out = Rig()
     with contextlib.ExitStack() as stack:
         out.sims = start_simulators(rig)
@@ -74,7 +75,7 @@ def open_rig(cfg: C.LoadedConfig, *, keep_going: bool):
             if out.stage is not None:
                 stack.callback(out.stage.close)
         cc = rig.camera or C.RigCamera()
-        out.camera = attempt("rig.camera", lambda: _camera(cfg, rig, cc, out))
+        out.camera = attempt("rig.camera", lambda: _camera(rig, system, cc, out))
         if out.camera is not None:
             stack.callback(out.camera.close)
             stack.callback(lambda: _safe(out.camera))
@@ -86,22 +87,21 @@ def _safe(camera) -> None:
         camera.make_safe()
 
 
-def _camera(cfg: C.LoadedConfig, rig: C.Rig, cc: C.RigCamera, devices: Rig):
+def _camera(rig: C.Rig, system: C.System | None, cc: C.RigCamera, devices: Rig):
     if cc.backend != "simulated":
         from ..hardware.cameras import open_real_camera
 
         return open_real_camera(cc)
-    return card_camera(cfg, rig, cc, devices)
+    return card_camera(rig, system, cc, devices)
 
 
-def card_camera(cfg: C.LoadedConfig, rig: C.Rig, cc: C.RigCamera, devices: Rig):
+def card_camera(rig: C.Rig, system: C.System | None, cc: C.RigCamera, devices: Rig):
     """The simulated EMCCD looking at a test card (not the subject: no T is built), through
     the filter physically in the wheel (``rig.camera.filters.<name>.transmission``), with the
     EMCCD chain of ``system.camera.sensor`` (defaults without a ``system``)."""
     from ..hardware.camera import SimulatedEmccd
-    from ..pipeline import emccd_model
+    from .plans import emccd_model
 
-    system = cfg.model.system
     sensor = system.camera.sensor if system is not None else C.Sensor()
     nx, ny = system.camera.pixels if system is not None else (64, 48)
     ramp = TEST_CARD_PHOTONS_PER_S * np.broadcast_to(0.5 + 0.5 * np.arange(nx) / max(nx - 1, 1), (ny, nx))
@@ -133,9 +133,9 @@ def card_camera(cfg: C.LoadedConfig, rig: C.Rig, cc: C.RigCamera, devices: Rig):
                           em_gain_range=tuple(cc.em_gain_range), time_scale=rig.time_scale, shape=(ny, nx))
 
 
-def lowest_gain(cfg: C.LoadedConfig) -> float:
+def lowest_gain(rig: C.Rig) -> float:
     """The smallest EM gain the configured camera accepts (1 at least)."""
-    cc = cfg.model.rig.camera or C.RigCamera()
+    cc = rig.camera or C.RigCamera()
     return max(1.0, float(cc.em_gain_range[0]))
 
 

@@ -20,58 +20,29 @@ calibrated (Moreno & Taubin's local homographies: :mod:`fluxcli.structured.calib
 
 from __future__ import annotations
 
-import json
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from .. import artefacts as A
 from .. import config as C
-from ..calibration.fit import BLUR_WARN_PX, CalibrationError, GeometricCalibration, calibrate_geometry
-from ..calibration.mirrors import MirrorFit, refine_mirrors
+from ..artefacts import calibration as AC
+from ..calibration.fit import CalibrationError, GeometricCalibration, calibrate_geometry
+from ..calibration.mirrors import MirrorFit, MirrorFitError, refine_mirrors
 from ..errors import UserError
-from ..hardware.projector import projector_model
 from ..imaging.imagefiles import read_image
-from ..pipeline import provenance
-from ..structured import calibrate as SC
-from ._radiometric import radiometric_from_capture, run_radiometric, section_files, write_radiometric
+from ._calibrate_plan import CalibratePlan, plan_of  # noqa: F401
+from ._calibrate_projectors import ProjectorFit, fit_projectors  # noqa: F401  (re-exported)
+from ._camera_yaml import SENSOR_MEASURED, camera_block, camera_yaml  # noqa: F401  (re-exported)
+from ._radiometric import radiometric_from_capture, run_radiometric
 from .context import RunContext
 
 
-
 def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
-    sec = cfg.model.calibrate
-    system = cfg.model.system
-    cam = system.camera if system is not None else None
-    out = cfg.workdir / "calibration.h5"
-    yaml_out = cfg.workdir / "camera.yaml"
-    capture_path = cfg.resolve(sec.capture) if sec.capture is not None else None
-    if capture_path is not None and not capture_path.is_file():
-        raise UserError(f"calibrate.capture: {capture_path} does not exist; take the calibration frames first with "
-                        "'fluxmap capture-surface CONFIG' (capture.calibration).")
-    image_paths = [cfg.resolve(im.file) for im in sec.images]
-    for k, p in enumerate(image_paths):
-        if not p.is_file():
-            raise UserError(f"calibrate.images[{k}].file: image file {p} does not exist.")
-    rad_paths = [cfg.resolve(p) for p in section_files(sec.radiometric)] if sec.radiometric is not None else []
-    frame_paths = _projector_frame_paths(cfg, sec)
-    prov = provenance(cfg)
-    for k, p in enumerate(image_paths):
-        prov.add_file(f"calibrate.images[{k}]", p)
-    for key, paths in frame_paths.items():
-        for k, p in enumerate(paths):
-            prov.add_file(f"{key}[{k}]", p)
-    for k, p in enumerate(rad_paths):
-        if p.is_file():
-            prov.add_file(f"calibrate.radiometric[{k}]", p)
-    if capture_path is not None:
-        prov.add_file("calibrate.capture", capture_path)
-    digest = A.inputs_digest(calibrate=sec.model_dump(mode="json"),
-                             camera=cam.model_dump(mode="json") if cam is not None else None,
-                             mirrors=[m.model_dump(mode="json") for m in system.mirrors] if system is not None else [],
-                             files={n: d["sha256"] for n, d in prov.input_files.items()})
+    plan = plan_of(cfg)  # every input resolved and checked before anything is computed
+    sec, system, cam = plan.section, plan.system, plan.camera
+    out, yaml_out, capture_path, digest = plan.output, plan.yaml_output, plan.capture, plan.inputs_digest
     if not ctx.force and A.is_up_to_date(out, "calibration", digest) and yaml_out.is_file():
         ctx.say(f"calibrate: {out} is up to date (use --force to redo)")
         return out
@@ -79,19 +50,20 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     geo, images = None, []
     mirrors: list[MirrorFit] = []
     shape = (cam.pixels[1], cam.pixels[0]) if cam is not None else None
-    src = _from_capture(capture_path, sec, shape) if capture_path is not None else _from_files(cfg, sec, image_paths)
+    src = _from_capture(capture_path, sec, shape) if capture_path is not None else _from_files(sec, list(plan.image_files))
     if src.grid is not None:
         if cam is None:
-            raise UserError(f"config {cfg.path}: 'calibrate' with a grid needs 'system.camera' with pixels and "
+            raise UserError(f"config {plan.config_path}: 'calibrate' with a grid needs 'system.camera' with pixels and "
                             "pixel_pitch_mm (the lens and pose are what it measures).")
         images = src.read_images(cam)
         geo = _geometric(src, cam, images, ctx)
         if system.mirrors and sec.refine_mirrors:
             mirrors = _mirrors(src, system, geo, images, ctx)
-    projectors = _projectors(cfg, sec, cam, geo, frame_paths, ctx) if sec.projectors else []
+    projectors = (fit_projectors(sec, cam, geo, plan.projector_frames, plan.projector_frames_dir, ctx)
+                  if sec.projectors else [])
     rad = None
     if sec.radiometric is not None:
-        rad = run_radiometric(sec.radiometric, cfg.resolve, ctx, expected_shape=shape)
+        rad = run_radiometric(sec.radiometric, plan.resolve, ctx, expected_shape=shape)
     elif src.capture is not None and src.capture.bias is not None:
         rad = radiometric_from_capture(src.capture, ctx, bit_depth=cam.sensor.bit_depth if cam is not None else 16)
     truth_errors = None
@@ -103,19 +75,10 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
             cam.lens is None):
         ctx.say("calibrate: warning: the aperture was not measured (a checkerboard gives no per-dot blur); "
                 "camera.yaml's lens has no aperture: add f_number or aperture_diameter_mm to it before use")
-    with A.write_artefact(out, "calibration", config_sha256=cfg.sha256, provenance=prov) as f:
-        f.attrs["inputs_digest"] = digest
-        if truth_errors is not None:  # simulated rig: how far the calibration is from the camera that made the frames
-            f.attrs["truth_errors"] = json.dumps(truth_errors)
-        f.create_dataset("camera_yaml", data=text)
-        if geo is not None:
-            _write_geometric(f.create_group("geometric"), geo, src, images)
-        if mirrors:
-            _write_mirrors(f.create_group("mirrors"), mirrors)
-        if rad is not None:
-            write_radiometric(f.create_group("radiometric"), rad)
-        if projectors:
-            _write_projectors(f.create_group("projectors"), projectors)
+    AC.write(out, AC.Calibration(text, digest, truth_errors,
+                                 AC.Geometric(geo, src.grid.model_dump(mode="json"), src.labels, images)
+                                 if geo is not None else None, mirrors, rad, projectors),
+             config_sha256=plan.config_sha256, provenance=plan.provenance)
     A.write_text(yaml_out, text)
     ctx.say(f"calibrate: camera written to {yaml_out} (use it as  system: {{camera: {yaml_out}}})")
     return out
@@ -181,7 +144,7 @@ class GridSource:
         return images
 
 
-def _from_files(cfg, sec: C.Calibrate, paths: list[Path]) -> GridSource:
+def _from_files(sec: C.Calibrate, paths: list[Path]) -> GridSource:
     return GridSource(sec.grid, [im.plane_z_mm for im in sec.images], [str(p) for p in paths],
                       [f"calibrate.images[{k}]" for k in range(len(paths))], files=paths)
 
@@ -189,7 +152,7 @@ def _from_files(cfg, sec: C.Calibrate, paths: list[Path]) -> GridSource:
 def _from_capture(path: Path, sec: C.Calibrate, shape) -> GridSource:
     """The calibration frames of ``path``: the grid (its description from the capture unless
     calibrate.grid is given) at the plane heights the read-back stage heights give."""
-    from ..acquisition import read_calibration
+    from ..artefacts.capture import read_calibration
 
     cal = read_calibration(path)
     if cal.grid is None and cal.bias is None:
@@ -254,52 +217,6 @@ def _summary(geo: GeometricCalibration, ctx: RunContext) -> None:
         ctx.say(f"calibrate: warning: {w}")
 
 
-def _write_geometric(g, geo: GeometricCalibration, src: GridSource, images) -> None:
-    c = geo.camera
-    g.create_dataset("lens_center_mm", data=c.center_mm).attrs["unit"] = "mm"
-    g.create_dataset("rotation", data=c.rotation)
-    for name, value, unit in (("image_distance_mm", c.image_distance_mm, "mm"),
-                              ("focal_length_mm", geo.focal_length_mm, "mm"),
-                              ("focus_distance_mm", geo.focus_distance_mm, "mm"),
-                              ("focus_distance_from_measure_mm", geo.focus_distance_from_measure_mm, "mm"),
-                              ("focal_plane_z_mm", geo.focal_plane_z_mm, "mm"),
-                              ("aperture_diameter_mm", geo.aperture_diameter_mm, "mm"),
-                              ("dot_diameter_mm", geo.dot_diameter_mm, "mm"),
-                              ("rms_px", geo.rms_px, "px"), ("rms_mm", geo.rms_mm, "mm"),
-                              ("pixel_pitch_mm", c.pixel_pitch_mm, "mm")):
-        g.attrs[name] = float(value)
-        g.attrs[f"{name}_unit"] = unit
-    g.attrs["pixels"] = np.array([c.nx, c.ny])
-    g.attrs["grid"] = json.dumps(src.grid.model_dump(mode="json"))
-    g.attrs["warnings"] = json.dumps(geo.warnings)
-    sg = g.create_group("sigma")
-    for k, v in geo.sigma.items():
-        sg.attrs[k] = float(v)
-    if geo.blur is not None:
-        b = g.create_group("blur_fit")
-        for k in ("focus_distance_mm", "focus_distance_sigma_mm", "k_px_mm", "k_sigma", "floor_px", "rms_px"):
-            b.attrs[k] = float(getattr(geo.blur, k))
-        b.attrs["model"] = "D_px = hypot(k_px_mm * (1/z - 1/u), floor_px), z axial distance (mm)"
-    if geo.focus is not None:
-        fc = g.create_group("focus_fit")
-        fc.attrs["params"] = geo.focus.params
-        fc.attrs["model"] = "F = p0 + p1 / (1 + ((1/z - p2) / p3)^2), z mean axial distance (mm)"
-        fc.attrs["focus_distance_mm"] = geo.focus.focus_distance_mm
-    ims = g.create_group("images")
-    for k, im in enumerate(geo.images):
-        h = ims.create_group(str(k))
-        h.attrs["plane_z_mm"] = im.plane_z_mm
-        h.attrs["file"] = src.labels[k]
-        h.attrs["focus_measure"] = im.focus_measure
-        h.attrs["notes"] = json.dumps(im.notes)
-        h.create_dataset("image", data=np.asarray(images[k], np.float32), compression="gzip", shuffle=True)
-        for name, arr, unit in (("ij", im.ij, ""), ("xy_px", im.xy_px, "px (col, row), pixel centres at integers"),
-                                ("residual_px", im.residual_px, "px, measured - model"),
-                                ("residual_mm", im.residual_mm, "mm on the grid plane"),
-                                ("blur_diameter_px", im.blur_diameter_px, "px"), ("axial_mm", im.axial_mm, "mm")):
-            h.create_dataset(name, data=arr).attrs["unit"] = unit
-
-
 # ------------------------------------------------------------------ mirrors
 def _mirrors(src: GridSource, system: C.System, geo: GeometricCalibration, images, ctx) -> list[MirrorFit]:
     g = src.grid
@@ -310,7 +227,7 @@ def _mirrors(src: GridSource, system: C.System, geo: GeometricCalibration, image
             fit = refine_mirrors(images, heights, geo.camera, center_mm=np.array(m.center_mm), normal=np.array(m.normal),
                                  axis=np.array(m.axis), size_mm=tuple(m.size_mm), pitch_mm=g.pitch_mm,
                                  shape=tuple(g.shape))
-        except ValueError as e:
+        except MirrorFitError as e:  # only the fit's own refusal is bad input; any other error is a bug
             raise UserError(f"system.mirrors[{k}]: the grid could not be used in this mirror's view: {e}") from None
         fits.append(fit)
         ctx.say(f"calibrate: mirror {m.name or f'mirror{k}'}: {fit.n_points} points, RMS {fit.rms_px:.3f} px; "
@@ -318,370 +235,3 @@ def _mirrors(src: GridSource, system: C.System, geo: GeometricCalibration, image
         for w in fit.warnings:
             ctx.say(f"calibrate: warning: mirror {k}: {w}")
     return fits
-
-
-def _write_mirrors(g, mirrors: list[MirrorFit]) -> None:
-    for k, m in enumerate(mirrors):
-        h = g.create_group(str(k))
-        h.create_dataset("center_mm", data=m.center_mm).attrs["unit"] = "mm"
-        h.create_dataset("normal", data=m.normal)
-        h.attrs["rms_px"] = m.rms_px
-        h.attrs["n_points"] = m.n_points
-        h.attrs["normal_sigma_deg"] = m.normal_sigma_deg
-        h.attrs["offset_sigma_mm"] = m.offset_sigma_mm
-
-
-# ------------------------------------------------------------------ camera.yaml
-def _r(x, nd=6):
-    return [round(float(v), nd) for v in x] if np.ndim(x) else round(float(x), nd)
-
-
-SENSOR_MEASURED = ("electrons_per_count", "read_noise_e", "bias_counts", "em_gain", "dark_current_e_per_s",
-                   "cic_e_per_pixel")  # what a radiometric calibration can measure (RadiometricResult names)
-
-
-def _given(cam: C.Camera, key: str, where: str) -> str:
-    """Where a value that was not measured comes from: the config, or fluxmap's default."""
-    if key in cam.assumed:  # a camera.yaml of an earlier calibration said so
-        return cam.assumed[key]
-    sensor = key in C.Sensor.model_fields
-    if sensor and key not in cam.sensor.model_fields_set:
-        value = getattr(C.Sensor(), key)
-        hint = " set from the camera's datasheet" if key in ("quantum_efficiency", "bit_depth") else \
-            " measure it (calibrate with bias, dark and photon-transfer frames) or set it from the datasheet"
-        return f"fluxmap default {value:g}, not measured —{hint}"
-    path = f"system.camera.{'sensor.' if sensor else ''}{key}"
-    return f"given in the config ({path}{where}), not measured"
-
-
-def camera_block(cam: C.Camera, geo: GeometricCalibration | None, rad) -> dict:
-    """The ``camera:`` block: valid as ``system.camera``, every value marked measured or assumed.
-
-    ``measured`` maps each measured value (``lens.focal_length_mm``, ``sensor.em_gain``, ...) to
-    its 1 sigma (same unit); ``assumed`` maps each other value to where it comes from;
-    ``uncertainty`` is the 1-sigma block the reconstruction propagates (``system.camera.uncertainty``:
-    focal_length_mm, focus_distance_mm, aperture_diameter_mm, lens_center_mm [x, y, z],
-    look_deg, gain_relative: the relative 1 sigma of photons per count, K / (G QE), without QE's)."""
-    block: dict = {"pixels": [int(cam.pixels[0]), int(cam.pixels[1])], "pixel_pitch_mm": float(cam.pixel_pitch_mm)}
-    measured: dict = {}
-    assumed: dict = {"pixels": _given(cam, "pixels", ": the frames' size agrees"),
-                     "pixel_pitch_mm": _given(cam, "pixel_pitch_mm", ": the sensor's pixel pitch x binning")}
-    unc: dict = {}
-    if geo is not None:
-        c, sg = geo.camera, geo.sigma
-        lens = {"focal_length_mm": _r(geo.focal_length_mm), "focus_distance_mm": _r(geo.focus_distance_mm)}
-        measured["lens.focal_length_mm"] = _r(sg["focal_length_mm"], 9)
-        measured["lens.focus_distance_mm"] = _r(sg["focus_distance_mm"], 9)
-        unc["focal_length_mm"] = measured["lens.focal_length_mm"]
-        unc["focus_distance_mm"] = measured["lens.focus_distance_mm"]
-        fitted = np.isfinite(geo.aperture_diameter_mm) and geo.aperture_diameter_mm > 0
-        given = {k: v for k, v in (cam.lens.model_dump().items() if cam.lens is not None else ())
-                 if k in ("f_number", "aperture_diameter_mm") and v is not None}
-        if fitted and (geo.aperture_resolved or not given):
-            lens["aperture_diameter_mm"] = _r(geo.aperture_diameter_mm)
-            measured["lens.aperture_diameter_mm"] = unc["aperture_diameter_mm"] = _r(sg["aperture_diameter_mm"], 9)
-        else:  # not measured, or the dots blur too little to trust it (it comes out low): keep the config's
-            why = (f": the dots blur < {BLUR_WARN_PX:g} px, so the fitted {geo.aperture_diameter_mm:.3g} mm is not "
-                   "trusted" if fitted else ": a checkerboard gives no per-dot blur")
-            for k, v in given.items():
-                lens[k] = v
-                assumed[f"lens.{k}"] = _given(cam, f"lens.{k}", why)
-        block["lens"] = lens
-        block["pose"] = {"lens_center_mm": _r(c.center_mm), "look": _r(c.look, 9), "up": _r(c.up, 9)}
-        centre = _r([sg["lens_center_x_mm"], sg["lens_center_y_mm"], sg["lens_center_z_mm"]], 9)
-        measured["pose.lens_center_mm"] = unc["lens_center_mm"] = centre
-        measured["pose.look_deg"] = unc["look_deg"] = _r(sg["look_deg"], 9)
-        measured["pose.up_deg"] = _r(sg["roll_deg"], 9)  # the in-plane rotation about the axis
-    else:
-        if cam.lens is not None:
-            block["lens"] = cam.lens.model_dump(exclude_none=True)
-            assumed["lens"] = _given(cam, "lens", "")
-        if cam.pose is not None:
-            block["pose"] = cam.pose.model_dump(mode="json")
-            assumed["pose"] = _given(cam, "pose", "")
-    if cam.apertures:
-        block["apertures"] = [a.model_dump() for a in cam.apertures]
-        assumed["apertures"] = _given(cam, "apertures", ": measured by hand")
-    if rad is not None:
-        sens = cam.sensor.model_dump()
-        got = rad.sensor_block()
-        sens.update(got)
-        block["sensor"] = sens
-        for k in sens:
-            if k in got:
-                sigma = getattr(rad, f"{k}_sigma", None)
-                measured[f"sensor.{k}"] = _r(sigma, 9) if sigma is not None and np.isfinite(sigma) else None
-            else:
-                assumed[k] = _given(cam, k, "")
-        rel = [rad.electrons_per_count_sigma / rad.electrons_per_count]
-        if rad.em_gain is not None and rad.em_gain_sigma is not None:
-            rel.append(rad.em_gain_sigma / rad.em_gain)
-        unc["gain_relative"] = _r(float(np.hypot.reduce(rel)), 9)
-    if unc:
-        block["uncertainty"] = unc
-    block["measured"] = {k: v for k, v in measured.items() if v is not None}
-    block["assumed"] = assumed
-    return block
-
-
-def camera_yaml(cam: C.Camera | None, geo: GeometricCalibration | None, rad,
-                mirrors: list[MirrorFit], system: C.System | None, projectors: list | None = None) -> str:
-    """The YAML text: ``camera:`` valid as ``system.camera`` (geometric and radiometric results in
-    one block, see :func:`camera_block`), ``mirrors:`` valid as ``system.mirrors``,
-    ``projectors:`` valid as ``rig.projectors`` (name -> optics and pose)."""
-    doc: dict = {}
-    if cam is not None:
-        doc["camera"] = camera_block(cam, geo, rad)
-    elif rad is not None:
-        doc["sensor"] = rad.sensor_block()
-    if mirrors and system is not None:
-        out = []
-        for m, fit in zip(system.mirrors, mirrors):
-            d = m.model_dump(mode="json", exclude_none=True)
-            d["center_mm"] = _r(fit.center_mm)
-            d["normal"] = _r(fit.normal, 9)
-            d["axis"] = _r(fit.axis, 9)
-            for key in ("normal_sigma_deg", "offset_sigma_mm"):  # measured: 1 sigma of the refined plane
-                if np.isfinite(getattr(fit, key)):
-                    d[key] = _r(getattr(fit, key), 9)
-            out.append(d)
-        doc["mirrors"] = out
-    if projectors:
-        doc["projectors"] = {pf.name: pf.block for pf in projectors}
-    head = ("# Written by `fluxmap calibrate`. Use it in any config in one line:\n"
-            "#   system: {camera: path/to/camera.yaml}" + ("   (and  mirrors: path/to/camera.yaml)" if mirrors else "")
-            + ("\n#   rig: {projectors: path/to/camera.yaml}   (the projectors; display keys beside file: {file: ..., NAME: {display: window}})" if projectors else "") + "\n")
-    if cam is not None:
-        head += ("# camera.measured: the 1 sigma of each measured value; camera.assumed: where each other value comes\n"
-                 "# from; camera.uncertainty: the 1 sigma the reconstruction propagates into its totals (gain_relative:\n"
-                 "# photons per count from electrons per count and EM gain; an assumed QE adds an error not in it).\n")
-    if geo is not None:
-        s = geo.sigma
-        head += (f"# 1-sigma: f {s['focal_length_mm']:.3g} mm, u {s['focus_distance_mm']:.3g} mm, aperture "
-                 f"{s['aperture_diameter_mm']:.3g} mm, lens centre ({s['lens_center_x_mm']:.3g}, "
-                 f"{s['lens_center_y_mm']:.3g}, {s['lens_center_z_mm']:.3g}) mm, look {s['look_deg']:.3g} deg; "
-                 f"RMS reprojection {geo.rms_px:.3f} px\n")
-    if mirrors:
-        head += ("# mirrors: their planes are measured (normal_sigma_deg, offset_sigma_mm: 1 sigma); size, axis "
-                 "direction and reflectance are given in the config\n")
-    for pf in projectors or []:
-        head += (f"# projector {pf.name}: {len(pf.result.points_mm)} board points, RMS reprojection "
-                 f"{pf.result.rms_px:.3f} projector px; gamma {'measured' if pf.gamma_measured else 'given'}\n")
-    return head + yaml.dump(doc, Dumper=_NoAliases, sort_keys=False, default_flow_style=None, allow_unicode=True)
-
-
-class _NoAliases(yaml.SafeDumper):
-    """Writes a list used twice (uncertainty and measured) twice, not as an anchor and alias."""
-
-    def ignore_aliases(self, data):
-        return True
-
-
-# ------------------------------------------------------------------ projectors
-@dataclass
-class ProjectorFit:
-    """One projector's calibration: the fit, its ``rig.projectors`` block, and (simulated) the truth."""
-
-    name: str
-    result: "SC.ProjectorCalibrationResult"
-    block: dict
-    gamma_measured: bool
-    heights_mm: list[float]
-    valid_fraction: list[float]
-    truth: dict | None = None  # simulated: the true projector's block and the fit's errors
-
-
-def _projector_name(pc: C.ProjectorCalibration, k: int) -> str:
-    return pc.name or f"projector{k}"
-
-
-def _expand(cfg, spec, key: str) -> list[Path]:
-    if isinstance(spec, str):
-        import glob
-
-        pattern = cfg.resolve(Path(spec))
-        files = sorted(Path(f) for f in glob.glob(str(pattern)))
-        if not files:
-            raise UserError(f"{key}: the pattern {pattern} matches no file.")
-        return files
-    return [cfg.resolve(p) for p in spec]
-
-
-def _projector_frame_paths(cfg, sec: C.Calibrate) -> dict[str, list[Path]]:
-    """Every projector frame file the config names (simulated frames are made later), by config key."""
-    from ..structured.patterns import column_patterns
-
-    out = {}
-    for k, pc in enumerate(sec.projectors):
-        for i, im in enumerate(pc.images):
-            for which, cells in (("columns", pc.pixels[0]), ("rows", pc.pixels[1])):
-                key = f"calibrate.projectors[{k}].images[{i}].{which}"
-                paths = _expand(cfg, getattr(im, which), key)
-                for p in paths:
-                    if not p.is_file():
-                        raise UserError(f"{key}: frame file {p} does not exist.")
-                n = len(column_patterns(cells, 1, period_px=pc.patterns.period_px, n_steps=pc.patterns.n_steps).frames)
-                _check_count(paths, key, n)
-                out[key] = paths
-    return out
-
-
-def _check_count(paths: list[Path], key: str, n_expected: int) -> None:
-    if len(paths) != n_expected:
-        raise UserError(f"{key}: {len(paths)} frame file(s) given, the pattern sequence has {n_expected} "
-                        "(white, black, each Gray bit and its inverse, the phase steps; check "
-                        "calibrate.projectors[].pixels and .patterns).")
-
-
-def _projector_block(p) -> dict:
-    return {"pixels": [int(p.width_px), int(p.height_px)], "focal_px": _r([p.fx_px, p.fy_px]),
-            "principal_px": _r([p.cx_px, p.cy_px]), "distortion": _r([p.k1, p.k2], 8), "gamma": _r(p.gamma, 4),
-            "pose": {"center_mm": _r(p.center_mm), "look": _r(p.axis, 9), "up": _r(-p.down, 9)}}
-
-
-def _read_frames(paths: list[Path], key: str, n_expected: int, shape) -> np.ndarray:
-    _check_count(paths, key, n_expected)
-    out = []
-    for p in paths:
-        try:
-            img, _ = read_image(p)
-        except (ValueError, OSError) as e:
-            raise UserError(f"{key}: {e}") from None
-        if img.shape != shape:
-            raise UserError(f"{key}: {p} is {img.shape[1]} x {img.shape[0]} pixels but system.camera.pixels is "
-                            f"[{shape[1]}, {shape[0]}].")
-        out.append(np.asarray(img, float))
-    return np.stack(out)
-
-
-def _simulated_frames(cfg, k: int, pc: C.ProjectorCalibration, ctx) -> list[tuple[float, list[Path], list[Path]]]:
-    """Render the board at each height with the simulated rig; write the frames as 16-bit TIFF files."""
-    from ..imaging.imagefiles import write_image
-    from ..pipeline import emccd_model
-    from ..scene import camera_from_config
-
-    sim = pc.simulated
-    if sim.camera.lens is None or sim.camera.pose is None:
-        raise UserError(f"calibrate.projectors[{k}].simulated.camera: the true camera needs lens and pose.")
-    name = _projector_name(pc, k)
-    ctx.say(f"calibrate: projector {name}: rendering the board at {len(sim.heights_mm)} height(s) (simulated rig)")
-    sensor = replace(emccd_model(sim.camera.sensor, sim.exposure_s), em_gain=sim.em_gain)
-    frames = SC.simulate_board_frames(camera_from_config(sim.camera), projector_model(sim.projector),
-                                      sim.heights_mm, board_size_mm=sim.board_size_mm, albedo=sim.albedo,
-                                      period_px=pc.patterns.period_px, n_steps=pc.patterns.n_steps, sensor=sensor,
-                                      photons_white=sim.photons_white, ambient_photons=sim.ambient_photons,
-                                      lens_samples=sim.lens_samples, seed=sim.seed)
-    folder = cfg.workdir / "projector_frames" / name
-    folder.mkdir(parents=True, exist_ok=True)
-    out = []
-    for z, (cols, rows) in zip(sim.heights_mm, frames):
-        paths = []
-        for which, stack in (("columns", cols), ("rows", rows)):
-            ps = [folder / f"z{z:+07.2f}_{which}_{i:03d}.tif" for i in range(len(stack))]
-            for pth, im in zip(ps, stack):
-                write_image(pth, im)
-            paths.append(ps)
-        out.append((float(z), paths[0], paths[1]))
-    return out
-
-
-def _projectors(cfg, sec: C.Calibrate, cam: C.Camera, geo: GeometricCalibration, frame_paths, ctx) -> list[ProjectorFit]:
-    from ..calibration.geometry import grid_points_mm
-    from ..structured.patterns import column_patterns, decode
-
-    ny, nx = cam.pixels[1], cam.pixels[0]
-    g = sec.grid
-    ii, jj = np.meshgrid(np.arange(g.shape[0]), np.arange(g.shape[1]), indexing="ij")
-    ij = np.c_[ii.ravel(), jj.ravel()]
-    fits = []
-    for k, pc in enumerate(sec.projectors):
-        name = _projector_name(pc, k)
-        w, h = pc.pixels
-        cols = column_patterns(w, h, period_px=pc.patterns.period_px, n_steps=pc.patterns.n_steps)
-        rows = SC.row_patterns(w, h, period_px=pc.patterns.period_px, n_steps=pc.patterns.n_steps)
-        if pc.simulated is not None:
-            sets = _simulated_frames(cfg, k, pc, ctx)
-        else:
-            sets = [(im.plane_z_mm, frame_paths[f"calibrate.projectors[{k}].images[{i}].columns"],
-                     frame_paths[f"calibrate.projectors[{k}].images[{i}].rows"]) for i, im in enumerate(pc.images)]
-        planes, gammas, valid_frac, heights = [], [], [], []
-        for i, (z, cpaths, rpaths) in enumerate(sets):
-            key = f"calibrate.projectors[{k}].images[{i}]" if pc.simulated is None else \
-                f"calibrate.projectors[{k}].simulated (z={z:g} mm)"
-            decoded = []
-            for which, pats, paths in (("columns", cols, cpaths), ("rows", rows, rpaths)):
-                f = _read_frames(paths, f"{key}.{which}", len(pats.frames), (ny, nx))
-                contrast = f[0] - f[1]
-                lit = contrast[contrast > 0]
-                level = pc.min_contrast_fraction * (np.percentile(lit, 99) if len(lit) else 0.0)
-                dec = decode(f, pats, min_contrast=level, width_px=w if which == "columns" else h)
-                decoded.append(dec)
-                if which == "columns" and pc.gamma is None:
-                    ph = f[2 + 2 * pats.n_gray:]
-                    gammas.append(SC.gamma_from_phase_frames(f[0], f[1], ph, dec.valid))
-            X = grid_points_mm(ij, g.pitch_mm, tuple(g.shape), z)
-            xy = geo.camera.project(X) + 0.5  # pixel centres at integers -> pixel (r, c) spans [c, c+1)
-            inside = (xy[:, 0] >= 0) & (xy[:, 0] < nx) & (xy[:, 1] >= 0) & (xy[:, 1] < ny)
-            planes.append((X[inside], xy[inside], decoded[0].column_px, decoded[1].column_px))
-            valid_frac.append(float(np.mean(decoded[0].valid & decoded[1].valid)))
-            heights.append(float(z))
-        gamma_meas = [x for x in gammas if np.isfinite(x)]
-        gamma = float(pc.gamma) if pc.gamma is not None else (float(np.median(gamma_meas)) if gamma_meas else 1.0)
-        if pc.gamma is None and not gamma_meas:
-            ctx.say(f"calibrate: warning: projector {name}: gamma could not be measured (too few decoded pixels); 1 assumed")
-        try:
-            res = SC.calibrate_projector(planes, width_px=w, height_px=h, gamma=gamma, half_window=pc.half_window_px)
-        except ValueError as e:
-            raise UserError(f"calibrate.projectors[{k}] ({name}): {e}; check that the board is lit by the projector "
-                            "in the frames and that min_contrast_fraction is not too high.") from None
-        fit = ProjectorFit(name, res, _projector_block(res.projector), bool(pc.gamma is None and gamma_meas),
-                           heights, valid_frac)
-        if pc.simulated is not None:
-            fit.truth = _truth_errors(pc.simulated.projector, res.projector)
-        fits.append(fit)
-        _projector_summary(fit, ctx)
-    return fits
-
-
-def _truth_errors(true_cfg: C.ProjectorModel, fitted) -> dict:
-    """The simulated projector's block and how far the fit is from it (reported, never used by the fit)."""
-    from scipy.spatial.transform import Rotation
-
-    t = projector_model(true_cfg)
-    return {"block": _projector_block(t),
-            "center_error_mm": float(np.linalg.norm(fitted.center_mm - t.center_mm)),
-            "rotation_error_deg": float(np.degrees(Rotation.from_matrix(fitted.rotation @ t.rotation.T).magnitude())),
-            "focal_error": float(fitted.fx_px / t.fx_px - 1), "gamma_error": float(fitted.gamma - t.gamma)}
-
-
-def _projector_summary(fit: ProjectorFit, ctx) -> None:
-    p, r = fit.result.projector, fit.result
-    ctx.say(f"calibrate: projector {fit.name}: {len(r.points_mm)} board points on {len(fit.heights_mm)} heights "
-            f"({r.rejected} rejected), RMS {r.rms_px:.3f} px; f ({p.fx_px:.1f}, {p.fy_px:.1f}) px, c ({p.cx_px:.1f}, "
-            f"{p.cy_px:.1f}) px, k ({p.k1:.4f}, {p.k2:.4f}), gamma {p.gamma:.3f}"
-            f"{' (measured)' if fit.gamma_measured else ''}, centre {np.round(p.center_mm, 2).tolist()} mm")
-    if fit.truth is not None:
-        t = fit.truth
-        ctx.say(f"calibrate: projector {fit.name} against the simulated truth: centre {t['center_error_mm']:.3f} mm, "
-                f"rotation {t['rotation_error_deg']:.3f} deg, fx {t['focal_error']:+.2%}, gamma {t['gamma_error']:+.3f}")
-    if r.rms_px > 0.5:
-        ctx.say(f"calibrate: warning: projector {fit.name}: RMS reprojection {r.rms_px:.2f} projector px > 0.5")
-
-
-def _write_projectors(g, fits: list[ProjectorFit]) -> None:
-    for k, fit in enumerate(fits):
-        h = g.create_group(str(k))
-        r = fit.result
-        h.attrs["name"] = fit.name
-        h.attrs["block"] = json.dumps(fit.block)
-        h.attrs["rms_px"] = r.rms_px
-        h.attrs["rejected"] = r.rejected
-        h.attrs["gamma_measured"] = fit.gamma_measured
-        h.attrs["heights_mm"] = np.asarray(fit.heights_mm, float)
-        h.attrs["valid_fraction"] = np.asarray(fit.valid_fraction, float)
-        for name, arr, unit in (("points_mm", r.points_mm, "mm, world"), ("uv_px", r.uv_px, "projector px, measured"),
-                                ("residual_px", r.residual_px, "projector px, measured - model"),
-                                ("plane", r.plane, "index into heights_mm")):
-            h.create_dataset(name, data=arr).attrs["unit"] = unit
-        if fit.truth is not None:
-            h.attrs["truth"] = json.dumps(fit.truth)

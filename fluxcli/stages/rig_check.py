@@ -31,7 +31,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext, *, move: bool = True, exposure_s: 
 
     rig = _rig.rig_of(cfg)
     out_dir = cfg.workdir / "rig-check"
-    with _rig.open_rig(cfg, keep_going=True) as devices:
+    with _rig.open_rig(rig, cfg.model.system, keep_going=True) as devices:
         def check(key: str, port: str, device, identify, exercise) -> None:
             if device is None:
                 ctx.say(f"{key}: NO ANSWER on {devices.where(key, port)}")
@@ -53,7 +53,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext, *, move: bool = True, exposure_s: 
             check("rig.stage", rig.stage.port, devices.stage, stage_identity,
                   exercise_stage if move else lambda s: [f"at {s.position_mm():.4f} mm (not moved: --no-move)"])
         cc = rig.camera or C.RigCamera()
-        gain = _rig.lowest_gain(cfg) if em_gain is None else float(em_gain)
+        gain = _rig.lowest_gain(rig) if em_gain is None else float(em_gain)
         check("rig.camera", f"backend {cc.backend}", devices.camera, lambda c: c.identity(),
               lambda c: _exercise_camera(c, out_dir, exposure_s, gain))
         for name, spec in rig.projectors.items():

@@ -24,10 +24,11 @@ from .context import RunContext
 def run(cfg: C.LoadedConfig, ctx: RunContext, *, exposure_s: float = 0.1, em_gain: float | None = None,
         frames: int = 1, dark: bool = False, out: Path | None = None) -> Path:
     out = Path(out) if out is not None else cfg.workdir / "snap.tif"
-    with _rig.open_rig(cfg, keep_going=False) as devices:
+    rig = _rig.rig_of(cfg)
+    with _rig.open_rig(rig, cfg.model.system, keep_going=False) as devices:
         camera = devices.camera
         camera.exposure_s = exposure_s
-        camera.em_gain = _rig.lowest_gain(cfg) if em_gain is None else float(em_gain)
+        camera.em_gain = _rig.lowest_gain(rig) if em_gain is None else float(em_gain)
         camera.shutter_open = not dark
         counts = camera.sequence(frames)
         camera.make_safe()

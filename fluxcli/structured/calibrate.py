@@ -31,6 +31,10 @@ from scipy.spatial.transform import Rotation
 from .patterns import PatternSet, column_patterns
 from .projector import Projector
 
+
+class ProjectorFitError(ValueError):
+    """Too few board points have decoded projector coordinates to fit a projector: bad input, not a bug."""
+
 __all__ = ["row_patterns", "projector_coordinates_at", "fit_projector", "gamma_from_phase_frames",
            "ProjectorCalibrationResult", "calibrate_projector", "simulate_board_frames"]
 
@@ -206,7 +210,8 @@ def calibrate_projector(planes: list[tuple[np.ndarray, np.ndarray, np.ndarray, n
         X_all.append(np.asarray(X, float)[ok]); uv_all.append(uv[ok]); k_all.append(np.full(int(ok.sum()), k))
     X, uv, plane = np.concatenate(X_all), np.concatenate(uv_all), np.concatenate(k_all)
     if len(X) < 12 or len(np.unique(plane)) < 2:
-        raise ValueError(f"only {len(X)} board point(s) on {len(np.unique(plane))} height(s) have decoded projector "
+        raise ProjectorFitError(f"only {len(X)} board point(s) on {len(np.unique(plane))} height(s) have decoded "
+                                "projector "
                          "coordinates around them; at least 12 on two heights are needed")
     proj, res = fit_projector(X, uv, width_px=width_px, height_px=height_px, gamma=gamma)
     r = np.hypot(res[:, 0], res[:, 1])
