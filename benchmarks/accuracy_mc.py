@@ -122,7 +122,7 @@ def forward_check(cfg_path: Path, sim_path: Path) -> list[float]:
     emission model). Near 1 for the right emission model, whatever the reconstruction does."""
     from fluxcli.artefacts.transfer import load_T
     from fluxcli.config import load_config
-    from fluxcli.pipeline import plan
+    from fluxcli.stages.plans import plan
 
     _, _, todo = plan(load_config(cfg_path))
     with h5py.File(sim_path) as f:

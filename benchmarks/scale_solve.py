@@ -28,7 +28,7 @@ def main(argv=None) -> int:
     from fluxcli.config import load_config
     from fluxcli.imaging import noise as N
     from fluxcli.inverse import error_l1, reconstruct, total_ratio
-    from fluxcli.pipeline import plan
+    from fluxcli.stages.plans import plan
     from fluxcli.workers import blas_threads
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -1158,6 +1158,12 @@ class LoadedConfig:
         cap = self.model.capture
         return self.workdir / "surface.h5" if cap is not None and cap.surface is not None else None
 
+    def images_capture_path(self) -> Path:
+        """``reconstruct.images.capture``, resolved: beside the config, else in the workdir."""
+        p = self.model.reconstruct.images.capture
+        first = self.resolve(p)
+        return first if first.is_file() or p.is_absolute() else self.workdir / p
+
     @property
     def sha256(self) -> str:
         return hashlib.sha256(yaml.safe_dump(self.raw, sort_keys=True).encode()).hexdigest()

@@ -369,7 +369,7 @@ def test_the_simulated_camera_renders_a_truth_finer_than_the_elements(reference,
     and the variation within elements shows in the image (a constant per element would be
     half an inverse crime for a reconstruction on those elements)."""
     from fluxcli.config import load_config
-    from fluxcli.pipeline import ensure_pose_T
+    from fluxcli.stages.plans import ensure_pose_T
     from fluxcli.scene import Pose
     from fluxcli.stages.capture import SimulatedScene
     from fluxcli.truth import forward_transfer
@@ -448,8 +448,7 @@ def test_the_record_shows_the_sensor_as_the_frames_were_taken(reference, tmp_pat
     ref_path, p, cfg = _reconstruct_from_capture(reference, tmp_path)
     loaded = C.load_config(p)
     assert loaded.model.system.camera.sensor.em_gain == 300.0  # what the config says
-    from fluxcli.stages.outputs import capture_path
 
-    label, text = sensor_row(loaded.model.system.camera.sensor, loaded.model.reconstruct.images, capture_path(loaded))
+    label, text = sensor_row(loaded.model.system.camera.sensor, loaded.model.reconstruct.images, loaded.images_capture_path())
     assert label == "sensor" and "as the frames were taken" in text and "em_gain 100;" in text
     assert "em_gain 300" not in text

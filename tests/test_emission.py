@@ -219,7 +219,7 @@ def test_pairwise_and_lens_converge_with_a_non_lambertian_profile():
 def _keys(write_config, cfg, name):
     from fluxcli import artefacts as A
     from fluxcli.config import load_config
-    from fluxcli.pipeline import geometry_of, plan
+    from fluxcli.stages.plans import geometry_of, plan
 
     c = load_config(write_config(cfg, name=name))
     return [pt.key for _, pt in plan(c)[2]], A.cache_key(geometry_of(c))
@@ -558,7 +558,7 @@ def test_vertex_unknowns_take_the_tangential_term_from_the_cached_T(write_config
 def test_a_resumed_build_gives_the_same_tangential_values(tmp_path, monkeypatch):
     """The partial files of a long build keep the tangential values too: a build that reads
     its blocks back makes the same T_tangent as the one that cast them."""
-    from fluxcli.pipeline import PartialFiles
+    from fluxcli.transfer_cache import PartialFiles
 
     cam = camera(d_focus=120.0, R=6.0, n=48, pitch=0.1)
     subject = phantoms.patch(size_mm=(4, 4), n=(2, 2), center_mm=[0.5, 0.2, -110.0], normal=[0.4, 0, 1])[0]

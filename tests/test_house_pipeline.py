@@ -1,6 +1,6 @@
 """Issue 23, the pipeline floor: typed artefact containers (simulation, surface, tetmesh) that
 read back what they write and carry the schema, the T cache and the checks taking parts of
-the config (never the config), and the former ``fluxcli.pipeline`` names still importable.
+the config (never the config), and the former ``fluxcli.pipeline`` hub gone.
 """
 
 from __future__ import annotations
@@ -171,7 +171,7 @@ def test_nothing_below_the_stage_commands_takes_the_whole_config():
 def test_no_raw_hdf5_file_outside_artefacts_in_this_floor():
     mine = ["fluxcli/transfer_cache", "fluxcli/truth.py", "fluxcli/scene.py", "fluxcli/resources.py",
             "fluxcli/stages/simulate.py", "fluxcli/stages/build_t.py", "fluxcli/stages/plans.py",
-            "fluxcli/report/surface_figures.py", "fluxcli/structured", "fluxcli/pipeline.py"]
+            "fluxcli/report/surface_figures.py", "fluxcli/structured"]
     raw = [f"{f}:{node.lineno}" for f, node in _walk(mine) if isinstance(node, ast.Attribute)
            and node.attr == "File" and isinstance(node.value, ast.Name) and node.value.id == "h5py"]
     assert raw == []
@@ -185,22 +185,11 @@ def _walk(paths):
                 yield f.relative_to(ROOT), node
 
 
-# every name fluxcli/pipeline.py defined before it was broken up (main 41b3db0): other branches import them
-FORMER_PIPELINE_NAMES = [
-    "WEAK_VIEW_FRACTION", "SEEN_FRACTION", "PoseT", "check_writable", "check_folders", "available_memory_bytes",
-    "check_memory", "SAMPLE_BYTES", "transfer_bytes", "geometry_of", "without_emission", "provenance",
-    "EMISSION_NOTICE", "emission_notice", "announce", "emccd_model", "cache_dir", "key_parts", "plan",
-    "CHECKPOINT_RAYS", "PartialFiles", "_write_npz", "_build_and_store", "CLUSTER_TASKS_PER_THREAD",
-    "CLUSTER_MIN_BLOCK_RAYS", "WORKER_SCENES_KEPT", "_worker_scenes", "_worker_lock", "_worker_scene", "_build_block",
-    "_plan_view", "_call", "_build_on_cluster", "_plans_of", "_merge", "summarise", "ensure_T", "check_shared",
-    "ensure_pose_T", "check_collection", "_DECODE_UNITS", "decode_datasets", "write_surface_artefact",
-]
+def test_pipeline_hub_is_gone_and_the_modules_stay_small():
+    """issue 23: pipeline.py was a 674-line hub; its parts live where they belong and no module
+    imports it any more."""
+    import importlib.util
 
-
-def test_the_former_pipeline_names_stay_importable_and_the_modules_stay_small():
-    from fluxcli import pipeline
-
-    assert [n for n in FORMER_PIPELINE_NAMES if not hasattr(pipeline, n)] == []
-    assert len((ROOT / "fluxcli/pipeline.py").read_text().splitlines()) <= 200
+    assert importlib.util.find_spec("fluxcli.pipeline") is None
     for stage in ("build_t", "simulate"):
         assert len((ROOT / f"fluxcli/stages/{stage}.py").read_text().splitlines()) <= 300, stage

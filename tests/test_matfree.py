@@ -204,7 +204,7 @@ def test_reconstruct_no_longer_refuses_a_large_mesh_for_smooth(write_config, min
     refused (its matrices are still n²)."""
     import copy
 
-    from fluxcli import pipeline
+    from fluxcli.stages.plans import plan
     from fluxcli.config import load_config
     from fluxcli.errors import UserError
     from fluxcli.stages import reconstruct as R
@@ -218,7 +218,7 @@ def test_reconstruct_no_longer_refuses_a_large_mesh_for_smooth(write_config, min
     monkeypatch.setattr(ctx, "say", said.append)
     monkeypatch.setattr("fluxcli.resources.available_memory_bytes", lambda: 16e9)
     loaded = load_config(write_config(cfg), [])
-    _, placer, todo = pipeline.plan(loaded)
+    _, placer, todo = plan(loaded)
     rc = loaded.model.reconstruct
     R.check_solver_size(rc.settings(), rc.sweep, loaded.model.system.camera.pixels, ctx, placer.surface, len(todo))
     assert any("matrix-free" in s for s in said)

@@ -223,7 +223,7 @@ def test_a_view_that_barely_sees_the_subject_is_warned_about_and_a_blind_pose_re
     from pathlib import Path
 
     from fluxcli.errors import UserError
-    from fluxcli.pipeline import WEAK_VIEW_FRACTION, PoseT, check_collection
+    from fluxcli.transfer_cache import WEAK_VIEW_FRACTION, PoseT, check_collection
     from fluxcli.scene import Pose
     from fluxcli.stages.context import RunContext
 

@@ -21,7 +21,7 @@ from ..inverse.matfree import DENSE_MAX_UNKNOWNS, memory_estimate_bytes as matfr
 from ..inverse.solve import DENSE, describe
 from ..inverse.sweep import sweep_cell
 from ..inverse.unknowns import Grid, VertexMap, n_vertices, resolve_unknowns
-from ..pipeline import check_memory
+from ..resources import check_memory
 from ..workers import pool_for
 from ._reconstruct_inputs import photon_noise, simulation_path
 from .context import RunContext

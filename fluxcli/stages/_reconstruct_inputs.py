@@ -17,7 +17,7 @@ from ..errors import UserError
 from ..imaging import noise as N
 from ..imaging.imagefiles import read_image, sample_type
 from ..imaging.sensor_maps import counts_to_photons_with_maps
-from ..pipeline import emccd_model
+from .plans import emccd_model
 from ._radiometric import read_radiometric_maps
 
 @dataclass

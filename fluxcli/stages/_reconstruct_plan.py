@@ -15,7 +15,7 @@ from typing import Callable
 from .. import artefacts as A
 from .. import config as C
 from ..artefacts.reconstruction import FILENAME as RECONSTRUCTION_FILE
-from ..pipeline import check_folders, ensure_T, geometry_of, plan, provenance
+from .plans import check_folders, ensure_T, geometry_of, plan, provenance
 from ._radiometric import assumed_qe_warning, counts_in
 from .outputs import reconstruction_exposure_s, simulation_exposure_s
 
@@ -106,13 +106,6 @@ def _image_sources(cfg: C.LoadedConfig, capture: Path | None) -> list[str]:
     return [A.file_sha256(sim)] if sim.is_file() else []
 
 
-def capture_path(cfg: C.LoadedConfig) -> Path:
-    """reconstruct.images.capture, resolved: beside the config, else in the workdir."""
-    p = cfg.model.reconstruct.images.capture
-    first = cfg.resolve(p)
-    return first if first.is_file() or p.is_absolute() else cfg.workdir / p
-
-
 def _with_system(cfg: C.LoadedConfig, system: C.System | None) -> C.LoadedConfig:
     return cfg if system is None else C.LoadedConfig(cfg.model.model_copy(update={"system": system}), cfg.path, cfg.raw)
 
@@ -123,7 +116,7 @@ def plan_of(cfg: C.LoadedConfig) -> ReconstructPlan:
     rc = m_.reconstruct
     check_folders(cfg)
     src = rc.images
-    capture = capture_path(cfg) if isinstance(src, C.CaptureSource) else None
+    capture = cfg.images_capture_path() if isinstance(src, C.CaptureSource) else None
     digest = A.inputs_digest(system=m_.system.model_dump(mode="json"), subject=geometry_of(cfg)["subject"],
                              transfer=m_.transfer.model_dump(mode="json"),
                              reconstruct=rc.model_dump(mode="json", by_alias=True), images=_image_sources(cfg, capture),

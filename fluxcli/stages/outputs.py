@@ -171,13 +171,6 @@ def rig_of(system: C.System):
                (cam.nx * cam.focal_pixel_mm, cam.ny * cam.focal_pixel_mm), mirrors)
 
 
-def capture_path(cfg: C.LoadedConfig) -> Path:
-    """reconstruct.images.capture, resolved (:func:`._reconstruct_plan.capture_path`)."""
-    from ._reconstruct_plan import capture_path as resolved
-
-    return resolved(cfg)
-
-
 def record_of(cfg: C.LoadedConfig, digests: dict[str, str], exposure_s: float | None) -> list[tuple[str, str]]:
     """(label, value) rows: the settings and files a result was made with, for the report's record
     (the whole config: it is the record of the config; ``exposure_s``: the rate's, as recorded)."""
@@ -195,7 +188,7 @@ def record_of(cfg: C.LoadedConfig, digests: dict[str, str], exposure_s: float | 
                      + f", focused {lens.focus_distance_mm:g} mm in front"),
             ("apertures", ", ".join(f"⌀{a.diameter_mm:g} mm at {a.distance_mm:g} mm" for a in cam.apertures) or "none"),
             sensor_row(cam.sensor, m.reconstruct.images,
-                       capture_path(cfg) if hasattr(m.reconstruct.images, "capture") else None),
+                       cfg.images_capture_path() if hasattr(m.reconstruct.images, "capture") else None),
             ("mirrors", "; ".join(f"{mm.name or f'mirror{k}'}: centre {list(mm.center_mm)} mm, normal "
                                   f"{list(mm.normal)}, {mm.size_mm[0]:g} × {mm.size_mm[1]:g} mm, reflectance "
                                   f"{mm.reflectance:g}" for k, mm in enumerate(m.system.mirrors)) or "none"),

@@ -25,7 +25,8 @@ from .. import config as C
 from .. import report as R
 from ..artefacts import reconstruction as RA
 from ..errors import UserError
-from ..pipeline import check_writable, geometry_of
+from ..resources import check_writable
+from .plans import geometry_of
 from ..scene import SubjectPlacer
 from .context import RunContext
 from .outputs import reconstruction_exposure_s, recorded_rate_exposure_s, record_of, rig_of
