@@ -53,14 +53,15 @@ def reimage(cfg_path, pos, dirn, batch=1_000_000):
     from fluxcli.config import load_config
     from fluxcli.montecarlo import camera as MC_cam
     from fluxcli.optics.raycast import OcclusionScene
-    from fluxcli.scene import SubjectPlacer, poses_from_config, views_from_config
+    from fluxcli.scene import poses_from_config, views_from_config
+    from fluxcli.stages.plans import placer_of
     from fluxcli.surface.mesh import merge
     from fluxcli.truth import montecarlo_shape
 
     cfg = load_config(cfg_path)
     m = cfg.model
     shape = montecarlo_shape(m.subject.surface)
-    placer = SubjectPlacer(cfg)
+    placer = placer_of(cfg)
     views = views_from_config(m.system)
     scenes = [placer.scene(p, m.system) for p in poses_from_config(m.subject)]
     placements = [placer.placement(s.pose) for s in scenes]

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from fluxcli.config import load_config
 from fluxcli.diffusion.mesh import tetrahedralize
-from fluxcli.scene import SubjectPlacer
+from fluxcli.stages.plans import placer_of
 from fluxcli.stages.capture import truth_config
 from fluxcli.truth import tetmesh_key
 
@@ -30,7 +30,7 @@ def main(configs: list[str]) -> None:
     HERE.mkdir(exist_ok=True)
     for c in configs:
         cfg = truth_config(load_config(c))  # the rig's true surface where the config captures its own
-        surface = SubjectPlacer(cfg).surface
+        surface = placer_of(cfg).surface
         edge = cfg.model.simulate.flux.mesh_edge_mm
         path = HERE / f"{tetmesh_key(surface, edge)}.h5"
         if path.is_file():

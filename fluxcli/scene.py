@@ -11,6 +11,8 @@ through its bounding-box centre) before it is raised.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -80,13 +82,16 @@ def poses_from_config(subject: C.Subject) -> list[Pose]:
 class SubjectPlacer:
     """Builds the subject surface once and places it at any pose."""
 
-    def __init__(self, cfg: "C.LoadedConfig"):
-        model = cfg.model
-        s = model.subject.surface
-        self.stage = model.system.stage
+    def __init__(self, subject: C.Subject, stage: C.Stage | None, emission: Profile,
+                 resolve: Callable[[Path], Path] = Path):
+        """``subject``: the config's subject section; ``stage``: the rig's stage (what a phantom rests
+        on), or None; ``emission``: the surface's emission profile; ``resolve``: turns a path the
+        config gives into the file it means (beside the config)."""
+        s = subject.surface
+        self.stage = stage
         self.rests_on_stage = isinstance(s, (C.CylinderPhantom, C.BoxPhantom, C.RingPhantom, C.SpherePhantom))
         self.notes: list[str] = []  # what a mesh file yielded and what was repaired in it
-        self.emission: Profile = C.emission_profile(cfg)  # Lambertian when subject.emission is absent
+        self.emission = emission  # Lambertian when subject.emission is absent
         if isinstance(s, C.CylinderPhantom):
             surf, point, axis = phantoms.cylinder(radius_mm=s.radius_mm, length_mm=s.length_mm, n_angular=s.n_angular,
                                                   n_axial=s.n_axial, cap_elements=s.cap_elements)
@@ -100,7 +105,7 @@ class SubjectPlacer:
         elif isinstance(s, C.PatchPhantom):
             surf, point, axis = phantoms.patch(size_mm=s.size_mm, n=s.n, center_mm=s.center_mm, normal=s.normal)
         elif isinstance(s, C.MeshSurface):
-            path = cfg.resolve(s.mesh)
+            path = resolve(s.mesh)
             try:
                 surf, self.notes = read_mesh_checked(path, scale_to_mm=s.scale_to_mm)
             except ValueError as e:
@@ -110,7 +115,7 @@ class SubjectPlacer:
         else:  # surface artefact from capture-surface
             from .artefacts import surface as AS
 
-            path = cfg.resolve(s.artefact)
+            path = resolve(s.artefact)
             if not path.is_file():
                 raise UserError(f"subject.surface.artefact: {path} does not exist; it is made by "
                                 f"'fluxmap capture-surface' (capture.surface), run that first.")
@@ -132,7 +137,7 @@ class SubjectPlacer:
         if self.rests_on_stage:
             surf, point = self._rest(surf, point, 0.0)
             self.rest_shift_mm = surf.vertices_mm[0] - self.own_surface.vertices_mm[0]
-        ra = model.subject.rotation_axis
+        ra = subject.rotation_axis
         if ra is not None:
             axis = np.asarray(ra.direction, float)
             if ra.point_mm is not None:

@@ -140,9 +140,9 @@ def test_decoded_surface_lies_on_the_true_cylinder(reference):
     assert abs(V[:, 2].min()) < 0.5 and abs(V[:, 2].max() - 2 * RADIUS_MM) < 0.5
     # and subject.surface: {artefact: ...} takes it
     from fluxcli.config import load_config
-    from fluxcli.scene import SubjectPlacer
+    from fluxcli.stages.plans import placer_of
 
-    placer = SubjectPlacer(load_config(path))
+    placer = placer_of(load_config(path))
     area = placer.surface.face_areas_mm2.sum()
     assert placer.surface.is_closed
     true_area = 2 * np.pi * RADIUS_MM * LENGTH_MM + 2 * np.pi * RADIUS_MM**2

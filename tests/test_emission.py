@@ -534,7 +534,7 @@ def test_vertex_unknowns_take_the_tangential_term_from_the_cached_T(write_config
 
     from fluxcli.artefacts.transfer import load_T, load_T_tangent
     from fluxcli.config import load_config
-    from fluxcli.scene import SubjectPlacer
+    from fluxcli.stages.plans import placer_of
 
     cfg = copy.deepcopy(patch_config)
     cfg["subject"]["emission"] = {"model": "diffuse", "refractive_index": 1.40}
@@ -546,7 +546,7 @@ def test_vertex_unknowns_take_the_tangential_term_from_the_cached_T(write_config
     files = glob.glob(str(tmp_path / "run" / "cache" / "T" / "*.h5"))
     fine = [f for f in files if h5py.File(f, "r")["surface/faces"].shape[0] == 4 * 48]  # refined once: 4 x 48 faces
     assert fine and all(load_T_tangent(f) is not None for f in fine)
-    surf = SubjectPlacer(load_config(p)).surface
+    surf = placer_of(load_config(p)).surface
     vb = surf.vertex_basis(1)
     G = E.tangent_operator(surf, 1)
     T, Tt = load_T(fine[0]), load_T_tangent(fine[0])

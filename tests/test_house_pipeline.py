@@ -127,12 +127,12 @@ def test_a_captured_surface_reads_back_with_its_points_decoding_truth_and_metric
 
 def test_subject_surface_artefact_names_the_key_when_the_file_is_another_kind(tmp_path, write_config, minimal_config):
     from fluxcli.config import load_config
-    from fluxcli.scene import SubjectPlacer
+    from fluxcli.stages.plans import placer_of
 
     not_a_surface = AM.write(tmp_path / "mesh.h5", AM.TetMesh(np.zeros((4, 3)), np.array([[0, 1, 2, 3]])))
     minimal_config["subject"]["surface"] = {"artefact": str(not_a_surface)}
     with pytest.raises(UserError, match=r"subject\.surface\.artefact: .*'tetmesh' artefact, not 'surface'"):
-        SubjectPlacer(load_config(write_config(minimal_config)))
+        placer_of(load_config(write_config(minimal_config)))
 
 
 def test_a_tetmesh_reads_back_and_a_foreign_file_is_refused(tmp_path):

@@ -149,9 +149,9 @@ def _study(cfg):
 
 
 def _geometry(cfg):
-    from fluxcli.scene import SubjectPlacer
+    from fluxcli.stages.plans import placer_of
 
-    placer = SubjectPlacer(cfg)
+    placer = placer_of(cfg)
     return R.Geometry(tuple(placer.axis_point), tuple(placer.axis))
 
 

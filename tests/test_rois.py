@@ -263,7 +263,7 @@ def test_cell_array_roi_reads_the_mesh_files_integer_array(tmp_path):
     import pyvista as pv
 
     from fluxcli.config import load_config
-    from fluxcli.scene import SubjectPlacer
+    from fluxcli.stages.plans import placer_of
     from fluxcli.stages.rois import cell_array_of_elements
 
     s = sphere(radius_mm=10, n_latitude=6, n_longitude=8)[0]
@@ -279,7 +279,7 @@ def test_cell_array_roi_reads_the_mesh_files_integer_array(tmp_path):
                               "pose": {"lens_center_mm": [0, 0, 320.0]}}},
         "subject": {"surface": {"mesh": "m.vtk"}}}))
     cfg = load_config(tmp_path / "c.yaml")
-    surf = SubjectPlacer(cfg).surface
+    surf = placer_of(cfg).surface
     got = cell_array_of_elements(cfg.resolve(cfg.model.subject.surface.mesh), surf, "region", "rois[0]")
     upper = s.element_centroids_mm[:, 2] > 5  # per element of the file, by its ids
     ids = surf.element_ids if surf.element_ids is not None else np.arange(surf.n_elements)

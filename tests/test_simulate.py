@@ -115,9 +115,9 @@ def test_diffusion_truth_conserves_power_and_emccd_export(write_config, sim_conf
         assert np.array_equal(f["images/counts"][()], counts)
     # the source sits 4 mm below the top: the top elements are the brightest
     top = np.argsort(power)[-1]
-    from fluxcli.scene import SubjectPlacer
+    from fluxcli.stages.plans import placer_of
 
-    placer = SubjectPlacer(load_config(write_config(cfg)))
+    placer = placer_of(load_config(write_config(cfg)))
     cen = placer.surface.element_centroids_mm
     assert cen[top, 2] > cen[:, 2].max() - 2.0
     img, meta = read_image(tmp_path / "run" / "images" / "level0" / "h+0_rot0_rep0.tif")
@@ -156,7 +156,7 @@ def test_bad_simulation_input(write_config, sim_config, minimal_config):
 
 def test_a_source_deeper_than_the_centre_and_one_deeper_than_the_subject(write_config, sim_config, tmp_path):
     from fluxcli.config import load_config
-    from fluxcli.scene import SubjectPlacer
+    from fluxcli.stages.plans import placer_of
     from fluxcli.truth import source_positions
 
     cfg = copy.deepcopy(sim_config)
@@ -164,7 +164,7 @@ def test_a_source_deeper_than_the_centre_and_one_deeper_than_the_subject(write_c
                                "optical": {650: {"mua_per_mm": 0.02, "musp_per_mm": 1.7}},
                                "sources": [{"depth_mm": 12.0, "power_photons": 1e8}]}
     loaded = load_config(write_config(cfg))
-    pos = source_positions(loaded.model.simulate.flux, SubjectPlacer(loaded).surface)
+    pos = source_positions(loaded.model.simulate.flux, placer_of(loaded).surface)
     # the cylinder (radius 8) rests on z = 0: its top is z = 16, so 12 mm deep is z = 4
     assert pos[0] == pytest.approx([0, 0, 4.0], abs=1e-3)
     cfg["simulate"]["flux"]["sources"][0]["depth_mm"] = 16.5

@@ -295,7 +295,7 @@ def test_surface_artefact_is_what_subject_surface_artefact_reads(sphere_scan, tm
     """The captured mesh, written as surface.h5, is accepted by `subject.surface: {artefact: ...}`
     and placed where it was measured (a mesh stays where its file puts it)."""
     from fluxcli.config import load_config
-    from fluxcli.scene import SubjectPlacer
+    from fluxcli.stages.plans import placer_of
     from fluxcli.artefacts.surface import write_surface_artefact
     from fluxcli.structured.scan import merge_points, surface_from_points
 
@@ -305,7 +305,7 @@ def test_surface_artefact_is_what_subject_surface_artefact_reads(sphere_scan, tm
     write_surface_artefact(tmp_path / "surface.h5", mesh, points=merged)
     cfg = dict(minimal_config)
     cfg["subject"] = {"surface": {"artefact": "surface.h5"}}
-    placer = SubjectPlacer(load_config(write_config(cfg)))
+    placer = placer_of(load_config(write_config(cfg)))
     s = placer.surface
     assert s.is_closed and s.n_elements == mesh.n_elements
     assert np.allclose(np.sort(s.vertices_mm, axis=0), np.sort(mesh.vertices_mm, axis=0))

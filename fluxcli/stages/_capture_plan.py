@@ -89,7 +89,8 @@ def plan_of(cfg: C.LoadedConfig) -> CapturePlan:
 
 def scene_parts(cfg: C.LoadedConfig) -> SceneParts:
     """What the simulated camera renders: the true subject, its truth per filter, the forward T."""
-    from ..scene import SubjectPlacer, views_from_config
+    from ..scene import views_from_config
+    from .plans import placer_of
     from ..truth import forward_transfer
     from .plans import cache_dir, geometry_of, provenance, truth_plan
 
@@ -109,7 +110,7 @@ def scene_parts(cfg: C.LoadedConfig) -> SceneParts:
                              camera=cc.model_dump(mode="json"),
                              projectors={k: v.model_dump(mode="json") for k, v in m.rig.projectors.items()})
     return SceneParts(m.system, m.simulate, forward_transfer(m.simulate, m.transfer), cc, dict(m.rig.projectors),
-                      float((m.subject.poses or C.Poses()).rotations_deg[0]), SubjectPlacer(cfg), truth,
+                      float((m.subject.poses or C.Poses()).rotations_deg[0]), placer_of(cfg), truth,
                       views_from_config(m.system), cache_dir(cfg), cfg.sha256, provenance(cfg), digest)
 
 

@@ -2,8 +2,8 @@
 
 ``<workdir>/reconstruction.vtp`` is made from ``reconstruction.h5`` and
 ``<workdir>/simulation_truth.vtp`` from ``simulation.h5`` (the artefacts only, so that
-what ParaView shows is what the HDF5 file holds). The stages call :func:`export_3d` once,
-at their end.
+what ParaView shows is what the HDF5 file holds). The stages call :func:`export_simulation` or
+:func:`export_reconstruction` once, at their end.
 
 With an exposure time (``reconstruct.images.exposure_s`` or ``simulate.noise.exposure_s``
 given in the config) the files also hold rates and the Lambertian radiance in
@@ -128,16 +128,6 @@ def simulation_vtp(sim_path: Path, out_path: Path, *, exposure_s: float | None) 
     mesh = X.polydata(surface.vertices_mm, surface.faces, surface.element_of_face, arrays,
                       observed=np.ones(surface.n_elements, bool), units=units, field=field)
     return X.write_vtp(out_path, mesh)
-
-
-def export_3d(cfg: C.LoadedConfig, ctx, artefact: Path) -> Path:
-    """The ``.vtp`` beside a reconstruction or simulation artefact (simulate's one-line call;
-    reconstruct calls :func:`export_reconstruction` with its plan's parts)."""
-    artefact = Path(artefact)
-    if artefact.stem == "reconstruction":
-        return export_reconstruction(ctx, artefact, reconstruction_exposure_s(cfg.model.reconstruct.images,
-                                                                              cfg.model.simulate), cfg.path)
-    return export_simulation(ctx, artefact, simulation_exposure_s(cfg.model.simulate))
 
 
 def export_simulation(ctx, artefact: Path, exposure_s: float | None) -> Path:

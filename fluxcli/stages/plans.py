@@ -19,6 +19,11 @@ from ..transfer_cache import TransferPlan, ensure, place, pose_T, with_columns
 from ..truth import TruthPlan, truth_refinement
 
 
+def placer_of(cfg: LoadedConfig) -> SubjectPlacer:
+    """The subject as the config describes it, ready to be placed at any pose."""
+    return SubjectPlacer(cfg.model.subject, cfg.model.system.stage, emission_profile(cfg), cfg.resolve)
+
+
 def cache_dir(cfg: LoadedConfig) -> Path:
     """The T cache: ``transfer.cache_dir``, else ``<workdir>/cache/T``."""
     return cfg.resolve(cfg.model.transfer.cache_dir) if cfg.model.transfer.cache_dir else cfg.workdir / "cache" / "T"
@@ -53,7 +58,7 @@ def transfer_plan(cfg: LoadedConfig, transfer: Transfer | None = None, unknowns:
     ``"refined:n"`` per face of the surface refined n times (Surface.refined)."""
     tr = transfer or cfg.model.transfer
     views = views_from_config(cfg.model.system)
-    placer = SubjectPlacer(cfg)
+    placer = placer_of(cfg)
     cdir = cache_dir(cfg)
     poses = place(placer, cfg.model.system, poses_from_config(cfg.model.subject), views, tr, cdir, unknowns)
     return TransferPlan(views, placer, poses, tr, cdir, cfg.sha256, provenance(cfg, placer.surface.digest()),
@@ -81,7 +86,7 @@ def ensure_pose_T(cfg: LoadedConfig, pose: Pose, transfer: Transfer | None = Non
     with ``refine`` its columns are the faces of the surface refined that often; with ``tangent``
     also its tangential-flux matrix: (T, T_tangent)."""
     views = views_from_config(cfg.model.system)
-    scene = with_columns((placer or SubjectPlacer(cfg)).scene(pose, cfg.model.system), f"refined:{refine}")
+    scene = with_columns((placer or placer_of(cfg)).scene(pose, cfg.model.system), f"refined:{refine}")
     return pose_T(scene, views, transfer or cfg.model.transfer, cache_dir(cfg), cfg.sha256, provenance(cfg), tangent)
 
 

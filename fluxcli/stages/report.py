@@ -26,8 +26,7 @@ from .. import report as R
 from ..artefacts import reconstruction as RA
 from ..errors import UserError
 from ..resources import check_writable
-from .plans import geometry_of
-from ..scene import SubjectPlacer
+from .plans import geometry_of, placer_of
 from .context import RunContext
 from .outputs import reconstruction_exposure_s, recorded_rate_exposure_s, record_of, rig_of
 
@@ -67,7 +66,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         return index
 
     prov = RA.read_provenance(rec)  # the result must be the one this config describes
-    A.check_geometry(rec, prov, geometry_of(cfg, SubjectPlacer(cfg).surface.digest()),
+    A.check_geometry(rec, prov, geometry_of(cfg, placer_of(cfg).surface.digest()),
                      remedy=f"Run 'fluxmap reconstruct {cfg.path}' again")
     used = prov.input_files.get("simulation.h5", {}).get("sha256")
     same_sim = sim.is_file() and used is not None and used == inputs.get("simulation.h5")

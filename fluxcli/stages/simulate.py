@@ -31,7 +31,7 @@ from ..resources import check_memory
 from ..transfer_cache import TransferPlan, ensure
 from ..truth import TruthPlan, forward_transfer, montecarlo_shape, montecarlo_truth, truth_fine
 from .context import RunContext
-from .outputs import export_3d
+from .outputs import export_simulation, simulation_exposure_s
 from .plans import check_folders, emccd_model, geometry_of, transfer_plan, truth_plan
 
 
@@ -110,7 +110,7 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
         ctx.say(f"simulate: {sp.out} is up to date (--force to redo)")
         return sp.out
     out = _simulate(sp, ctx) if shape is None else _simulate_montecarlo(sp, shape, ctx)
-    export_3d(cfg, ctx, out)  # <workdir>/*.vtp for ParaView/pyvista, from the artefact
+    export_simulation(ctx, out, simulation_exposure_s(cfg.model.simulate))  # <workdir>/*.vtp for ParaView/pyvista
     return out
 
 
