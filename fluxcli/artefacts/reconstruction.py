@@ -334,6 +334,32 @@ def write(path: Path, r: Reconstruction) -> Path:
     return path
 
 
+def write_rois(g: h5py.Group, regions, labels: list[str], exposure_s: float | None, numbers, members) -> None:
+    """``/rois`` of reconstruction.h5: one column per number, [roi, map] (``regions``: the ROIs in order;
+    ``labels``: the maps measured; ``numbers[map][roi]``: what was measured; ``members[map]``: [roi, element])."""
+    g.attrs["names"] = json.dumps([r.name for r in regions])
+    g.attrs["definitions"] = json.dumps([{k: v for k, v in r.__dict__.items() if v is not None} for r in regions])
+    g.attrs["maps"] = json.dumps(labels)
+    g.attrs["exposure_s"] = exposure_s if exposure_s is not None else np.nan
+    g.attrs["frame"] = "the subject at rest (before any pose): element centroids, area-weighted"
+    g.attrs["radiance"] = "Lambertian radiance L = M / pi of the exitance M, photons s^-1 cm^-2 sr^-1"
+    g.attrs["sigma"] = "sqrt(w' C w) from the reconstruction's covariance (linear approximation), not a sum of per-element sigma"
+    units = {"total_photons_per_s": "photons/s" if exposure_s is not None else "photons per exposure",
+             "sigma_photons_per_s": "photons/s (1 sd)" if exposure_s is not None else "photons per exposure (1 sd)",
+             "mean_radiance": "photons s^-1 cm^-2 sr^-1", "peak_radiance": "photons s^-1 cm^-2 sr^-1",
+             "area_mm2": "mm^2", "observed_share": "of the area", "well_observed_share": "of the area"}
+    for key, unit in units.items():
+        d = g.create_dataset(key, data=np.array([[getattr(numbers[m][i], key) for m in range(len(labels))]
+                                                 for i in range(len(regions))], float).reshape(len(regions), -1))
+        d.attrs["unit"] = unit
+    g.create_dataset("status", data=np.array([[numbers[m][i].status for m in range(len(labels))]
+                                             for i in range(len(regions))], dtype=object),
+                     dtype=h5py.string_dtype())
+    g.create_dataset("members", data=np.array(members, bool).transpose(1, 0, 2), compression="gzip"
+                     ).attrs["layout"] = "members[roi, map, element]"
+
+
+
 def write_budget(g: h5py.Group, b) -> None:
     """``/budget``: per total (poses, then joint) its σ by cause (``b``: fluxcli.stages.budget.Budget)."""
     from ..quantify.budget import SHIFT_MIN_PX, SHIFT_Z

@@ -12,10 +12,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 from .. import artefacts as A
+from ..artefacts import reconstruction as RA
 from ..errors import UserError
 from ..quantify import rois as Q
 
@@ -114,27 +114,8 @@ class RoiMeter:
                 for i, r in enumerate(self.regions) for m, (label, (h, rot)) in enumerate(zip(self.labels, self.poses))]
 
     def write(self, g) -> None:
-        """``/rois`` of reconstruction.h5: one column per number, [roi, map]."""
-        g.attrs["names"] = json.dumps([r.name for r in self.regions])
-        g.attrs["definitions"] = json.dumps([{k: v for k, v in r.__dict__.items() if v is not None} for r in self.regions])
-        g.attrs["maps"] = json.dumps(self.labels)
-        g.attrs["exposure_s"] = self.exposure_s if self.exposure_s is not None else np.nan
-        g.attrs["frame"] = "the subject at rest (before any pose): element centroids, area-weighted"
-        g.attrs["radiance"] = "Lambertian radiance L = M / pi of the exitance M, photons s^-1 cm^-2 sr^-1"
-        g.attrs["sigma"] = "sqrt(w' C w) from the reconstruction's covariance (linear approximation), not a sum of per-element sigma"
-        units = {"total_photons_per_s": "photons/s" if self.exposure_s is not None else "photons per exposure",
-                 "sigma_photons_per_s": "photons/s (1 sd)" if self.exposure_s is not None else "photons per exposure (1 sd)",
-                 "mean_radiance": "photons s^-1 cm^-2 sr^-1", "peak_radiance": "photons s^-1 cm^-2 sr^-1",
-                 "area_mm2": "mm^2", "observed_share": "of the area", "well_observed_share": "of the area"}
-        for key, unit in units.items():
-            d = g.create_dataset(key, data=np.array([[getattr(self.numbers[m][i], key) for m in range(len(self.labels))]
-                                                     for i in range(len(self.regions))], float).reshape(len(self.regions), -1))
-            d.attrs["unit"] = unit
-        g.create_dataset("status", data=np.array([[self.numbers[m][i].status for m in range(len(self.labels))]
-                                                 for i in range(len(self.regions))], dtype=object),
-                         dtype=h5py.string_dtype())
-        g.create_dataset("members", data=np.array(self.members, bool).transpose(1, 0, 2), compression="gzip"
-                         ).attrs["layout"] = "members[roi, map, element]"
+        """``/rois`` of reconstruction.h5 (:func:`fluxcli.artefacts.reconstruction.write_rois`)."""
+        RA.write_rois(g, self.regions, self.labels, self.exposure_s, self.numbers, self.members)
 
     def write_csv(self, path: Path) -> Path:
         A.write_text(path, Q.csv_text([(n, lab, h, r, x) for n, lab, h, r, x in self.rows()]))
