@@ -11,3 +11,14 @@ class UserError(ValueError):
     so code that catches ValueError (the science packages' word for "these numbers
     cannot be used") still catches it.
     """
+
+
+class InputError(UserError):
+    """Numbers a science function was given cannot be used (a negative λ, a frame of another
+    shape, a mesh with no volume).
+
+    The science packages raise it for the checks they make on their inputs, so that a stage can
+    catch exactly these (``except InputError``) and say which config key or file they came from,
+    while a ValueError that numpy or scipy raises inside the same call (a bug) reaches the CLI
+    with its traceback.  Uncaught, it is still a user error (exit 2, the science's message).
+    """

@@ -18,7 +18,7 @@ from . import artefacts as A
 from . import config as C
 from .artefacts import tetmesh as AM
 from .diffusion.surface_flux import element_power_from_sources
-from .errors import UserError
+from .errors import InputError, UserError
 from .optics.raycast import OcclusionScene
 from .resources import check_memory
 from .surface.mesh import Surface
@@ -240,7 +240,7 @@ def _diffusion_truth(flux: C.DiffusionFlux, surface: Surface, mesh_cache: Path, 
             positions_mm=pos, radii_mm=np.array([s.radius_mm for s in flux.sources]),
             powers_photons=np.array([s.power_photons for s in flux.sources]), edge_length_mm=flux.mesh_edge_mm,
             mesh=mesh, solver=flux.solver)
-    except ValueError as e:
+    except InputError as e:
         raise UserError(f"simulate.flux: {e}") from None
     info.pop("nodes_mm"), info.pop("tets")
     power, info["clipped_photons"] = check_undershoot(power, flux)

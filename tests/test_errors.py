@@ -180,3 +180,35 @@ def test_only_the_user_error_type_exits_2(exc, code, traceback, tiny_run, tmp_pa
         assert type(exc).__name__ in r.output and "Please report it" in r.output
     else:
         assert " ".join(r.output.split()) == "fluxmap: error: subject.poses.heights_mm: a stated problem"
+
+
+@pytest.mark.parametrize("exc, code, words", [
+    # numpy inside the solver: a bug, not the user's numbers (it used to be dressed up as exit 2)
+    (ValueError("operands could not be broadcast together with shapes (3,) (4,)"), 1, "Traceback"),
+    # the solver's own check of what it was given: exit 2, in the config's words
+    (None, 2, "reconstruct.lambda must be > 0"),
+])
+def test_inside_the_solve_only_the_science_input_check_is_a_user_error(exc, code, words, tiny_run, tmp_path,
+                                                                      monkeypatch):
+    """The stage turns the science's InputError (its checks on its inputs) into the config's keys;
+    any other ValueError raised inside the same call is a bug and keeps its traceback."""
+    import shutil
+
+    import fluxcli.inverse.solve as S
+    from fluxcli.errors import InputError
+
+    d = tmp_path / "tiny"
+    shutil.copytree(tiny_run[0], d)
+    cfg = copy.deepcopy(tiny_run[1])
+    cfg["workdir"], cfg["transfer"]["cache_dir"] = str(d / "run"), str(d / "cache")
+    p = d / "cfg2.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+
+    def broken(*a, **k):
+        raise exc if exc is not None else InputError("lam must be > 0")
+
+    monkeypatch.setattr(S, "_reconstruct", broken)
+    r = CliRunner().invoke(app, ["reconstruct", str(p), "--force"])
+    assert r.exit_code == code, r.output
+    assert words in r.output, r.output
+    assert ("Traceback" in r.output) is (code == 1), r.output

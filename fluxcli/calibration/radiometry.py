@@ -29,6 +29,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from ..errors import InputError
 
 __all__ = [
     "EXCESS_NOISE_FACTOR_SQUARED",
@@ -57,11 +58,11 @@ def _stack(frames, what: str, *, min_frames: int = 1) -> np.ndarray:
     if stack.ndim == 2:
         stack = stack[np.newaxis]
     if stack.ndim != 3 or stack.shape[1] == 0 or stack.shape[2] == 0:
-        raise ValueError(f"{what}: expected frames [frame, row, col], got an array of shape {stack.shape}.")
+        raise InputError(f"{what}: expected frames [frame, row, col], got an array of shape {stack.shape}.")
     if stack.shape[0] < min_frames:
-        raise ValueError(f"{what}: need at least {min_frames} frame(s), got {stack.shape[0]}.")
+        raise InputError(f"{what}: need at least {min_frames} frame(s), got {stack.shape[0]}.")
     if not np.all(np.isfinite(stack)):
-        raise ValueError(f"{what}: frames hold non-finite values.")
+        raise InputError(f"{what}: frames hold non-finite values.")
     return stack
 
 
@@ -70,7 +71,7 @@ def _bias_for(bias_counts, shape: tuple[int, int], what: str) -> np.ndarray | fl
     if bias.ndim == 0:
         return float(bias)
     if bias.shape != shape:
-        raise ValueError(f"{what}: the bias map is {bias.shape}, the frames are {shape}.")
+        raise InputError(f"{what}: the bias map is {bias.shape}, the frames are {shape}.")
     return bias
 
 
@@ -148,7 +149,7 @@ def pair_statistics(frame_a, frame_b, bias_counts=0.0, *, max_counts: float | No
     a = np.asarray(frame_a, dtype=np.float64)
     b = np.asarray(frame_b, dtype=np.float64)
     if a.shape != b.shape or a.ndim != 2:
-        raise ValueError(f"a frame pair must be two 2-D frames of one shape, got {a.shape} and {b.shape}.")
+        raise InputError(f"a frame pair must be two 2-D frames of one shape, got {a.shape} and {b.shape}.")
     bias = _bias_for(bias_counts, a.shape, "pair_statistics")
     ok = np.isfinite(a) & np.isfinite(b) & (a > 0) & (b > 0)
     if max_counts is not None:
@@ -158,11 +159,11 @@ def pair_statistics(frame_a, frame_b, bias_counts=0.0, *, max_counts: float | No
         ok[ok] = np.abs(d - d.mean()) <= outlier_sigma * d.std()
     n = int(ok.sum())
     if n < 16:
-        raise ValueError(f"a frame pair has only {n} usable pixels (the rest saturated or clipped at 0).")
+        raise InputError(f"a frame pair has only {n} usable pixels (the rest saturated or clipped at 0).")
     signal = (0.5 * (a + b) - bias)[ok]
     diff = (a - b)[ok]
     if not np.any(diff):
-        raise ValueError("the two frames of a pair are identical (the same file twice?): a pair must be two "
+        raise InputError("the two frames of a pair are identical (the same file twice?): a pair must be two "
                          "exposures.")
     centred = diff - diff.mean()
     half_sq = 0.5 * centred**2
@@ -274,11 +275,11 @@ def fit_ptc(mean_counts, variance_counts2, variance_sigma_counts2
     y = np.asarray(variance_counts2, dtype=np.float64)
     s = np.asarray(variance_sigma_counts2, dtype=np.float64)
     if not (x.shape == y.shape == s.shape) or x.ndim != 1:
-        raise ValueError("fit_ptc: mean, variance and sigma must be 1-D arrays of one length.")
+        raise InputError("fit_ptc: mean, variance and sigma must be 1-D arrays of one length.")
     if len(np.unique(x)) < 2:
-        raise ValueError("a photon-transfer curve needs at least two different illumination levels.")
+        raise InputError("a photon-transfer curve needs at least two different illumination levels.")
     if np.any(~np.isfinite(s)) or np.any(s <= 0):
-        raise ValueError("fit_ptc: the variance uncertainties must be positive.")
+        raise InputError("fit_ptc: the variance uncertainties must be positive.")
     w = 1.0 / s**2
     A = np.stack([np.ones_like(x), x], axis=1)
     cov = np.linalg.inv(A.T @ (w[:, None] * A))
@@ -317,7 +318,7 @@ def _ptc_series(pairs: list, exposures_s: list[float], labels: list[str], bias_c
         keep.append(k)
     settings = {(exposures_s[k], labels[k]) for k in keep}  # distinct illumination x exposure
     if len(settings) < (1 if em_gain_on else 2):
-        raise ValueError(f"too few {name} photon-transfer levels: the gain-off curve needs two different exposures "
+        raise InputError(f"too few {name} photon-transfer levels: the gain-off curve needs two different exposures "
                          "or illuminations free of saturation, the gain-on one at least one.")
     mean = np.array([st[0] for st in stats])
     var = np.array([st[1] for st in stats])
@@ -375,7 +376,7 @@ def em_gain_from_ratio(rate_on_counts_per_s, rate_on_sigma, rate_off_counts_per_
         ``G`` (dimensionless) and its 1-sigma uncertainty.
     """
     if rate_off_counts_per_s <= 0 or rate_on_counts_per_s <= 0:
-        raise ValueError("the EM gain ratio needs a positive signal above bias with the gain on and off.")
+        raise InputError("the EM gain ratio needs a positive signal above bias with the gain on and off.")
     g = rate_on_counts_per_s / rate_off_counts_per_s
     rel = math.hypot(rate_on_sigma / rate_on_counts_per_s, rate_off_sigma / rate_off_counts_per_s)
     return float(g), float(g * rel)
@@ -430,15 +431,15 @@ def dark_current(frame_sets, exposures_s, bias_counts, electrons_per_count: floa
         Dark current per pixel (electrons/s).
     """
     if len(frame_sets) == 0 or not (len(frame_sets) == len(exposures_s) == len(em_gains)):
-        raise ValueError("dark_current: give one exposure and one EM gain per stack of dark frames.")
+        raise InputError("dark_current: give one exposure and one EM gain per stack of dark frames.")
     stacks = [_stack(f, "dark frames") for f in frame_sets]
     shape = stacks[0].shape[1:]
     if any(s.shape[1:] != shape for s in stacks):
-        raise ValueError("dark_current: all dark frames must have one shape.")
+        raise InputError("dark_current: all dark frames must have one shape.")
     bias = _bias_for(bias_counts, shape, "dark_current")
     t = np.asarray(exposures_s, dtype=np.float64)
     if np.any(t <= 0):
-        raise ValueError("dark_current: exposures must be positive.")
+        raise InputError("dark_current: exposures must be positive.")
     e_maps = np.array([(s.mean(axis=0) - bias) * electrons_per_count / g for s, g in zip(stacks, em_gains)])
     e_means = e_maps.mean(axis=(1, 2))
     # sigma of each mean: the temporal noise per pixel over all pixels and frames (with one
@@ -495,7 +496,7 @@ def flat_field(frames, bias_counts) -> tuple[np.ndarray, float]:
     signal = stack.mean(axis=0) - bias
     level = float(signal.mean())
     if level <= 0:
-        raise ValueError("flat frames: the mean signal is not above the bias; were they lit?")
+        raise InputError("flat frames: the mean signal is not above the bias; were they lit?")
     return signal / level, level
 
 
@@ -653,12 +654,12 @@ def calibrate_radiometric(
     for level in ptc:
         frames = _stack(level.frames, "PTC frames", min_frames=2)
         if frames.shape[1:] != shape:
-            raise ValueError(f"PTC frames are {frames.shape[1:]}, the bias frames {shape}.")
+            raise InputError(f"PTC frames are {frames.shape[1:]}, the bias frames {shape}.")
         if level.exposure_s <= 0:
-            raise ValueError("PTC levels need a positive exposure_s.")
+            raise InputError("PTC levels need a positive exposure_s.")
         groups[bool(level.em_gain_on)].append(level)
     if not groups[False]:
-        raise ValueError("the photon-transfer series has no level with the EM gain off; electrons per count "
+        raise InputError("the photon-transfer series has no level with the EM gain off; electrons per count "
                          "come from the gain-off curve.")
     for on, levels in groups.items():
         if not levels:
@@ -680,7 +681,7 @@ def calibrate_radiometric(
 
     off = series["em_gain_off"]
     if off.slope_counts <= 0:
-        raise ValueError("the gain-off photon-transfer curve does not rise with signal; cannot measure "
+        raise InputError("the gain-off photon-transfer curve does not rise with signal; cannot measure "
                          "electrons per count.")
     K = 1.0 / off.slope_counts
     K_sigma = off.slope_sigma_counts / off.slope_counts**2
@@ -724,7 +725,7 @@ def calibrate_radiometric(
                     f"with F² = {excess_noise_factor_squared:g} ({result.em_gain_from_ptc:.4g}) differ by {diff:.0%}: "
                     "check the illumination was the same, saturation, and F².")
         elif result.em_gain_from_ptc is None:
-            raise ValueError("the EM gain cannot be measured: the gain-on levels share no illumination label with "
+            raise InputError("the EM gain cannot be measured: the gain-on levels share no illumination label with "
                              "gain-off levels (for the signal ratio) and are too few for a PTC slope.")
         else:
             result.em_gain, result.em_gain_sigma = result.em_gain_from_ptc, result.em_gain_from_ptc_sigma
@@ -735,7 +736,7 @@ def calibrate_radiometric(
         gains = []
         for _, _, gain_on in darks:
             if gain_on and result.em_gain is None:
-                raise ValueError("dark frames taken with the EM gain on need gain-on PTC levels to measure the gain.")
+                raise InputError("dark frames taken with the EM gain on need gain-on PTC levels to measure the gain.")
             gains.append(result.em_gain if gain_on else 1.0)
         (result.dark_current_e_per_s, result.dark_current_e_per_s_sigma, result.cic_e_per_pixel,
          result.cic_e_per_pixel_sigma, result.dark_e_per_s_map) = dark_current(

@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 
 from ..surface.geometry import triangle_areas
 from .mesh import boundary_faces, tet_volumes_mm3
+from ..errors import InputError
 
 __all__ = ["nirfast_A", "DiffusionModel", "ball_quadrature", "AMG_ABOVE_NODES", "SOLVERS"]
 
@@ -49,7 +50,7 @@ def nirfast_A(refractive_index):
     """
     n = float(refractive_index)
     if not np.isfinite(n) or n < 1:
-        raise ValueError(f"refractive index must be >= 1, got {refractive_index}.")
+        raise InputError(f"refractive index must be >= 1, got {refractive_index}.")
     r0 = ((n - 1) / (n + 1)) ** 2
     cos_c = abs(np.cos(np.arcsin(1 / n)))
     return float((2 / (1 - r0) - 1 + cos_c**3) / (1 - cos_c**2))
@@ -79,9 +80,9 @@ def _per_tet(value, n_tets, name):
     if arr.ndim == 0:
         arr = np.full(n_tets, float(arr))
     if arr.shape != (n_tets,):
-        raise ValueError(f"{name} must be a number or have one value per tetrahedron ({n_tets}).")
+        raise InputError(f"{name} must be a number or have one value per tetrahedron ({n_tets}).")
     if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be finite.")
+        raise InputError(f"{name} must be finite.")
     return arr
 
 
@@ -133,25 +134,25 @@ class DiffusionModel:
         nodes_mm = np.ascontiguousarray(nodes_mm, dtype=np.float64)
         tets = np.asarray(tets)
         if nodes_mm.ndim != 2 or nodes_mm.shape[1] != 3:
-            raise ValueError(f"nodes must have shape (n, 3), got {nodes_mm.shape}.")
+            raise InputError(f"nodes must have shape (n, 3), got {nodes_mm.shape}.")
         if tets.ndim != 2 or tets.shape[1] != 4 or len(tets) == 0:
-            raise ValueError(f"tets must have shape (m, 4) with m > 0, got {tets.shape}.")
+            raise InputError(f"tets must have shape (m, 4) with m > 0, got {tets.shape}.")
         tets = tets.astype(np.int64)
         if tets.min() < 0 or tets.max() >= len(nodes_mm):
-            raise ValueError("tets index nodes that do not exist.")
+            raise InputError("tets index nodes that do not exist.")
         n_tets = len(tets)
         mua = _per_tet(mua_per_mm, n_tets, "absorption coefficient mua_per_mm")
         musp = _per_tet(musp_per_mm, n_tets, "reduced scattering coefficient musp_per_mm")
         if np.any(mua < 0):
-            raise ValueError(f"absorption coefficient mua_per_mm must be >= 0, got min {mua.min()}.")
+            raise InputError(f"absorption coefficient mua_per_mm must be >= 0, got min {mua.min()}.")
         if np.any(musp <= 0):
-            raise ValueError(
+            raise InputError(
                 f"reduced scattering coefficient musp_per_mm must be > 0, got min {musp.min()}."
             )
         if solver not in SOLVERS:
-            raise ValueError(f"solver must be one of {', '.join(SOLVERS)}, got {solver!r}.")
+            raise InputError(f"solver must be one of {', '.join(SOLVERS)}, got {solver!r}.")
         if not (np.isfinite(rtol) and 0 < rtol < 1):
-            raise ValueError(f"solver tolerance rtol must lie in (0, 1), got {rtol}.")
+            raise InputError(f"solver tolerance rtol must lie in (0, 1), got {rtol}.")
         self.solver = solver if solver != "auto" else ("amg" if len(nodes_mm) > AMG_ABOVE_NODES else "direct")
         self.rtol = float(rtol)
         self.residuals: list[float] = []
@@ -164,7 +165,7 @@ class DiffusionModel:
 
         self.volumes_mm3 = tet_volumes_mm3(nodes_mm, tets)
         if np.any(self.volumes_mm3 <= 0):
-            raise ValueError("tets must all have positive volume (orient them as tetrahedralize does).")
+            raise InputError("tets must all have positive volume (orient them as tetrahedralize does).")
         self.boundary_faces = boundary_faces(tets)
         self.boundary_nodes = np.unique(self.boundary_faces)
         self.boundary_areas_mm2 = triangle_areas(nodes_mm[self.boundary_faces])
@@ -251,13 +252,13 @@ class DiffusionModel:
     def _check_sources(self, positions_mm, power_photons_s):
         positions_mm = np.atleast_2d(np.asarray(positions_mm, dtype=np.float64))
         if positions_mm.ndim != 2 or positions_mm.shape[1] != 3:
-            raise ValueError(f"source positions must have shape (n, 3), got {positions_mm.shape}.")
+            raise InputError(f"source positions must have shape (n, 3), got {positions_mm.shape}.")
         try:
             power = np.broadcast_to(np.asarray(power_photons_s, dtype=np.float64), len(positions_mm))
         except ValueError:
-            raise ValueError("source power must be a number or one value per source.") from None
+            raise InputError("source power must be a number or one value per source.") from None
         if not np.all(np.isfinite(power)) or np.any(power < 0):
-            raise ValueError("source power must be finite and >= 0 photons/s.")
+            raise InputError("source power must be finite and >= 0 photons/s.")
         return positions_mm, power
 
     def _rhs_from_points(self, points_mm, weights, source_of_point, n_sources, what):
@@ -265,7 +266,7 @@ class DiffusionModel:
         outside = np.flatnonzero(tet_index < 0)
         if len(outside):
             x, y, z = points_mm[outside[0]]
-            raise ValueError(f"{what} at ({x:.3f}, {y:.3f}, {z:.3f}) mm lies outside the subject.")
+            raise InputError(f"{what} at ({x:.3f}, {y:.3f}, {z:.3f}) mm lies outside the subject.")
         rows = self.tets[tet_index].ravel()
         cols = np.repeat(source_of_point, 4)
         vals = (bary * weights[:, None]).ravel()
@@ -314,9 +315,9 @@ class DiffusionModel:
         try:
             radius = np.broadcast_to(np.asarray(radius_mm, dtype=np.float64), len(centres_mm))
         except ValueError:
-            raise ValueError("source radius_mm must be a number or one value per source.") from None
+            raise InputError("source radius_mm must be a number or one value per source.") from None
         if not np.all(np.isfinite(radius)) or np.any(radius <= 0):
-            raise ValueError("source radius_mm must be > 0.")
+            raise InputError("source radius_mm must be > 0.")
         q = ball_quadrature(n_per_diameter)
         points = (centres_mm[:, None, :] + radius[:, None, None] * q[None]).reshape(-1, 3)
         weights = np.repeat(power / len(q), len(q))
@@ -343,9 +344,9 @@ class DiffusionModel:
         try:
             radii = np.broadcast_to(np.asarray(radii_mm, dtype=np.float64), len(positions_mm))
         except ValueError:
-            raise ValueError("source radii_mm must be a number or one value per source.") from None
+            raise InputError("source radii_mm must be a number or one value per source.") from None
         if not np.all(np.isfinite(radii)) or np.any(radii < 0):
-            raise ValueError("source radii_mm must be >= 0 (0 for a point source).")
+            raise InputError("source radii_mm must be >= 0 (0 for a point source).")
         rhs = np.empty((len(self.nodes_mm), len(positions_mm)))
         point = radii == 0
         if np.any(point):
@@ -370,7 +371,7 @@ class DiffusionModel:
         """
         rhs = np.asarray(rhs, dtype=np.float64)
         if rhs.shape[0] != len(self.nodes_mm):
-            raise ValueError(f"rhs must have {len(self.nodes_mm)} rows, got {rhs.shape[0]}.")
+            raise InputError(f"rhs must have {len(self.nodes_mm)} rows, got {rhs.shape[0]}.")
         if self.solver == "amg":
             return self._solve_amg(rhs)
         if self._lu is None:
@@ -405,7 +406,7 @@ class DiffusionModel:
             x, info = spla.cg(K, b, rtol=self.rtol, atol=0.0, maxiter=2000, M=M)
             res = float(np.linalg.norm(b - K @ x)) / nb
             if info != 0 or res > 10 * self.rtol:
-                raise ValueError(f"the AMG-preconditioned CG did not converge (relative residual {res:.2e}, "
+                raise InputError(f"the AMG-preconditioned CG did not converge (relative residual {res:.2e}, "
                                  f"asked for {self.rtol:.0e}); use the direct solver.")
             self.residuals.append(res)
             out[:, j] = x

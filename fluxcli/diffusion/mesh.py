@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..surface.mesh import edge_face_counts
+from ..errors import InputError
 
 __all__ = ["check_closed", "tetrahedralize", "cylinder_tetmesh", "boundary_faces", "tet_volumes_mm3"]
 
@@ -19,13 +20,13 @@ def _as_triangles(vertices_mm, faces):
     vertices_mm = np.asarray(vertices_mm, dtype=np.float64)
     faces = np.asarray(faces)
     if vertices_mm.ndim != 2 or vertices_mm.shape[1] != 3:
-        raise ValueError(f"surface vertices must have shape (n, 3), got {vertices_mm.shape}.")
+        raise InputError(f"surface vertices must have shape (n, 3), got {vertices_mm.shape}.")
     if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
-        raise ValueError(f"surface faces must be an integer array of shape (m, 3), got {faces.shape}.")
+        raise InputError(f"surface faces must be an integer array of shape (m, 3), got {faces.shape}.")
     if not np.all(np.isfinite(vertices_mm)):
-        raise ValueError("surface vertices contain non-finite coordinates.")
+        raise InputError("surface vertices contain non-finite coordinates.")
     if faces.size and (faces.min() < 0 or faces.max() >= len(vertices_mm)):
-        raise ValueError("surface faces index vertices that do not exist.")
+        raise InputError("surface faces index vertices that do not exist.")
     return vertices_mm, faces.astype(np.int64)
 
 
@@ -47,12 +48,12 @@ def check_closed(vertices_mm, faces):
     """
     vertices_mm, faces = _as_triangles(vertices_mm, faces)
     if len(faces) == 0:
-        raise ValueError("surface is not closed: it has no faces.")
+        raise InputError("surface is not closed: it has no faces.")
     counts = edge_face_counts(faces)
     n_boundary = int(np.sum(counts == 1))
     n_nonmanifold = int(np.sum(counts > 2))
     if n_boundary or n_nonmanifold:
-        raise ValueError(
+        raise InputError(
             f"surface is not closed: {n_boundary} boundary edges and "
             f"{n_nonmanifold} non-manifold edges (each edge must be shared by exactly 2 faces)."
         )
@@ -117,10 +118,10 @@ def tetrahedralize(vertices_mm, faces, *, edge_length_mm):
     check_closed(vertices_mm, faces)
     edge_length_mm = float(edge_length_mm)
     if not np.isfinite(edge_length_mm) or edge_length_mm <= 0:
-        raise ValueError(f"edge_length_mm must be positive, got {edge_length_mm}.")
+        raise InputError(f"edge_length_mm must be positive, got {edge_length_mm}.")
     diagonal_mm = float(np.linalg.norm(np.ptp(vertices_mm, axis=0)))
     if diagonal_mm == 0:
-        raise ValueError("surface has zero extent.")
+        raise InputError("surface has zero extent.")
 
     nodes_mm, tets = pytetwild.tetrahedralize(
         vertices_mm,
@@ -131,7 +132,7 @@ def tetrahedralize(vertices_mm, faces, *, edge_length_mm):
     nodes_mm = np.ascontiguousarray(nodes_mm, dtype=np.float64)
     tets = np.ascontiguousarray(tets, dtype=np.int64)
     if len(tets) == 0:
-        raise ValueError("tetrahedralisation produced no tetrahedra.")
+        raise InputError("tetrahedralisation produced no tetrahedra.")
 
     # Drop nodes no tetrahedron uses, then make every volume positive.
     used, tets = np.unique(tets, return_inverse=True)
@@ -168,7 +169,7 @@ def cylinder_tetmesh(radius_mm, length_mm, edge_length_mm):
 
     r, length, h = float(radius_mm), float(length_mm), float(edge_length_mm)
     if not all(np.isfinite(x) and x > 0 for x in (r, length, h)):
-        raise ValueError("radius_mm, length_mm and edge_length_mm must be positive.")
+        raise InputError("radius_mm, length_mm and edge_length_mm must be positive.")
     n_rings = max(1, int(round(r / h)))
     disk = [np.zeros((1, 2))]
     for k in range(1, n_rings + 1):

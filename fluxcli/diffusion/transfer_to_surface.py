@@ -12,6 +12,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..surface.geometry import triangle_areas
+from ..errors import InputError
 
 __all__ = ["exitance_to_elements", "closest_points_on_triangles"]
 
@@ -154,17 +155,17 @@ def exitance_to_elements(
     element_of_face = np.asarray(element_of_face, dtype=np.int64)
     n_elements = int(n_elements)
     if bv.ndim != 2 or bv.shape[1] != 3 or bf.ndim != 2 or bf.shape[1] != 3 or len(bf) == 0:
-        raise ValueError("boundary surface must be vertices (n, 3) and faces (m, 3), m > 0.")
+        raise InputError("boundary surface must be vertices (n, 3) and faces (m, 3), m > 0.")
     if sv.ndim != 2 or sv.shape[1] != 3 or sf.ndim != 2 or sf.shape[1] != 3 or len(sf) == 0:
-        raise ValueError("reconstruction surface must be vertices (n, 3) and faces (m, 3), m > 0.")
+        raise InputError("reconstruction surface must be vertices (n, 3) and faces (m, 3), m > 0.")
     if j_nodes.shape[0] != len(bv) or j_nodes.ndim not in (1, 2):
-        raise ValueError(
+        raise InputError(
             f"exitance must have one row per boundary vertex ({len(bv)}), got shape {j_nodes.shape}."
         )
     if element_of_face.shape != (len(sf),):
-        raise ValueError(f"element_of_face must have one entry per surface face ({len(sf)}).")
+        raise InputError(f"element_of_face must have one entry per surface face ({len(sf)}).")
     if element_of_face.min() < 0 or element_of_face.max() >= n_elements:
-        raise ValueError(f"element_of_face must lie in 0 … {n_elements - 1}.")
+        raise InputError(f"element_of_face must lie in 0 … {n_elements - 1}.")
     squeeze = j_nodes.ndim == 1
     j2 = j_nodes.reshape(len(bv), -1)
 
@@ -187,13 +188,13 @@ def exitance_to_elements(
 
     element_area = np.bincount(element_of_face, weights=s_area, minlength=n_elements)
     if np.any(element_area <= 0):
-        raise ValueError(f"{int(np.sum(element_area <= 0))} elements have no faces (zero area).")
+        raise InputError(f"{int(np.sum(element_area <= 0))} elements have no faces (zero area).")
 
     raw_sum = raw.sum(axis=0)
     with np.errstate(divide="ignore", invalid="ignore"):
         scale = np.where(total == 0, 0.0, total / raw_sum)
     if not np.all(np.isfinite(scale)):
-        raise ValueError("sampled exitance is zero on the surface although the total is not.")
+        raise InputError("sampled exitance is zero on the surface although the total is not.")
     power = raw * scale
     exitance = power / element_area[:, None]
     if squeeze:

@@ -11,6 +11,7 @@ import numbers
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
+from ..errors import InputError
 
 DEFAULT_REL_THRESHOLD = 1e-3
 
@@ -22,16 +23,16 @@ def as_transfer(T) -> sp.csr_array:
     else:
         arr = np.asarray(T, dtype=np.float64)
         if arr.ndim != 2:
-            raise ValueError(
+            raise InputError(
                 f"transfer matrix T must be 2-D (n_pixels, n_elements), got shape {arr.shape}."
             )
         out = sp.csr_array(arr)
     if out.ndim != 2 or out.shape[0] == 0 or out.shape[1] == 0:
-        raise ValueError(f"transfer matrix T must be non-empty and 2-D, got shape {out.shape}.")
+        raise InputError(f"transfer matrix T must be non-empty and 2-D, got shape {out.shape}.")
     out.sum_duplicates()
     out.eliminate_zeros()
     if out.nnz and (not np.all(np.isfinite(out.data)) or out.data.min() < 0):
-        raise ValueError("transfer matrix T must be finite and non-negative.")
+        raise InputError("transfer matrix T must be finite and non-negative.")
     return out
 
 
@@ -42,15 +43,15 @@ def as_pixels(values, n_pixels: int, name: str, *, nonnegative=False, positive=F
     if arr.ndim == 0 and allow_scalar:
         arr = np.full(n_pixels, float(arr))
     if arr.shape != (n_pixels,):
-        raise ValueError(
+        raise InputError(
             f"{name} must have shape ({n_pixels},) to match the rows of T, got {arr.shape}."
         )
     if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be finite everywhere.")
+        raise InputError(f"{name} must be finite everywhere.")
     if positive and np.any(arr <= 0):
-        raise ValueError(f"{name} must be strictly positive everywhere.")
+        raise InputError(f"{name} must be strictly positive everywhere.")
     if nonnegative and np.any(arr < 0):
-        raise ValueError(f"{name} must be non-negative everywhere.")
+        raise InputError(f"{name} must be non-negative everywhere.")
     return arr
 
 
@@ -58,27 +59,27 @@ def as_elements(values, n_elements: int, name: str) -> np.ndarray:
     """Check a per-element vector; NaN is allowed (unobserved elements)."""
     arr = np.asarray(values, dtype=np.float64)
     if arr.shape != (n_elements,):
-        raise ValueError(
+        raise InputError(
             f"{name} must have shape ({n_elements},) to match the columns of T, got {arr.shape}."
         )
     if np.any(np.isinf(arr)):
-        raise ValueError(f"{name} must not contain infinities.")
+        raise InputError(f"{name} must not contain infinities.")
     return arr
 
 
 def check_nonneg_number(value, name: str) -> float:
     """A finite real number ≥ 0 (regularisation weights, tolerances)."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise ValueError(f"{name} must be a real number, got {type(value).__name__}.")
+        raise InputError(f"{name} must be a real number, got {type(value).__name__}.")
     value = float(value)
     if not np.isfinite(value) or value < 0:
-        raise ValueError(f"{name} must be finite and ≥ 0, got {value!r}.")
+        raise InputError(f"{name} must be finite and ≥ 0, got {value!r}.")
     return value
 
 
 def check_positive_int(value, name: str) -> int:
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
-        raise ValueError(f"{name} must be an integer ≥ 1, got {value!r}.")
+        raise InputError(f"{name} must be an integer ≥ 1, got {value!r}.")
     return int(value)
 
 
@@ -92,7 +93,7 @@ def observed(T: sp.csr_array, rel_threshold: float) -> np.ndarray:
     sums = column_sums(T)
     top = sums.max()
     if top <= 0:
-        raise ValueError("transfer matrix T has no non-zero column: no element is observed.")
+        raise InputError("transfer matrix T has no non-zero column: no element is observed.")
     return sums > rel_threshold * top
 
 
@@ -141,7 +142,7 @@ def cholesky(H: np.ndarray, what: str):
     """:func:`try_cholesky` with a ValueError that says how to fix a singular H."""
     cf = try_cholesky(H)
     if cf is None:
-        raise ValueError(
+        raise InputError(
             f"{what} is singular (not positive definite): increase lam above 0 or raise "
             f"rel_threshold so that poorly observed elements are excluded."
         )

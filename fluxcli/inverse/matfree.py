@@ -46,6 +46,7 @@ import scipy.sparse.linalg as spla
 from fluxcli.inverse import spectral as S
 from fluxcli.inverse.filtered import Filtered, halved_and_doubled, level_and_fit
 from fluxcli.inverse.smooth import graph_laplacian, observed_adjacency
+from fluxcli.errors import InputError
 
 DENSE_MAX_UNKNOWNS = 6000  # auto: the dense engine up to here (exact, ~14 s at 5880), this path beyond
 TRACE_PROBES = 16
@@ -70,7 +71,7 @@ def sparse_exitance_prior(adjacency, mask: np.ndarray, areas=None, ridge: float 
     """
     A = observed_adjacency(adjacency, mask)
     if A.nnz and abs(A - A.T).max() > 1e-12 * abs(A).max():
-        raise ValueError("adjacency must be symmetric.")
+        raise InputError("adjacency must be symmetric.")
     n_obs = A.shape[0]
     deg = np.asarray(A.sum(axis=1)).ravel()
     peak = deg.max() if n_obs else 0.0
@@ -79,7 +80,7 @@ def sparse_exitance_prior(adjacency, mask: np.ndarray, areas=None, ridge: float 
     if areas is not None:
         S_ = np.asarray(areas, dtype=np.float64)
         if S_.shape != mask.shape or not np.all(S_[mask] > 0):
-            raise ValueError(f"areas must be ({mask.size},) and > 0 on observed elements.")
+            raise InputError(f"areas must be ({mask.size},) and > 0 on observed elements.")
         d = S_[mask].mean() / S_[mask]
     L = graph_laplacian(A, np.ones(n_obs, bool)) * unit + ridge * sp.eye_array(n_obs)
     Dg = sp.diags_array(d)
@@ -395,7 +396,7 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
     Filtered
     """
     if rule not in ("gcv", "discrepancy"):
-        raise ValueError(f"lam_rule {rule!r} is not available on the matrix-free path (more than "
+        raise InputError(f"lam_rule {rule!r} is not available on the matrix-free path (more than "
                          f"{DENSE_MAX_UNKNOWNS} unknowns); use gcv or discrepancy, or give lam.")
     R, E = prior
     m = T_obs.shape[0]
@@ -403,7 +404,7 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
     if lambdas is not None:
         grid = np.asarray(lambdas, dtype=np.float64).ravel()
         if grid.size < 3 or not np.all(np.isfinite(grid)) or grid.min() <= 0:
-            raise ValueError("lambdas must hold at least 3 finite values > 0.")
+            raise InputError("lambdas must hold at least 3 finite values > 0.")
         bounds = (float(grid.min()), float(grid.max()))
     rng = np.random.default_rng(SEED)
     if weighted and variance is None and sigma2 is None:

@@ -35,6 +35,7 @@ import scipy.sparse as sp
 
 from fluxcli.inverse import _common as c
 from fluxcli.inverse.smooth import exitance_scaling, graph_laplacian, on_exitance
+from fluxcli.errors import InputError
 
 __all__ = [
     "METHODS",
@@ -96,14 +97,14 @@ def stack_views(transfers, images_photons):
     transfers = [c.as_transfer(t) for t in transfers]
     images = list(images_photons)
     if not transfers or len(transfers) != len(images):
-        raise ValueError(
+        raise InputError(
             f"stack_views needs one image per transfer matrix, got {len(transfers)} "
             f"transfer matrices and {len(images)} images."
         )
     n_elements = transfers[0].shape[1]
     for k, t in enumerate(transfers):
         if t.shape[1] != n_elements:
-            raise ValueError(
+            raise InputError(
                 f"transfer matrix {k} has {t.shape[1]} elements (columns), view 0 has "
                 f"{n_elements}: all views must share the surface elements."
             )
@@ -190,7 +191,7 @@ def _nnls(T_obs, a, weights, lam):
     try:
         b, _ = sopt.nnls(R, d, maxiter=50 * H.shape[0])
     except RuntimeError as exc:  # pragma: no cover - Lawson-Hanson essentially always ends
-        raise ValueError(
+        raise InputError(
             "non-negative least squares did not converge: the problem is too badly "
             "conditioned; use lam > 0."
         ) from exc
@@ -460,13 +461,13 @@ def _mlem_info(T, a, *, n_iter, background, smooth, adjacency, rel_tol, rel_thre
     rel_tol = c.check_nonneg_number(rel_tol, "rel_tol")
     _, a, mask, T_obs = _prepare(T, a, rel_threshold)
     if np.any(a < 0):
-        raise ValueError("image a (photons) must be non-negative for MLEM (Poisson counts).")
+        raise InputError("image a (photons) must be non-negative for MLEM (Poisson counts).")
     background = c.as_pixels(background, a.size, "background (photons)", nonnegative=True,
                              allow_scalar=True)
     laplacian = None
     if smooth > 0:
         if adjacency is None:
-            raise ValueError("smooth > 0 needs an element adjacency matrix (adjacency=...).")
+            raise InputError("smooth > 0 needs an element adjacency matrix (adjacency=...).")
         laplacian = graph_laplacian(adjacency, mask)
     b, it, conv, lam_abs = _mlem(T_obs, a, n_iter, background, smooth, laplacian, rel_tol)
     return c.scatter(b, mask), it, conv, lam_abs
@@ -726,12 +727,12 @@ def _run_smooth(P, lam, rule, opts):
     from fluxcli.inverse.smooth import exitance_prior
 
     if P.adjacency is None:
-        raise ValueError("method 'smooth' needs the element adjacency (adjacency=...).")
+        raise InputError("method 'smooth' needs the element adjacency (adjacency=...).")
     # gamma 1: with weights 1/σ² of the noise model the rule is UPRE, unbiased as it stands
     opts = {"gamma": 1.0} | opts
     solver = opts.get("solver", "auto")
     if solver not in SMOOTH_SOLVERS:
-        raise ValueError(f"solver must be one of {', '.join(SMOOTH_SOLVERS)}; got {solver!r}.")
+        raise InputError(f"solver must be one of {', '.join(SMOOTH_SOLVERS)}; got {solver!r}.")
     if solver == "matfree" or (solver == "auto" and int(P.mask.sum()) > DENSE_MAX_UNKNOWNS):
         return _run_smooth_matfree(P, lam, rule, opts)
     R = exitance_prior(P.adjacency, P.mask, P.areas)
@@ -799,7 +800,7 @@ def _run_nnls(P, lam, rule, opts):
 @register("weighted_lsq", options=_RULE_OPTS, default_lam=0.0, lam_rules=("gcv", "lcurve", "discrepancy"), dense=True)
 def _run_weighted_lsq(P, lam, rule, opts):
     if P.sigma2 is None and P.variance is None:
-        raise ValueError("method 'weighted_lsq' needs the noise variance sigma2 (photons²) or a noise model.")
+        raise InputError("method 'weighted_lsq' needs the noise variance sigma2 (photons²) or a noise model.")
     if P.sigma2 is not None:
         w = 1.0 / P.sigma2
     else:  # weights from the model image of an unweighted fit, reweighted once
@@ -818,7 +819,7 @@ def _run_weighted_lsq(P, lam, rule, opts):
           nonnegative_data=True)
 def _run_mlem(P, lam, rule, opts):
     if np.any(P.a < 0):
-        raise ValueError("image a (photons) must be non-negative for MLEM (Poisson counts).")
+        raise InputError("image a (photons) must be non-negative for MLEM (Poisson counts).")
     n_iter = c.check_positive_int(opts.get("n_iter", 200), "n_iter")
     smooth = c.check_nonneg_number(opts.get("smooth", 0.0), "smooth")
     rel_tol = c.check_nonneg_number(opts.get("rel_tol", 1e-6), "rel_tol")
@@ -828,7 +829,7 @@ def _run_mlem(P, lam, rule, opts):
     if smooth > 0:
         adjacency = opts.get("adjacency", P.adjacency)
         if adjacency is None:
-            raise ValueError("smooth > 0 needs an element adjacency matrix (adjacency=...).")
+            raise InputError("smooth > 0 needs an element adjacency matrix (adjacency=...).")
         lap = on_exitance(graph_laplacian(adjacency, P.mask), exitance_scaling(P.areas, P.mask))
     b, it, conv, lam_abs = _mlem(P.T_obs, P.a, n_iter, background, smooth, lap, rel_tol)
     return {"power": b, "iterations": it, "converged": conv, "weighted": True, "lam": 0.0}
@@ -885,7 +886,7 @@ def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | 
     Result
     """
     if method not in REGISTRY:
-        raise ValueError(f"method must be one of {', '.join(REGISTRY)}; got {method!r}.")
+        raise InputError(f"method must be one of {', '.join(REGISTRY)}; got {method!r}.")
     spec = REGISTRY[method]
     T = c.as_transfer(T)
     a = c.as_pixels(a, T.shape[0], "image a (photons)")
@@ -893,18 +894,18 @@ def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | 
         adjacency = opts.pop("adjacency")
     unknown = set(opts) - spec.options
     if unknown:
-        raise ValueError(f"unknown options for method {method!r}: {sorted(unknown)} "
+        raise InputError(f"unknown options for method {method!r}: {sorted(unknown)} "
                          f"(it takes {', '.join(sorted(spec.options)) or 'none'}).")
     if lam_rule is not None:
         if lam_rule not in spec.lam_rules:
-            raise ValueError(f"lam_rule applies to the Tikhonov family, not to method {method!r}.")
+            raise InputError(f"lam_rule applies to the Tikhonov family, not to method {method!r}.")
         if lam is not None:
-            raise ValueError("give either lam or lam_rule, not both.")
+            raise InputError("give either lam or lam_rule, not both.")
     elif any(k in opts for k in _RULE_OPTS) and spec.default_lam is not None and method != "smooth":
-        raise ValueError(f"options {sorted(k for k in opts if k in _RULE_OPTS)} only apply with lam_rule.")
+        raise InputError(f"options {sorted(k for k in opts if k in _RULE_OPTS)} only apply with lam_rule.")
     if lam is not None:
         if spec.default_lam is None and method != "smooth":
-            raise ValueError(f"method {method!r} takes no lam.")
+            raise InputError(f"method {method!r} takes no lam.")
         lam = c.check_nonneg_number(lam, "lam")
     elif lam_rule is None:
         if method == "smooth":

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from ..errors import InputError
 
 __all__ = ["error_l1", "total_ratio"]
 
@@ -11,14 +12,14 @@ def _pair(b_hat, b_true, observed_only):
     b_hat = np.asarray(b_hat, dtype=np.float64)
     b_true = np.asarray(b_true, dtype=np.float64)
     if b_hat.ndim != 1 or b_hat.shape != b_true.shape:
-        raise ValueError(
+        raise InputError(
             f"b_hat and b_true (photons per element) must be 1-D with the same shape, got "
             f"{b_hat.shape} and {b_true.shape}."
         )
     if not np.all(np.isfinite(b_true)):
-        raise ValueError("b_true (photons per element) must be finite.")
+        raise InputError("b_true (photons per element) must be finite.")
     if np.any(np.isinf(b_hat)):
-        raise ValueError("b_hat (photons per element) must not contain infinities.")
+        raise InputError("b_hat (photons per element) must not contain infinities.")
     seen = np.isfinite(b_hat)
     if observed_only:
         b_hat, b_true = b_hat[seen], b_true[seen]
@@ -26,7 +27,7 @@ def _pair(b_hat, b_true, observed_only):
         b_hat = np.where(seen, b_hat, 0.0)
     total = b_true.sum()
     if not total > 0:
-        raise ValueError("b_true (photons per element) must have a positive sum.")
+        raise InputError("b_true (photons per element) must have a positive sum.")
     return b_hat, b_true, total
 
 

@@ -18,6 +18,7 @@ import scipy.sparse as sp
 
 from fluxcli.inverse import _common as c
 from fluxcli.inverse.spectral import FilterCovariance, Spectrum, _pick
+from fluxcli.errors import InputError
 
 __all__ = ["LAMBDA_RULES", "LambdaChoice", "choose_lambda", "linear_covariance", "uncertainty"]
 
@@ -115,7 +116,7 @@ def choose_lambda(T, a, *, method: str = "gcv", sigma2=None, lambdas=None,
     LambdaChoice
     """
     if method not in LAMBDA_RULES:
-        raise ValueError(f"lam_rule/method must be one of {', '.join(LAMBDA_RULES)}; got {method!r}.")
+        raise InputError(f"lam_rule/method must be one of {', '.join(LAMBDA_RULES)}; got {method!r}.")
     tau = c.check_nonneg_number(tau, "tau")
     gamma = c.check_nonneg_number(gamma, "gamma")
     T = c.as_transfer(T)
@@ -126,7 +127,7 @@ def choose_lambda(T, a, *, method: str = "gcv", sigma2=None, lambdas=None,
         sigma2 = c.as_pixels(sigma2, T.shape[0], "noise variance sigma2 (photons²)",
                              positive=True, allow_scalar=True)
     elif weighted or method == "discrepancy":
-        raise ValueError(
+        raise InputError(
             "the noise variance sigma2 (photons²) is required for weighted problems and "
             "for the discrepancy principle."
         )
@@ -134,7 +135,7 @@ def choose_lambda(T, a, *, method: str = "gcv", sigma2=None, lambdas=None,
         lambdas = np.logspace(-9, 3, 121)
     lambdas = np.sort(np.asarray(lambdas, dtype=np.float64).ravel())
     if lambdas.size < 3 or not np.all(np.isfinite(lambdas)) or lambdas[0] <= 0:
-        raise ValueError("lambdas must hold at least 3 finite values > 0.")
+        raise InputError("lambdas must hold at least 3 finite values > 0.")
 
     mask = c.observed(T, rel_threshold)
     T_obs = sp.csr_array(T[:, mask])
@@ -213,9 +214,9 @@ def uncertainty(T, a, b_hat, *, sigma2, lam: float, weighted: bool = True,
     if kind is None:
         kind = "posterior" if weighted else "sampling"
     if kind not in ("posterior", "sampling"):
-        raise ValueError(f"kind must be 'posterior' or 'sampling', got {kind!r}.")
+        raise InputError(f"kind must be 'posterior' or 'sampling', got {kind!r}.")
     if kind == "posterior" and not weighted:
-        raise ValueError(
+        raise InputError(
             "kind='posterior' needs a weighted problem (weighted=True): an unweighted fit "
             "has no posterior for per-pixel σ²; use kind='sampling'."
         )
@@ -226,7 +227,7 @@ def uncertainty(T, a, b_hat, *, sigma2, lam: float, weighted: bool = True,
     T_obs = sp.csr_array(T[:, mask])
     if sigma2 is None:
         if np.any(np.isnan(b_hat[mask])):
-            raise ValueError("b_hat (photons per element) is NaN for an observed element.")
+            raise InputError("b_hat (photons per element) is NaN for an observed element.")
         sigma2 = np.maximum(T_obs @ b_hat[mask], 1.0)
     sigma2 = c.as_pixels(sigma2, T.shape[0], "noise variance sigma2 (photons²)",
                          positive=True, allow_scalar=True)

@@ -22,6 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import _common as c
+from fluxcli.errors import InputError
 
 
 def observed_adjacency(adjacency, mask: np.ndarray) -> sp.csr_array:
@@ -30,9 +31,9 @@ def observed_adjacency(adjacency, mask: np.ndarray) -> sp.csr_array:
     A = sp.csr_array(adjacency, dtype=np.float64)
     n = mask.size
     if A.shape != (n, n):
-        raise ValueError(f"adjacency must have shape ({n}, {n}), got {A.shape}.")
+        raise InputError(f"adjacency must have shape ({n}, {n}), got {A.shape}.")
     if A.nnz and not (np.all(np.isfinite(A.data)) and A.data.min() >= 0):
-        raise ValueError("adjacency weights must be finite and non-negative.")
+        raise InputError("adjacency weights must be finite and non-negative.")
     A = sp.csr_array(A[mask][:, mask])
     A.setdiag(0.0)
     A.eliminate_zeros()
@@ -65,7 +66,7 @@ def graph_laplacian(adjacency, mask: np.ndarray, *, dense: bool = False):
     """
     A = sp.csr_array(adjacency, dtype=np.float64)
     if A.shape == (mask.size, mask.size) and abs(A - A.T).sum() > 1e-12 * max(abs(A).sum(), 1.0):
-        raise ValueError("adjacency must be symmetric.")
+        raise InputError("adjacency must be symmetric.")
     A = observed_adjacency(A, mask)
     if dense:
         A = A.toarray()
@@ -88,7 +89,7 @@ def exitance_scaling(areas, mask: np.ndarray) -> np.ndarray | None:
         return None
     S = np.asarray(areas, dtype=np.float64)
     if S.shape != mask.shape or not np.all(S[mask] > 0):
-        raise ValueError(f"areas must be ({mask.size},) and > 0 on observed elements.")
+        raise InputError(f"areas must be ({mask.size},) and > 0 on observed elements.")
     return S[mask].mean() / S[mask]
 
 

@@ -15,7 +15,7 @@ from dataclasses import replace
 import numpy as np
 import scipy.sparse as sp
 
-from ..errors import UserError
+from ..errors import InputError, UserError
 from ..imaging import noise as N
 from ..imaging.spikes import reject_spikes
 from ..workers import blas_threads
@@ -72,7 +72,7 @@ def _solve(T, a, valid, m, noise, adjacency, areas, groups=None):
     try:
         return _reconstruct(Tm, am, method=m.method, variance=noise.variance, adjacency=adjacency, areas=areas,
                      groups=groups, **kw), keep
-    except ValueError as e:  # say it in config keys, not the solver's parameter names
+    except InputError as e:  # say it in config keys, not the solver's parameter names
         msg = str(e)
         for internal, key in (("lam_rule", "reconstruct.lambda_rule"), ("lam", "reconstruct.lambda"),
                               ("n_iter", "reconstruct.n_iter"), ("transfer matrix T", "T")):

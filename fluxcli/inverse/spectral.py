@@ -31,6 +31,7 @@ import scipy.optimize as sopt
 import scipy.sparse as sp
 
 from fluxcli.inverse import _common as c
+from fluxcli.errors import InputError
 
 RULES = ("gcv", "lcurve", "discrepancy")
 
@@ -132,7 +133,7 @@ class Spectrum:
         (the pseudo-inverse) and a functional that has weight on them gets an infinite
         variance.  Returns (n_functionals,) (a scalar's shape for one functional)."""
         if kind not in ("sampling", "posterior"):
-            raise ValueError(f"kind must be 'sampling' or 'posterior', got {kind!r}.")
+            raise InputError(f"kind must be 'sampling' or 'posterior', got {kind!r}.")
         one = not sp.issparse(weights) and np.ndim(weights) == 1
         W = sp.csr_array(weights) if sp.issparse(weights) else np.atleast_2d(np.asarray(weights, float))
         AV = np.asarray(W @ self.V)
@@ -230,12 +231,12 @@ def choose(spec: Spectrum, rule: str = "gcv", *, k: int = 1, lambdas=None, gamma
     Choice
     """
     if rule not in RULES:
-        raise ValueError(f"lambda rule must be one of {', '.join(RULES)}; got {rule!r}.")
+        raise InputError(f"lambda rule must be one of {', '.join(RULES)}; got {rule!r}.")
     grid = default_grid() if lambdas is None else np.sort(np.asarray(lambdas, dtype=np.float64).ravel())
     if grid.size < 3 or not np.all(np.isfinite(grid)) or grid[0] <= 0:
-        raise ValueError("lambdas must hold at least 3 finite values > 0.")
+        raise InputError("lambdas must hold at least 3 finite values > 0.")
     if rule == "discrepancy" and noise_total is None:
-        raise ValueError("the discrepancy principle needs the expected noise (noise_total).")
+        raise InputError("the discrepancy principle needs the expected noise (noise_total).")
     step = np.median(np.diff(np.log10(grid)))
     widened = 0
     while True:

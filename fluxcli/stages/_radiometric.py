@@ -19,7 +19,7 @@ import numpy as np
 
 from .. import config as C
 from ..calibration import radiometry as R
-from ..errors import UserError
+from ..errors import InputError, UserError
 from ..imaging.imagefiles import read_image
 from ..artefacts.calibration import MAPS, SCALARS, write_radiometric  # noqa: F401  (re-exported)
 from .context import RunContext
@@ -100,7 +100,7 @@ def run_radiometric(section: C.Radiometric, resolve: Callable[[Path], Path], ctx
 def _calibrate(key: str, ctx: RunContext, **frames) -> R.RadiometricResult:
     try:
         result = R.calibrate_radiometric(**frames)
-    except ValueError as e:
+    except InputError as e:
         raise UserError(f"{key}: {e}") from None
     ctx.table(["quantity", "value", "1 sigma"], summary_rows(result))
     for w in result.warnings:
