@@ -1,6 +1,6 @@
 """Crash-safe acquisition: the plan and the frame loop that fills ``capture.h5``.
 
-The plan (:class:`Plan`) lists every frame: first, with ``capture.calibration``, the
+The plan (:class:`Plan`, kept with the layout in :mod:`fluxcli.artefacts.capture`) lists every frame: first, with ``capture.calibration``, the
 calibration frames (:class:`CalibrationPlan`: bias and dark frames with the shutter closed,
 the grid at each stage height, the flat and photon-transfer frames of an even light), then,
 with ``capture.surface``, the structured-light pattern frames (:class:`SurfacePlan`: for each projector each pattern of
@@ -16,14 +16,14 @@ only code that opens the file.
 
 from __future__ import annotations
 
-import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 
-from .artefacts.capture import (CalibrationCapture, CaptureFile, CaptureImages, PatternCapture,  # noqa: F401
+from .artefacts.capture import (CalibrationCapture, CalibrationFrame, CalibrationPlan, CaptureFile,  # noqa: F401
+                                CaptureImages, Frame, PatternCapture, PatternFrame, Plan, SurfacePlan,
                                 read_calibration, read_capture, read_patterns)
 from .errors import UserError
 
@@ -34,159 +34,6 @@ __all__ = ["Frame", "PatternFrame", "SurfacePlan", "CalibrationFrame", "Calibrat
 
 class Interrupted(Exception):
     """The acquisition stopped at a frame boundary because it was asked to (Ctrl-C)."""
-
-
-@dataclass(frozen=True)
-class Frame:
-    index: int
-    dark: bool
-    height_mm: float
-    filter: str
-    repeat: int
-    exposure_s: float
-
-    @property
-    def label(self) -> str:
-        if self.dark:
-            return f"dark {self.repeat + 1} ({self.exposure_s:g} s)"
-        return f"h={self.height_mm:g} mm, {self.filter}, {self.exposure_s:g} s, repeat {self.repeat + 1}"
-
-
-@dataclass(frozen=True)
-class PatternFrame:
-    index: int  # slot in /patterns
-    projector: str
-    pattern: int  # position in the pattern sequence
-    name: str  # white, black, grayB, grayB-inverse, phaseK
-
-    @property
-    def label(self) -> str:
-        return f"projector {self.projector}, pattern {self.pattern + 1} ({self.name})"
-
-
-@dataclass(frozen=True)
-class SurfacePlan:
-    """The structured-light part of a plan: every projector shows every pattern, one frame each."""
-
-    projectors: tuple[str, ...]
-    patterns: tuple[str, ...]  # names of the sequence, in order (the same for every projector)
-    height_mm: float
-    filter: str
-    exposure_s: float
-    em_gain: float
-    binning: int
-    shape: tuple[int, int]  # (ny, nx) of a pattern frame
-    n_gray: int
-    n_steps: int
-    content: str  # digest of the pattern images and the projectors' models
-
-    def frames(self) -> list[PatternFrame]:
-        return [PatternFrame(k * len(self.patterns) + i, p, i, name)
-                for k, p in enumerate(self.projectors) for i, name in enumerate(self.patterns)]
-
-
-CALIBRATION_KINDS = ("bias", "dark", "grid", "flat", "ptc_off", "ptc_on")  # the order they are taken in
-_SHUTTER_CLOSED = ("bias", "dark")
-
-
-@dataclass(frozen=True)
-class CalibrationFrame:
-    index: int  # slot in /calibration
-    kind: str  # one of CALIBRATION_KINDS
-    series: int  # which series of its kind (grid: the height; dark, PTC: the exposure)
-    repeat: int  # frame number in its series (PTC and bias pairs: 0-1, 2-3, ...)
-    exposure_s: float
-    em_gain: float
-    height_mm: float  # planned stage height (nan: the stage stays where it is)
-    filter: str  # filter in the beam ("": shutter closed, any filter)
-
-    @property
-    def target(self) -> str:
-        """What must be in front of the camera: ``closed`` (shutter), ``grid`` (on the stage, lit), ``light``."""
-        return "closed" if self.kind in _SHUTTER_CLOSED else "grid" if self.kind == "grid" else "light"
-
-    @property
-    def label(self) -> str:
-        where = f"h={self.height_mm:g} mm, " if self.kind == "grid" else ""
-        return (f"calibration {self.kind} {where}{self.exposure_s:g} s, gain {self.em_gain:g}, "
-                f"frame {self.repeat + 1}")
-
-
-@dataclass(frozen=True)
-class CalibrationPlan:
-    """The calibration part of a plan: series of (kind, height, exposure, gain, filter, frames)."""
-
-    series: tuple[tuple[str, int, float, float, float | None, str, int], ...]  # kind, series, exposure, gain, height (None: not moved), filter, n
-    grid: tuple[tuple[str, object], ...] = ()  # (key, value) of the grid's description (JSON in the file)
-    content: str = ""  # digest of what a simulated camera shows (grid brightness, light) ("" for a real camera)
-
-    def frames(self) -> list[CalibrationFrame]:
-        out: list[CalibrationFrame] = []
-        for kind, series, exposure_s, gain, height, filter, n in self.series:
-            for r in range(n):
-                out.append(CalibrationFrame(len(out), kind, series, r, exposure_s, gain,
-                                            float("nan") if height is None else height, filter))
-        return out
-
-
-@dataclass(frozen=True)
-class Plan:
-    """What to acquire.  Two runs may share a file only when their plans are equal."""
-
-    heights_mm: tuple[float, ...]
-    filters: tuple[str, ...]
-    exposures_s: tuple[float, ...]
-    em_gain: float
-    repeats: int
-    darks: int
-    seed: int
-    shape: tuple[int, int]  # (ny, nx) of a frame
-    filter_positions: tuple[tuple[str, int], ...] = ()  # (name, wheel position) of each planned filter
-    camera: str = "simulated"  # backend
-    scene: str = ""  # digest of what a simulated camera renders ("" for a real camera)
-    surface: SurfacePlan | None = None  # structured-light pattern frames, taken first
-    calibration: CalibrationPlan | None = None  # calibration frames, taken before everything else
-
-    def frames(self) -> list[Frame]:
-        out: list[Frame] = []
-        for e in self.exposures_s:
-            for r in range(self.darks if self.heights_mm else 0):  # no subject frames: nothing to subtract darks from
-                out.append(Frame(len(out), True, self.heights_mm[0], self.filters[0], r, e))
-        for h in self.heights_mm:
-            for name in self.filters:
-                for e in self.exposures_s:
-                    for r in range(self.repeats):
-                        out.append(Frame(len(out), False, h, name, r, e))
-        return out
-
-    def as_dict(self) -> dict:
-        return json.loads(json.dumps(asdict(self)))
-
-    def differences(self, other: dict) -> list[str]:
-        """What differs between this plan and ``other`` (a stored plan), in words."""
-        mine = self.as_dict()
-        names = {"scene": "the simulated scene (system, subject, simulate, rig.camera)", "shape": "frame shape",
-                 "exposures_s": "capture.exposure_s", "filter_positions": "rig.filter_wheel.filters",
-                 "camera": "rig.camera.backend"}
-        out = []
-        for k in mine:
-            theirs = other.get(k)
-            if theirs == mine[k]:
-                continue
-            if k in ("surface", "calibration") and isinstance(theirs, dict) and isinstance(mine[k], dict):
-                sub = {"content": "the patterns or rig.projectors", "shape": "pattern frame shape",
-                       "patterns": "the pattern sequence"} if k == "surface" else {
-                       "content": "capture.calibration.simulated", "series": "the calibration series",
-                       "grid": "capture.calibration.grid or system.stage.top_z_mm"}
-                out += [f"{sub.get(j, f'capture.{k}.' + j)}: file has {theirs.get(j)!r}, config has {v!r}"
-                        for j, v in mine[k].items() if theirs.get(j) != v]
-            elif k in ("surface", "calibration"):
-                what = "structured-light" if k == "surface" else "calibration"
-                out.append(f"capture.{k}: the file was captured {'without' if theirs is None else 'with'} "
-                           f"{what} frames, the config asks {'without' if mine[k] is None else 'with'} them")
-            else:
-                out.append(f"{names.get(k, 'capture.' + k)}: file has {theirs!r}, config has {mine[k]!r}")
-        return out
 
 
 @dataclass
