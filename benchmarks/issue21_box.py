@@ -85,6 +85,7 @@ EXPERIMENTS = {
     "mirrors": (ISSUE_CAMERA, 2.0, SIX, [0.0, 8.0], True),
     "close-direct": (AM.CAMERA, 4.0, [-90, -60, -30, 0, 30, 60], [0.0], False),  # the battery's camera (issue item 2)
     "close-mirrors": (AM.CAMERA, 4.0, [-60, 0, 60], [0.0, 8.0], True),
+    "close-m90": (AM.CAMERA, 4.0, [-90], [0.0], False),  # the battery's edge-on pose alone (issue item 2)
 }
 
 
@@ -239,6 +240,41 @@ def run_experiment(name: str, max_photons=None) -> bool:
     return AM.report(name, results)
 
 
+def faces_table(rec_path: Path) -> None:
+    """Per pose and box face: elements, observed, poorly observed, the truth (all and observed)
+    and the estimate over observed elements, as shares of the whole truth; and the mean angle
+    from the normal at which the camera sees the observed ones (lens centre)."""
+    import h5py
+    with h5py.File(rec_path) as f:
+        truth = f["truth/power"][()]
+        pp, obs, cls = f["per_pose/power"][()], f["per_pose/observed"][()], f["per_pose/observation"][()]
+        rots, hts = f["per_pose/rotations_deg"][()], f["per_pose/heights_mm"][()]
+        fa, eof = f["surface/faces"][()], f["surface/element_of_face"][()]
+        verts = f["per_pose/vertices_mm"][()]
+        lens = np.asarray(__import__("json").loads(f.attrs["config_json"])["system"]["camera"]["pose"]["lens_center_mm"])
+    n, tot = len(truth), truth.sum()
+    for k in range(len(pp)):
+        v = verts[k]
+        cr = np.cross(v[fa[:, 1]] - v[fa[:, 0]], v[fa[:, 2]] - v[fa[:, 0]])
+        cen = np.stack([np.bincount(eof, weights=((v[fa[:, 0]] + v[fa[:, 1]] + v[fa[:, 2]]) / 3)[:, i], minlength=n)
+                        for i in range(3)], 1) / np.bincount(eof, minlength=n)[:, None]
+        nrm = np.stack([np.bincount(eof, weights=cr[:, i], minlength=n) for i in range(3)], 1)
+        nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+        to = lens - cen
+        ang = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", nrm, to / np.linalg.norm(to, axis=1)[:, None]), -1, 1)))
+        o = obs[k]
+        print(f"pose h {hts[k]:g} rot {rots[k]:g}: total over observed {np.nansum(pp[k][o]) / truth[o].sum():.3f}")
+        # own-frame face of each element: the unplaced normal's largest component
+        v0 = verts[k]  # faces keep their identity: group by the placed normal's direction
+        key = np.round(nrm, 1)
+        for u in np.unique(key, axis=0):
+            sel = np.all(key == u, axis=1)
+            so = sel & o
+            print(f"   normal {u}: {sel.sum():4d} el, obs {so.sum():4d}, poor {(cls[k][sel] == 1).sum():3d}, "
+                  f"truth {truth[sel].sum() / tot:.3f} (obs {truth[so].sum() / tot:.3f}), est(obs) "
+                  f"{np.nansum(pp[k][so]) / tot:.3f}, angle {np.mean(ang[so]) if so.any() else float('nan'):5.1f} deg")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--transport", type=float, default=0, help="photons to transport into the bank")
@@ -246,8 +282,11 @@ def main(argv=None) -> int:
     ap.add_argument("--import-sim", default=None, help="a keep_photons simulation.h5 of the same box and source")
     ap.add_argument("--run", default="", help="comma-separated experiments: " + ", ".join(EXPERIMENTS)
                     + " (NAME-control: the issue's control on the same exit points)")
+    ap.add_argument("--faces", default=None, help="a reconstruction.h5: the per-face table")
     ap.add_argument("--max-photons", type=float, default=None, help="use at most this many launched photons of the bank")
     a = ap.parse_args(argv)
+    if a.faces:
+        faces_table(Path(a.faces))
     if a.import_sim:
         bank_from_simulation(Path(a.import_sim), f"s{a.seed}-imported")
     if a.transport:
