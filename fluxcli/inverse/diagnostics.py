@@ -113,8 +113,8 @@ def leave_out_edge_on(res, best_deg: np.ndarray, limit_deg: float, model: str):
     """``res`` (an :class:`fluxcli.inverse.Result` over elements) with the observed elements
     seen only beyond ``limit_deg`` from their normal (``best_deg`` > limit) made unobserved
     (power and sigma NaN): they were solved for, so the light they sent is theirs and not
-    their neighbours', but their values rest on the emission model where it is not known, and
-    they leave the observed total. A warning says how many and what share of the total they
+    their neighbours', but their values rest on views where that light is the most sensitive
+    to the normal and to the emission model, and they leave the observed total. A warning says how many and what share of the total they
     held. ``res`` unchanged when none (or ``limit_deg`` >= 90)."""
     from dataclasses import replace
 
@@ -130,7 +130,8 @@ def leave_out_edge_on(res, best_deg: np.ndarray, limit_deg: float, model: str):
     observation = None if res.observation is None else np.where(cut, 0, res.observation).astype(np.int8)
     warning = (f"{int(cut.sum())} element(s) {EDGE_ON_TEXT} {limit_deg:g} deg from their normal (edge-on; "
                f"{share:.0%} of the total as solved) are solved for, so their light is their own, but are left out "
-               f"of the observed total: the emission model ({model}) is not known there.")
+               f"of the observed total: their values rest on views where the light an element sends is the most "
+               f"sensitive to its normal and to the emission model ({model}).")
     from .methods import POOR_SHARE_TEXT, poor_share_warning
 
     power, observed = np.where(cut, np.nan, p), obs & ~cut
