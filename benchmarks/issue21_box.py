@@ -11,7 +11,10 @@ the bank through its own camera, mirrors and poses (``--run``): the images are w
 the truth per element is the photons that left through it, and no emission model enters.
 
     $ nice -n 5 .venv/bin/python benchmarks/issue21_box.py --transport 6e7 --seed 1
-    $ nice -n 5 .venv/bin/python benchmarks/issue21_box.py --run direct,mirrors
+    $ nice -n 5 .venv/bin/python benchmarks/issue21_box.py --run direct,mirrors,direct-control
+    $ nice -n 5 .venv/bin/python benchmarks/issue21_box.py --run close-direct    # the battery's lens, -90..60
+    $ .venv/bin/python benchmarks/issue21_box.py --bands     # the bank's exit angles against diffuse(1.40)
+    $ .venv/bin/python benchmarks/issue21_box.py --faces runs/issue21/close-m90/reconstruction-diffuse.h5
 """
 
 from __future__ import annotations
@@ -240,6 +243,36 @@ def run_experiment(name: str, max_photons=None) -> bool:
     return AM.report(name, results)
 
 
+def exit_bands() -> None:
+    """Per face of the box, the bank's photons in bands of exit angle over what diffuse(1.40)
+    puts in each band (face-averaged: 2 ∫ πp μ dμ over the band), with the photons' standard
+    error: the profile against every photon, not only those a camera catches."""
+    from fluxcli.optics.emission import diffuse
+    _, shape = _medium_shape()
+    edges = np.array([0, 10, 30, 50, 60, 70, 75, 80, 85, 90.0])
+    mu = np.linspace(0.0, 1.0, 200_001)
+    w = diffuse(N_INDEX).weight(mu)
+    model = np.array([2 * np.trapezoid(np.where((mu <= np.cos(np.radians(lo))) & (mu >= np.cos(np.radians(hi))),
+                                                w * mu, 0.0), mu) for lo, hi in zip(edges[:-1], edges[1:])])
+    counts = np.zeros((6, len(edges) - 1))
+    for path in bank_files()[0]:
+        with np.load(path) as z:
+            pos, d = z["position_mm"].astype(np.float64), z["direction"].astype(np.float64)
+        d /= np.linalg.norm(d, axis=1)[:, None]
+        n = shape.outward_normals(pos)
+        theta = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", n, d), -1.0, 1.0)))
+        axis = np.argmax(np.abs(n), axis=1)
+        face = 2 * axis + (n[np.arange(len(n)), axis] < 0)
+        for f in range(6):
+            counts[f] += np.histogram(theta[face == f], bins=edges)[0]
+    print("exit angle (deg)  " + " ".join(f"{lo:g}-{hi:g}".rjust(11) for lo, hi in zip(edges[:-1], edges[1:])))
+    print("diffuse(1.40)     " + " ".join(f"{m:11.4f}" for m in model))
+    for f, name in enumerate(("+x", "-x", "+y", "-y", "+z", "-z")):
+        N = counts[f].sum()
+        print(f"{name} {int(N):>10d} photons, over the model: " + " ".join(
+            f"{c / N / m:.3f}±{np.sqrt(c) / N / m:.3f}" for c, m in zip(counts[f], model)))
+
+
 def faces_table(rec_path: Path) -> None:
     """Per pose and box face: elements, observed, poorly observed, the truth (all and observed)
     and the estimate over observed elements, as shares of the whole truth; and the mean angle
@@ -282,9 +315,12 @@ def main(argv=None) -> int:
     ap.add_argument("--import-sim", default=None, help="a keep_photons simulation.h5 of the same box and source")
     ap.add_argument("--run", default="", help="comma-separated experiments: " + ", ".join(EXPERIMENTS)
                     + " (NAME-control: the issue's control on the same exit points)")
+    ap.add_argument("--bands", action="store_true", help="the bank's exit angles per face against diffuse(1.40)")
     ap.add_argument("--faces", default=None, help="a reconstruction.h5: the per-face table")
     ap.add_argument("--max-photons", type=float, default=None, help="use at most this many launched photons of the bank")
     a = ap.parse_args(argv)
+    if a.bands:
+        exit_bands()
     if a.faces:
         faces_table(Path(a.faces))
     if a.import_sim:
