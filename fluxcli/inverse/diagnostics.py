@@ -79,6 +79,69 @@ def element_angles(surface, centers_mm: list[np.ndarray], weight=None) -> Elemen
     return ElementAngles(mean, beyond)
 
 
+def best_view_deg(surface, cameras: list, T_views: list[sp.spmatrix]) -> np.ndarray:
+    """Per element, the smallest angle (deg) from a face's outward normal at which a view that
+    collects the element's light (its column of that view's T is not empty) can see it: over
+    each view's aperture, towards the point of the lens disk farthest along the face normal
+    (``cameras``: one per view, the virtual one for a mirror view). inf where no view collects
+    its light. A lens not small beside its distance sees a face turned edge-on to its
+    centre through part of its disk: the centre alone would put that face behind the lens."""
+    eof = surface.element_of_face
+    ok = eof >= 0
+    cen = surface.face_vertices_mm.mean(axis=1)
+    nrm = surface.face_normals
+    best = np.full(surface.n_elements, np.inf)
+    for cam, Tv in zip(cameras, T_views):
+        seen = np.asarray(abs(Tv).sum(axis=0)).ravel() > 0
+        a = np.asarray(cam.axis, float) / np.linalg.norm(cam.axis)
+        w = nrm - (nrm @ a)[:, None] * a
+        wl = np.linalg.norm(w, axis=1)
+        w = np.where(wl[:, None] > 1e-12, w / np.maximum(wl, 1e-300)[:, None], 0.0)
+        d = cam.center_mm + cam.aperture_radius_mm * w - cen
+        cs = np.einsum("ij,ij->i", nrm, d) / np.linalg.norm(d, axis=1)
+        deg = np.degrees(np.arccos(np.clip(cs, -1.0, 1.0)))
+        el = np.full(surface.n_elements, np.inf)
+        np.minimum.at(el, eof[ok], deg[ok])
+        best = np.where(seen, np.minimum(best, el), best)
+    return best
+
+
+EDGE_ON_TEXT = "seen only beyond"
+
+
+def leave_out_edge_on(res, best_deg: np.ndarray, limit_deg: float, model: str):
+    """``res`` (an :class:`fluxcli.inverse.Result` over elements) with the observed elements
+    seen only beyond ``limit_deg`` from their normal (``best_deg`` > limit) made unobserved
+    (power and sigma NaN): they were solved for, so the light they sent is theirs and not
+    their neighbours', but their values rest on views where that light is the most sensitive
+    to the normal and to the emission model, and they leave the observed total. A warning says how many and what share of the total they
+    held. ``res`` unchanged when none (or ``limit_deg`` >= 90)."""
+    from dataclasses import replace
+
+    if limit_deg >= 90.0 or res is None:
+        return res
+    obs = np.asarray(res.observed, bool)
+    cut = obs & (np.asarray(best_deg) > limit_deg)
+    if not cut.any():
+        return res
+    p = np.asarray(res.power, float)
+    total = np.nansum(np.where(obs, p, 0.0))
+    share = np.nansum(np.where(cut, p, 0.0)) / total if total > 0 else float("nan")
+    observation = None if res.observation is None else np.where(cut, 0, res.observation).astype(np.int8)
+    warning = (f"{int(cut.sum())} element(s) {EDGE_ON_TEXT} {limit_deg:g} deg from their normal (edge-on; "
+               f"{share:.0%} of the total as solved) are solved for, so their light is their own, but are left out "
+               f"of the observed total: their values rest on views where the light an element sends is the most "
+               f"sensitive to its normal and to the emission model ({model}).")
+    from .methods import POOR_SHARE_TEXT, poor_share_warning
+
+    power, observed = np.where(cut, np.nan, p), obs & ~cut
+    warnings = [w for w in res.warnings if POOR_SHARE_TEXT not in w]  # its share was of the old total
+    if observation is not None and (poor := poor_share_warning(power, observed, observation)):
+        warnings.append(poor)
+    return replace(res, power=power, observed=observed, sigma=np.where(cut, np.nan, np.asarray(res.sigma, float)),
+                   observation=observation, warnings=tuple(warnings) + (warning,))
+
+
 def grazing_shares(T_views: list[sp.spmatrix], view_weights: list[float], power: np.ndarray,
                    angles: ElementAngles) -> np.ndarray:
     """Share of the light in the model image ``sum_v w_v T_v b`` that left its element beyond

@@ -38,6 +38,18 @@ import numpy as np
 
 N_TABLE = 4097  # ray weights are tabulated on mu = cos(theta) = k / (N_TABLE - 1), linear in between
 CHECK_DEG = (30.0, 45.0, 60.0, 70.0, 75.0, 80.0)  # where reports and notices quote the curve
+# Beyond this angle from the normal an element's value is not known from a diffuse surface's
+# light: every view that collects it sees it at cos(theta) < 0.17, where a 1-degree error in the
+# normal moves the light it sends by 10 % or more, the tangential-flux term (first order in
+# grad ln M, ~sin(theta)) is at its largest, and the profile has been checked point by point
+# against Monte Carlo photons only up to 80 deg (docs/design.md; face-averaged, the photons' exit
+# angles follow diffuse(1.40) within 1 % in every band to 90 deg).  On the Monte Carlo box turned
+# edge-on to a close lens (-90 deg) such elements read 2-3x their truth and carried 86-95 % of the
+# "observed" total.  An element whose light the views collect only beyond this angle is solved
+# for (its light stays its own) but is not counted as observed
+# (fluxcli.inverse.diagnostics.leave_out_edge_on).  Applied to ``diffuse`` only: Lambertian and
+# table profiles keep their results (the Lambertian battery's figures are unchanged).
+DIFFUSE_TRUSTED_TO_DEG = 80.0
 TANGENT_LAYOUT = "face-frame-2"  # how T_tangent is stored (2 in-plane components per face): in its cache key
 
 
@@ -131,6 +143,12 @@ class Profile:
     @property
     def is_lambertian(self) -> bool:
         return len(self.table) == 0
+
+    @property
+    def trusted_to_deg(self) -> float:
+        """The angle from the normal up to which the profile is known (90: everywhere); see
+        :data:`DIFFUSE_TRUSTED_TO_DEG`."""
+        return DIFFUSE_TRUSTED_TO_DEG if self.model == "diffuse" else 90.0
 
     def weight(self, cos_theta) -> np.ndarray:
         """The ray weight ``pi p(theta)`` at ``cos_theta`` (0 for cos <= 0, behind the surface)."""

@@ -33,6 +33,7 @@ from ..imaging.spikes import (MAX_SPIKE_SHARE, SPIKE_ISOLATION, SPIKE_SIGMA, SPI
 from ..imaging.stray import STRAY_REFUSE, STRAY_WARN, light_outside  # noqa: F401
 from ..inverse import backprojection, error_l1, total_ratio
 from ..inverse.emission_checks import emission_checks
+from ..inverse.emission_domain import leave_out_edge_on
 from ..inverse.solve import DENSE, REGULARISED, describe, run_method, scaled, solve_poses  # noqa: F401
 from ..inverse.unknowns import (MAX_AUTO_SUB_ELEMENTS, ElementMap, Grid, VertexMap,  # noqa: F401
                                 element_unknowns, n_vertices, resolve_unknowns)
@@ -93,6 +94,7 @@ def reconstruct(plan: ReconstructPlan, ctx: RunContext) -> Path:
         inp.truth = inp.truth / scale  # the truth through the filter, as the results: before it
     totals = B.TotalMeter(ctx, P + int(plan.joint and P > 1))  # each total's photon-noise sigma; progress
     per_pose, joint = solve_poses(gm, inp, m, noise, stray, todo, (ny, nx), plan.joint, B.Both(rois, totals), scale)
+    per_pose, joint = leave_out_edge_on(placer.emission, views, todo, per_pose, joint)  # issue 21: the model's domain
     others = {}  # filter -> (inputs, per pose, joint, ROI meter): one T per pose for every filter
     for name in plan.filters[1:]:
         inp_f = from_capture(plan.images, surface.n_elements, name)

@@ -1,0 +1,336 @@
+"""Issue 21's own experiment on Monte Carlo photons: the issue's camera (f 23.9 mm focused at
+317 mm, Ø17 mm, 256 x 256 pixels of 52 µm), its box (30 x 40 x 20 mm, μa 0.01, μs 1 /mm, g 0,
+n 1.40), its source (6 mm under the top, 5 mm off centre), its mesh (2-mm elements), nine poses
+−90…+60° each alone and jointly, and two 45° mirrors at 6 rotations x 2 stage heights;
+``diffuse`` (n 1.40) and ``lambertian`` reconstructed from the same photons.
+
+The issue used 2 x 10⁹ MCX photons; this CPU Monte Carlo runs ~1–2.5 x 10⁵ photons/s on the
+shared cores, so the photons are transported once into a **bank** (exit point and direction,
+float32, one file per batch of 2 x 10⁶, resumable: ``--transport``) and every experiment images
+the bank through its own camera, mirrors and poses (``--run``): the images are whole photons,
+the truth per element is the photons that left through it, and no emission model enters.
+
+    $ nice -n 5 .venv/bin/python benchmarks/issue21_box.py --transport 6e7 --seed 1
+    $ nice -n 5 .venv/bin/python benchmarks/issue21_box.py --run direct,mirrors,direct-control
+    $ nice -n 5 .venv/bin/python benchmarks/issue21_box.py --run close-direct    # the battery's lens, -90..60
+    $ .venv/bin/python benchmarks/issue21_box.py --bands     # the bank's exit angles against diffuse(1.40)
+    $ .venv/bin/python benchmarks/issue21_box.py --faces runs/issue21/close-m90/reconstruction-diffuse.h5
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import accuracy_mc as AM  # noqa: E402
+
+OUT = AM.ROOT / "runs" / "issue21"
+BANK = OUT / "bank"
+BATCH = 2_000_000
+N_INDEX, SOURCE_MM = 1.40, [5.0, 0.0, 4.0]  # the issue's box: source 6 mm under the top (z 10), 5 mm off centre
+
+
+def _medium_shape():
+    from fluxcli.montecarlo import transport as MC
+    return (MC.Medium(AM.TISSUE["mua_per_mm"], AM.TISSUE["mus_per_mm"], AM.TISSUE["g"], N_INDEX),
+            MC.Shape.box(AM.BOX["size_mm"]))
+
+
+def transport(n_photons: float, seed: int) -> None:
+    """Transport into the bank, batch by batch (a batch already there is skipped)."""
+    from fluxcli.montecarlo import transport as MC
+    medium, shape = _medium_shape()
+    BANK.mkdir(parents=True, exist_ok=True)
+    t0, done = time.perf_counter(), 0
+    for b in range(-(-int(n_photons) // BATCH)):
+        path = BANK / f"s{seed}-b{b:04d}.npz"
+        if path.exists():
+            continue
+        esc = MC.transport(medium, shape, np.asarray(SOURCE_MM), BATCH, seed=seed, batch=b)
+        assert np.all(esc.weight == 1.0)  # analogue absorption: whole photons
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, position_mm=esc.position_mm.astype(np.float32), direction=esc.direction.astype(np.float32),
+                 launched=BATCH)
+        tmp.replace(path)
+        done += BATCH
+        print(f"bank {path.name}: {len(esc.weight)} escaped; {done / (time.perf_counter() - t0):.3g} photons/s",
+              flush=True)
+
+
+def bank_from_simulation(sim_path: Path, name: str) -> None:
+    """Put the photons a ``keep_photons`` simulate stored into the bank (one file)."""
+    import h5py
+    path = BANK / f"{name}.npz"
+    if path.exists():
+        return
+    with h5py.File(sim_path) as f:
+        launched = int(f["montecarlo"].attrs["launched"])
+        pos, d = f["montecarlo/photons/position_mm"][()], f["montecarlo/photons/direction"][()]
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, position_mm=pos.astype(np.float32), direction=d.astype(np.float32), launched=launched)
+    tmp.replace(path)
+
+
+ISSUE_CAMERA = {"pixels": [256, 256], "pixel_pitch_mm": 0.052,
+                "lens": {"focal_length_mm": 23.9, "aperture_diameter_mm": 17.0, "focus_distance_mm": 317.0},
+                "pose": {"lens_center_mm": [0, 0, 10.0 + 317.0], "look": [0, 0, -1], "up": [0, 1, 0]}}
+NINE = [-90, -75, -60, -45, -30, -15, 0, 30, 60]
+SIX = [-90, -60, -30, 0, 30, 60]
+# name -> camera, element size (mm), rotations, heights, mirrors
+EXPERIMENTS = {
+    "direct": (ISSUE_CAMERA, 2.0, NINE, [0.0], False),
+    "mirrors": (ISSUE_CAMERA, 2.0, SIX, [0.0, 8.0], True),
+    "close-direct": (AM.CAMERA, 4.0, [-90, -60, -30, 0, 30, 60], [0.0], False),  # the battery's camera (issue item 2)
+    "close-mirrors": (AM.CAMERA, 4.0, [-60, 0, 60], [0.0, 8.0], True),
+    "close-m90": (AM.CAMERA, 4.0, [-90], [0.0], False),  # the battery's edge-on pose alone (issue item 2)
+}
+
+
+def configs(name: str) -> dict:
+    """The experiment's configs per model (``NAME-control``: the issue's control, reconstructed
+    with the profile alone, since its redrawn directions carry no tangential flux)."""
+    control = name.endswith("-control")
+    camera, element_mm, rotations, heights, mirrors = EXPERIMENTS[name.removesuffix("-control")]
+    AM.CASES[name] = ({**AM.BOX, "element_mm": element_mm}, N_INDEX, SOURCE_MM, rotations, mirrors)
+    AM.HEIGHTS[name] = heights
+    folder = OUT / "configs"
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = {}
+    for model in AM.MODELS:
+        cfg = AM.config(name, model, 10_000, 0)  # the photons come from the bank, not from this
+        cfg["system"]["camera"] = copy.deepcopy(camera)
+        cfg["subject"]["surface"]["element_mm"] = element_mm
+        cfg["subject"]["poses"]["heights_mm"] = list(heights)
+        cfg["transfer"] = {"cache_dir": str(OUT / "T-cache")}
+        if control and model == "diffuse":
+            cfg["subject"]["emission"]["tangential_flux"] = False
+        p = folder / f"{name}-{model}.yaml"
+        import yaml
+        p.write_text(yaml.safe_dump(cfg))
+        paths[model] = p
+    return paths
+
+
+def bank_files(max_photons=None):
+    files, n = [], 0
+    for path in sorted(BANK.glob("s*.npz")):
+        if path.name.endswith(".tmp.npz"):
+            continue
+        with np.load(path) as z:
+            launched = int(z["launched"])
+        if max_photons is not None and n + launched > max_photons:
+            break
+        files.append(path)
+        n += launched
+    return files, n
+
+
+def _may_reach(views, c, d, radius_mm: float) -> np.ndarray:
+    """Photons whose direction lies within the cone from the body to a view's (real or virtual)
+    lens: a photon leaving within ``radius_mm`` of the body's centre ``c`` can reach a lens of
+    radius R at distance D only within asin((radius + R) / D) of the centre-to-lens line. A
+    cull that changes no count: image_photons tests the rest exactly."""
+    keep = np.zeros(len(d), bool)
+    for v in views:
+        u = v.camera.center_mm - c
+        D = float(np.linalg.norm(u))
+        e = 1.05 * (radius_mm + v.camera.aperture_radius_mm) + 1.0
+        cos_max = np.sqrt(max(0.0, 1.0 - (e / D) ** 2)) if e < D else -1.0
+        keep |= d @ (u / D) >= cos_max
+    return keep
+
+
+def image_bank(cfg_path: Path, files: list, sim_path: Path, launched: int, redraw=None) -> np.ndarray:
+    """Truth and images of the banked photons (as simulate makes them) written into the
+    simulation artefact that simulate made for this config (same poses, views and surface)."""
+    import h5py
+
+    from fluxcli.config import load_config
+    from fluxcli.montecarlo import camera as MC_cam
+    from fluxcli.montecarlo import photons as MC_ph
+    from fluxcli.optics.raycast import OcclusionScene
+    from fluxcli.scene import SubjectPlacer, poses_from_config, views_from_config
+    from fluxcli.surface.mesh import merge
+    from fluxcli.truth import montecarlo_shape, truth_refinement
+
+    cfg = load_config(cfg_path)
+    m = cfg.model
+    shape = montecarlo_shape(m.subject.surface)
+    placer = SubjectPlacer(cfg)
+    views = views_from_config(m.system)
+    scenes = [placer.scene(p, m.system) for p in poses_from_config(m.subject)]
+    placements = [placer.placement(s.pose) for s in scenes]
+    occl = [OcclusionScene(*merge(s.surface, *s.occluders)) for s in scenes]
+    fine, parent = placer.own_surface.refined(truth_refinement(m.simulate))
+    fine_scene = OcclusionScene(fine.vertices_mm, fine.faces)
+    cam = views[0].camera
+    P = len(scenes)
+    radius = float(np.linalg.norm(shape.half_mm))  # the body within this of its centre
+    images = np.zeros((P, cam.nx * cam.ny), np.int64)
+    reached = np.zeros((P, len(views)), np.int64)
+    fine_power = np.zeros(fine.n_elements)
+    escaped = 0
+    for i, path in enumerate(files):
+        with np.load(path) as z:
+            pos = z["position_mm"].astype(np.float64)
+            d = z["direction"].astype(np.float64)
+        d /= np.linalg.norm(d, axis=1)[:, None]
+        escaped += len(pos)
+        normal = shape.outward_normals(pos)
+        face = MC_ph.faces_of_exits(shape, fine.vertices_mm, fine.faces, pos, scene=fine_scene)
+        el = np.where(face >= 0, fine.element_of_face[np.maximum(face, 0)], -1)
+        fine_power += np.bincount(el[el >= 0], minlength=fine.n_elements)
+        if redraw is not None:  # the issue's control: the same exit points, directions from a profile
+            d = MC_ph.redraw_directions(normal, redraw, np.random.default_rng([11, i]))
+        for k, (R, t) in enumerate(placements):
+            pw, dw = (pos + placer.rest_shift_mm) @ R.T + t, d @ R.T
+            sel = _may_reach(views, placer.rest_shift_mm @ R.T + t, dw, radius)  # the body's placed centre
+            img = MC_cam.image_photons(views, occl[k], pw[sel], dw[sel], normal[sel] @ R.T,
+                                       np.random.default_rng([7, i, k]), ray_offset_mm=m.transfer.ray_offset_mm)
+            images[k] += img.counts_per_pixel
+            reached[k] += [img.reached_lens[v.name] for v in views]
+        print(f"  imaged {path.name} ({i + 1}/{len(files)})", flush=True)
+    power = np.bincount(parent, weights=fine_power, minlength=placer.surface.n_elements)
+    clean = images.reshape(1, P, cam.ny, cam.nx).astype(np.float32)
+    with h5py.File(sim_path, "r+") as f:
+        f["images/noisy"][0, 0] = clean[0]
+        f["images/noiseless"][...] = clean
+        f["images/max_snr"][...] = np.sqrt(clean.reshape(1, P, -1).max(axis=2))
+        f["truth/power"][...] = power
+        f["truth/exitance"][...] = power / placer.surface.element_areas_mm2
+        f["truth/power_fine"][...] = fine_power
+        f["truth/levels_peak_photons"][...] = [power.max()]
+        f["montecarlo/photons_per_element"][...] = power
+        f["montecarlo/reached_lens"][...] = reached
+        g = f["montecarlo"]
+        g.attrs["launched"], g.attrs["escaped"] = launched, escaped
+        g.attrs["bank"] = ", ".join(p.name for p in files)
+    return images.sum(axis=1)
+
+
+def run_experiment(name: str, max_photons=None) -> bool:
+    paths = configs(name)
+    files, launched = bank_files(max_photons)
+    t0 = time.perf_counter()
+    AM.fluxmap("simulate", paths["diffuse"], "--quiet", "--force")  # the artefact's frame (10^4 photons, replaced)
+    sim = OUT / name / "simulation.h5"
+    redraw = None
+    if name.endswith("-control"):
+        from fluxcli.optics.emission import diffuse
+        redraw = diffuse(N_INDEX).table
+    imaged = image_bank(paths["diffuse"], files, sim, launched, redraw)
+    t_img = time.perf_counter() - t0
+    results = {}
+    for model in AM.MODELS:
+        text = AM.fluxmap("reconstruct", paths[model], "--force")
+        kept = OUT / name / f"reconstruction-{model}.h5"
+        (OUT / name / "reconstruction.h5").replace(kept)
+        res = AM.summarise(kept)
+        res["image_over_model"] = AM.forward_check(paths[model], sim)
+        res["warnings"] = [ln for ln in text.splitlines() if "warning" in ln.lower()]
+        res["photons_in_images"] = imaged.tolist()
+        results[model] = res
+    results["seconds"] = time.perf_counter() - t0
+    print(f"\n{name}: {launched:.3g} photons launched (bank: {len(files)} files), imaged in {t_img:.0f} s; "
+          f"heights {AM.HEIGHTS[name]} mm" + ("; directions redrawn from diffuse(1.40), reconstructed with "
+                                              "its profile alone (the control)" if redraw is not None else ""))
+    return AM.report(name, results)
+
+
+def exit_bands() -> None:
+    """Per face of the box, the bank's photons in bands of exit angle over what diffuse(1.40)
+    puts in each band (face-averaged: 2 ∫ πp μ dμ over the band), with the photons' standard
+    error: the profile against every photon, not only those a camera catches."""
+    from fluxcli.optics.emission import diffuse
+    _, shape = _medium_shape()
+    edges = np.array([0, 10, 30, 50, 60, 70, 75, 80, 85, 90.0])
+    mu = np.linspace(0.0, 1.0, 200_001)
+    w = diffuse(N_INDEX).weight(mu)
+    model = np.array([2 * np.trapezoid(np.where((mu <= np.cos(np.radians(lo))) & (mu >= np.cos(np.radians(hi))),
+                                                w * mu, 0.0), mu) for lo, hi in zip(edges[:-1], edges[1:])])
+    counts = np.zeros((6, len(edges) - 1))
+    for path in bank_files()[0]:
+        with np.load(path) as z:
+            pos, d = z["position_mm"].astype(np.float64), z["direction"].astype(np.float64)
+        d /= np.linalg.norm(d, axis=1)[:, None]
+        n = shape.outward_normals(pos)
+        theta = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", n, d), -1.0, 1.0)))
+        axis = np.argmax(np.abs(n), axis=1)
+        face = 2 * axis + (n[np.arange(len(n)), axis] < 0)
+        for f in range(6):
+            counts[f] += np.histogram(theta[face == f], bins=edges)[0]
+    print("exit angle (deg)  " + " ".join(f"{lo:g}-{hi:g}".rjust(11) for lo, hi in zip(edges[:-1], edges[1:])))
+    print("diffuse(1.40)     " + " ".join(f"{m:11.4f}" for m in model))
+    for f, name in enumerate(("+x", "-x", "+y", "-y", "+z", "-z")):
+        N = counts[f].sum()
+        print(f"{name} {int(N):>10d} photons, over the model: " + " ".join(
+            f"{c / N / m:.3f}±{np.sqrt(c) / N / m:.3f}" for c, m in zip(counts[f], model)))
+
+
+def faces_table(rec_path: Path) -> None:
+    """Per pose and box face: elements, observed, poorly observed, the truth (all and observed)
+    and the estimate over observed elements, as shares of the whole truth; and the mean angle
+    from the normal at which the camera sees the observed ones (lens centre)."""
+    import h5py
+    with h5py.File(rec_path) as f:
+        truth = f["truth/power"][()]
+        pp, obs, cls = f["per_pose/power"][()], f["per_pose/observed"][()], f["per_pose/observation"][()]
+        rots, hts = f["per_pose/rotations_deg"][()], f["per_pose/heights_mm"][()]
+        fa, eof = f["surface/faces"][()], f["surface/element_of_face"][()]
+        verts = f["per_pose/vertices_mm"][()]
+        lens = np.asarray(__import__("json").loads(f.attrs["config_json"])["system"]["camera"]["pose"]["lens_center_mm"])
+    n, tot = len(truth), truth.sum()
+    for k in range(len(pp)):
+        v = verts[k]
+        cr = np.cross(v[fa[:, 1]] - v[fa[:, 0]], v[fa[:, 2]] - v[fa[:, 0]])
+        cen = np.stack([np.bincount(eof, weights=((v[fa[:, 0]] + v[fa[:, 1]] + v[fa[:, 2]]) / 3)[:, i], minlength=n)
+                        for i in range(3)], 1) / np.bincount(eof, minlength=n)[:, None]
+        nrm = np.stack([np.bincount(eof, weights=cr[:, i], minlength=n) for i in range(3)], 1)
+        nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+        to = lens - cen
+        ang = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", nrm, to / np.linalg.norm(to, axis=1)[:, None]), -1, 1)))
+        o = obs[k]
+        print(f"pose h {hts[k]:g} rot {rots[k]:g}: total over observed {np.nansum(pp[k][o]) / truth[o].sum():.3f}")
+        # own-frame face of each element: the unplaced normal's largest component
+        v0 = verts[k]  # faces keep their identity: group by the placed normal's direction
+        key = np.round(nrm, 1)
+        for u in np.unique(key, axis=0):
+            sel = np.all(key == u, axis=1)
+            so = sel & o
+            print(f"   normal {u}: {sel.sum():4d} el, obs {so.sum():4d}, poor {(cls[k][sel] == 1).sum():3d}, "
+                  f"truth {truth[sel].sum() / tot:.3f} (obs {truth[so].sum() / tot:.3f}), est(obs) "
+                  f"{np.nansum(pp[k][so]) / tot:.3f}, angle {np.mean(ang[so]) if so.any() else float('nan'):5.1f} deg")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--transport", type=float, default=0, help="photons to transport into the bank")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--import-sim", default=None, help="a keep_photons simulation.h5 of the same box and source")
+    ap.add_argument("--run", default="", help="comma-separated experiments: " + ", ".join(EXPERIMENTS)
+                    + " (NAME-control: the issue's control on the same exit points)")
+    ap.add_argument("--bands", action="store_true", help="the bank's exit angles per face against diffuse(1.40)")
+    ap.add_argument("--faces", default=None, help="a reconstruction.h5: the per-face table")
+    ap.add_argument("--max-photons", type=float, default=None, help="use at most this many launched photons of the bank")
+    a = ap.parse_args(argv)
+    if a.bands:
+        exit_bands()
+    if a.faces:
+        faces_table(Path(a.faces))
+    if a.import_sim:
+        bank_from_simulation(Path(a.import_sim), f"s{a.seed}-imported")
+    if a.transport:
+        transport(a.transport, a.seed)
+    ok = True
+    for name in filter(None, a.run.split(",")):
+        ok &= run_experiment(name, a.max_photons)
+    return 0 if ok else 1
+
+if __name__ == "__main__":
+    sys.exit(main())
