@@ -48,24 +48,28 @@ def make_config(tag, rotations, photons, element_mm, camera, reconstruct, seed=0
     return p
 
 
-def reimage(cfg_path, pos, dirn, batch=1_000_000):
-    """Images (P, ny, nx) of the given photons (own frame), as simulate makes them."""
-    from fluxcli.config import load_config
-    from fluxcli.montecarlo import camera as MC_cam
+def mc_scenes(cfg):
+    """What imaging photons needs of a loaded config: (model, body shape, placer, views, placed
+    scenes, their placements, an occlusion scene per pose)."""
     from fluxcli.optics.raycast import OcclusionScene
     from fluxcli.scene import poses_from_config, views_from_config
     from fluxcli.stages.plans import placer_of
     from fluxcli.surface.mesh import merge
     from fluxcli.truth import montecarlo_shape
 
-    cfg = load_config(cfg_path)
     m = cfg.model
-    shape = montecarlo_shape(m.subject.surface)
     placer = placer_of(cfg)
-    views = views_from_config(m.system)
     scenes = [placer.scene(p, m.system) for p in poses_from_config(m.subject)]
-    placements = [placer.placement(s.pose) for s in scenes]
-    occl = [OcclusionScene(*merge(s.surface, *s.occluders)) for s in scenes]
+    return (m, montecarlo_shape(m.subject.surface), placer, views_from_config(m.system), scenes,
+            [placer.placement(s.pose) for s in scenes], [OcclusionScene(*merge(s.surface, *s.occluders)) for s in scenes])
+
+
+def reimage(cfg_path, pos, dirn, batch=1_000_000):
+    """Images (P, ny, nx) of the given photons (own frame), as simulate makes them."""
+    from fluxcli.config import load_config
+    from fluxcli.montecarlo import camera as MC_cam
+
+    m, shape, placer, views, scenes, placements, occl = mc_scenes(load_config(cfg_path))
     cam = views[0].camera
     images = np.zeros((len(scenes), cam.nx * cam.ny), np.int64)
     for b in range(0, len(pos), batch):

@@ -155,18 +155,11 @@ def image_bank(cfg_path: Path, files: list, sim_path: Path, launched: int, redra
     from fluxcli.montecarlo import camera as MC_cam
     from fluxcli.montecarlo import photons as MC_ph
     from fluxcli.optics.raycast import OcclusionScene
-    from fluxcli.scene import SubjectPlacer, poses_from_config, views_from_config
-    from fluxcli.surface.mesh import merge
-    from fluxcli.truth import montecarlo_shape, truth_refinement
+    from fluxcli.truth import truth_refinement
 
-    cfg = load_config(cfg_path)
-    m = cfg.model
-    shape = montecarlo_shape(m.subject.surface)
-    placer = SubjectPlacer(cfg)
-    views = views_from_config(m.system)
-    scenes = [placer.scene(p, m.system) for p in poses_from_config(m.subject)]
-    placements = [placer.placement(s.pose) for s in scenes]
-    occl = [OcclusionScene(*merge(s.surface, *s.occluders)) for s in scenes]
+    from diag_mc import mc_scenes
+
+    m, shape, placer, views, scenes, placements, occl = mc_scenes(load_config(cfg_path))
     fine, parent = placer.own_surface.refined(truth_refinement(m.simulate))
     fine_scene = OcclusionScene(fine.vertices_mm, fine.faces)
     cam = views[0].camera
