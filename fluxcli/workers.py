@@ -51,6 +51,7 @@ def _init_worker(parent: int) -> None:
 def kill_pool(ex: ProcessPoolExecutor) -> None:
     """Cancel queued work and kill the running workers now."""
     procs = list(getattr(ex, "_processes", {}).values())
+    manager = getattr(ex, "_executor_manager_thread", None)  # shutdown() forgets it
     ex.shutdown(wait=False, cancel_futures=True)
     for p in procs:
         with contextlib.suppress(Exception):
@@ -58,6 +59,12 @@ def kill_pool(ex: ProcessPoolExecutor) -> None:
     for p in procs:
         with contextlib.suppress(Exception):
             p.join(timeout=2)
+    # Let the pool's manager thread see its dead workers and close its wake-up pipe now: left
+    # running, it can close the pipe while the interpreter's exit hook writes to it, which
+    # prints "OSError: Bad file descriptor" under the user's clean "terminated".
+    if manager is not None:
+        with contextlib.suppress(Exception):
+            manager.join(timeout=2)
 
 
 @contextlib.contextmanager
@@ -75,6 +82,7 @@ def worker_pool(jobs: int, temp_dirs: tuple = ()) -> Iterator[ProcessPoolExecuto
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
     try:
         yield ex
+        ex.shutdown(wait=True)  # inside the try: a signal that lands while the pool winds down is handled too
     except BaseException:
         kill_pool(ex)
         from .artefacts.atomic import clean_stale_temps
@@ -82,7 +90,6 @@ def worker_pool(jobs: int, temp_dirs: tuple = ()) -> Iterator[ProcessPoolExecuto
         for d in temp_dirs:
             clean_stale_temps(d)
         raise
-    ex.shutdown(wait=True)
 
 
 def pool_for(client=None, temp_dirs: tuple = ()):
