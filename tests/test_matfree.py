@@ -94,6 +94,28 @@ def test_hutchinson_degrees_of_freedom_match_the_eigenvalues():
         assert curve.at(lam, E)[0] == pytest.approx(rho[0], rel=1e-7)
 
 
+def test_matrix_free_covariance_of_totals_is_the_eigenvectors_one():
+    """wᵀCw of the k-step estimator by k adjoint solves per functional (what the stage's error
+    budget asks of every solve) against the dense engine's eigenvector form, on the same weights
+    and λ: equal to rounding, for Σ = W⁻¹ and for a separate Σ, with the level's square."""
+    from fluxcli.inverse.spectral import FilterCovariance
+
+    T, a, adj, areas, truth = grid_problem(nx=20, ny=15)
+    R, _ = MF.sparse_exitance_prior(adj, np.ones(T.shape[1], bool), areas)
+    w = 1.0 / _variance(T @ truth)
+    spec = Spectrum(T, a, w, R.toarray(), noise_weighted=True)
+    P = MF.Pencil(T, a, w, R)
+    W = np.zeros((3, T.shape[1]))
+    W[0], W[1, :50], W[2, 100:130] = 1.0, 1.0, np.linspace(0, 1, 30)
+    for lam in (1e-5, 1e-1):
+        for s2 in (None, 1.3 / w):
+            d = FilterCovariance(spec, lam * spec.scale, 7, s2, 2.0).variance_of(W)
+            m = MF.MatfreeCovariance(P, lam * P.scale, 7, s2, 2.0).variance_of(W)
+            assert np.allclose(m, d, rtol=1e-8, atol=0), (lam, m / d - 1)
+    one = MF.MatfreeCovariance(P, 1e-3 * P.scale, 7).variance_of(W[0])
+    assert np.ndim(one) == 0 and one == pytest.approx(MF.MatfreeCovariance(P, 1e-3 * P.scale, 7).variance_of(W)[0])
+
+
 def test_matrix_free_and_dense_agree_where_both_run():
     """Issue 22's overlap tolerances at 1000 unknowns: λ within ×1.5, totals within 0.3 %,
     per-element values within 1 % of the peak, σ within 15 % (median within 5 %, 90 % of the
@@ -115,6 +137,9 @@ def test_matrix_free_and_dense_agree_where_both_run():
     assert error_l1(m.power, truth) < 0.15
     assert error_l1(np.full(truth.size, truth.mean()), truth) > 0.5
     assert abs(m.chi2_per_pixel - d.chi2_per_pixel) < 0.01
+    # the total's σ (the error budget's photon noise), exact on each path at its own λ
+    tot_d, tot_m = (float(np.sqrt(x.covariance.variance_of(x.observed.astype(float)))) for x in (d, m))
+    assert abs(tot_m / tot_d - 1) < 0.15
 
 
 def test_matrix_free_converges_to_the_truth_on_noiseless_data():

@@ -142,6 +142,7 @@ class Pencil:
         self.scale = float(self.G.diagonal().max())
         self.check = check or (lambda: None)
         self._lu: dict = {}
+        self.pinned = None  # the chosen λ̃: its factorisation outlives the λ/2, 2λ solves (σ, covariance)
 
     def lu(self, lam_abs: float):
         """SuperLU of ``G + λ̃R`` (a few kept: the search revisits its bracket)."""
@@ -149,7 +150,7 @@ class Pencil:
         if key not in self._lu:
             self.check()
             if len(self._lu) >= LU_CACHE:
-                self._lu.pop(next(iter(self._lu)))
+                self._lu.pop(next((x for x in self._lu if x != self.pinned), next(iter(self._lu))))
                 _trim()
             self._lu[key] = _factor(sp.csc_array(self.G + key * self.R))
         return self._lu[key]
@@ -366,6 +367,36 @@ def _sigma(P: Pencil, lam_abs: float, k: int, sigma2, n_samples: int, rng, sums=
     return sig, (None if sums is None else np.sqrt(acc_s / n_samples))
 
 
+class MatfreeCovariance:
+    """``wᵀCw`` of the linear ``k``-step estimator (:func:`_sigma`'s covariance
+    ``M TᵀWΣWT Mᵀ``) for a few functionals ``w`` (a region's or the pose's total), *exactly*, by
+    the adjoint: ``Mᵀw = WT H⁻¹ Σ_{j<k} (λ̃RH⁻¹)^j w``, ``k`` solves per functional; nothing n × n.
+    The dense engine's :class:`~fluxcli.inverse.spectral.FilterCovariance` does the same from its
+    eigenvectors (the reconstruct stage's error budget asks every solve for its total's σ: the
+    generic dense covariance it fell back to needed 16 GB at 45 000 unknowns).  Keeps the pencil
+    (and its factorisation) alive while it is: the stage measures, then drops it."""
+
+    def __init__(self, P: Pencil, lam_abs: float, k: int, sigma2=None, level: float = 1.0):
+        self.P, self.lam_abs, self.k, self.sigma2, self.level = P, float(lam_abs), max(int(k), 1), sigma2, float(level)
+
+    def variance_of(self, weights) -> np.ndarray:
+        from fluxcli.inverse.covariance import _rows
+
+        W, one = _rows(weights)
+        P, lam = self.P, self.lam_abs
+        Y = np.asarray(W.T.toarray() if sp.issparse(W) else W.T, dtype=np.float64)  # (n_obs, g)
+        acc = Y.copy()
+        for _ in range(self.k - 1):
+            Y = lam * (P.R @ P.solve(lam, Y))
+            acc += Y
+        U = np.asarray(P.T @ P.solve(lam, acc))
+        if P.w is not None:
+            U = P.w[:, None] * U
+        s2 = (1.0 / P.w) if self.sigma2 is None else np.asarray(self.sigma2, dtype=np.float64)
+        var = (s2 @ (U * U)) * self.level**2
+        return var[0] if one else var
+
+
 # ------------------------------------------------------------------ the solve
 
 
@@ -452,13 +483,16 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
                                                       variance=variance, free_level=free_level, warnings=warn)
     sigma = np.full(len(b), np.nan)
     sigma_sums = None if sums is None else np.full(sums.shape[0], np.nan)
+    covariance = None
     if weights is not None or var_model is not None:
         s2 = None if weights is not None else var_model
+        covariance = MatfreeCovariance(P, lam_abs, it, s2, level)
         n_s = samples if samples is not None else (SIGMA_SAMPLES if len(b) <= DENSE_MAX_UNKNOWNS else SIGMA_SAMPLES // 2)
         sg, sgs = _sigma(P, lam_abs, it, s2, n_s, np.random.default_rng(SEED + 100), sums)
         sigma = sg * level
         if sums is not None:
             sigma_sums = sgs * level
+    P.pinned = float(lam_abs)
     totals = (np.nan, np.nan)
     if lam is None and b.sum() > 0:
         totals = halved_and_doubled(lambda lam_x: _clipped(P, lam_x, k)[0], P.T, a, b, lam_abs,
@@ -466,7 +500,7 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
     return Filtered(power=b, sigma=sigma, lam=float(lam_p), lam_absolute=float(lam_abs), iterations=int(it),
                     converged=bool(conv), choice=choice, chi2_per_pixel=chi2,
                     total_at_half_and_double_lambda=totals, weighted=weights is not None, warnings=warn,
-                    sigma_sums=sigma_sums)
+                    sigma_sums=sigma_sums, covariance=covariance)
 
 
 def memory_estimate_bytes(n_unknowns: int, n_poses: int = 1, n_pixels: int = 0) -> float:

@@ -758,7 +758,7 @@ def _run_smooth_matfree(P, lam, rule, opts):
                         variance=P.variance, sigma2=s2, weighted=True, free_level=True, sums=P.sums())
     return {"sigma_groups": out.sigma_sums, "power": out.power, "sigma": out.sigma, "lam": out.lam,
             "lam_absolute": out.lam_absolute, "iterations": out.iterations, "converged": out.converged,
-            "choice": out.choice, "chi2": out.chi2_per_pixel, "warnings": out.warnings}
+            "choice": out.choice, "chi2": out.chi2_per_pixel, "warnings": out.warnings, "covariance": out.covariance}
 
 
 def _lam_from_rule(P, lam, rule, opts, weighted):
