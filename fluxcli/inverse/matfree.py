@@ -38,11 +38,15 @@ totals within 0.3 %, per-element values within 1 % of the peak, σ within 15 %.
 from __future__ import annotations
 
 
+import threading
+from collections import OrderedDict
+
 import numpy as np
 import scipy.optimize as sopt
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from fluxcli.inverse import _threads as T_
 from fluxcli.inverse import spectral as S
 from fluxcli.inverse.filtered import Filtered, halved_and_doubled, level_and_fit
 from fluxcli.inverse.smooth import observed_adjacency
@@ -50,7 +54,8 @@ from fluxcli.inverse.smooth import observed_adjacency
 DENSE_MAX_UNKNOWNS = 6000  # auto: the dense engine up to here (exact, ~14 s at 5880), this path beyond
 TRACE_PROBES = 16
 SIGMA_SAMPLES = 128
-LU_CACHE = 2  # factorisations kept (the λ search revisits its bracket)
+LU_CACHE = 2  # factorisations kept (the chosen λ's is reused; two more may be in the making)
+LU_BUDGET_BYTES = 2.0e9  # factorisations alive at once: one at a time where two would need more (~150 000 unknowns)
 SEED = 22  # probes and samples are seeded: the same inputs give the same bytes
 GRID = (1e-9, 1e3)  # the dense engine's relative λ range ...
 WIDE = (1e-15, 1e9)  # ... and how far it widens it
@@ -99,12 +104,22 @@ def sparse_exitance_prior(adjacency, mask: np.ndarray, areas=None, ridge: float 
 def _factor(H):
     """SuperLU of the SPD ``H`` (fill-reducing symmetric ordering, no pivoting).
 
-    On the calling thread: Python runs signal handlers only between calls into C, so Ctrl-C and
-    SIGTERM wait for the factorisation in progress (0.3 s of CPU at 20 000 elements, ~3 s at
-    50 000). Running it on a helper thread (SuperLU releases the GIL) answered at once, but the
-    interpreter then finalised under a busy thread: exit status 120 or a segmentation fault
-    instead of 143, one run in three under load."""
+    Called on a worker thread (:mod:`fluxcli.inverse._threads`; SuperLU releases the GIL): the
+    main thread stays free to run the Ctrl-C / SIGTERM handlers (~3 s of CPU at 50 000
+    elements, more beyond), and two factorisations of the λ search run on the two cores."""
     return spla.splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+
+
+def lu_bytes(n_unknowns: int, n_poses: int = 1) -> float:
+    """Estimated bytes of one SuperLU factorisation of ``H`` (see :func:`memory_estimate_bytes`)."""
+    n = float(max(n_unknowns, 1))
+    return 12.0 * n * LU_PER_UNKNOWN * max(np.log(n) / np.log(45568.0), 0.5) * np.sqrt(n_poses)
+
+
+def lu_cache(n_unknowns: int, n_poses: int = 1) -> int:
+    """Factorisations kept: :data:`LU_CACHE`, or 1 where ``LU_CACHE + 2`` (two in the making
+    while the λ search evaluates two values at once) would pass :data:`LU_BUDGET_BYTES`."""
+    return LU_CACHE if (LU_CACHE + 2) * lu_bytes(n_unknowns, n_poses) <= LU_BUDGET_BYTES else 1
 
 
 def _trim() -> None:
@@ -141,38 +156,60 @@ class Pencil:
         self.R = sp.csc_array(R)
         self.scale = float(self.G.diagonal().max())
         self.check = check or (lambda: None)
-        self._lu: dict = {}
+        self._lu: OrderedDict = OrderedDict()  # λ̃ -> SuperLU, least recently used first
+        self._lock = threading.Lock()
         self.pinned = None  # the chosen λ̃: its factorisation outlives the λ/2, 2λ solves (σ, covariance)
+        self.keep = lu_cache(self.G.shape[0])
 
     def lu(self, lam_abs: float):
-        """SuperLU of ``G + λ̃R`` (a few kept: the search revisits its bracket)."""
+        """SuperLU of ``G + λ̃R``, on a worker thread; the ``keep`` most recently used are kept (two
+        λ of the search are factorised at once, and the chosen one is reused)."""
         key = float(lam_abs)
-        if key not in self._lu:
-            self.check()
-            if len(self._lu) >= LU_CACHE:
-                self._lu.pop(next((x for x in self._lu if x != self.pinned), next(iter(self._lu))))
-                _trim()
-            self._lu[key] = _factor(sp.csc_array(self.G + key * self.R))
-        return self._lu[key]
+        with self._lock:
+            if key in self._lu:
+                self._lu.move_to_end(key)
+                return self._lu[key]
+        self.check()
+        lu = T_.call(lambda: _factor(sp.csc_array(self.G + key * self.R)))
+        with self._lock:
+            self._lu[key] = lu
+            dropped = False
+            while len(self._lu) > self.keep:
+                old = next((x for x in self._lu if x != self.pinned and x != key), None)
+                if old is None:
+                    break
+                del self._lu[old]
+                dropped = True
+        if dropped:
+            _trim()
+        return lu
 
-    def solve(self, lam_abs: float, X):
-        """``H⁻¹X``, column by column: SuperLU's own multi-column solve is 2-3x slower than its
-        columns one at a time."""
-        lu = self.lu(lam_abs)
+    def solve(self, lam_abs: float, X, lu=None):
+        """``H⁻¹X``, column by column (SuperLU's own multi-column solve is 2-3x slower than its
+        columns one at a time), the columns shared out to the worker threads; ``lu``: the
+        factorisation at ``lam_abs`` if the caller holds it."""
+        lu = self.lu(lam_abs) if lu is None else lu
         X = np.asarray(X, dtype=np.float64)
         if X.ndim == 1:
             return lu.solve(X)
         out = np.empty_like(X)
-        for j in range(X.shape[1]):
-            out[:, j] = lu.solve(np.ascontiguousarray(X[:, j]))
+
+        def cols(js):
+            def run():
+                for j in js:
+                    out[:, j] = lu.solve(np.ascontiguousarray(X[:, j]))
+            return run
+
+        T_.run_all([cols(js) for js in np.array_split(np.arange(X.shape[1]), min(T_.WORKERS, X.shape[1]))])
         return out
 
-    def iterate(self, lam_abs: float, C, k: int, X0=None):
+    def iterate(self, lam_abs: float, C, k: int, X0=None, lu=None):
         """``X ← λ̃H⁻¹RX + C`` ``k`` times (from ``X0``, default 0): the ``k``-step filter."""
         X = np.zeros_like(C) if X0 is None else X0
+        lu = self.lu(lam_abs) if (lu is None and k > 0) else lu
         for _ in range(k):
             self.check()
-            X = lam_abs * self.solve(lam_abs, self.R @ X) + C
+            X = lam_abs * self.solve(lam_abs, self.R @ X, lu) + C
         return X
 
     def wnorm2(self, r) -> float:
@@ -199,9 +236,19 @@ class _Curve:
         if self._U is None:
             xi = self._rng.choice([-1.0, 1.0], size=(E.shape[0], self.probes))
             self._EtXi = np.asarray(E.T @ xi)
-            lu = _factor(sp.csc_array(self.P.R))
+            lu = T_.call(_factor, sp.csc_array(self.P.R))
             self._U = np.column_stack([lu.solve(np.ascontiguousarray(c)) for c in self._EtXi.T])
         return self._U, self._EtXi
+
+    def prefetch(self, lams, E) -> None:
+        """Evaluate the λ values not yet known two at a time, one per core (each value is the
+        same as evaluated alone: the search's decisions do not change). Only where two more
+        factorisations fit (:func:`lu_cache`); otherwise :meth:`at` evaluates them when asked."""
+        todo = [x for x in dict.fromkeys(float(v) for v in lams) if x not in self.cache]
+        if len(todo) < 2 or T_.WORKERS < 2 or self.P.keep < LU_CACHE or T_.in_worker():
+            return
+        self._probes(E)
+        T_.run_all([lambda x=x: self.at(x, E) for x in todo])
 
     def at(self, lam_rel: float, E):
         key = float(lam_rel)
@@ -209,13 +256,14 @@ class _Curve:
             P = self.P
             lam_abs = key * P.scale
             U, EtXi = self._probes(E)
+            lu = P.lu(lam_abs)  # held here: another evaluation running beside this one may drop it from the cache
             C = np.zeros((self.n, 1 + U.shape[1]))
-            C[:, 0] = P.solve(lam_abs, P.g)
+            C[:, 0] = P.solve(lam_abs, P.g, lu)
             X0 = np.zeros_like(C)
             X0[:, 1:] = U
             # b_{j+1} = S b_j + H⁻¹g (b_0 = 0) and y_{j+1} = S y_j (y_0 = u), S = λ̃H⁻¹R, in one block;
             # the first step of b is C itself, so k steps of the block give b_k and S^k u
-            X = P.iterate(lam_abs, C, self.k, X0)
+            X = P.iterate(lam_abs, C, self.k, X0, lu)
             b = X[:, 0]
             tr = float(np.mean(np.sum(EtXi * (U - X[:, 1:]), axis=0)))
             rho = P.wnorm2(P.a - P.T @ b)
@@ -247,6 +295,9 @@ def _choose(curve: _Curve, E, rule: str, *, m: int, gamma: float, mean_var=None,
     lo, hi = np.log10(wide[0]), np.log10(wide[1])
     x0 = float(np.clip(np.round(np.log10(start)), lo, hi))
     at_edge = False
+    def ahead(*ts):  # the values the next steps ask for, evaluated side by side
+        curve.prefetch([10**t for t in ts if lo <= t <= hi], E)
+
     if rule == "discrepancy":
         x = x0
         f = crit(10**x)
@@ -257,6 +308,7 @@ def _choose(curve: _Curve, E, rule: str, *, m: int, gamma: float, mean_var=None,
                 at_edge = True
                 lam = 10**x
                 break
+            ahead(xn, xn + step)
             fn = crit(10**xn)
             if (fn >= 0) != (f >= 0):
                 a_, b_ = sorted((x, xn))
@@ -264,6 +316,7 @@ def _choose(curve: _Curve, E, rule: str, *, m: int, gamma: float, mean_var=None,
                 break
             x, f = xn, fn
     else:
+        ahead(x0, min(x0 + 1, hi))
         x, f = x0, crit(10**x0)
         fu = crit(10 ** min(x + 1, hi))
         step = 1.0 if fu < f else -1.0
@@ -272,6 +325,7 @@ def _choose(curve: _Curve, E, rule: str, *, m: int, gamma: float, mean_var=None,
             if xn < lo or xn > hi:
                 at_edge = True
                 break
+            ahead(xn, xn + step)
             fn = crit(10**xn)
             if not fn < f:
                 break
@@ -283,6 +337,7 @@ def _choose(curve: _Curve, E, rule: str, *, m: int, gamma: float, mean_var=None,
             # through the best point and its neighbours
             best, fb, h = x, f, 0.5
             while h >= finest:
+                ahead(best - h, best + h)
                 for t in (best - h, best + h):
                     if lo <= t <= hi:
                         ft = crit(10**t)
@@ -293,6 +348,7 @@ def _choose(curve: _Curve, E, rule: str, *, m: int, gamma: float, mean_var=None,
             h *= 2
             t0, t2 = best - h, best + h
             if lo <= t0 and t2 <= hi:
+                ahead(t0, t2)
                 f0, f2 = crit(10**t0), crit(10**t2)
                 den = f0 - 2 * fb + f2
                 if den > 0 and np.isfinite(den):
@@ -327,12 +383,13 @@ def _clipped(P: Pencil, lam_abs: float, k: int):
         r = P.a - P.T @ b
         return r, float(np.sqrt(P.wnorm2(r)))
 
-    b = np.maximum(P.solve(lam_abs, P.g), 0.0)
+    lu = P.lu(lam_abs)  # held: a solve beside this one may drop it from the cache
+    b = np.maximum(P.solve(lam_abs, P.g, lu), 0.0)
     r, norm = fit(b)
     it, gain = 1, np.inf
     while it < k and norm > 0:
         P.check()
-        step = P.solve(lam_abs, P.T.T @ (r if P.w is None else P.w * r))
+        step = P.solve(lam_abs, P.T.T @ (r if P.w is None else P.w * r), lu)
         b = np.maximum(b + step, 0.0)
         r_new, norm_new = fit(b)
         it += 1
@@ -353,11 +410,12 @@ def _sigma(P: Pencil, lam_abs: float, k: int, sigma2, n_samples: int, rng, sums=
     acc = np.zeros(P.G.shape[0])
     acc_s = None if sums is None else np.zeros(sums.shape[0])
     done = 0
+    lu = P.lu(lam_abs)
     while done < n_samples:
         nb = min(32, n_samples - done)
         Z = np.asarray(P.T.T @ (amp[:, None] * rng.standard_normal((m, nb))))
-        C = P.solve(lam_abs, Z)
-        X = P.iterate(lam_abs, C, k - 1, C) if k > 1 else C
+        C = P.solve(lam_abs, Z, lu)
+        X = P.iterate(lam_abs, C, k - 1, C, lu) if k > 1 else C
         acc += np.sum(X * X, axis=1)
         if sums is not None:
             Y = np.asarray(sums @ X)
@@ -495,7 +553,11 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
     P.pinned = float(lam_abs)
     totals = (np.nan, np.nan)
     if lam is None and b.sum() > 0:
-        totals = halved_and_doubled(lambda lam_x: _clipped(P, lam_x, k)[0], P.T, a, b, lam_abs,
+        at = [0.5 * lam_abs, 2.0 * lam_abs]
+        side = dict(zip(at, T_.run_all([lambda x=x: _clipped(P, x, k)[0] for x in at],
+                                       workers=2 if P.keep >= LU_CACHE else 1)))  # one per core
+        totals = halved_and_doubled(lambda lam_x: side[lam_x] if lam_x in side else _clipped(P, lam_x, k)[0],
+                                    P.T, a, b, lam_abs,
                                     var_model=var_model, free_level=free_level, warnings=warn)
     return Filtered(power=b, sigma=sigma, lam=float(lam_p), lam_absolute=float(lam_abs), iterations=int(it),
                     converged=bool(conv), choice=choice, chi2_per_pixel=chi2,
