@@ -45,15 +45,20 @@ def _exit_now() -> None:
 atexit.register(_exit_now)
 
 
+_local = threading.local()
+
+
 def in_worker() -> bool:
-    """True on a worker thread (or any thread but the main one): run inline there, no nesting."""
-    return threading.current_thread() is not threading.main_thread()
+    """True inside a task that runs beside others (:func:`run_all`): it runs its own tasks
+    inline, one after another (no threads within threads: two cores)."""
+    return getattr(_local, "parallel", False)
 
 
-def run_all(tasks, workers: int | None = None) -> list:
+def run_all(tasks, workers: int | None = None, parallel: bool = True) -> list:
     """Call each of ``tasks`` (callables without arguments) on up to ``workers`` threads
     (default :data:`WORKERS`) and return their results in order; the first exception a task
-    raised is raised here.  Inline, one after another, when called off the main thread."""
+    raised is raised here.  Inline, one after another, inside a task that runs beside others;
+    ``parallel=False`` (one task, :func:`call`): the task may run its own tasks side by side."""
     tasks = list(tasks)
     if not tasks:
         return []
@@ -66,6 +71,7 @@ def run_all(tasks, workers: int | None = None) -> list:
     lock = threading.Lock()
 
     def work():
+        _local.parallel = parallel
         while True:
             with lock:
                 if errors:
@@ -103,4 +109,19 @@ def run_all(tasks, workers: int | None = None) -> list:
 
 def call(fn, *args, **kwargs):
     """``fn(*args, **kwargs)`` on a worker thread, the main thread free for signals."""
-    return run_all([lambda: fn(*args, **kwargs)], workers=1)[0]
+    return run_all([lambda: fn(*args, **kwargs)], workers=1, parallel=False)[0]
+
+
+def off_main_thread(fn):
+    """Decorate: ``fn`` runs on a worker thread when called from the main thread (every long
+    call into C inside it, the dense engine's ``eigh`` and Cholesky included, then leaves the
+    main thread free to stop the run at once); called from any other thread it runs there."""
+    import functools
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        if threading.current_thread() is threading.main_thread():
+            return call(fn, *args, **kwargs)
+        return fn(*args, **kwargs)
+
+    return wrapper

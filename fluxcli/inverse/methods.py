@@ -34,6 +34,7 @@ import scipy.optimize as sopt
 import scipy.sparse as sp
 
 from fluxcli.inverse import _common as c
+from fluxcli.inverse._threads import off_main_thread as _off_main_thread
 
 __all__ = [
     "METHODS",
@@ -842,6 +843,7 @@ def _exitance_laplacian(adjacency, mask, areas):
 METHODS = tuple(REGISTRY)
 
 
+@_off_main_thread  # Ctrl-C / SIGTERM stop it at once, even inside a long LAPACK call (issue 22)
 def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | None = None,
                 sigma2=None, variance=None, adjacency=None, areas=None, groups=None,
                 rel_threshold: float = c.DEFAULT_REL_THRESHOLD, **opts) -> Result:
