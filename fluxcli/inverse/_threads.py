@@ -21,19 +21,23 @@ from __future__ import annotations
 
 import atexit
 import os
+import pickle
+import signal
 import sys
 import threading
+import traceback
 
 WAIT_S = 0.05  # the main thread's longest wait between two chances to run a signal handler
 WORKERS = max(1, min(2, os.cpu_count() or 1))  # the solves' threads (the issue's bar: 2 cores)
 
 _busy: list[threading.Thread] = []  # workers left running by an interrupted wait
+_children: set[int] = set()  # child processes solving (in_child)
 _exit_status = [None]
 
 
 def _exit_now() -> None:
-    """atexit: if an interrupted wait left a worker inside C, end here (no finalisation under it)."""
-    if _exit_status[0] is not None and any(t.is_alive() for t in _busy):
+    """atexit: after an interrupted wait, end here (no finalisation under a worker inside C)."""
+    if _exit_status[0] is not None:  # set only where a worker was still busy
         for stream in (sys.stdout, sys.stderr):
             try:
                 stream.flush()
@@ -70,34 +74,46 @@ def run_all(tasks, workers: int | None = None, parallel: bool = True) -> list:
     nxt = iter(range(len(tasks)))
     lock = threading.Lock()
 
-    def work():
-        _local.parallel = parallel
-        while True:
-            with lock:
-                if errors:
-                    return
-                i = next(nxt, None)
-            if i is None:
-                return
-            try:
-                results[i] = tasks[i]()
-            except BaseException as e:  # noqa: BLE001 - handed to the main thread
-                with lock:
-                    errors.append(e)
-                return
+    done = [threading.Event() for _ in range(n)]
 
-    threads = [threading.Thread(target=work, daemon=True, name=f"fluxmap-solve-{k}") for k in range(n)]
+    def work(k):
+        _local.parallel = parallel
+        try:
+            while True:
+                with lock:
+                    if errors:
+                        return
+                    i = next(nxt, None)
+                if i is None:
+                    return
+                try:
+                    results[i] = tasks[i]()
+                except BaseException as e:  # noqa: BLE001 - handed to the main thread
+                    with lock:
+                        errors.append(e)
+                    return
+        finally:
+            done[k].set()
+
+    threads = [threading.Thread(target=work, args=(k,), daemon=True, name=f"fluxmap-solve-{k}") for k in range(n)]
     for t in threads:
         t.start()
     try:
-        for t in threads:
-            while t.is_alive():
-                t.join(WAIT_S)
+        # an Event, not Thread.join: a join interrupted by a signal handler's exception marks a
+        # thread that is still running as stopped (Python 3.11, bpo-45274's fix)
+        for ev in done:
+            while not ev.wait(WAIT_S):
+                pass
     except BaseException as e:
         # Ctrl-C / SIGTERM (or anything else) while the workers are busy: let it unwind now
         with lock:
             errors.append(e)  # the workers take no further task
-        _busy.extend(t for t in threads if t.is_alive())
+        for pid in list(_children):  # a dense solve in a child process: it has nothing to leave behind
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except OSError:
+                pass
+        _busy.extend(t for t, ev in zip(threads, done) if not ev.is_set())
         if _busy:
             _exit_status[0] = (130 if isinstance(e, KeyboardInterrupt) else
                                143 if type(e).__name__ == "Terminated" else 1)
@@ -125,3 +141,65 @@ def off_main_thread(fn):
         return fn(*args, **kwargs)
 
     return wrapper
+
+
+def in_child(fn, *args, **kwargs):
+    """``fn(*args, **kwargs)`` in a forked child process, its result (pickled) sent back.
+
+    For calls into C that keep the GIL: scipy's LAPACK wrappers (``eigh``, ``cholesky``,
+    ``solve_triangular``, ``cho_solve``) hold it for their whole run (measured: 1.3 s of a
+    generalised ``eigh`` at 1 500 unknowns under load, the main thread frozen throughout), so a
+    worker thread cannot leave the main thread free; a child process can.  An interrupted wait
+    kills the child (SIGKILL: it writes no file); the child dies with its parent (Linux).
+    The child computes exactly what the call would have here (same code, a copy of the same
+    memory), so results are unchanged.  Where there is no ``fork``, the call runs here."""
+    if not hasattr(os, "fork"):
+        return fn(*args, **kwargs)
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: compute, send, leave without running the parent's exit handlers
+        status = 0
+        try:
+            os.close(r)
+            signal.signal(signal.SIGINT, signal.SIG_DFL)
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+            try:
+                import ctypes
+
+                ctypes.CDLL("libc.so.6").prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+            except (OSError, AttributeError):
+                pass
+            try:
+                out = (True, fn(*args, **kwargs))
+            except BaseException as e:  # noqa: BLE001 - re-raised in the parent
+                out = (False, e, traceback.format_exc())
+            try:
+                data = pickle.dumps(out, protocol=pickle.HIGHEST_PROTOCOL)
+            except Exception as e:  # noqa: BLE001
+                data = pickle.dumps((False, RuntimeError(f"the solve's result could not be sent back: {e}"), ""))
+            with os.fdopen(w, "wb") as f:
+                f.write(data)
+        except BaseException:  # noqa: BLE001
+            status = 1
+        finally:
+            os._exit(status)
+    os.close(w)
+    _children.add(pid)
+    try:
+        with os.fdopen(r, "rb") as f:
+            data = f.read()
+    finally:
+        try:
+            os.waitpid(pid, 0)
+        except ChildProcessError:
+            pass
+        _children.discard(pid)
+    if not data:
+        raise RuntimeError("the solve's child process ended without a result (killed: out of memory?)")
+    out = pickle.loads(data)
+    if out[0]:
+        return out[1]
+    err = out[1]
+    if out[2] and hasattr(err, "add_note") and not isinstance(err, ValueError):
+        err.add_note("in the solve's child process:\n" + out[2])
+    raise err
