@@ -122,6 +122,28 @@ def lu_cache(n_unknowns: int, n_poses: int = 1) -> int:
     return LU_CACHE if (LU_CACHE + 2) * lu_bytes(n_unknowns, n_poses) <= LU_BUDGET_BYTES else 1
 
 
+_MALLOC_SET = []
+
+
+def _malloc_for_threads() -> None:
+    """glibc: allocations of 8 MB and more straight from the system and back to it when freed,
+    and at most two heaps.  With the factorisations on worker threads, glibc's sliding mmap
+    threshold (raised to 32 MB by the first freed factor) left every block below it in per-thread
+    heaps that were never handed back: 8.2 GB peak at 45 568 unknowns, 1.3 GB on one thread.
+    Once per process, on the first large matrix-free solve; nothing elsewhere."""
+    if _MALLOC_SET:
+        return
+    _MALLOC_SET.append(True)
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(-8, 2)  # M_ARENA_MAX
+        libc.mallopt(-3, 8 << 20)  # M_MMAP_THRESHOLD (fixed: no sliding)
+    except (OSError, AttributeError):
+        pass
+
+
 def _trim() -> None:
     """Hand freed factor memory back to the system (glibc); nothing elsewhere."""
     try:
@@ -170,6 +192,11 @@ class Pencil:
                 self._lu.move_to_end(key)
                 return self._lu[key]
         self.check()
+        if self.keep < LU_CACHE:  # memory-bound: the old factorisation goes before the new one is built
+            with self._lock:
+                for x in [x for x in self._lu if x != self.pinned]:
+                    del self._lu[x]
+            _trim()
         lu = T_.call(lambda: _factor(sp.csc_array(self.G + key * self.R)))
         with self._lock:
             self._lu[key] = lu
@@ -367,8 +394,15 @@ def _choose(curve: _Curve, E, rule: str, *, m: int, gamma: float, mean_var=None,
                 break
             x, f = xn, fn
         lam = 10**x
-        if not at_edge:
-            lam = float(10 ** _refine(lambda t: crit(10**t), ahead, x, f, step, finest, lo, hi))
+        if not at_edge and finest >= abs(step):
+            # a coarse λ (a first pass, which only sets the weights): the vertex of the parabola
+            # through the bracket, within half a step of its best point, not evaluated
+            fa, fc = crit(10 ** (x - step)), crit(10 ** (x + step))
+            den = fa - 2 * f + fc
+            off = 0.5 * step * (fa - fc) / den if (den > 0 and np.isfinite(den)) else 0.0
+            lam = float(10 ** (x + float(np.clip(off, -abs(step) / 2, abs(step) / 2))))
+        elif not at_edge:
+            lam = float(10 ** _refine(lambda t: crit(10**t), ahead, x, f, abs(step), finest, lo, hi))
     lams = np.array(sorted(curve.cache))
     vals = np.array([curve.cache[v] for v in lams])
     critv = np.array([_criterion(rule, r, t, m, gamma, mean_var, target) for r, _, t in vals])
@@ -501,6 +535,8 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
                          f"{DENSE_MAX_UNKNOWNS} unknowns); use gcv or discrepancy, or give lam.")
     R, E = prior
     m = T_obs.shape[0]
+    if T_obs.shape[1] > DENSE_MAX_UNKNOWNS:
+        _malloc_for_threads()
     bounds = None
     if lambdas is not None:
         grid = np.asarray(lambdas, dtype=np.float64).ravel()
@@ -524,7 +560,7 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
             last = p == n_pass - 1
             # a first pass only sets the weights: fewer probes, a coarser λ
             curve = _Curve(P, k, probes if last else max(probes // 4, 2), np.random.default_rng(SEED + p))
-            fine = 0.05 if last else 0.25
+            fine = 0.05 if last else 1.0  # a first pass: the bracket's parabola, to about a third of a decade
             step0 = 1.0 if p == 0 else 0.5  # a later pass starts at the previous pass's λ
             noise_weighted = weights is not None
             if rule == "discrepancy":
@@ -585,12 +621,13 @@ def memory_estimate_bytes(n_unknowns: int, n_poses: int = 1, n_pixels: int = 0) 
     Calibrated on issue 22's scene (1024², three views, one pose): per unknown and pose ~40
     nonzeros of T (three copies: T, its observed part, the weighted copy) and ~85 of ``G``
     (``G`` and ``H``), ~650 of the LU factors of ``H`` at 45 568 unknowns, growing like ``log n``
-    (fill of a nested-dissection-like ordering of a surface mesh; two factors cached and one
-    being built), the probe and sample blocks, and ~12 copies of the pixel vectors. At 50 018
-    elements it says 1.5 GB; the solve's peak resident memory was 1.6 GB (with T and images)."""
+    (fill of a nested-dissection-like ordering of a surface mesh; :data:`LU_CACHE` factors kept
+    and two being built where they fit in :data:`LU_BUDGET_BYTES`, else one kept and one being
+    built: :func:`lu_cache`), the probe and sample blocks, and ~12 copies of the pixel vectors."""
     n = float(max(n_unknowns, 1))
-    fill = LU_PER_UNKNOWN * max(np.log(n) / np.log(45568.0), 0.5) * np.sqrt(n_poses)
-    return (12.0 * n * n_poses * (3 * T_PER_UNKNOWN + 2 * G_PER_UNKNOWN) + 12.0 * n * fill * (LU_CACHE + 1)
+    keep = lu_cache(int(n), n_poses)
+    alive = keep + 2 if keep >= LU_CACHE else 2
+    return (12.0 * n * n_poses * (3 * T_PER_UNKNOWN + 2 * G_PER_UNKNOWN) + lu_bytes(int(n), n_poses) * alive
             + 8.0 * n * (1 + TRACE_PROBES + 32) * 3 + 12 * 8.0 * n_pixels)
 
 
