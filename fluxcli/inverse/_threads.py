@@ -203,3 +203,129 @@ def in_child(fn, *args, **kwargs):
     if out[2] and hasattr(err, "add_note") and not isinstance(err, ValueError):
         err.add_note("in the solve's child process:\n" + out[2])
     raise err
+
+
+# ------------------------------------------------------------------ objects made and freed on one thread
+
+
+class _Owner:
+    """A thread that makes objects, keeps them, and frees them when their handle goes."""
+
+    def __init__(self, k: int):
+        import itertools
+        import queue
+
+        self.jobs: queue.SimpleQueue = queue.SimpleQueue()
+        self.objs: dict = {}
+        self.ids = itertools.count()
+        threading.Thread(target=self._run, daemon=True, name=f"fluxmap-factor-{k}").start()
+
+    def _run(self):
+        while True:
+            job = self.jobs.get()
+            if job is None:
+                return
+            job()
+
+    def close(self, timeout: float) -> None:
+        """Free what it holds, on its thread, and end it (before the interpreter finalises)."""
+        done = threading.Event()
+        self.jobs.put(lambda: (self.objs.clear(), done.set()))
+        self.jobs.put(None)
+        done.wait(timeout)
+
+
+class Owned:
+    """A handle on an object that lives on its owner's thread: attributes (``.solve``) are the
+    object's; when the handle goes, the owner drops the object, on its own thread."""
+
+    __slots__ = ("_owner", "_id")
+
+    def __init__(self, owner: _Owner, i: int):
+        self._owner, self._id = owner, i
+
+    def __getattr__(self, name):
+        return getattr(self._owner.objs[self._id], name)
+
+    def __del__(self):
+        if _closed:
+            return
+        try:
+            self._owner.jobs.put(lambda o=self._owner, i=self._id: o.objs.pop(i, None))
+        except Exception:  # noqa: BLE001 - interpreter shutting down
+            pass
+
+
+_owners_lock = threading.Lock()
+_idle = None  # queue of owners free to make the next object
+_all_owners: list = []
+_closed: list = []
+
+
+def _close_owners() -> None:
+    """atexit: the owners free their objects on their own threads while the interpreter is
+    whole (a SuperLU object freed during finalisation left exit status 120).  Not after an
+    interrupted wait: an owner may be inside C; :func:`_exit_now` ends the process then."""
+    if _exit_status[0] is not None:
+        return
+    _closed.append(True)
+    for o in _all_owners:
+        o.close(timeout=5.0)
+
+
+def _wait(ev: threading.Event) -> None:
+    """Wait for ``ev``; in slices on the main thread (signals), marking the exit if interrupted."""
+    if threading.current_thread() is not threading.main_thread():
+        ev.wait()
+        return
+    try:
+        while not ev.wait(WAIT_S):
+            pass
+    except BaseException as e:
+        _exit_status[0] = (130 if isinstance(e, KeyboardInterrupt) else 143 if type(e).__name__ == "Terminated" else 1)
+        raise
+
+
+def owned(fn, *args, **kwargs) -> Owned:
+    """``fn(*args, **kwargs)`` made on an owner thread (one of :data:`WORKERS`, so two can be
+    made at once), a handle on it returned.  For scipy's SuperLU: it frees a factorisation's
+    memory only on the thread that made it (its allocations are tracked per thread), so a
+    factorisation made on a passing worker thread and dropped elsewhere was never freed
+    (0.7 GB per factorisation at 45 568 unknowns: 7-8 GB after a λ search)."""
+    global _idle
+    import queue
+
+    with _owners_lock:
+        if _idle is None:
+            _idle = queue.Queue()
+            for k in range(WORKERS):
+                _all_owners.append(_Owner(k))
+                _idle.put(_all_owners[-1])
+            atexit.register(_close_owners)  # runs before _exit_now (registered first)
+    main = threading.current_thread() is threading.main_thread()
+    while True:
+        try:
+            owner = _idle.get(timeout=WAIT_S if main else None)
+            break
+        except queue.Empty:
+            continue
+    done, box = threading.Event(), {}
+
+    def job():
+        try:
+            i = next(owner.ids)
+            owner.objs[i] = fn(*args, **kwargs)
+            box["id"] = i
+        except BaseException as e:  # noqa: BLE001 - raised where it was asked for
+            box["err"] = e
+        finally:
+            done.set()
+
+    owner.jobs.put(job)
+    try:
+        _wait(done)
+    finally:
+        _idle.put(owner)  # an interrupted job still runs: later jobs queue behind it
+    if "err" in box:
+        raise box["err"]
+    return Owned(owner, box["id"])

@@ -25,11 +25,21 @@ engine reads off the eigenvalues is estimated instead:
   ``u = R⁻¹Eᵀξ`` (``Cov u = R⁻¹``; Rademacher ξ): its eigenvalues are the filter factors
   ``f ∈ [0, 1]``, so with ``p`` probes the relative standard error is at most
   ``√(2/(p·tr F))`` (2.5 % at tr F = 200, p = 16).  The same probes are used at every λ, so the
-  criterion is a smooth curve and its minimum is found by a walk over decades and Brent's method;
+  criterion is a smooth curve: a walk over decades (half decades from the previous pass's λ)
+  brackets its minimum, successive parabolas refine it to 0.05 decades (a first pass, which only
+  sets the weights: the bracket's parabola);
 - **σ** per unknown (and per group): the covariance of the linear estimator under the noise is
   ``M TᵀWΣWT Mᵀ``; its diagonal is estimated from ``N`` exact samples ``M TᵀWΣ^½ξ`` (the same
   ``k``-step recursion), relative standard error of σ ``1/√(2N)`` (6 % at N = 128, the default up
   to the dense limit; 9 % at N = 64 beyond it, where each sample costs ``k`` large solves).
+
+- **the totals' σ** (the stage's error budget, regions of interest): ``wᵀCw`` exactly, by ``k``
+  adjoint solves per functional (:class:`MatfreeCovariance`).
+
+Two cores: factorisations and solves run on worker threads (:mod:`fluxcli.inverse._threads`):
+two λ of the search side by side, the columns of a block split; the main thread only waits,
+so Ctrl-C and SIGTERM are answered at once. The search makes the same decisions as one
+evaluation at a time (each value is computed alone), so the numbers do not depend on it.
 
 Where both run (tests/test_matfree.py, ~1000 unknowns) the two paths agree: λ within ×1.5,
 totals within 0.3 %, per-element values within 1 % of the peak, σ within 15 %.
@@ -197,7 +207,7 @@ class Pencil:
                 for x in [x for x in self._lu if x != self.pinned]:
                     del self._lu[x]
             _trim()
-        lu = T_.call(lambda: _factor(sp.csc_array(self.G + key * self.R)))
+        lu = T_.owned(lambda: _factor(sp.csc_array(self.G + key * self.R)))
         with self._lock:
             self._lu[key] = lu
             dropped = False
@@ -263,7 +273,7 @@ class _Curve:
         if self._U is None:
             xi = self._rng.choice([-1.0, 1.0], size=(E.shape[0], self.probes))
             self._EtXi = np.asarray(E.T @ xi)
-            lu = T_.call(_factor, sp.csc_array(self.P.R))
+            lu = T_.owned(_factor, sp.csc_array(self.P.R))
             self._U = np.column_stack([lu.solve(np.ascontiguousarray(c)) for c in self._EtXi.T])
         return self._U, self._EtXi
 
