@@ -342,6 +342,8 @@ def _refine(crit, ahead, x: float, f: float, h: float, tol: float, lo: float, hi
             v = b + (tol if v >= b else -tol)
             if not left < v < right:
                 break
+        if min(abs(v - t) for t in pts) < tol / 2:  # nothing new to learn there
+            break
         d = np.sign(v - b)
         w = v + d * tol  # beside the vertex, away from b: with v, brackets a minimum that sits at v
         w = w if (left < w < right and abs(w - v) > 1e-9) else None
