@@ -34,7 +34,6 @@ import scipy.optimize as sopt
 import scipy.sparse as sp
 
 from fluxcli.inverse import _common as c
-from fluxcli.inverse._threads import off_main_thread as _off_main_thread
 
 __all__ = [
     "METHODS",
@@ -842,6 +841,8 @@ def _exitance_laplacian(adjacency, mask, areas):
 
 METHODS = tuple(REGISTRY)
 
+
+from fluxcli.inverse._threads import off_main_thread as _off_main_thread  # noqa: E402 (issue 22)
 
 ISOLATE_MIN_UNKNOWNS = 800  # dense solves above this run in a child process (fluxcli.inverse._threads.in_child)
 _DENSE_METHODS = ("paper", "tikhonov", "nnls", "weighted_lsq", "smooth")
