@@ -132,28 +132,6 @@ def lu_cache(n_unknowns: int, n_poses: int = 1) -> int:
     return LU_CACHE if (LU_CACHE + 2) * lu_bytes(n_unknowns, n_poses) <= LU_BUDGET_BYTES else 1
 
 
-_MALLOC_SET = []
-
-
-def _malloc_for_threads() -> None:
-    """glibc: allocations of 8 MB and more straight from the system and back to it when freed,
-    and at most two heaps.  With the factorisations on worker threads, glibc's sliding mmap
-    threshold (raised to 32 MB by the first freed factor) left every block below it in per-thread
-    heaps that were never handed back: 8.2 GB peak at 45 568 unknowns, 1.3 GB on one thread.
-    Once per process, on the first large matrix-free solve; nothing elsewhere."""
-    if _MALLOC_SET:
-        return
-    _MALLOC_SET.append(True)
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(-8, 2)  # M_ARENA_MAX
-        libc.mallopt(-3, 8 << 20)  # M_MMAP_THRESHOLD (fixed: no sliding)
-    except (OSError, AttributeError):
-        pass
-
-
 def _trim() -> None:
     """Hand freed factor memory back to the system (glibc); nothing elsewhere."""
     try:
@@ -547,8 +525,6 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
                          f"{DENSE_MAX_UNKNOWNS} unknowns); use gcv or discrepancy, or give lam.")
     R, E = prior
     m = T_obs.shape[0]
-    if T_obs.shape[1] > DENSE_MAX_UNKNOWNS:
-        _malloc_for_threads()
     bounds = None
     if lambdas is not None:
         grid = np.asarray(lambdas, dtype=np.float64).ravel()
