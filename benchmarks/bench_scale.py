@@ -89,6 +89,7 @@ def run(repeats: int = 1) -> list[dict]:
         for s in solvers:
             wall, cpu, gb, out = timed([py, str(HERE / "scale_solve.py"), str(cfg), s] + (["--crime"] if crime else []))
             r = json.loads(out.strip().splitlines()[-1])
+            gb = max(gb, r.get("peak_children_gb", 0.0))  # the dense solve's child process
             acc[(n, s)] = r
             note = f"CPU {cpu:.1f} s, peak {gb:.2f} GB, {r['n_unknowns']} unknowns, lambda {r['lam']:.3g}"
             if not crime:

@@ -64,6 +64,10 @@ def main(argv=None) -> int:
         out |= {"error": error_l1(r.power, truth), "total_ratio": total_ratio(r.power, truth),
                 "error_observed": error_l1(np.where(r.observed, r.power, np.nan), truth, observed_only=True),
                 "total_ratio_observed": total_ratio(np.where(r.observed, r.power, np.nan), truth, observed_only=True)}
+    import resource
+
+    # a dense solve runs in a child process (fluxcli.inverse._threads.in_child): its peak too
+    out["peak_children_gb"] = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1e6
     print(json.dumps(out))
     return 0
 

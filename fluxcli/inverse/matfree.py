@@ -25,11 +25,21 @@ engine reads off the eigenvalues is estimated instead:
   ``u = R⁻¹Eᵀξ`` (``Cov u = R⁻¹``; Rademacher ξ): its eigenvalues are the filter factors
   ``f ∈ [0, 1]``, so with ``p`` probes the relative standard error is at most
   ``√(2/(p·tr F))`` (2.5 % at tr F = 200, p = 16).  The same probes are used at every λ, so the
-  criterion is a smooth curve and its minimum is found by a walk over decades and Brent's method;
+  criterion is a smooth curve: a walk over decades (half decades from the previous pass's λ)
+  brackets its minimum, successive parabolas refine it to 0.05 decades (a first pass, which only
+  sets the weights: the bracket's parabola);
 - **σ** per unknown (and per group): the covariance of the linear estimator under the noise is
   ``M TᵀWΣWT Mᵀ``; its diagonal is estimated from ``N`` exact samples ``M TᵀWΣ^½ξ`` (the same
   ``k``-step recursion), relative standard error of σ ``1/√(2N)`` (6 % at N = 128, the default up
   to the dense limit; 9 % at N = 64 beyond it, where each sample costs ``k`` large solves).
+
+- **the totals' σ** (the stage's error budget, regions of interest): ``wᵀCw`` exactly, by ``k``
+  adjoint solves per functional (:class:`MatfreeCovariance`).
+
+Two cores: factorisations and solves run on worker threads (:mod:`fluxcli.inverse._threads`):
+two λ of the search side by side, the columns of a block split; the main thread only waits,
+so Ctrl-C and SIGTERM are answered at once. The search makes the same decisions as one
+evaluation at a time (each value is computed alone), so the numbers do not depend on it.
 
 Where both run (tests/test_matfree.py, ~1000 unknowns) the two paths agree: λ within ×1.5,
 totals within 0.3 %, per-element values within 1 % of the peak, σ within 15 %.
@@ -38,11 +48,15 @@ totals within 0.3 %, per-element values within 1 % of the peak, σ within 15 %.
 from __future__ import annotations
 
 
+import threading
+from collections import OrderedDict
+
 import numpy as np
 import scipy.optimize as sopt
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from fluxcli.inverse import _threads as T_
 from fluxcli.inverse import spectral as S
 from fluxcli.inverse.filtered import Filtered, halved_and_doubled, level_and_fit
 from fluxcli.inverse.smooth import graph_laplacian, observed_adjacency
@@ -51,7 +65,8 @@ from fluxcli.errors import InputError
 DENSE_MAX_UNKNOWNS = 6000  # auto: the dense engine up to here (exact, ~14 s at 5880), this path beyond
 TRACE_PROBES = 16
 SIGMA_SAMPLES = 128
-LU_CACHE = 2  # factorisations kept (the λ search revisits its bracket)
+LU_CACHE = 2  # factorisations kept (the chosen λ's is reused; two more may be in the making)
+LU_BUDGET_BYTES = 2.0e9  # factorisations alive at once: one at a time where two would need more (~150 000 unknowns)
 SEED = 22  # probes and samples are seeded: the same inputs give the same bytes
 GRID = (1e-9, 1e3)  # the dense engine's relative λ range ...
 WIDE = (1e-15, 1e9)  # ... and how far it widens it
@@ -100,12 +115,22 @@ def sparse_exitance_prior(adjacency, mask: np.ndarray, areas=None, ridge: float 
 def _factor(H):
     """SuperLU of the SPD ``H`` (fill-reducing symmetric ordering, no pivoting).
 
-    On the calling thread: Python runs signal handlers only between calls into C, so Ctrl-C and
-    SIGTERM wait for the factorisation in progress (0.3 s of CPU at 20 000 elements, ~3 s at
-    50 000). Running it on a helper thread (SuperLU releases the GIL) answered at once, but the
-    interpreter then finalised under a busy thread: exit status 120 or a segmentation fault
-    instead of 143, one run in three under load."""
+    Called on a worker thread (:mod:`fluxcli.inverse._threads`; SuperLU releases the GIL): the
+    main thread stays free to run the Ctrl-C / SIGTERM handlers (~3 s of CPU at 50 000
+    elements, more beyond), and two factorisations of the λ search run on the two cores."""
     return spla.splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+
+
+def lu_bytes(n_unknowns: int, n_poses: int = 1) -> float:
+    """Estimated bytes of one SuperLU factorisation of ``H`` (see :func:`memory_estimate_bytes`)."""
+    n = float(max(n_unknowns, 1))
+    return 12.0 * n * LU_PER_UNKNOWN * max(np.log(n) / np.log(45568.0), 0.5) * np.sqrt(n_poses)
+
+
+def lu_cache(n_unknowns: int, n_poses: int = 1) -> int:
+    """Factorisations kept: :data:`LU_CACHE`, or 1 where ``LU_CACHE + 2`` (two in the making
+    while the λ search evaluates two values at once) would pass :data:`LU_BUDGET_BYTES`."""
+    return LU_CACHE if (LU_CACHE + 2) * lu_bytes(n_unknowns, n_poses) <= LU_BUDGET_BYTES else 1
 
 
 def _trim() -> None:
@@ -142,37 +167,65 @@ class Pencil:
         self.R = sp.csc_array(R)
         self.scale = float(self.G.diagonal().max())
         self.check = check or (lambda: None)
-        self._lu: dict = {}
+        self._lu: OrderedDict = OrderedDict()  # λ̃ -> SuperLU, least recently used first
+        self._lock = threading.Lock()
+        self.pinned = None  # the chosen λ̃: its factorisation outlives the λ/2, 2λ solves (σ, covariance)
+        self.keep = lu_cache(self.G.shape[0])
 
     def lu(self, lam_abs: float):
-        """SuperLU of ``G + λ̃R`` (a few kept: the search revisits its bracket)."""
+        """SuperLU of ``G + λ̃R``, on a worker thread; the ``keep`` most recently used are kept (two
+        λ of the search are factorised at once, and the chosen one is reused)."""
         key = float(lam_abs)
-        if key not in self._lu:
-            self.check()
-            if len(self._lu) >= LU_CACHE:
-                self._lu.pop(next(iter(self._lu)))
-                _trim()
-            self._lu[key] = _factor(sp.csc_array(self.G + key * self.R))
-        return self._lu[key]
+        with self._lock:
+            if key in self._lu:
+                self._lu.move_to_end(key)
+                return self._lu[key]
+        self.check()
+        if self.keep < LU_CACHE:  # memory-bound: the old factorisation goes before the new one is built
+            with self._lock:
+                for x in [x for x in self._lu if x != self.pinned]:
+                    del self._lu[x]
+            _trim()
+        lu = T_.owned(lambda: _factor(sp.csc_array(self.G + key * self.R)))
+        with self._lock:
+            self._lu[key] = lu
+            dropped = False
+            while len(self._lu) > self.keep:
+                old = next((x for x in self._lu if x != self.pinned and x != key), None)
+                if old is None:
+                    break
+                del self._lu[old]
+                dropped = True
+        if dropped:
+            _trim()
+        return lu
 
-    def solve(self, lam_abs: float, X):
-        """``H⁻¹X``, column by column: SuperLU's own multi-column solve is 2-3x slower than its
-        columns one at a time."""
-        lu = self.lu(lam_abs)
+    def solve(self, lam_abs: float, X, lu=None):
+        """``H⁻¹X``, column by column (SuperLU's own multi-column solve is 2-3x slower than its
+        columns one at a time), the columns shared out to the worker threads; ``lu``: the
+        factorisation at ``lam_abs`` if the caller holds it."""
+        lu = self.lu(lam_abs) if lu is None else lu
         X = np.asarray(X, dtype=np.float64)
         if X.ndim == 1:
             return lu.solve(X)
         out = np.empty_like(X)
-        for j in range(X.shape[1]):
-            out[:, j] = lu.solve(np.ascontiguousarray(X[:, j]))
+
+        def cols(js):
+            def run():
+                for j in js:
+                    out[:, j] = lu.solve(np.ascontiguousarray(X[:, j]))
+            return run
+
+        T_.run_all([cols(js) for js in np.array_split(np.arange(X.shape[1]), min(T_.WORKERS, X.shape[1]))])
         return out
 
-    def iterate(self, lam_abs: float, C, k: int, X0=None):
+    def iterate(self, lam_abs: float, C, k: int, X0=None, lu=None):
         """``X ← λ̃H⁻¹RX + C`` ``k`` times (from ``X0``, default 0): the ``k``-step filter."""
         X = np.zeros_like(C) if X0 is None else X0
+        lu = self.lu(lam_abs) if (lu is None and k > 0) else lu
         for _ in range(k):
             self.check()
-            X = lam_abs * self.solve(lam_abs, self.R @ X) + C
+            X = lam_abs * self.solve(lam_abs, self.R @ X, lu) + C
         return X
 
     def wnorm2(self, r) -> float:
@@ -199,9 +252,19 @@ class _Curve:
         if self._U is None:
             xi = self._rng.choice([-1.0, 1.0], size=(E.shape[0], self.probes))
             self._EtXi = np.asarray(E.T @ xi)
-            lu = _factor(sp.csc_array(self.P.R))
+            lu = T_.owned(_factor, sp.csc_array(self.P.R))
             self._U = np.column_stack([lu.solve(np.ascontiguousarray(c)) for c in self._EtXi.T])
         return self._U, self._EtXi
+
+    def prefetch(self, lams, E) -> None:
+        """Evaluate the λ values not yet known two at a time, one per core (each value is the
+        same as evaluated alone: the search's decisions do not change). Only where two more
+        factorisations fit (:func:`lu_cache`); otherwise :meth:`at` evaluates them when asked."""
+        todo = [x for x in dict.fromkeys(float(v) for v in lams) if x not in self.cache]
+        if len(todo) < 2 or T_.WORKERS < 2 or self.P.keep < LU_CACHE or T_.in_worker():
+            return
+        self._probes(E)
+        T_.run_all([lambda x=x: self.at(x, E) for x in todo])
 
     def at(self, lam_rel: float, E):
         key = float(lam_rel)
@@ -209,13 +272,14 @@ class _Curve:
             P = self.P
             lam_abs = key * P.scale
             U, EtXi = self._probes(E)
+            lu = P.lu(lam_abs)  # held here: another evaluation running beside this one may drop it from the cache
             C = np.zeros((self.n, 1 + U.shape[1]))
-            C[:, 0] = P.solve(lam_abs, P.g)
+            C[:, 0] = P.solve(lam_abs, P.g, lu)
             X0 = np.zeros_like(C)
             X0[:, 1:] = U
             # b_{j+1} = S b_j + H⁻¹g (b_0 = 0) and y_{j+1} = S y_j (y_0 = u), S = λ̃H⁻¹R, in one block;
             # the first step of b is C itself, so k steps of the block give b_k and S^k u
-            X = P.iterate(lam_abs, C, self.k, X0)
+            X = P.iterate(lam_abs, C, self.k, X0, lu)
             b = X[:, 0]
             tr = float(np.mean(np.sum(EtXi * (U - X[:, 1:]), axis=0)))
             rho = P.wnorm2(P.a - P.T @ b)
@@ -234,9 +298,45 @@ def _criterion(rule, rho, tr, m, gamma, mean_var=None, target=None):
     return rho - target  # discrepancy
 
 
+def _refine(crit, ahead, x: float, f: float, h: float, tol: float, lo: float, hi: float) -> float:
+    """The minimum of ``crit`` (over log λ) bracketed by ``x - h, x, x + h`` (``x`` the lowest of
+    the three, all evaluated), by successive parabolas with a golden-section safeguard, to
+    ``tol`` decades.  The criterion is a smooth curve (the probes are fixed), so the vertex of
+    the parabola through the best point and its neighbours converges in two or three
+    evaluations (the halving walk it replaces took six to eight); each round also evaluates the
+    point ``tol`` beyond the vertex, side by side (one per core), which closes the bracket."""
+    pts = {x - h: crit(x - h), x: f, x + h: crit(x + h)}
+    for _ in range(12):
+        b = min(pts, key=pts.get)
+        left = max((t for t in pts if t < b), default=None)
+        right = min((t for t in pts if t > b), default=None)
+        if left is None or right is None or right - left <= 2 * tol:
+            break
+        fa, fb, fc = pts[left], pts[b], pts[right]
+        p, q = (b - left) * (fb - fc), (b - right) * (fb - fa)
+        v = b - 0.5 * ((b - left) * p - (b - right) * q) / (p - q) if p != q else np.nan
+        if not (np.isfinite(v) and left < v < right):
+            v = b + 0.382 * ((right - b) if right - b > b - left else (left - b))
+        if abs(v - b) < tol:  # the parabola puts the minimum within tol of b: look once beside it
+            v = b + (tol if v >= b else -tol)
+            if not left < v < right:
+                break
+        if min(abs(v - t) for t in pts) < tol / 2:  # nothing new to learn there
+            break
+        d = np.sign(v - b)
+        w = v + d * tol  # beside the vertex, away from b: with v, brackets a minimum that sits at v
+        w = w if (left < w < right and abs(w - v) > 1e-9) else None
+        ahead(*(t for t in (v, w) if t is not None and lo <= t <= hi))
+        pts[v] = crit(v)
+        if w is not None and pts[v] < fb:
+            pts[w] = crit(w)
+    return float(min(pts, key=pts.get))
+
+
 def _choose(curve: _Curve, E, rule: str, *, m: int, gamma: float, mean_var=None, target=None,
-            start: float = 1e-4, bounds=None, finest: float = 0.125) -> S.Choice:
-    """Minimise the criterion over log λ: decades downhill from ``start``, then Brent in the bracket
+            start: float = 1e-4, bounds=None, finest: float = 0.125, first_step: float = 1.0) -> S.Choice:
+    """Minimise the criterion over log λ: steps of ``first_step`` decades downhill from ``start``,
+    then successive parabolas in the bracket down to ``finest`` decades (:func:`_refine`)
     (discrepancy: the zero crossing, by Brent's root finder). The dense engine's range and its
     widening (3 decades each side, twice) bound the walk."""
     def crit(lam):
@@ -245,8 +345,13 @@ def _choose(curve: _Curve, E, rule: str, *, m: int, gamma: float, mean_var=None,
 
     grid, wide = (GRID, WIDE) if bounds is None else (bounds, bounds)
     lo, hi = np.log10(wide[0]), np.log10(wide[1])
-    x0 = float(np.clip(np.round(np.log10(start)), lo, hi))
+    # a first search starts on a whole decade; one that follows a previous pass's λ starts there,
+    # in half decades (the weights move λ, not by decades)
+    x0 = float(np.clip(np.round(np.log10(start)) if first_step >= 1 else np.log10(start), lo, hi))
     at_edge = False
+    def ahead(*ts):  # the values the next steps ask for, evaluated side by side
+        curve.prefetch([10**t for t in ts if lo <= t <= hi], E)
+
     if rule == "discrepancy":
         x = x0
         f = crit(10**x)
@@ -257,6 +362,7 @@ def _choose(curve: _Curve, E, rule: str, *, m: int, gamma: float, mean_var=None,
                 at_edge = True
                 lam = 10**x
                 break
+            ahead(xn, xn + step)
             fn = crit(10**xn)
             if (fn >= 0) != (f >= 0):
                 a_, b_ = sorted((x, xn))
@@ -264,42 +370,30 @@ def _choose(curve: _Curve, E, rule: str, *, m: int, gamma: float, mean_var=None,
                 break
             x, f = xn, fn
     else:
+        ahead(x0, min(x0 + first_step, hi))
         x, f = x0, crit(10**x0)
-        fu = crit(10 ** min(x + 1, hi))
-        step = 1.0 if fu < f else -1.0
+        fu = crit(10 ** min(x + first_step, hi))
+        step = first_step if fu < f else -first_step
         while True:
             xn = x + step
             if xn < lo or xn > hi:
                 at_edge = True
                 break
+            ahead(xn, xn + step)
             fn = crit(10**xn)
             if not fn < f:
                 break
             x, f = xn, fn
         lam = 10**x
-        if not at_edge:
-            # the minimum lies within a decade of x: halve the step around the best point down to
-            # ``finest`` (the probes are fixed, so the curve is smooth), then the vertex of the parabola
-            # through the best point and its neighbours
-            best, fb, h = x, f, 0.5
-            while h >= finest:
-                for t in (best - h, best + h):
-                    if lo <= t <= hi:
-                        ft = crit(10**t)
-                        if ft < fb:
-                            best, fb = t, ft
-                            break
-                h /= 2
-            h *= 2
-            t0, t2 = best - h, best + h
-            if lo <= t0 and t2 <= hi:
-                f0, f2 = crit(10**t0), crit(10**t2)
-                den = f0 - 2 * fb + f2
-                if den > 0 and np.isfinite(den):
-                    tv = best + 0.5 * h * (f0 - f2) / den
-                    if crit(10**tv) <= fb:
-                        best = tv
-            lam = float(10**best)
+        if not at_edge and finest >= abs(step):
+            # a coarse λ (a first pass, which only sets the weights): the vertex of the parabola
+            # through the bracket, within half a step of its best point, not evaluated
+            fa, fc = crit(10 ** (x - step)), crit(10 ** (x + step))
+            den = fa - 2 * f + fc
+            off = 0.5 * step * (fa - fc) / den if (den > 0 and np.isfinite(den)) else 0.0
+            lam = float(10 ** (x + float(np.clip(off, -abs(step) / 2, abs(step) / 2))))
+        elif not at_edge:
+            lam = float(10 ** _refine(lambda t: crit(10**t), ahead, x, f, abs(step), finest, lo, hi))
     lams = np.array(sorted(curve.cache))
     vals = np.array([curve.cache[v] for v in lams])
     critv = np.array([_criterion(rule, r, t, m, gamma, mean_var, target) for r, _, t in vals])
@@ -327,12 +421,13 @@ def _clipped(P: Pencil, lam_abs: float, k: int):
         r = P.a - P.T @ b
         return r, float(np.sqrt(P.wnorm2(r)))
 
-    b = np.maximum(P.solve(lam_abs, P.g), 0.0)
+    lu = P.lu(lam_abs)  # held: a solve beside this one may drop it from the cache
+    b = np.maximum(P.solve(lam_abs, P.g, lu), 0.0)
     r, norm = fit(b)
     it, gain = 1, np.inf
     while it < k and norm > 0:
         P.check()
-        step = P.solve(lam_abs, P.T.T @ (r if P.w is None else P.w * r))
+        step = P.solve(lam_abs, P.T.T @ (r if P.w is None else P.w * r), lu)
         b = np.maximum(b + step, 0.0)
         r_new, norm_new = fit(b)
         it += 1
@@ -353,11 +448,12 @@ def _sigma(P: Pencil, lam_abs: float, k: int, sigma2, n_samples: int, rng, sums=
     acc = np.zeros(P.G.shape[0])
     acc_s = None if sums is None else np.zeros(sums.shape[0])
     done = 0
+    lu = P.lu(lam_abs)
     while done < n_samples:
         nb = min(32, n_samples - done)
         Z = np.asarray(P.T.T @ (amp[:, None] * rng.standard_normal((m, nb))))
-        C = P.solve(lam_abs, Z)
-        X = P.iterate(lam_abs, C, k - 1, C) if k > 1 else C
+        C = P.solve(lam_abs, Z, lu)
+        X = P.iterate(lam_abs, C, k - 1, C, lu) if k > 1 else C
         acc += np.sum(X * X, axis=1)
         if sums is not None:
             Y = np.asarray(sums @ X)
@@ -365,6 +461,36 @@ def _sigma(P: Pencil, lam_abs: float, k: int, sigma2, n_samples: int, rng, sums=
         done += nb
     sig = np.sqrt(acc / n_samples)
     return sig, (None if sums is None else np.sqrt(acc_s / n_samples))
+
+
+class MatfreeCovariance:
+    """``wᵀCw`` of the linear ``k``-step estimator (:func:`_sigma`'s covariance
+    ``M TᵀWΣWT Mᵀ``) for a few functionals ``w`` (a region's or the pose's total), *exactly*, by
+    the adjoint: ``Mᵀw = WT H⁻¹ Σ_{j<k} (λ̃RH⁻¹)^j w``, ``k`` solves per functional; nothing n × n.
+    The dense engine's :class:`~fluxcli.inverse.spectral.FilterCovariance` does the same from its
+    eigenvectors (the reconstruct stage's error budget asks every solve for its total's σ: the
+    generic dense covariance it fell back to needed 16 GB at 45 000 unknowns).  Keeps the pencil
+    (and its factorisation) alive while it is: the stage measures, then drops it."""
+
+    def __init__(self, P: Pencil, lam_abs: float, k: int, sigma2=None, level: float = 1.0):
+        self.P, self.lam_abs, self.k, self.sigma2, self.level = P, float(lam_abs), max(int(k), 1), sigma2, float(level)
+
+    def variance_of(self, weights) -> np.ndarray:
+        from fluxcli.inverse.covariance import _rows
+
+        W, one = _rows(weights)
+        P, lam = self.P, self.lam_abs
+        Y = np.asarray(W.T.toarray() if sp.issparse(W) else W.T, dtype=np.float64)  # (n_obs, g)
+        acc = Y.copy()
+        for _ in range(self.k - 1):
+            Y = lam * (P.R @ P.solve(lam, Y))
+            acc += Y
+        U = np.asarray(P.T @ P.solve(lam, acc))
+        if P.w is not None:
+            U = P.w[:, None] * U
+        s2 = (1.0 / P.w) if self.sigma2 is None else np.asarray(self.sigma2, dtype=np.float64)
+        var = (s2 @ (U * U)) * self.level**2
+        return var[0] if one else var
 
 
 # ------------------------------------------------------------------ the solve
@@ -423,23 +549,24 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
             last = p == n_pass - 1
             # a first pass only sets the weights: fewer probes, a coarser λ
             curve = _Curve(P, k, probes if last else max(probes // 4, 2), np.random.default_rng(SEED + p))
-            fine = 0.125 if last else 0.5
+            fine = 0.05 if last else 1.0  # a first pass: the bracket's parabola, to about a third of a decade
+            step0 = 1.0 if p == 0 else 0.5  # a later pass starts at the previous pass's λ
             noise_weighted = weights is not None
             if rule == "discrepancy":
                 if weights is not None:
-                    choice = _choose(curve, E, "discrepancy", m=m, gamma=gamma, target=tau * m, start=start, bounds=bounds, finest=fine)
+                    choice = _choose(curve, E, "discrepancy", m=m, gamma=gamma, target=tau * m, start=start, bounds=bounds, finest=fine, first_step=step0)
                 elif var_model is not None:
                     choice = _choose(curve, E, "discrepancy", m=m, gamma=gamma, target=tau * float(np.sum(var_model)),
-                                     start=start, bounds=bounds, finest=fine)
+                                     start=start, bounds=bounds, finest=fine, first_step=step0)
                 else:
-                    choice = _choose(curve, E, "gcv", m=m, gamma=gamma, start=start, bounds=bounds, finest=fine)
+                    choice = _choose(curve, E, "gcv", m=m, gamma=gamma, start=start, bounds=bounds, finest=fine, first_step=step0)
             else:
-                choice = _choose(curve, E, "upre" if noise_weighted else "gcv", m=m, gamma=gamma, start=start, bounds=bounds, finest=fine)
+                choice = _choose(curve, E, "upre" if noise_weighted else "gcv", m=m, gamma=gamma, start=start, bounds=bounds, finest=fine, first_step=step0)
                 if (not noise_weighted and variance is not None and weighted
                         and (choice.widened or choice.at_edge)):
                     mean_var = float(np.mean(variance(np.maximum(a, 0.0))))
                     choice = _choose(curve, E, "upre_uniform", m=m, gamma=gamma, mean_var=max(mean_var, 1e-300),
-                                     start=start, bounds=bounds, finest=fine)
+                                     start=start, bounds=bounds, finest=fine, first_step=step0)
             lam_p = choice.lam
             start = lam_p
         b, it, conv = _clipped(P, lam_p * P.scale, k)
@@ -453,21 +580,28 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
                                                       variance=variance, free_level=free_level, warnings=warn)
     sigma = np.full(len(b), np.nan)
     sigma_sums = None if sums is None else np.full(sums.shape[0], np.nan)
+    covariance = None
     if weights is not None or var_model is not None:
         s2 = None if weights is not None else var_model
+        covariance = MatfreeCovariance(P, lam_abs, it, s2, level)
         n_s = samples if samples is not None else (SIGMA_SAMPLES if len(b) <= DENSE_MAX_UNKNOWNS else SIGMA_SAMPLES // 2)
         sg, sgs = _sigma(P, lam_abs, it, s2, n_s, np.random.default_rng(SEED + 100), sums)
         sigma = sg * level
         if sums is not None:
             sigma_sums = sgs * level
+    P.pinned = float(lam_abs)
     totals = (np.nan, np.nan)
     if lam is None and b.sum() > 0:
-        totals = halved_and_doubled(lambda lam_x: _clipped(P, lam_x, k)[0], P.T, a, b, lam_abs,
+        at = [0.5 * lam_abs, 2.0 * lam_abs]
+        side = dict(zip(at, T_.run_all([lambda x=x: _clipped(P, x, k)[0] for x in at],
+                                       workers=2 if P.keep >= LU_CACHE else 1)))  # one per core
+        totals = halved_and_doubled(lambda lam_x: side[lam_x] if lam_x in side else _clipped(P, lam_x, k)[0],
+                                    P.T, a, b, lam_abs,
                                     var_model=var_model, free_level=free_level, warnings=warn)
     return Filtered(power=b, sigma=sigma, lam=float(lam_p), lam_absolute=float(lam_abs), iterations=int(it),
                     converged=bool(conv), choice=choice, chi2_per_pixel=chi2,
                     total_at_half_and_double_lambda=totals, weighted=weights is not None, warnings=warn,
-                    sigma_sums=sigma_sums)
+                    sigma_sums=sigma_sums, covariance=covariance)
 
 
 def memory_estimate_bytes(n_unknowns: int, n_poses: int = 1, n_pixels: int = 0) -> float:
@@ -476,12 +610,17 @@ def memory_estimate_bytes(n_unknowns: int, n_poses: int = 1, n_pixels: int = 0) 
     Calibrated on issue 22's scene (1024², three views, one pose): per unknown and pose ~40
     nonzeros of T (three copies: T, its observed part, the weighted copy) and ~85 of ``G``
     (``G`` and ``H``), ~650 of the LU factors of ``H`` at 45 568 unknowns, growing like ``log n``
-    (fill of a nested-dissection-like ordering of a surface mesh; two factors cached and one
-    being built), the probe and sample blocks, and ~12 copies of the pixel vectors. At 50 018
-    elements it says 1.5 GB; the solve's peak resident memory was 1.6 GB (with T and images)."""
+    (fill of a nested-dissection-like ordering of a surface mesh; :data:`LU_CACHE` factors kept
+    and two being built where they fit in :data:`LU_BUDGET_BYTES`, else one kept and one being
+    built: :func:`lu_cache`), the probe and sample blocks, and ~12 copies of the pixel vectors.
+    Calibrated at 50 018 elements (1.7 GB said, 1.9-2.1 GB measured); it UNDERESTIMATES far
+    beyond: at 199 920 elements on the same 1024² sensor (elements smaller than pixels, so G
+    couples many more unknowns per pixel) the first factorisation passed 5.8 GB against 4.6 GB
+    said (issue 22, not solved: the fill per unknown grows with G's density, not like log n)."""
     n = float(max(n_unknowns, 1))
-    fill = LU_PER_UNKNOWN * max(np.log(n) / np.log(45568.0), 0.5) * np.sqrt(n_poses)
-    return (12.0 * n * n_poses * (3 * T_PER_UNKNOWN + 2 * G_PER_UNKNOWN) + 12.0 * n * fill * (LU_CACHE + 1)
+    keep = lu_cache(int(n), n_poses)
+    alive = keep + 2 if keep >= LU_CACHE else 2
+    return (12.0 * n * n_poses * (3 * T_PER_UNKNOWN + 2 * G_PER_UNKNOWN) + lu_bytes(int(n), n_poses) * alive
             + 8.0 * n * (1 + TRACE_PROBES + 32) * 3 + 12 * 8.0 * n_pixels)
 
 

@@ -763,7 +763,7 @@ def _run_smooth_matfree(P, lam, rule, opts):
                         variance=P.variance, sigma2=s2, weighted=True, free_level=True, sums=P.sums())
     return {"sigma_groups": out.sigma_sums, "power": out.power, "sigma": out.sigma, "lam": out.lam,
             "lam_absolute": out.lam_absolute, "iterations": out.iterations, "converged": out.converged,
-            "choice": out.choice, "chi2": out.chi2_per_pixel, "warnings": out.warnings}
+            "choice": out.choice, "chi2": out.chi2_per_pixel, "warnings": out.warnings, "covariance": out.covariance}
 
 
 def _lam_from_rule(P, lam, rule, opts, weighted):
@@ -838,6 +838,28 @@ def _run_mlem(P, lam, rule, opts):
 METHODS = tuple(REGISTRY)
 
 
+from fluxcli.inverse._threads import off_main_thread as _off_main_thread  # noqa: E402 (issue 22)
+
+ISOLATE_MIN_UNKNOWNS = 800  # dense solves above this run in a child process (fluxcli.inverse._threads.in_child)
+_DENSE_METHODS = ("paper", "tikhonov", "nnls", "weighted_lsq", "smooth")
+
+
+def _solve_method(spec, P, lam, lam_rule, opts):
+    """``spec.solve`` — in a child process for a dense solve of more than ISOLATE_MIN_UNKNOWNS
+    unknowns: scipy's LAPACK calls hold the GIL (a generalised ``eigh`` at 6 000 unknowns: a
+    minute), and only another process leaves this one free to stop at Ctrl-C or SIGTERM."""
+    from fluxcli.inverse import _threads
+    from fluxcli.inverse.matfree import DENSE_MAX_UNKNOWNS
+
+    n = int(P.mask.sum())
+    matfree = spec.name == "smooth" and (opts.get("solver") == "matfree" or (
+        opts.get("solver", "auto") == "auto" and n > DENSE_MAX_UNKNOWNS))
+    if spec.name in _DENSE_METHODS and not matfree and n > ISOLATE_MIN_UNKNOWNS:
+        return _threads.in_child(spec.solve, P, lam, lam_rule, opts)
+    return spec.solve(P, lam, lam_rule, opts)
+
+
+@_off_main_thread  # Ctrl-C / SIGTERM stop it at once (issue 22)
 def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | None = None,
                 sigma2=None, variance=None, adjacency=None, areas=None, groups=None,
                 rel_threshold: float = c.DEFAULT_REL_THRESHOLD, **opts) -> Result:
@@ -920,7 +942,7 @@ def reconstruct(T, a, *, method: str, lam: float | None = None, lam_rule: str | 
     mask = c.observed(T, rel_threshold)
     T_obs = sp.csr_array(T[:, mask])
     P = Problem(T, a, mask, T_obs, c.covered_rows(T_obs), variance, sigma2, adjacency, areas, rel_threshold, groups)
-    out = spec.solve(P, lam, lam_rule, dict(opts))
+    out = _solve_method(spec, P, lam, lam_rule, dict(opts))
 
     power = c.scatter(out["power"], mask)
     fitted = T @ np.where(mask, power, 0.0)
