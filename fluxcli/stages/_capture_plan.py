@@ -90,9 +90,8 @@ def plan_of(cfg: C.LoadedConfig) -> CapturePlan:
 def scene_parts(cfg: C.LoadedConfig) -> SceneParts:
     """What the simulated camera renders: the true subject, its truth per filter, the forward T."""
     from ..scene import views_from_config
-    from .plans import placer_of
     from ..truth import forward_transfer
-    from .plans import cache_dir, geometry_of, provenance, truth_plan
+    from .plans import cache_dir, geometry_of, placer_of, provenance, truth_plan
 
     C.require(cfg, "capture-surface with rig.camera.backend: simulated",
               ("system", "system.camera.lens", "system.camera.pose", "subject", "simulate"))
