@@ -193,3 +193,25 @@ def test_pipeline_hub_is_gone_and_the_modules_stay_small():
     assert importlib.util.find_spec("fluxcli.pipeline") is None
     for stage in ("build_t", "simulate"):
         assert len((ROOT / f"fluxcli/stages/{stage}.py").read_text().splitlines()) <= 300, stage
+
+
+def test_the_whole_house_keeps_its_walls():
+    """issue 23 across every floor: no raw HDF5 file access outside artefacts/, every stage module
+    at most 300 lines, and no module of the science packages (or the T cache, the placer) takes
+    the whole config."""
+    pkg = ROOT / "fluxcli"
+    outside = [str(f.relative_to(ROOT)) for f in sorted(pkg.rglob("*.py")) if "artefacts" not in f.parts]
+    raw = [f"{f}:{node.lineno}" for f, node in _walk(outside) if isinstance(node, ast.Attribute)
+           and node.attr == "File" and isinstance(node.value, ast.Name) and node.value.id == "h5py"]
+    assert raw == []
+    long = {f.name: n for f in sorted((pkg / "stages").glob("*.py")) if (n := len(f.read_text().splitlines())) > 300}
+    assert long == {}
+    science = [d for d in ("inverse", "optics", "surface", "imaging", "diffusion", "montecarlo", "quantify",
+                           "calibration", "structured", "transfer_cache", "artefacts", "hardware", "report")]
+    takes = []
+    for f, fn in _functions([f"fluxcli/{d}" for d in science] + ["fluxcli/scene.py", "fluxcli/truth.py"]):
+        for a in fn.args.args + fn.args.kwonlyargs:
+            ann = ast.unparse(a.annotation) if a.annotation is not None else ""
+            if a.arg == "cfg" or "LoadedConfig" in ann:
+                takes.append(f"{f}:{fn.lineno} {fn.name}({a.arg})")
+    assert takes == []
