@@ -93,7 +93,8 @@ def test_diffusion_truth_conserves_power_and_emccd_export(write_config, sim_conf
         "export": {"format": "tiff"},
     }
     cfg["system"]["camera"]["sensor"] = {"em_gain": 10}
-    assert run("simulate", write_config(cfg), "--quiet").exit_code == 0
+    r = run("simulate", write_config(cfg), "--quiet")
+    assert r.exit_code == 0, r.output
     with h5py.File(tmp_path / "run" / "simulation.h5") as f:
         power = f["truth/power"][()]
         counts = f["images/counts"][()]
