@@ -74,12 +74,19 @@ class VertexMap:
         with the fine T's tangential matrix (pixels x 2 n_fine) also the light the exitance
         gradient of each hat function tilts into each pixel.  A hat alone is not an exitance the
         term holds for everywhere: at its rim phi_v -> 0 while its gradient does not, and a pixel
-        that sees only that rim at a grazing angle can get a slightly negative entry (on the Monte
-        Carlo box at 60 deg: 5e-4 of T's mass).  The solvers need T >= 0: such entries are set to 0."""
+        that sees only that rim at a grazing angle can get a negative entry.  The solvers need
+        T >= 0, so such entries are set to 0 and the rest of the column is scaled back to the
+        column's own sum: the term tilts a hat's light between pixels but does not add to it, and
+        clipping alone would (2.4-3.1 % of T's mass at 45-60 deg on issue 21's box, 2-mm elements
+        seen through 0.7-mm pixels), reading every oblique total that much too low."""
         if T_tangent is None or self.tangent is None:
             return sp.csr_array(T_fine @ self.to_fine)
         T = sp.csr_array(T_fine @ self.to_fine + T_tangent @ self.tangent)
+        signed = np.asarray(T.sum(axis=0)).ravel()
         np.maximum(T.data, 0.0, out=T.data)
+        clipped = np.asarray(T.sum(axis=0)).ravel()
+        keep = np.divide(np.maximum(signed, 0.0), clipped, out=np.ones_like(clipped), where=clipped > 0)
+        T = sp.csr_array(T @ sp.diags_array(keep))
         T.eliminate_zeros()
         return T
 
