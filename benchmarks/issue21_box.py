@@ -94,9 +94,10 @@ EXPERIMENTS = {
 
 def configs(name: str) -> dict:
     """The experiment's configs per model (``NAME-control``: the issue's control, reconstructed
-    with the profile alone, since its redrawn directions carry no tangential flux)."""
+    with the profile alone, since its redrawn directions carry no tangential flux; ``mcx-NAME``:
+    the same experiment on MCX photons, benchmarks/issue21_mcx.py)."""
     control = name.endswith("-control")
-    camera, element_mm, rotations, heights, mirrors = EXPERIMENTS[name.removesuffix("-control")]
+    camera, element_mm, rotations, heights, mirrors = EXPERIMENTS[name.removeprefix("mcx-").removesuffix("-control")]
     AM.CASES[name] = ({**AM.BOX, "element_mm": element_mm}, N_INDEX, SOURCE_MM, rotations, mirrors)
     AM.HEIGHTS[name] = heights
     folder = OUT / "configs"
@@ -131,28 +132,58 @@ def bank_files(max_photons=None):
     return files, n
 
 
-def _may_reach(views, c, d, radius_mm: float) -> np.ndarray:
-    """Photons whose direction lies within the cone from the body to a view's (real or virtual)
-    lens: a photon leaving within ``radius_mm`` of the body's centre ``c`` can reach a lens of
-    radius R at distance D only within asin((radius + R) / D) of the centre-to-lens line. A
-    cull that changes no count: image_photons tests the rest exactly."""
-    keep = np.zeros(len(d), bool)
-    for v in views:
-        u = v.camera.center_mm - c
-        D = float(np.linalg.norm(u))
-        e = 1.05 * (radius_mm + v.camera.aperture_radius_mm) + 1.0
-        cos_max = np.sqrt(max(0.0, 1.0 - (e / D) ** 2)) if e < D else -1.0
-        keep |= d @ (u / D) >= cos_max
-    return keep
+def reach_cones(views, placements, rest_shift_mm, radius_mm: float) -> list:
+    """Per pose, the cones (in the body's own frame) within which a photon's direction must lie
+    to reach a view's (real or virtual) lens: a photon leaving within ``radius_mm`` of the
+    body's centre can reach a lens of radius R at distance D only within asin((radius + R) / D)
+    of the centre-to-lens line. A cull that changes no count: image_photons tests the rest
+    exactly. Returns [(axes (3, V), cos_max (V,))] per pose: a photon of own-frame direction d
+    may reach pose k if any d @ axes >= cos_max."""
+    out = []
+    for R, t in placements:
+        c = np.asarray(rest_shift_mm) @ R.T + t  # the body's placed centre
+        axes, cos_max = [], []
+        for v in views:
+            u = v.camera.center_mm - c
+            D = float(np.linalg.norm(u))
+            e = 1.05 * (radius_mm + v.camera.aperture_radius_mm) + 1.0
+            axes.append(R.T @ (u / D))  # a world direction R d against u/D is d against R^T u/D
+            cos_max.append(np.sqrt(max(0.0, 1.0 - (e / D) ** 2)) if e < D else -1.0)
+        out.append((np.stack(axes, axis=1), np.asarray(cos_max)))
+    return out
+
+
+def image_posed(views, occl, placements, rest_shift_mm, cones, pos, d, normal, seed, ray_offset_mm):
+    """Images (P, pixels) and the photons that reached each lens (P, V), of photons given in the
+    body's own frame (exit points, unit directions in air, outward normals), at every pose: each
+    pose places only the photons its cones let through."""
+    from fluxcli.montecarlo import camera as MC_cam
+    cam = views[0].camera
+    images = np.zeros((len(placements), cam.nx * cam.ny), np.int64)
+    reached = np.zeros((len(placements), len(views)), np.int64)
+    for k, ((R, t), (axes, cos_max)) in enumerate(zip(placements, cones)):
+        sel = np.flatnonzero(np.any(d @ axes >= cos_max, axis=1))
+        if sel.size:
+            img = MC_cam.image_photons(views, occl[k], (pos[sel] + rest_shift_mm) @ R.T + t, d[sel] @ R.T,
+                                       normal[sel] @ R.T, np.random.default_rng([*seed, k]),
+                                       ray_offset_mm=ray_offset_mm)
+            images[k] = img.counts_per_pixel
+            reached[k] = [img.reached_lens[v.name] for v in views]
+    return images, reached
+
+
+def photon_truth(fine, fine_scene, shape, pos) -> np.ndarray:
+    """Photons per fine element of the truth surface (own frame), from their exit points."""
+    from fluxcli.montecarlo import photons as MC_ph
+    face = MC_ph.faces_of_exits(shape, fine.vertices_mm, fine.faces, pos, scene=fine_scene)
+    el = np.where(face >= 0, fine.element_of_face[np.maximum(face, 0)], -1)
+    return np.bincount(el[el >= 0], minlength=fine.n_elements)
 
 
 def image_bank(cfg_path: Path, files: list, sim_path: Path, launched: int, redraw=None) -> np.ndarray:
     """Truth and images of the banked photons (as simulate makes them) written into the
     simulation artefact that simulate made for this config (same poses, views and surface)."""
-    import h5py
-
     from fluxcli.config import load_config
-    from fluxcli.montecarlo import camera as MC_cam
     from fluxcli.montecarlo import photons as MC_ph
     from fluxcli.optics.raycast import OcclusionScene
     from fluxcli.truth import truth_refinement
@@ -164,7 +195,7 @@ def image_bank(cfg_path: Path, files: list, sim_path: Path, launched: int, redra
     fine_scene = OcclusionScene(fine.vertices_mm, fine.faces)
     cam = views[0].camera
     P = len(scenes)
-    radius = float(np.linalg.norm(shape.half_mm))  # the body within this of its centre
+    cones = reach_cones(views, placements, placer.rest_shift_mm, float(np.linalg.norm(shape.half_mm)))
     images = np.zeros((P, cam.nx * cam.ny), np.int64)
     reached = np.zeros((P, len(views)), np.int64)
     fine_power = np.zeros(fine.n_elements)
@@ -176,49 +207,69 @@ def image_bank(cfg_path: Path, files: list, sim_path: Path, launched: int, redra
         d /= np.linalg.norm(d, axis=1)[:, None]
         escaped += len(pos)
         normal = shape.outward_normals(pos)
-        face = MC_ph.faces_of_exits(shape, fine.vertices_mm, fine.faces, pos, scene=fine_scene)
-        el = np.where(face >= 0, fine.element_of_face[np.maximum(face, 0)], -1)
-        fine_power += np.bincount(el[el >= 0], minlength=fine.n_elements)
+        fine_power += photon_truth(fine, fine_scene, shape, pos)
         if redraw is not None:  # the issue's control: the same exit points, directions from a profile
             d = MC_ph.redraw_directions(normal, redraw, np.random.default_rng([11, i]))
-        for k, (R, t) in enumerate(placements):
-            pw, dw = (pos + placer.rest_shift_mm) @ R.T + t, d @ R.T
-            sel = _may_reach(views, placer.rest_shift_mm @ R.T + t, dw, radius)  # the body's placed centre
-            img = MC_cam.image_photons(views, occl[k], pw[sel], dw[sel], normal[sel] @ R.T,
-                                       np.random.default_rng([7, i, k]), ray_offset_mm=m.transfer.ray_offset_mm)
-            images[k] += img.counts_per_pixel
-            reached[k] += [img.reached_lens[v.name] for v in views]
+        img, got = image_posed(views, occl, placements, placer.rest_shift_mm, cones, pos, d, normal, (7, i),
+                               m.transfer.ray_offset_mm)
+        images += img
+        reached += got
         print(f"  imaged {path.name} ({i + 1}/{len(files)})", flush=True)
-    power = np.bincount(parent, weights=fine_power, minlength=placer.surface.n_elements)
-    clean = images.reshape(1, P, cam.ny, cam.nx).astype(np.float32)
+    store_photon_images(sim_path, placer.surface.element_areas_mm2, cam, images, reached, fine_power, parent,
+                        launched, escaped, ", ".join(p.name for p in files))
+    return images.sum(axis=1)
+
+
+def store_photon_images(sim_path: Path, element_areas_mm2, cam, images, reached, fine_power, parent,
+                        launched: int, escaped: int, source: str) -> None:
+    """Write photon images (P, pixels), the photons that reached each lens (P, V) and the truth
+    they came with (photons per fine element; ``parent``: its element) into the simulation
+    artefact that simulate made for the same config."""
+    import h5py
+    P = len(images)
+    power = np.bincount(parent, weights=fine_power, minlength=len(element_areas_mm2))
+    clean = np.asarray(images).reshape(1, P, cam.ny, cam.nx).astype(np.float32)
     with h5py.File(sim_path, "r+") as f:
         f["images/noisy"][0, 0] = clean[0]
         f["images/noiseless"][...] = clean
         f["images/max_snr"][...] = np.sqrt(clean.reshape(1, P, -1).max(axis=2))
         f["truth/power"][...] = power
-        f["truth/exitance"][...] = power / placer.surface.element_areas_mm2
+        f["truth/exitance"][...] = power / element_areas_mm2
         f["truth/power_fine"][...] = fine_power
         f["truth/levels_peak_photons"][...] = [power.max()]
         f["montecarlo/photons_per_element"][...] = power
         f["montecarlo/reached_lens"][...] = reached
         g = f["montecarlo"]
         g.attrs["launched"], g.attrs["escaped"] = launched, escaped
-        g.attrs["bank"] = ", ".join(p.name for p in files)
-    return images.sum(axis=1)
+        g.attrs["bank"] = source
 
 
 def run_experiment(name: str, max_photons=None) -> bool:
     paths = configs(name)
     files, launched = bank_files(max_photons)
     t0 = time.perf_counter()
-    AM.fluxmap("simulate", paths["diffuse"], "--quiet", "--force")  # the artefact's frame (10^4 photons, replaced)
-    sim = OUT / name / "simulation.h5"
+    sim = simulation_frame(name, paths)
     redraw = None
     if name.endswith("-control"):
         from fluxcli.optics.emission import diffuse
         redraw = diffuse(N_INDEX).table
     imaged = image_bank(paths["diffuse"], files, sim, launched, redraw)
-    t_img = time.perf_counter() - t0
+    header = (f"{name}: {launched:.3g} photons launched (bank: {len(files)} files), imaged in "
+              f"{time.perf_counter() - t0:.0f} s; heights {AM.HEIGHTS[name]} mm"
+              + ("; directions redrawn from diffuse(1.40), reconstructed with its profile alone (the control)"
+                 if redraw is not None else ""))
+    return reconstruct_models(name, paths, sim, imaged, header, t0)
+
+
+def simulation_frame(name: str, paths: dict) -> Path:
+    """The simulation artefact of the experiment's config (10^4 photons), whose images and truth
+    the photons' own then replace."""
+    AM.fluxmap("simulate", paths["diffuse"], "--quiet", "--force")
+    return OUT / name / "simulation.h5"
+
+
+def reconstruct_models(name: str, paths: dict, sim: Path, imaged, header: str, t0: float) -> bool:
+    """Reconstruct the simulation with each emission model and print the issue's table."""
     results = {}
     for model in AM.MODELS:
         text = AM.fluxmap("reconstruct", paths[model], "--force")
@@ -227,12 +278,10 @@ def run_experiment(name: str, max_photons=None) -> bool:
         res = AM.summarise(kept)
         res["image_over_model"] = AM.forward_check(paths[model], sim)
         res["warnings"] = [ln for ln in text.splitlines() if "warning" in ln.lower()]
-        res["photons_in_images"] = imaged.tolist()
+        res["photons_in_images"] = np.asarray(imaged).tolist()
         results[model] = res
     results["seconds"] = time.perf_counter() - t0
-    print(f"\n{name}: {launched:.3g} photons launched (bank: {len(files)} files), imaged in {t_img:.0f} s; "
-          f"heights {AM.HEIGHTS[name]} mm" + ("; directions redrawn from diffuse(1.40), reconstructed with "
-                                              "its profile alone (the control)" if redraw is not None else ""))
+    print("\n" + header)
     return AM.report(name, results)
 
 

@@ -95,21 +95,27 @@ def opencl_devices(pmcxcl) -> list[dict]:
         return []
 
 
-def run_chunk(pmcxcl, nphoton: int, seed: int, n_medium: float = N_MEDIUM) -> tuple[np.ndarray, dict]:
-    """One MCX run (the box of index ``n_medium`` in air).
+def run_chunk(mcx, nphoton: int, seed: int, n_medium: float = N_MEDIUM,
+              dtype=np.float64) -> tuple[np.ndarray, dict]:
+    """One MCX run (the box of index ``n_medium`` in air) by ``mcx``: pmcxcl, or pmcx (CUDA),
+    which takes the same settings.
 
     Returns the detected photons as rows (ppath_mm, x, y, z, vx, vy, vz, w0) x photons, and
     MCX's own statistics (``energytot``, ``energyabs``, ...)."""
     vol = np.ones(SIZE_MM, dtype="uint8")
     prop = np.array([[0.0, 0.0, 1.0, 1.0], [MU_A_PER_MM, MU_S_PER_MM, G, n_medium]])
-    res = pmcxcl.run(
+    res = mcx.run(
         nphoton=int(nphoton), vol=vol, prop=prop, unitinmm=1.0,
         srcpos=list(SOURCE_MM), srcdir=[0, 0, 1], srctype="isotropic",
         tstart=0, tend=TEND_S, tstep=TEND_S,
         issrcfrom0=1, isreflect=1, bc="______111111", issavedet=1, savedetflag="dpxvw",
         maxdetphoton=int(nphoton), seed=int(seed), outputtype="flux",
     )
-    det = np.asarray(res["detp"], dtype=np.float64)
+    det = res["detp"]
+    if isinstance(det, dict):  # some versions give the fields by name
+        det = np.vstack([np.atleast_2d(np.asarray(det[k], dtype).T if np.ndim(det[k]) > 1 else det[k])
+                         for k in ("detid", "ppath", "p", "v", "w0")])
+    det = np.asarray(det, dtype=dtype)
     if det.ndim != 2 or det.shape[0] != 9:
         raise RuntimeError(f"unexpected detected-photon array {det.shape} (want 9 rows: d p x3 v3 w)")
     return det[1:], dict(res["stat"])

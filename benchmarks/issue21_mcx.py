@@ -1,0 +1,354 @@
+"""Issue 21's two box experiments at the issue's own photon count: photons transported by MCX
+(pmcx, CUDA) on a GPU machine and imaged there on every CPU core; reconstructed here.
+
+The box, source, camera, mirrors, poses and surfaces are those of ``issue21_box.py``
+(``direct``: 9 poses; ``mirrors``: 6 rotations x 2 heights, two 45° mirrors). MCX runs the
+phantom as ``mcx_reference.py`` does (1-mm voxels, Fresnel at every face, every face a detector,
+``savedetflag='dpxvw'``: exit point, direction after refraction into air, initial weight, path
+length). Each detected packet leaves with weight w0 exp(-μa L); it is kept as one whole photon
+with that probability (Russian roulette), so the images are whole photons, as in the issue. The
+truth per element is the photons that left through it; the images are the same photons traced
+through the thin lens and the mirrors (``fluxcli.montecarlo.camera``). No emission model enters,
+except in ``direct-control``, the issue's control: the same exit points with directions redrawn
+from diffuse(1.40).
+
+    # here: the geometry the GPU machine needs (views, poses, occluders, truth surface) + wheels
+    $ .venv/bin/python benchmarks/issue21_mcx.py prepare
+    # on the GPU machine, in the repository's root with .gpu21 carried (see prepare's output):
+    $ python3 benchmarks/issue21_mcx.py transport --photons 2e9 --seconds 420 --out $OUT/issue21_mcx.npz
+    # here: the photons' images into simulation artefacts; diffuse and lambertian reconstructed
+    $ .venv/bin/python benchmarks/issue21_mcx.py reconstruct runs/issue21/mcx/issue21_mcx.npz
+
+``transport --backend pmcxcl`` runs the same code here with MCX-CL on CPU (pocl) for a small check.
+The exit-angle radiance of the top face (``mcx_reference.Tally``, the reference CSV's method) is
+accumulated from every packet and written beside the images as ``mcx_box_n140_gpu.csv``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import pickle
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+sys.path.insert(0, str(HERE))
+sys.path.insert(0, str(ROOT))
+import mcx_reference as MR  # noqa: E402
+
+CARRY = ROOT / ".gpu21"  # what the GPU machine needs besides the repository (ignored by git)
+SCENES = CARRY / "scenes.pkl"
+EXPERIMENTS = ("direct", "mirrors", "direct-control")
+ORIGIN_MM = np.array(MR.SIZE_MM, float) / 2  # MCX's grid corner -> the box's centre (fluxmap's own frame)
+
+
+# ----------------------------------------------------------------------------- here: prepare
+def prepare(names) -> None:
+    """Pickle, per experiment, what imaging needs: views, placements, occluder meshes per pose,
+    the truth's fine surface, the body's shape, the ray offset, the control's redraw table."""
+    import issue21_box as B
+    from diag_mc import mc_scenes
+
+    from fluxcli.config import load_config
+    from fluxcli.optics.emission import diffuse
+    from fluxcli.scene import poses_from_config
+    from fluxcli.surface.mesh import merge
+    from fluxcli.truth import truth_refinement
+
+    out = {}
+    for name in names:
+        cfg = load_config(B.configs(f"mcx-{name}")["diffuse"])
+        m, shape, placer, views, scenes, placements, _ = mc_scenes(cfg)
+        fine, parent = placer.own_surface.refined(truth_refinement(m.simulate))
+        out[name] = {
+            "views": views, "placements": placements, "rest_shift_mm": np.asarray(placer.rest_shift_mm, float),
+            "occluders": [merge(s.surface, *s.occluders) for s in scenes], "shape": shape,
+            "fine": (fine.vertices_mm, fine.faces, fine.element_of_face, fine.n_elements), "parent": parent,
+            "ray_offset_mm": m.transfer.ray_offset_mm,
+            "redraw": diffuse(B.N_INDEX).table if name.endswith("-control") else None,
+            "poses": [str(p) for p in poses_from_config(m.subject)],
+        }
+        assert np.allclose(shape.half_mm, ORIGIN_MM), "the MCX grid and the box must agree"
+    CARRY.mkdir(exist_ok=True)
+    tmp = SCENES.with_suffix(".tmp")
+    tmp.write_bytes(pickle.dumps(out))
+    tmp.replace(SCENES)
+    print(f"wrote {SCENES} ({SCENES.stat().st_size / 1e6:.1f} MB): " + ", ".join(
+        f"{k}: {len(v['placements'])} poses x {len(v['views'])} views" for k, v in out.items()))
+    print("wheels for the GPU machine (python 3.12): python3 -m pip download --no-deps --only-binary=:all: "
+          "--python-version 3.12 --implementation cp --platform manylinux_2_28_x86_64 --platform "
+          f"manylinux_2_17_x86_64 -d {CARRY}/whl pmcx==0.8.1 embreex==4.4.0.post1")
+
+
+# ----------------------------------------------------------------------------- GPU machine: workers
+# A pool of worker processes, forked once before MCX or Embree start in the parent; each loads
+# the scenes itself and reads its slice of a batch from files in a RAM-backed folder.
+_EXP: dict = {}
+
+
+def _init_worker(scenes_path: str) -> None:
+    import issue21_box as B
+    from fluxcli.optics.raycast import OcclusionScene
+    exps = pickle.loads(Path(scenes_path).read_bytes())
+    fines = {}
+    for e in exps.values():
+        e["occl"] = [OcclusionScene(v, f) for v, f in e["occluders"]]
+        e["cones"] = B.reach_cones(e["views"], e["placements"], e["rest_shift_mm"],
+                                   float(np.linalg.norm(e["shape"].half_mm)))
+        key = hash((e["fine"][0].tobytes(), e["fine"][1].tobytes()))
+        if key not in fines:
+            fines[key] = OcclusionScene(e["fine"][0], e["fine"][1])
+        e["fine_scene"], e["fine_key"] = fines[key], key
+    _EXP.update(exps)
+
+
+class _Fine:
+    def __init__(self, vertices_mm, faces, element_of_face, n_elements):
+        self.vertices_mm, self.faces = vertices_mm, faces
+        self.element_of_face, self.n_elements = element_of_face, n_elements
+
+
+def _work(job):
+    """Truth, images and photons at each lens of photons [a, b) of a batch (own frame)."""
+    import issue21_box as B
+    from fluxcli.montecarlo import photons as MC_ph
+
+    folder, a, b, batch = job
+    pos = np.load(Path(folder) / "pos.npy", mmap_mode="r")[a:b].astype(np.float64)
+    d = np.load(Path(folder) / "dir.npy", mmap_mode="r")[a:b].astype(np.float64)
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    shape = next(iter(_EXP.values()))["shape"]
+    normal = shape.outward_normals(pos)
+    out, truths = {}, {}
+    for name, e in _EXP.items():
+        if e["fine_key"] not in truths:
+            truths[e["fine_key"]] = B.photon_truth(_Fine(*e["fine"]), e["fine_scene"], shape, pos)
+        dd = d
+        if e["redraw"] is not None:
+            dd = MC_ph.redraw_directions(normal, e["redraw"], np.random.default_rng([11, batch, a]))
+        img, got = B.image_posed(e["views"], e["occl"], e["placements"], e["rest_shift_mm"], e["cones"], pos, dd,
+                                 normal, (7, batch, a), e["ray_offset_mm"])
+        out[name] = (img, got, truths[e["fine_key"]])
+    return out
+
+
+# ----------------------------------------------------------------------------- GPU machine: transport
+def _load_mcx(backend: str):
+    if backend == "pmcxcl":
+        return MR.load_pmcxcl()
+    import pmcx
+    return pmcx
+
+
+def _whole_photons(det: np.ndarray, rng: np.random.Generator):
+    """Exit points (own frame, float32) and directions of the packets kept as whole photons:
+    each with probability w0 exp(-μa L)."""
+    w = det[7] * np.exp(-MR.MU_A_PER_MM * det[0])
+    keep = rng.random(w.size, dtype=np.float32) < w
+    pos = (det[1:4, keep].T - ORIGIN_MM.astype(np.float32)).astype(np.float32)
+    return np.ascontiguousarray(pos), np.ascontiguousarray(det[4:7, keep].T)
+
+
+def _save(path: Path, acc: dict, meta: dict, tally) -> None:
+    tmp = path.with_name(path.stem + ".tmp.npz")
+    np.savez_compressed(tmp, meta=json.dumps(meta), **{k: v for k, v in acc.items()})
+    os.replace(tmp, path)
+    if tally.n_launched:
+        MR.write_csv(path.with_name("mcx_box_n140_gpu.csv"), tally, [
+            "MCX reference: exit-angle radiance at the top face of issue 21's turbid box",
+            f"made by benchmarks/issue21_mcx.py transport on {meta['device']}",
+            f"code: {meta['code']}; photons launched {tally.n_launched}; wall {meta['wall_s']:.0f} s",
+            f"escaped fraction {tally.face_w.sum() / tally.n_launched:.5f}; "
+            f"L(0) fit up to {MR.FIT_MAX_DEG} deg; top face >= {tally.edge_mm} mm from its edges"])
+
+
+def _ram_folder() -> Path:
+    import shutil
+    for base in ("/dev/shm", "/tmp"):
+        if Path(base).is_dir() and shutil.disk_usage(base).free > 8e9:
+            return Path(base)
+    return Path("/tmp")
+
+
+def transport(photons: float, batch: float, seconds: float, out: Path, backend: str, workers: int,
+              seed: int, with_tally: bool = True) -> int:
+    t_start = time.time()
+    ctx = mp.get_context("fork")
+    pool = ctx.Pool(workers, initializer=_init_worker, initargs=(str(SCENES),))  # before MCX and Embree start here
+    folders = [_ram_folder() / f"issue21_mcx_{os.getpid()}_{i}" for i in range(2)]
+    for f in folders:
+        f.mkdir(exist_ok=True)
+    exps = pickle.loads(SCENES.read_bytes())
+    mcx = _load_mcx(backend)
+    code = f"{backend} {mcx.version() if hasattr(mcx, 'version') else ''}".strip()
+    try:
+        info = mcx.gpuinfo()
+        device = info[0]["name"] if info else "unknown"
+    except Exception as exc:  # noqa: BLE001
+        device = f"unknown ({exc})"
+    print(f"[issue21_mcx] {code} on {device}; {workers} imaging workers; batches in {folders[0].parent}", flush=True)
+    acc: dict = {}
+    for name, e in exps.items():
+        P, V = len(e["placements"]), len(e["views"])
+        cam = e["views"][0].camera
+        acc[f"{name}/images"] = np.zeros((P, cam.nx * cam.ny), np.int64)
+        acc[f"{name}/reached"] = np.zeros((P, V), np.int64)
+        acc[f"{name}/fine_power"] = np.zeros(e["fine"][3], np.int64)
+    tally = MR.Tally(5.0)
+    meta = {"device": device, "code": code, "launched": 0, "whole_photons": 0, "batches": [], "wall_s": 0.0,
+            "seed": seed, "mcx_s": 0.0, "imaging_wait_s": 0.0}
+    rng = np.random.default_rng([2026, seed])
+    n_total, n_batch = int(photons), int(batch)
+    pending = None  # (async result, photons launched, whole photons) of the batch being imaged
+
+    def collect(p):
+        res, n_launched, n_whole = p
+        t = time.time()
+        for part in res.get():
+            for name, (img, got, fine) in part.items():
+                acc[f"{name}/images"] += img
+                acc[f"{name}/reached"] += got
+                acc[f"{name}/fine_power"] += fine
+        meta["imaging_wait_s"] += time.time() - t
+        meta["launched"] += n_launched
+        meta["whole_photons"] += n_whole
+        meta["wall_s"] = time.time() - t_start
+        _save(out, acc, meta, tally)  # what is imaged so far survives a stop
+
+    b = launched_mcx = 0
+    try:
+        while launched_mcx < n_total:
+            elapsed = time.time() - t_start
+            if b and elapsed + 1.5 * elapsed / b > seconds:
+                print(f"[issue21_mcx] time budget: no batch after {launched_mcx:.3g} photons", flush=True)
+                break
+            n = min(n_batch, n_total - launched_mcx)
+            t = time.time()
+            det, stat = MR.run_chunk(mcx, n, seed + b, dtype=np.float32)
+            t_mcx = time.time() - t
+            meta["mcx_s"] += t_mcx
+            if with_tally:
+                tally.add(det, stat, n)
+            pos, d = _whole_photons(det, rng)
+            del det
+            folder = folders[b % 2]
+            if pending is not None:
+                collect(pending)  # the other folder's batch is done before this one is overwritten
+            np.save(folder / "pos.npy", pos)
+            np.save(folder / "dir.npy", d)
+            meta["batches"].append({"seed": seed + b, "launched": n, "whole": int(len(pos)), "mcx_s": round(t_mcx, 2),
+                                    "energy_escaped": float(stat["energytot"]) - float(stat["energyabs"])})
+            edges = np.linspace(0, len(pos), 4 * workers + 1).astype(int)
+            jobs = [(str(folder), int(x), int(y), b) for x, y in zip(edges[:-1], edges[1:])]
+            pending = (pool.map_async(_work, jobs), n, int(len(pos)))
+            launched_mcx += n
+            b += 1
+            print(f"[issue21_mcx] batch {b}: {n:.3g} photons, {t_mcx:.1f} s of MCX, {len(pos)} whole photons "
+                  f"escaped; {time.time() - t_start:.0f} s", flush=True)
+        if pending is not None:
+            collect(pending)
+    finally:
+        pool.terminate()
+        for f in folders:
+            for x in f.glob("*.npy"):
+                x.unlink()
+            f.rmdir()
+    meta["wall_s"] = time.time() - t_start
+    _save(out, acc, meta, tally)
+    print(f"[issue21_mcx] done: {meta['launched']:.4g} photons launched, {meta['whole_photons']:.4g} left as whole "
+          f"photons, {meta['mcx_s']:.0f} s in MCX, {meta['imaging_wait_s']:.0f} s waiting for imaging, "
+          f"{meta['wall_s']:.0f} s wall -> {out}", flush=True)
+    for name in exps:
+        print(f"  {name}: photons per pose {acc[f'{name}/images'].sum(axis=1).tolist()}")
+    return 0
+
+
+# ----------------------------------------------------------------------------- here: reconstruct
+def load_runs(paths) -> tuple[dict, dict]:
+    """The sums of one or more transport runs (independent seeds) and their merged description."""
+    acc, meta = {}, None
+    for path in paths:
+        with np.load(path) as z:
+            m = json.loads(str(z["meta"]))
+            for k in z.files:
+                if k != "meta":
+                    acc[k] = acc.get(k, 0) + z[k]
+        if meta is None:
+            meta = {**m, "seeds": [m["seed"]], "runs": 1}
+        else:
+            for k in ("launched", "whole_photons", "mcx_s", "wall_s"):
+                meta[k] += m[k]
+            meta["batches"] += m["batches"]
+            meta["seeds"].append(m["seed"])
+            meta["runs"] += 1
+    return acc, meta
+
+
+def reconstruct(npzs, names) -> int:
+    import issue21_box as B
+    from diag_mc import mc_scenes
+
+    from fluxcli.config import load_config
+    from fluxcli.truth import truth_refinement
+
+    z, meta = load_runs(npzs)
+    print(f"{meta['launched']:.4g} photons launched by {meta['code']} on {meta['device']} in {meta['runs']} run(s) "
+          f"(first seeds {meta['seeds']}, {len(meta['batches'])} batches); {meta['whole_photons']:.4g} left the box "
+          f"as whole photons; {meta['mcx_s']:.0f} s in MCX, {meta['wall_s']:.0f} s wall with imaging")
+    ok = True
+    for name in names:
+        tag = f"mcx-{name}"
+        paths = B.configs(tag)
+        t0 = time.perf_counter()
+        sim = B.simulation_frame(tag, paths)
+        m, shape, placer, views, scenes, placements, _ = mc_scenes(load_config(paths["diffuse"]))
+        fine, parent = placer.own_surface.refined(truth_refinement(m.simulate))
+        images = z[f"{name}/images"]
+        B.store_photon_images(sim, placer.surface.element_areas_mm2, views[0].camera, images, z[f"{name}/reached"],
+                              z[f"{name}/fine_power"].astype(float), parent, meta["launched"],
+                              meta["whole_photons"], f"MCX {meta['code']} on {meta['device']}, first seeds "
+                              f"{meta['seeds']}, {len(meta['batches'])} batches")
+        header = (f"{tag}: {meta['launched']:.3g} photons launched by {meta['code']} on {meta['device']} "
+                  f"({meta['whole_photons']:.3g} left as whole photons), heights {B.AM.HEIGHTS[tag]} mm"
+                  + ("; directions redrawn from diffuse(1.40), reconstructed with its profile alone (the control)"
+                     if name.endswith("-control") else ""))
+        ok &= B.reconstruct_models(tag, paths, sim, images.sum(axis=1), header, t0)
+    return 0 if ok else 1
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="step", required=True)
+    p = sub.add_parser("prepare")
+    p.add_argument("--experiments", default=",".join(EXPERIMENTS))
+    t = sub.add_parser("transport")
+    t.add_argument("--photons", type=float, default=2e9)
+    t.add_argument("--batch", type=float, default=1e8, help="photons per MCX run")
+    t.add_argument("--seconds", type=float, default=420, help="launch no batch that would end past this")
+    t.add_argument("--out", type=Path, required=True)
+    t.add_argument("--backend", choices=("pmcx", "pmcxcl"), default="pmcx")
+    t.add_argument("--workers", type=int, default=os.cpu_count())
+    t.add_argument("--seed", type=int, default=21000)
+    t.add_argument("--no-tally", action="store_true", help="skip the top face's exit-angle radiance")
+    r = sub.add_parser("reconstruct")
+    r.add_argument("npz", type=Path, nargs="+", help="transport outputs (independent seeds), summed")
+    r.add_argument("--experiments", default=",".join(EXPERIMENTS))
+    a = ap.parse_args(argv)
+    if a.step == "prepare":
+        prepare(a.experiments.split(","))
+        return 0
+    if a.step == "transport":
+        a.out.parent.mkdir(parents=True, exist_ok=True)
+        return transport(a.photons, a.batch, a.seconds, a.out, a.backend, a.workers, a.seed, not a.no_tally)
+    return reconstruct(a.npz, a.experiments.split(","))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
