@@ -161,12 +161,17 @@ def _save(path: Path, acc: dict, meta: dict, tally) -> None:
     np.savez_compressed(tmp, meta=json.dumps(meta), **{k: v for k, v in acc.items()})
     os.replace(tmp, path)
     if tally.n_launched:
+        n = tally.n_launched
         MR.write_csv(path.with_name("mcx_box_n140_gpu.csv"), tally, [
             "MCX reference: exit-angle radiance at the top face of issue 21's turbid box",
             f"made by benchmarks/issue21_mcx.py transport on {meta['device']}",
-            f"code: {meta['code']}; photons launched {tally.n_launched}; wall {meta['wall_s']:.0f} s",
-            f"escaped fraction {tally.face_w.sum() / tally.n_launched:.5f}; "
-            f"L(0) fit up to {MR.FIT_MAX_DEG} deg; top face >= {tally.edge_mm} mm from its edges"])
+            f"code: {meta['code']}; photons launched {n}; wall {meta['wall_s']:.0f} s",
+            f"box {MR.SIZE_MM[0]}x{MR.SIZE_MM[1]}x{MR.SIZE_MM[2]} mm (1 mm voxels), mu_a {MR.MU_A_PER_MM} /mm, "
+            f"mu_s {MR.MU_S_PER_MM} /mm, g {MR.G}, n {MR.N_MEDIUM} in air (isreflect=1, Fresnel at every face)",
+            f"isotropic point source at {MR.SOURCE_MM} mm (grid corner at 0); settings as mcx_reference.py "
+            f"(issrcfrom0=1 bc='______111111' savedetflag='dpxvw'); seeds from {meta['seed']}, one per 1e8-photon run",
+            f"escaped fraction {tally.face_w.sum() / n:.5f}; L(0) fit up to {MR.FIT_MAX_DEG} deg; "
+            f"top face >= {tally.edge_mm} mm from its edges; bands and L_rel as in mcx_reference.py"])
 
 
 def _ram_folder() -> Path:

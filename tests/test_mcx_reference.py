@@ -153,6 +153,33 @@ def test_table_agrees_with_the_issues_mcx_run():
         assert abs(t["L_rel"][i] - ref) <= 0.01 + Z * t["L_rel_se"][i], (deg, t["L_rel"][i], ref)
 
 
+GPU_TABLE = REFERENCE / "mcx_box_n140_gpu.csv"  # 5e8 photons, pmcx (CUDA) on an H200
+
+
+@pytest.mark.skipif(not GPU_TABLE.exists(), reason=_absent(GPU_TABLE))
+def test_diffuse_profile_within_2_percent_of_5e8_gpu_mcx_photons_up_to_75_degrees():
+    """The same box by MCX on a GPU (benchmarks/issue21_mcx.py, 5e8 photons): its standard
+    errors are 5e-4 of L(0), so the 2 % bar is tested on the model's own miss, not on noise.
+    Measured: diffuse lies above the photons by 0.006 at 30, 0.011 at 45, 0.015 at 60, 0.016
+    at 65 (the worst) and 0.015 at 75 degrees.  The CPU table (MCX-CL) agrees with it within
+    1.8 of their combined standard errors in every band: two devices, one curve."""
+    from fluxcli.optics.emission import profile
+
+    h = header(GPU_TABLE)
+    assert "made by benchmarks/issue21_mcx.py" in h and "photons launched 500000000" in h
+    gpu, cpu = read_table(GPU_TABLE), read_table()
+    use = compared_bands(gpu)
+    assert np.all(gpu["L_rel_se"][use] < 0.001)
+    diffuse = profile({"model": "diffuse", "refractive_index": 1.40})
+    model = np.array([band_mean(diffuse.radiance, lo, hi)
+                      for lo, hi in zip(gpu["theta_lo_deg"][use], gpu["theta_hi_deg"][use])])
+    assert np.all(np.abs(model - gpu["L_rel"][use]) <= TOL_OF_L0)
+    z = (cpu["L_rel"][use] - gpu["L_rel"][use]) / np.hypot(cpu["L_rel_se"][use], gpu["L_rel_se"][use])
+    assert np.all(np.abs(z) < 3.5)
+    lam = np.ones(use.sum())  # and the check can fail: Lambertian misses beyond ~50 degrees
+    assert np.sum(np.abs(lam - gpu["L_rel"][use]) > TOL_OF_L0) >= 6
+
+
 # ---------------------------------------------------------------- live MCX (optional)
 def _live_mcx_or_skip():
     from repo_scripts import load_script
