@@ -67,8 +67,10 @@ TRACE_PROBES = 16
 SIGMA_SAMPLES = 128
 LU_CACHE = 2  # factorisations kept (the chosen λ's is reused; two more may be in the making)
 LU_BUDGET_BYTES = 2.0e9  # factorisations alive at once: one at a time where two would need more (~150 000 unknowns)
+SIGMA_TASK = 8  # noise samples per task of the σ estimate
 LANCZOS_STEPS = 30  # Lanczos steps per start vector of the final λ search (_LanczosCurve)
 LANCZOS_RTOL = 1e-8  # a λ's residual from the Krylov space is used where m and m - 5 steps agree to this
+SOLVE_BLOCK = 16  # columns per SuperLU solve call
 SEED = 22  # probes and samples are seeded: the same inputs give the same bytes
 GRID = (1e-9, 1e3)  # the dense engine's relative λ range ...
 WIDE = (1e-15, 1e9)  # ... and how far it widens it
@@ -203,9 +205,10 @@ class Pencil:
         return lu
 
     def solve(self, lam_abs: float, X, lu=None):
-        """``H⁻¹X``, column by column (SuperLU's own multi-column solve is 2-3x slower than its
-        columns one at a time), the columns shared out to the worker threads; ``lu``: the
-        factorisation at ``lam_abs`` if the caller holds it."""
+        """``H⁻¹X``, the columns shared out to the worker threads, each thread's in blocks of
+        :data:`SOLVE_BLOCK` (SuperLU's multi-column solve: 26 ms a column against 36 ms one at a
+        time at 50 000 elements, one thread); ``lu``: the factorisation at ``lam_abs`` if the
+        caller holds it."""
         lu = self.lu(lam_abs) if lu is None else lu
         X = np.asarray(X, dtype=np.float64)
         if X.ndim == 1:
@@ -214,8 +217,9 @@ class Pencil:
 
         def cols(js):
             def run():
-                for j in js:
-                    out[:, j] = lu.solve(np.ascontiguousarray(X[:, j]))
+                for lo in range(0, len(js), SOLVE_BLOCK):
+                    sel = js[lo:lo + SOLVE_BLOCK]
+                    out[:, sel] = lu.solve(np.asfortranarray(X[:, sel]))
             return run
 
         T_.run_all([cols(js) for js in np.array_split(np.arange(X.shape[1]), min(T_.WORKERS, X.shape[1]))])
@@ -552,30 +556,46 @@ def _clipped(P: Pencil, lam_abs: float, k: int):
     return b, it, converged or norm == 0
 
 
-def _sigma(P: Pencil, lam_abs: float, k: int, sigma2, n_samples: int, rng, sums=None):
-    """σ of the linear k-step estimator under noise ``Σ`` (``sigma2``; None: ``Σ = W⁻¹``) from
-    ``n_samples`` exact samples ``M TᵀWΣ^½ξ``; also σ of ``sums @ b`` when given."""
+def _sigma_tasks(P: Pencil, lam_abs: float, k: int, sigma2, n_samples: int, rng, sums=None, lu=None):
+    """The work of :func:`_sigma` as independent tasks (a few samples each, for
+    :func:`fluxcli.inverse._threads.run_all` beside other work) and the function that sums their
+    results into (σ, σ of ``sums @ b``).  The samples are drawn here, in order (the same for any
+    number of threads)."""
     m = P.T.shape[0]
     if sigma2 is None:
         amp = np.sqrt(P.w)
     else:
         amp = np.sqrt(sigma2) * (1.0 if P.w is None else P.w)
-    acc = np.zeros(P.G.shape[0])
-    acc_s = None if sums is None else np.zeros(sums.shape[0])
-    done = 0
-    lu = P.lu(lam_abs)
+    lu = P.lu(lam_abs) if lu is None else lu
+
+    def task(xi):
+        def run():
+            Z = np.asarray(P.T.T @ (amp[:, None] * xi))
+            C = P.solve(lam_abs, Z, lu)
+            X = P.iterate(lam_abs, C, k - 1, C, lu) if k > 1 else C
+            return np.sum(X * X, axis=1), (None if sums is None else np.sum(np.asarray(sums @ X) ** 2, axis=1))
+        return run
+
+    tasks, done = [], 0
     while done < n_samples:
         nb = min(32, n_samples - done)
-        Z = np.asarray(P.T.T @ (amp[:, None] * rng.standard_normal((m, nb))))
-        C = P.solve(lam_abs, Z, lu)
-        X = P.iterate(lam_abs, C, k - 1, C, lu) if k > 1 else C
-        acc += np.sum(X * X, axis=1)
-        if sums is not None:
-            Y = np.asarray(sums @ X)
-            acc_s += np.sum(Y * Y, axis=1)
+        xi = rng.standard_normal((m, nb))
+        tasks += [task(xi[:, lo:lo + SIGMA_TASK]) for lo in range(0, nb, SIGMA_TASK)]
         done += nb
-    sig = np.sqrt(acc / n_samples)
-    return sig, (None if sums is None else np.sqrt(acc_s / n_samples))
+
+    def total(results):
+        acc = np.sum([r[0] for r in results], axis=0)
+        acc_s = None if sums is None else np.sum([r[1] for r in results], axis=0)
+        return np.sqrt(acc / n_samples), (None if sums is None else np.sqrt(acc_s / n_samples))
+
+    return tasks, total
+
+
+def _sigma(P: Pencil, lam_abs: float, k: int, sigma2, n_samples: int, rng, sums=None):
+    """σ of the linear k-step estimator under noise ``Σ`` (``sigma2``; None: ``Σ = W⁻¹``) from
+    ``n_samples`` exact samples ``M TᵀWΣ^½ξ``; also σ of ``sums @ b`` when given."""
+    tasks, total = _sigma_tasks(P, lam_abs, k, sigma2, n_samples, rng, sums)
+    return total(T_.run_all(tasks))
 
 
 class MatfreeCovariance:
@@ -687,7 +707,15 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
                                      start=start, bounds=bounds, finest=fine, first_step=step0)
             lam_p = choice.lam
             start = lam_p
-        b, it, conv = _clipped(P, lam_p * P.scale, k)
+        side: dict = {}
+        if p == n_pass - 1 and lam is None and P.keep >= LU_CACHE and T_.WORKERS > 1:
+            # the chosen λ's solve and the λ/2 one (the totals' bracket, below) side by side, one per core
+            lam_at = lam_p * P.scale
+            P.pinned = float(lam_at)
+            (b, it, conv), side[0.5 * lam_at] = T_.run_all([lambda: _clipped(P, lam_at, k),
+                                                            lambda: _clipped(P, 0.5 * lam_at, k)[0]])
+        else:
+            b, it, conv = _clipped(P, lam_p * P.scale, k)
         if variance is not None:
             var_model = variance(P.T @ b)
             if p < n_pass - 1 and weighted:
@@ -699,20 +727,29 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
     sigma = np.full(len(b), np.nan)
     sigma_sums = None if sums is None else np.full(sums.shape[0], np.nan)
     covariance = None
+    P.pinned = float(lam_abs)
+    sides = lam is None and b.sum() > 0
+    tasks = []  # the λ/2, 2λ solves not yet made, then σ's samples: one pool for the two cores
+    if sides:
+        tasks += [lambda x=x: (x, _clipped(P, x, k)[0]) for x in (0.5 * lam_abs, 2.0 * lam_abs) if x not in side]
+    n_side = len(tasks)
+    total_sigma = None
     if weights is not None or var_model is not None:
         s2 = None if weights is not None else var_model
         covariance = MatfreeCovariance(P, lam_abs, it, s2, level)
         n_s = samples if samples is not None else (SIGMA_SAMPLES if len(b) <= DENSE_MAX_UNKNOWNS else SIGMA_SAMPLES // 2)
-        sg, sgs = _sigma(P, lam_abs, it, s2, n_s, np.random.default_rng(SEED + 100), sums)
+        more, total_sigma = _sigma_tasks(P, lam_abs, it, s2, n_s, np.random.default_rng(SEED + 100), sums)
+        tasks += more
+    # two factorisations alive beside the chosen λ's only where they fit (lu_cache)
+    results = T_.run_all(tasks, workers=None if P.keep >= LU_CACHE else 1)
+    side.update(dict(results[:n_side]))
+    if total_sigma is not None:
+        sg, sgs = total_sigma(results[n_side:])
         sigma = sg * level
         if sums is not None:
             sigma_sums = sgs * level
-    P.pinned = float(lam_abs)
     totals = (np.nan, np.nan)
-    if lam is None and b.sum() > 0:
-        at = [0.5 * lam_abs, 2.0 * lam_abs]
-        side = dict(zip(at, T_.run_all([lambda x=x: _clipped(P, x, k)[0] for x in at],
-                                       workers=2 if P.keep >= LU_CACHE else 1)))  # one per core
+    if sides:
         totals = halved_and_doubled(lambda lam_x: side[lam_x] if lam_x in side else _clipped(P, lam_x, k)[0],
                                     P.T, a, b, lam_abs,
                                     var_model=var_model, free_level=free_level, warnings=warn)
