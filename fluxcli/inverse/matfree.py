@@ -204,6 +204,13 @@ class Pencil:
             _trim()
         return lu
 
+    def release(self) -> None:
+        """Drop every factorisation (the pinned one too) and hand the memory back."""
+        with self._lock:
+            self._lu.clear()
+        self.pinned = None
+        _trim()
+
     def solve(self, lam_abs: float, X, lu=None):
         """``H⁻¹X``, the columns shared out to the worker threads, each thread's in blocks of
         :data:`SOLVE_BLOCK` (SuperLU's multi-column solve: 26 ms a column against 36 ms one at a
@@ -677,16 +684,23 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
     var_model = sigma2
     choice = None
     start = 1e-4
+    P = None
     for p in range(n_pass):
+        if P is not None:  # the previous pass's factorisations go before this pass's G is made
+            P.release()
         P = Pencil(T_obs, a, weights, R, check)
+        # one factorisation alive at a time (lu_cache): each counts (minutes beyond ~150 000 unknowns)
+        big = P.keep < LU_CACHE
         lam_p = lam
         if lam is None:
             last = p == n_pass - 1
             # a first pass only sets the weights: fewer probes, a coarser λ
             # the final, fine search from Krylov spaces (a handful of solves per probe for every λ);
-            # a first pass, a coarse walk with a quarter of the probes, by the k-step recursion
-            curve = (_LanczosCurve if last else _Curve)(P, k, probes if last else max(probes // 4, 2),
-                                                      np.random.default_rng(SEED + p))
+            # a first pass, a coarse walk with a quarter of the probes, by the k-step recursion (a
+            # factorisation per λ; two at once on the two cores), or from Krylov spaces where
+            # factorisations are one at a time (one space spans ~2 of its whole-decade steps)
+            curve = (_LanczosCurve if (last or big) else _Curve)(P, k, probes if last else max(probes // 4, 2),
+                                                                np.random.default_rng(SEED + p))
             fine = 0.05 if last else 1.0  # a first pass: the bracket's parabola, to about a third of a decade
             step0 = 1.0 if p == 0 else 0.5  # a later pass starts at the previous pass's λ
             noise_weighted = weights is not None
@@ -707,8 +721,15 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
                                      start=start, bounds=bounds, finest=fine, first_step=step0)
             lam_p = choice.lam
             start = lam_p
+            del curve  # its Krylov spaces
         side: dict = {}
-        if p == n_pass - 1 and lam is None and P.keep >= LU_CACHE and T_.WORKERS > 1:
+        if p == n_pass - 1 and lam is None and big:
+            # the totals' bracket first, one factorisation at a time: the chosen λ's is then kept
+            # (σ, the stage's covariance) and never beside another
+            for x in (0.5 * lam_p * P.scale, 2.0 * lam_p * P.scale):
+                side[x] = _clipped(P, x, k)[0]
+            P.release()
+        if p == n_pass - 1 and lam is None and not big and T_.WORKERS > 1:
             # the chosen λ's solve and the λ/2 one (the totals' bracket, below) side by side, one per core
             lam_at = lam_p * P.scale
             P.pinned = float(lam_at)
@@ -737,7 +758,8 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
     if weights is not None or var_model is not None:
         s2 = None if weights is not None else var_model
         covariance = MatfreeCovariance(P, lam_abs, it, s2, level)
-        n_s = samples if samples is not None else (SIGMA_SAMPLES if len(b) <= DENSE_MAX_UNKNOWNS else SIGMA_SAMPLES // 2)
+        n_s = samples if samples is not None else (SIGMA_SAMPLES if len(b) <= DENSE_MAX_UNKNOWNS
+                                                   else SIGMA_SAMPLES // 2 if not P.keep < LU_CACHE else SIGMA_SAMPLES // 4)
         more, total_sigma = _sigma_tasks(P, lam_abs, it, s2, n_s, np.random.default_rng(SEED + 100), sums)
         tasks += more
     # two factorisations alive beside the chosen λ's only where they fit (lu_cache)
