@@ -92,6 +92,10 @@ def run(repeats: int = 1) -> list[dict]:
             gb = max(gb, r.get("peak_children_gb", 0.0))  # the dense solve's child process
             acc[(n, s)] = r
             note = f"CPU {cpu:.1f} s, peak {gb:.2f} GB, {r['n_unknowns']} unknowns, lambda {r['lam']:.3g}"
+            if s == "matfree":  # what the stage says before allocating, beside what was measured
+                from fluxcli.inverse.matfree import memory_estimate_bytes
+
+                note += f" (estimate said {memory_estimate_bytes(r['n_unknowns'], 1, 1024 * 1024) / 1e9:.2f} GB)"
             if not crime:
                 note += (f", error {r['error']:.2%} (observed {r['error_observed']:.2%}), total {r['total_ratio']:.4f} "
                          f"(observed {r['total_ratio_observed']:.4f}), chi2/px {r['chi2']:.2f}")

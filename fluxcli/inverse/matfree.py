@@ -27,7 +27,11 @@ engine reads off the eigenvalues is estimated instead:
   ``√(2/(p·tr F))`` (2.5 % at tr F = 200, p = 16).  The same probes are used at every λ, so the
   criterion is a smooth curve: a walk over decades (half decades from the previous pass's λ)
   brackets its minimum, successive parabolas refine it to 0.05 decades (a first pass, which only
-  sets the weights: the bracket's parabola);
+  sets the weights: the bracket's parabola).  The final search reads ρ and tr F off Lanczos
+  Krylov spaces, one per ~1.5 decades of λ (:class:`_LanczosCurve`: one factorisation and 30
+  solves per start vector for every λ the space serves, where the k-step recursion
+  (:class:`_Curve`) costs a factorisation and ``k`` solves per start vector at each λ); the
+  values agree with the recursion to 1e-8, so the λ chosen is the same;
 - **σ** per unknown (and per group): the covariance of the linear estimator under the noise is
   ``M TᵀWΣWT Mᵀ``; its diagonal is estimated from ``N`` exact samples ``M TᵀWΣ^½ξ`` (the same
   ``k``-step recursion), relative standard error of σ ``1/√(2N)`` (6 % at N = 128, the default up
@@ -37,7 +41,8 @@ engine reads off the eigenvalues is estimated instead:
   adjoint solves per functional (:class:`MatfreeCovariance`).
 
 Two cores: factorisations and solves run on worker threads (:mod:`fluxcli.inverse._threads`):
-two λ of the search side by side, the columns of a block split; the main thread only waits,
+two λ of the first pass side by side, the columns of a block split, the chosen λ's solve beside
+the λ/2 one and the 2λ one beside σ's samples; the main thread only waits,
 so Ctrl-C and SIGTERM are answered at once. The search makes the same decisions as one
 evaluation at a time (each value is computed alone), so the numbers do not depend on it.
 
@@ -125,16 +130,33 @@ def _factor(H):
     return spla.splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
 
 
-def lu_bytes(n_unknowns: int, n_poses: int = 1) -> float:
-    """Estimated bytes of one SuperLU factorisation of ``H`` (see :func:`memory_estimate_bytes`)."""
-    n = float(max(n_unknowns, 1))
-    return 12.0 * n * LU_PER_UNKNOWN * max(np.log(n) / np.log(45568.0), 0.5) * np.sqrt(n_poses)
+def g_per_unknown(n_unknowns: int, n_poses: int = 1, n_pixels: int = 0) -> float:
+    """Nonzeros of ``G = TᵀWT`` per unknown and pose, from how many unknowns share a pixel: issue
+    22's scene (1024², three views) measured 42 / 82 / 258 at 18 200 / 45 568 / 181 713 unknowns
+    (unknowns per sensor pixel 0.017 / 0.043 / 0.17); ``85·(density / 0.043)^0.8`` (n_pixels 0:
+    that scene's density at 50 000 elements)."""
+    if n_pixels <= 0:
+        return G_PER_UNKNOWN
+    dens = float(max(n_unknowns, 1)) / (float(n_pixels) / max(n_poses, 1)) / REF_DENSITY
+    # held at the densest measured (4x): how far G fills beyond depends on the optics' blur in
+    # pixels, which is not known here (a 48 x 48 sensor under 62 500 elements: 27 per pixel)
+    return G_PER_UNKNOWN * min(dens, 4.0) ** 0.8
 
 
-def lu_cache(n_unknowns: int, n_poses: int = 1) -> int:
+def lu_bytes(n_unknowns: int, n_poses: int = 1, g_per: float | None = None) -> float:
+    """Estimated bytes of one SuperLU factorisation of ``H`` (see :func:`memory_estimate_bytes`):
+    ~12 bytes per nonzero of the factors, ``LU_PER_UNKNOWN·g/82`` nonzeros per unknown
+    (``g``: :func:`g_per_unknown`, or the measured one; measured 302 / 753 / ~2 200 at
+    g = 42 / 82 / 258, the last from the peak of the factorisation, 4.7 GB: the fill follows
+    G's density, not n)."""
+    g = G_PER_UNKNOWN if g_per is None else float(g_per)
+    return 12.0 * float(max(n_unknowns, 1)) * LU_PER_UNKNOWN * (g / 82.0) * np.sqrt(n_poses)
+
+
+def lu_cache(n_unknowns: int, n_poses: int = 1, g_per: float | None = None) -> int:
     """Factorisations kept: :data:`LU_CACHE`, or 1 where ``LU_CACHE + 2`` (two in the making
     while the λ search evaluates two values at once) would pass :data:`LU_BUDGET_BYTES`."""
-    return LU_CACHE if (LU_CACHE + 2) * lu_bytes(n_unknowns, n_poses) <= LU_BUDGET_BYTES else 1
+    return LU_CACHE if (LU_CACHE + 2) * lu_bytes(n_unknowns, n_poses, g_per) <= LU_BUDGET_BYTES else 1
 
 
 def _trim() -> None:
@@ -174,7 +196,8 @@ class Pencil:
         self._lu: OrderedDict = OrderedDict()  # λ̃ -> SuperLU, least recently used first
         self._lock = threading.Lock()
         self.pinned = None  # the chosen λ̃: its factorisation outlives the λ/2, 2λ solves (σ, covariance)
-        self.keep = lu_cache(self.G.shape[0])
+        n = self.G.shape[0]
+        self.keep = lu_cache(n, 1, self.G.nnz / max(n, 1))  # from G's measured density
 
     def lu(self, lam_abs: float):
         """SuperLU of ``G + λ̃R``, on a worker thread; the ``keep`` most recently used are kept (two
@@ -338,31 +361,42 @@ class _LanczosCurve(_Curve):
         return
 
     def _space(self, mu_abs: float, E):
+        """The Krylov space at ``mu_abs``: Lanczos in the R-inner product from ``R⁻¹g`` (its
+        basis kept: ``b_λ`` is built from it; fully reorthogonalised, twice) and from each probe
+        (the tridiagonal matrix only: the three-term recurrence with the last two vectors
+        re-orthogonalised against, as Gauss quadrature tolerates the rest (its own error is checked
+        by :meth:`_value`); memory ``m·n`` for the first, ``3n`` per probe)."""
         P, m = self.P, self.steps
         U, _ = self._probes(E)
         S0 = np.column_stack([self._luR.solve(np.ascontiguousarray(P.g)), U])
         RS = P.R @ S0
         nrm = np.sqrt(np.maximum(np.sum(S0 * RS, axis=0), 1e-300))
         nc = S0.shape[1]
-        V = np.empty((m + 1, self.n, nc))
-        V[0] = S0 / nrm
-        RV = RS / nrm
+        V0 = np.empty((m + 1, self.n))  # the basis of the first chain
+        Q = S0 / nrm
+        Qp = np.zeros_like(Q)
+        RQ = RS / nrm
+        V0[0] = Q[:, 0]
         alpha, beta = np.zeros((m, nc)), np.zeros((m, nc))
         lu = P.lu(mu_abs)
         for j in range(m):
             P.check()
-            W = P.solve(mu_abs, RV, lu)
-            for rep in range(2):  # full reorthogonalisation in the R-inner product, twice
+            W = P.solve(mu_abs, RQ, lu)
+            for rep in range(2):  # against the last two vectors (all, for the first chain), twice
                 RW = P.R @ W
-                c = np.einsum("jnc,nc->jc", V[: j + 1], RW)
+                a_ = np.sum(Q * RW, axis=0)
+                b_ = np.sum(Qp * RW, axis=0)
                 if rep == 0:
-                    alpha[j] = c[j]
-                W -= np.einsum("jnc,jc->nc", V[: j + 1], c)
+                    alpha[j] = a_
+                W -= Q * a_ + Qp * b_
+                c0 = V0[:j + 1] @ (P.R @ W[:, 0])
+                W[:, 0] -= V0[:j + 1].T @ c0
             RW = P.R @ W
             beta[j] = np.sqrt(np.maximum(np.sum(W * RW, axis=0), 1e-300))
-            V[j + 1] = W / beta[j]
-            RV = RW / beta[j]
-        return float(mu_abs), nrm, alpha, beta, np.ascontiguousarray(V[:m, :, 0])
+            Qp, Q = Q, W / beta[j]
+            RQ = RW / beta[j]
+            V0[j + 1] = Q[:, 0]
+        return float(mu_abs), nrm, alpha, beta, np.ascontiguousarray(V0[:m])
 
     def _quad(self, space, lam_abs: float, steps: int):
         mu, nrm, alpha, beta, V0 = space
@@ -781,26 +815,32 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
                     sigma_sums=sigma_sums, covariance=covariance)
 
 
-def memory_estimate_bytes(n_unknowns: int, n_poses: int = 1, n_pixels: int = 0) -> float:
+def memory_estimate_bytes(n_unknowns: int, n_poses: int = 1, n_pixels: int = 0, g_per: float | None = None) -> float:
     """What :func:`matfree_solve` holds at its peak, in bytes, before anything is allocated.
 
-    Calibrated on issue 22's scene (1024², three views, one pose): per unknown and pose ~40
-    nonzeros of T (three copies: T, its observed part, the weighted copy) and ~85 of ``G``
-    (``G`` and ``H``), ~650 of the LU factors of ``H`` at 45 568 unknowns, growing like ``log n``
-    (fill of a nested-dissection-like ordering of a surface mesh; :data:`LU_CACHE` factors kept
-    and two being built where they fit in :data:`LU_BUDGET_BYTES`, else one kept and one being
-    built: :func:`lu_cache`), the probe and sample blocks, and ~12 copies of the pixel vectors.
-    Calibrated at 50 018 elements (1.7 GB said, 1.9-2.1 GB measured); it UNDERESTIMATES far
-    beyond: at 199 920 elements on the same 1024² sensor (elements smaller than pixels, so G
-    couples many more unknowns per pixel) the first factorisation passed 5.8 GB against 4.6 GB
-    said (issue 22, not solved: the fill per unknown grows with G's density, not like log n)."""
+    Per unknown and pose ~40 nonzeros of T (three copies: T, its observed part, the weighted
+    copy) and :func:`g_per_unknown` of ``G`` (three: ``G``, the sum that symmetrises it, ``H``),
+    the factorisations of ``H`` (:func:`lu_bytes`, from G's density: the fill grows with how many
+    unknowns share a pixel, ~2 200 nonzeros per unknown at 200 000 elements on 1024² pixels,
+    four times 50 000's): up to four alive where they fit in :data:`LU_BUDGET_BYTES` (two kept,
+    two in the making), else one (:func:`lu_cache`); the λ search's Krylov basis
+    (``LANCZOS_STEPS + 1`` vectors) and its probes' recurrences, the probe and sample
+    blocks, ~12 copies of the pixel vectors, and :data:`BASE_BYTES` (the interpreter, its libraries
+    and the stage's own arrays: the whole process's peak is what is compared).  ``g_per``: G's
+    nonzeros per unknown where known (else :func:`g_per_unknown`).  Measured against issue 22's
+    scene by benchmarks/bench_scale.py at 2 000 - 200 000 elements (said and measured side by
+    side) and in tests/test_matfree.py (slow) at 20 000 unknowns."""
     n = float(max(n_unknowns, 1))
-    keep = lu_cache(int(n), n_poses)
-    alive = keep + 2 if keep >= LU_CACHE else 2
-    return (12.0 * n * n_poses * (3 * T_PER_UNKNOWN + 2 * G_PER_UNKNOWN) + lu_bytes(int(n), n_poses) * alive
-            + 8.0 * n * (1 + TRACE_PROBES + 32) * 3 + 12 * 8.0 * n_pixels)
+    g = g_per_unknown(int(n), n_poses, n_pixels) if g_per is None else float(g_per)
+    keep = lu_cache(int(n), n_poses, g)
+    alive = keep + 2 if keep >= LU_CACHE else 1
+    return (12.0 * n * n_poses * (3 * T_PER_UNKNOWN + 3 * g) + lu_bytes(int(n), n_poses, g) * alive
+            + 8.0 * n * (LANCZOS_STEPS + 1) + 8.0 * n * (TRACE_PROBES + 1) * 8 + 8.0 * n * 32 * 3
+            + 12 * 8.0 * n_pixels + BASE_BYTES)
 
 
 T_PER_UNKNOWN = 40.0
 G_PER_UNKNOWN = 85.0
-LU_PER_UNKNOWN = 650.0
+LU_PER_UNKNOWN = 760.0
+BASE_BYTES = 0.35e9  # the process before the solve: Python, numpy/scipy/numba, the stage's arrays (~0.25-0.3 GB measured)
+REF_DENSITY = 45568 / 1024**2  # unknowns per sensor pixel where G_PER_UNKNOWN was measured
