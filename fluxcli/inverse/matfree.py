@@ -27,7 +27,11 @@ engine reads off the eigenvalues is estimated instead:
   ``√(2/(p·tr F))`` (2.5 % at tr F = 200, p = 16).  The same probes are used at every λ, so the
   criterion is a smooth curve: a walk over decades (half decades from the previous pass's λ)
   brackets its minimum, successive parabolas refine it to 0.05 decades (a first pass, which only
-  sets the weights: the bracket's parabola);
+  sets the weights: the bracket's parabola).  The final search reads ρ and tr F off Lanczos
+  Krylov spaces, one per ~1.5 decades of λ (:class:`_LanczosCurve`: one factorisation and 30
+  solves per start vector for every λ the space serves, where the k-step recursion
+  (:class:`_Curve`) costs a factorisation and ``k`` solves per start vector at each λ); the
+  values agree with the recursion to 1e-8, so the λ chosen is the same;
 - **σ** per unknown (and per group): the covariance of the linear estimator under the noise is
   ``M TᵀWΣWT Mᵀ``; its diagonal is estimated from ``N`` exact samples ``M TᵀWΣ^½ξ`` (the same
   ``k``-step recursion), relative standard error of σ ``1/√(2N)`` (6 % at N = 128, the default up
@@ -37,7 +41,8 @@ engine reads off the eigenvalues is estimated instead:
   adjoint solves per functional (:class:`MatfreeCovariance`).
 
 Two cores: factorisations and solves run on worker threads (:mod:`fluxcli.inverse._threads`):
-two λ of the search side by side, the columns of a block split; the main thread only waits,
+two λ of the first pass side by side, the columns of a block split, the chosen λ's solve beside
+the λ/2 one and the 2λ one beside σ's samples; the main thread only waits,
 so Ctrl-C and SIGTERM are answered at once. The search makes the same decisions as one
 evaluation at a time (each value is computed alone), so the numbers do not depend on it.
 
@@ -67,6 +72,10 @@ TRACE_PROBES = 16
 SIGMA_SAMPLES = 128
 LU_CACHE = 2  # factorisations kept (the chosen λ's is reused; two more may be in the making)
 LU_BUDGET_BYTES = 2.0e9  # factorisations alive at once: one at a time where two would need more (~150 000 unknowns)
+SIGMA_TASK = 8  # noise samples per task of the σ estimate
+LANCZOS_STEPS = 30  # Lanczos steps per start vector of the final λ search (_LanczosCurve)
+LANCZOS_RTOL = 1e-8  # a λ's residual from the Krylov space is used where m and m - 5 steps agree to this
+SOLVE_BLOCK = 16  # columns per SuperLU solve call
 SEED = 22  # probes and samples are seeded: the same inputs give the same bytes
 GRID = (1e-9, 1e3)  # the dense engine's relative λ range ...
 WIDE = (1e-15, 1e9)  # ... and how far it widens it
@@ -121,16 +130,33 @@ def _factor(H):
     return spla.splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
 
 
-def lu_bytes(n_unknowns: int, n_poses: int = 1) -> float:
-    """Estimated bytes of one SuperLU factorisation of ``H`` (see :func:`memory_estimate_bytes`)."""
-    n = float(max(n_unknowns, 1))
-    return 12.0 * n * LU_PER_UNKNOWN * max(np.log(n) / np.log(45568.0), 0.5) * np.sqrt(n_poses)
+def g_per_unknown(n_unknowns: int, n_poses: int = 1, n_pixels: int = 0) -> float:
+    """Nonzeros of ``G = TᵀWT`` per unknown and pose, from how many unknowns share a pixel: issue
+    22's scene (1024², three views) measured 42 / 82 / 258 at 18 200 / 45 568 / 181 713 unknowns
+    (unknowns per sensor pixel 0.017 / 0.043 / 0.17); ``85·(density / 0.043)^0.8`` (n_pixels 0:
+    that scene's density at 50 000 elements)."""
+    if n_pixels <= 0:
+        return G_PER_UNKNOWN
+    dens = float(max(n_unknowns, 1)) / (float(n_pixels) / max(n_poses, 1)) / REF_DENSITY
+    # held at the densest measured (4x): how far G fills beyond depends on the optics' blur in
+    # pixels, which is not known here (a 48 x 48 sensor under 62 500 elements: 27 per pixel)
+    return G_PER_UNKNOWN * min(dens, 4.0) ** 0.8
 
 
-def lu_cache(n_unknowns: int, n_poses: int = 1) -> int:
+def lu_bytes(n_unknowns: int, n_poses: int = 1, g_per: float | None = None) -> float:
+    """Estimated bytes of one SuperLU factorisation of ``H`` (see :func:`memory_estimate_bytes`):
+    ~12 bytes per nonzero of the factors, ``LU_PER_UNKNOWN·g/82`` nonzeros per unknown
+    (``g``: :func:`g_per_unknown`, or the measured one; measured 302 / 753 / ~2 200 at
+    g = 42 / 82 / 258, the last from the peak of the factorisation, 4.7 GB: the fill follows
+    G's density, not n)."""
+    g = G_PER_UNKNOWN if g_per is None else float(g_per)
+    return 12.0 * float(max(n_unknowns, 1)) * LU_PER_UNKNOWN * (g / 82.0) * np.sqrt(n_poses)
+
+
+def lu_cache(n_unknowns: int, n_poses: int = 1, g_per: float | None = None) -> int:
     """Factorisations kept: :data:`LU_CACHE`, or 1 where ``LU_CACHE + 2`` (two in the making
     while the λ search evaluates two values at once) would pass :data:`LU_BUDGET_BYTES`."""
-    return LU_CACHE if (LU_CACHE + 2) * lu_bytes(n_unknowns, n_poses) <= LU_BUDGET_BYTES else 1
+    return LU_CACHE if (LU_CACHE + 2) * lu_bytes(n_unknowns, n_poses, g_per) <= LU_BUDGET_BYTES else 1
 
 
 def _trim() -> None:
@@ -170,7 +196,8 @@ class Pencil:
         self._lu: OrderedDict = OrderedDict()  # λ̃ -> SuperLU, least recently used first
         self._lock = threading.Lock()
         self.pinned = None  # the chosen λ̃: its factorisation outlives the λ/2, 2λ solves (σ, covariance)
-        self.keep = lu_cache(self.G.shape[0])
+        n = self.G.shape[0]
+        self.keep = lu_cache(n, 1, self.G.nnz / max(n, 1))  # from G's measured density
 
     def lu(self, lam_abs: float):
         """SuperLU of ``G + λ̃R``, on a worker thread; the ``keep`` most recently used are kept (two
@@ -200,10 +227,18 @@ class Pencil:
             _trim()
         return lu
 
+    def release(self) -> None:
+        """Drop every factorisation (the pinned one too) and hand the memory back."""
+        with self._lock:
+            self._lu.clear()
+        self.pinned = None
+        _trim()
+
     def solve(self, lam_abs: float, X, lu=None):
-        """``H⁻¹X``, column by column (SuperLU's own multi-column solve is 2-3x slower than its
-        columns one at a time), the columns shared out to the worker threads; ``lu``: the
-        factorisation at ``lam_abs`` if the caller holds it."""
+        """``H⁻¹X``, the columns shared out to the worker threads, each thread's in blocks of
+        :data:`SOLVE_BLOCK` (SuperLU's multi-column solve: 26 ms a column against 36 ms one at a
+        time at 50 000 elements, one thread); ``lu``: the factorisation at ``lam_abs`` if the
+        caller holds it."""
         lu = self.lu(lam_abs) if lu is None else lu
         X = np.asarray(X, dtype=np.float64)
         if X.ndim == 1:
@@ -212,8 +247,9 @@ class Pencil:
 
         def cols(js):
             def run():
-                for j in js:
-                    out[:, j] = lu.solve(np.ascontiguousarray(X[:, j]))
+                for lo in range(0, len(js), SOLVE_BLOCK):
+                    sel = js[lo:lo + SOLVE_BLOCK]
+                    out[:, sel] = lu.solve(np.asfortranarray(X[:, sel]))
             return run
 
         T_.run_all([cols(js) for js in np.array_split(np.arange(X.shape[1]), min(T_.WORKERS, X.shape[1]))])
@@ -285,6 +321,130 @@ class _Curve:
             rho = P.wnorm2(P.a - P.T @ b)
             self.cache[key] = (rho, float(b @ b), min(max(tr, 0.0), float(self.n)))
         return self.cache[key]
+
+
+def _psi(s, lam_abs: float, k: int):
+    """``ψ(s) = (1 − (λ̃/(s+λ̃))^k)/s`` (→ ``k/λ̃`` at s = 0) and ``f(s) = 1 − (λ̃/(s+λ̃))^k``: the
+    k-step estimate is ``b = ψ(R⁻¹G)R⁻¹g``, its filter ``F = f(R⁻¹G)``."""
+    x = np.maximum(s, 0.0) / lam_abs
+    f = -np.expm1(-k * np.log1p(x))
+    small = x < 1e-8
+    psi = np.where(small, k * (1.0 - 0.5 * (k + 1) * x) / lam_abs, f / np.where(small, 1.0, np.maximum(s, 1e-300)))
+    return f, psi
+
+
+class _LanczosCurve(_Curve):
+    """:class:`_Curve`'s values (the residual, ``‖b‖²`` and the Hutchinson ``tr F`` of the unclipped
+    ``k``-step estimate, with the same probes) for every λ near a shift μ from ONE Krylov space per
+    start vector, instead of a factorisation and ``k`` solves per probe at each λ.
+
+    In the prior's metric ``B = (G + μ̃R)⁻¹R`` is self-adjoint, with eigenvalues ``t = 1/(s + μ̃)``
+    (``s`` those of the pencil ``(G, R)``).  ``F_λ = f(s)`` and ``b_λ = ψ(s)R⁻¹g`` (:func:`_psi`) are
+    functions of ``B``: Lanczos in the R-inner product on ``B`` (full reorthogonalisation), started
+    at each probe ``u`` and at ``R⁻¹g``, gives ``uᵀR f(B) u ≈ ‖u‖²_R e₁ᵀf(T_m)e₁`` (Gauss quadrature)
+    and ``b_λ ≈ ‖R⁻¹g‖_R V_m ψ(T_m) e₁``.  ``f`` and ``ψ`` are rational in ``t`` with one pole, at
+    ``t = 1/(μ̃ − λ̃)``: at λ = μ they are polynomials of degree ``k`` (exact after ``k/2`` steps), and
+    the error falls geometrically with the pole's distance from the spectrum in ``[0, 1/μ̃]``
+    (measured on issue 22's 50 000 elements, m = 30 steps: ρ to 1e-13 from μ/3 to 10μ, 1e-4 at
+    μ/10).  Each value is accepted only where the quadrature with ``m − 5`` steps agrees (ρ to
+    :data:`LANCZOS_RTOL` relative, tr F to 1e-6·n); elsewhere a new space is made at
+    ``λ·10^-½`` (the criterion's λ walk then stays within one or two spaces).  One space costs a
+    factorisation and ``m`` solves per start vector (``m = 30``), about three λ of the exact
+    recursion; the λ search asks for six to ten."""
+
+    def __init__(self, P: Pencil, k: int, probes: int, rng, steps: int = 0):
+        super().__init__(P, k, probes, rng)
+        self.steps = int(steps or LANCZOS_STEPS)
+        self.spaces: list = []  # (μ̃, ‖s₀‖_R, alpha (m, c), beta (m, c), V₀ (m, n))
+
+    def prefetch(self, lams, E) -> None:  # a value costs a few small eigendecompositions once a space exists
+        return
+
+    def _space(self, mu_abs: float, E):
+        """The Krylov space at ``mu_abs``: Lanczos in the R-inner product from ``R⁻¹g`` (its
+        basis kept: ``b_λ`` is built from it; fully reorthogonalised, twice) and from each probe
+        (the tridiagonal matrix only: the three-term recurrence with the last two vectors
+        re-orthogonalised against, as Gauss quadrature tolerates the rest (its own error is checked
+        by :meth:`_value`); memory ``m·n`` for the first, ``3n`` per probe)."""
+        P, m = self.P, self.steps
+        U, _ = self._probes(E)
+        S0 = np.column_stack([self._luR.solve(np.ascontiguousarray(P.g)), U])
+        RS = P.R @ S0
+        nrm = np.sqrt(np.maximum(np.sum(S0 * RS, axis=0), 1e-300))
+        nc = S0.shape[1]
+        V0 = np.empty((m + 1, self.n))  # the basis of the first chain
+        Q = S0 / nrm
+        Qp = np.zeros_like(Q)
+        RQ = RS / nrm
+        V0[0] = Q[:, 0]
+        alpha, beta = np.zeros((m, nc)), np.zeros((m, nc))
+        lu = P.lu(mu_abs)
+        for j in range(m):
+            P.check()
+            W = P.solve(mu_abs, RQ, lu)
+            for rep in range(2):  # against the last two vectors (all, for the first chain), twice
+                RW = P.R @ W
+                a_ = np.sum(Q * RW, axis=0)
+                b_ = np.sum(Qp * RW, axis=0)
+                if rep == 0:
+                    alpha[j] = a_
+                W -= Q * a_ + Qp * b_
+                c0 = V0[:j + 1] @ (P.R @ W[:, 0])
+                W[:, 0] -= V0[:j + 1].T @ c0
+            RW = P.R @ W
+            beta[j] = np.sqrt(np.maximum(np.sum(W * RW, axis=0), 1e-300))
+            Qp, Q = Q, W / beta[j]
+            RQ = RW / beta[j]
+            V0[j + 1] = Q[:, 0]
+        return float(mu_abs), nrm, alpha, beta, np.ascontiguousarray(V0[:m])
+
+    def _quad(self, space, lam_abs: float, steps: int):
+        mu, nrm, alpha, beta, V0 = space
+        b, tr = None, []
+        for c in range(alpha.shape[1]):
+            Tm = np.diag(alpha[:steps, c]) + np.diag(beta[: steps - 1, c], 1) + np.diag(beta[: steps - 1, c], -1)
+            th, Y = np.linalg.eigh(Tm)
+            s = 1.0 / np.maximum(th, 1e-300) - mu
+            f, psi = _psi(s, lam_abs, self.k)
+            if c == 0:
+                b = V0[:steps].T @ (Y @ (psi * Y[0])) * nrm[0]
+            else:
+                tr.append(nrm[c] ** 2 * float(np.sum(Y[0] ** 2 * f)))
+        return b, float(np.mean(tr))
+
+    def _value(self, space, lam_abs: float):
+        P = self.P
+        out = []
+        for steps in (self.steps, self.steps - 5):
+            b, tr = self._quad(space, lam_abs, steps)
+            out.append((P.wnorm2(P.a - P.T @ b), float(b @ b), tr))
+        (rho, bb, tr), (rho5, _, tr5) = out
+        ok = abs(rho - rho5) <= LANCZOS_RTOL * rho and abs(tr - tr5) <= 1e-6 * self.n
+        return (rho, bb, min(max(tr, 0.0), float(self.n))), ok
+
+    def at(self, lam_rel: float, E):
+        key = float(lam_rel)
+        if key not in self.cache:
+            lam_abs = key * self.P.scale
+            val = None
+            for space in sorted(self.spaces, key=lambda sp_: abs(np.log(sp_[0] / lam_abs))):
+                v, ok = self._value(space, lam_abs)
+                if ok:
+                    val = v
+                    break
+            if val is None:
+                self.spaces.append(self._space(lam_abs / np.sqrt(10.0), E))
+                val, _ = self._value(self.spaces[-1], lam_abs)
+            self.cache[key] = val
+        return self.cache[key]
+
+    def _probes(self, E):
+        if self._U is None:
+            xi = self._rng.choice([-1.0, 1.0], size=(E.shape[0], self.probes))
+            self._EtXi = np.asarray(E.T @ xi)
+            self._luR = T_.owned(_factor, sp.csc_array(self.P.R))
+            self._U = np.column_stack([self._luR.solve(np.ascontiguousarray(c)) for c in self._EtXi.T])
+        return self._U, self._EtXi
 
 
 def _criterion(rule, rho, tr, m, gamma, mean_var=None, target=None):
@@ -437,30 +597,46 @@ def _clipped(P: Pencil, lam_abs: float, k: int):
     return b, it, converged or norm == 0
 
 
-def _sigma(P: Pencil, lam_abs: float, k: int, sigma2, n_samples: int, rng, sums=None):
-    """σ of the linear k-step estimator under noise ``Σ`` (``sigma2``; None: ``Σ = W⁻¹``) from
-    ``n_samples`` exact samples ``M TᵀWΣ^½ξ``; also σ of ``sums @ b`` when given."""
+def _sigma_tasks(P: Pencil, lam_abs: float, k: int, sigma2, n_samples: int, rng, sums=None, lu=None):
+    """The work of :func:`_sigma` as independent tasks (a few samples each, for
+    :func:`fluxcli.inverse._threads.run_all` beside other work) and the function that sums their
+    results into (σ, σ of ``sums @ b``).  The samples are drawn here, in order (the same for any
+    number of threads)."""
     m = P.T.shape[0]
     if sigma2 is None:
         amp = np.sqrt(P.w)
     else:
         amp = np.sqrt(sigma2) * (1.0 if P.w is None else P.w)
-    acc = np.zeros(P.G.shape[0])
-    acc_s = None if sums is None else np.zeros(sums.shape[0])
-    done = 0
-    lu = P.lu(lam_abs)
+    lu = P.lu(lam_abs) if lu is None else lu
+
+    def task(xi):
+        def run():
+            Z = np.asarray(P.T.T @ (amp[:, None] * xi))
+            C = P.solve(lam_abs, Z, lu)
+            X = P.iterate(lam_abs, C, k - 1, C, lu) if k > 1 else C
+            return np.sum(X * X, axis=1), (None if sums is None else np.sum(np.asarray(sums @ X) ** 2, axis=1))
+        return run
+
+    tasks, done = [], 0
     while done < n_samples:
         nb = min(32, n_samples - done)
-        Z = np.asarray(P.T.T @ (amp[:, None] * rng.standard_normal((m, nb))))
-        C = P.solve(lam_abs, Z, lu)
-        X = P.iterate(lam_abs, C, k - 1, C, lu) if k > 1 else C
-        acc += np.sum(X * X, axis=1)
-        if sums is not None:
-            Y = np.asarray(sums @ X)
-            acc_s += np.sum(Y * Y, axis=1)
+        xi = rng.standard_normal((m, nb))
+        tasks += [task(xi[:, lo:lo + SIGMA_TASK]) for lo in range(0, nb, SIGMA_TASK)]
         done += nb
-    sig = np.sqrt(acc / n_samples)
-    return sig, (None if sums is None else np.sqrt(acc_s / n_samples))
+
+    def total(results):
+        acc = np.sum([r[0] for r in results], axis=0)
+        acc_s = None if sums is None else np.sum([r[1] for r in results], axis=0)
+        return np.sqrt(acc / n_samples), (None if sums is None else np.sqrt(acc_s / n_samples))
+
+    return tasks, total
+
+
+def _sigma(P: Pencil, lam_abs: float, k: int, sigma2, n_samples: int, rng, sums=None):
+    """σ of the linear k-step estimator under noise ``Σ`` (``sigma2``; None: ``Σ = W⁻¹``) from
+    ``n_samples`` exact samples ``M TᵀWΣ^½ξ``; also σ of ``sums @ b`` when given."""
+    tasks, total = _sigma_tasks(P, lam_abs, k, sigma2, n_samples, rng, sums)
+    return total(T_.run_all(tasks))
 
 
 class MatfreeCovariance:
@@ -542,13 +718,23 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
     var_model = sigma2
     choice = None
     start = 1e-4
+    P = None
     for p in range(n_pass):
+        if P is not None:  # the previous pass's factorisations go before this pass's G is made
+            P.release()
         P = Pencil(T_obs, a, weights, R, check)
+        # one factorisation alive at a time (lu_cache): each counts (minutes beyond ~150 000 unknowns)
+        big = P.keep < LU_CACHE
         lam_p = lam
         if lam is None:
             last = p == n_pass - 1
             # a first pass only sets the weights: fewer probes, a coarser λ
-            curve = _Curve(P, k, probes if last else max(probes // 4, 2), np.random.default_rng(SEED + p))
+            # the final, fine search from Krylov spaces (a handful of solves per probe for every λ);
+            # a first pass, a coarse walk with a quarter of the probes, by the k-step recursion (a
+            # factorisation per λ; two at once on the two cores), or from Krylov spaces where
+            # factorisations are one at a time (one space spans ~2 of its whole-decade steps)
+            curve = (_LanczosCurve if (last or big) else _Curve)(P, k, probes if last else max(probes // 4, 2),
+                                                                np.random.default_rng(SEED + p))
             fine = 0.05 if last else 1.0  # a first pass: the bracket's parabola, to about a third of a decade
             step0 = 1.0 if p == 0 else 0.5  # a later pass starts at the previous pass's λ
             noise_weighted = weights is not None
@@ -569,7 +755,22 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
                                      start=start, bounds=bounds, finest=fine, first_step=step0)
             lam_p = choice.lam
             start = lam_p
-        b, it, conv = _clipped(P, lam_p * P.scale, k)
+            del curve  # its Krylov spaces
+        side: dict = {}
+        if p == n_pass - 1 and lam is None and big:
+            # the totals' bracket first, one factorisation at a time: the chosen λ's is then kept
+            # (σ, the stage's covariance) and never beside another
+            for x in (0.5 * lam_p * P.scale, 2.0 * lam_p * P.scale):
+                side[x] = _clipped(P, x, k)[0]
+            P.release()
+        if p == n_pass - 1 and lam is None and not big and T_.WORKERS > 1:
+            # the chosen λ's solve and the λ/2 one (the totals' bracket, below) side by side, one per core
+            lam_at = lam_p * P.scale
+            P.pinned = float(lam_at)
+            (b, it, conv), side[0.5 * lam_at] = T_.run_all([lambda: _clipped(P, lam_at, k),
+                                                            lambda: _clipped(P, 0.5 * lam_at, k)[0]])
+        else:
+            b, it, conv = _clipped(P, lam_p * P.scale, k)
         if variance is not None:
             var_model = variance(P.T @ b)
             if p < n_pass - 1 and weighted:
@@ -581,20 +782,30 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
     sigma = np.full(len(b), np.nan)
     sigma_sums = None if sums is None else np.full(sums.shape[0], np.nan)
     covariance = None
+    P.pinned = float(lam_abs)
+    sides = lam is None and b.sum() > 0
+    tasks = []  # the λ/2, 2λ solves not yet made, then σ's samples: one pool for the two cores
+    if sides:
+        tasks += [lambda x=x: (x, _clipped(P, x, k)[0]) for x in (0.5 * lam_abs, 2.0 * lam_abs) if x not in side]
+    n_side = len(tasks)
+    total_sigma = None
     if weights is not None or var_model is not None:
         s2 = None if weights is not None else var_model
         covariance = MatfreeCovariance(P, lam_abs, it, s2, level)
-        n_s = samples if samples is not None else (SIGMA_SAMPLES if len(b) <= DENSE_MAX_UNKNOWNS else SIGMA_SAMPLES // 2)
-        sg, sgs = _sigma(P, lam_abs, it, s2, n_s, np.random.default_rng(SEED + 100), sums)
+        n_s = samples if samples is not None else (SIGMA_SAMPLES if len(b) <= DENSE_MAX_UNKNOWNS
+                                                   else SIGMA_SAMPLES // 2 if not P.keep < LU_CACHE else SIGMA_SAMPLES // 4)
+        more, total_sigma = _sigma_tasks(P, lam_abs, it, s2, n_s, np.random.default_rng(SEED + 100), sums)
+        tasks += more
+    # two factorisations alive beside the chosen λ's only where they fit (lu_cache)
+    results = T_.run_all(tasks, workers=None if P.keep >= LU_CACHE else 1)
+    side.update(dict(results[:n_side]))
+    if total_sigma is not None:
+        sg, sgs = total_sigma(results[n_side:])
         sigma = sg * level
         if sums is not None:
             sigma_sums = sgs * level
-    P.pinned = float(lam_abs)
     totals = (np.nan, np.nan)
-    if lam is None and b.sum() > 0:
-        at = [0.5 * lam_abs, 2.0 * lam_abs]
-        side = dict(zip(at, T_.run_all([lambda x=x: _clipped(P, x, k)[0] for x in at],
-                                       workers=2 if P.keep >= LU_CACHE else 1)))  # one per core
+    if sides:
         totals = halved_and_doubled(lambda lam_x: side[lam_x] if lam_x in side else _clipped(P, lam_x, k)[0],
                                     P.T, a, b, lam_abs,
                                     var_model=var_model, free_level=free_level, warnings=warn)
@@ -604,26 +815,32 @@ def matfree_solve(T_obs, a, *, prior, k: int = 10, lam: float | None = None, rul
                     sigma_sums=sigma_sums, covariance=covariance)
 
 
-def memory_estimate_bytes(n_unknowns: int, n_poses: int = 1, n_pixels: int = 0) -> float:
+def memory_estimate_bytes(n_unknowns: int, n_poses: int = 1, n_pixels: int = 0, g_per: float | None = None) -> float:
     """What :func:`matfree_solve` holds at its peak, in bytes, before anything is allocated.
 
-    Calibrated on issue 22's scene (1024², three views, one pose): per unknown and pose ~40
-    nonzeros of T (three copies: T, its observed part, the weighted copy) and ~85 of ``G``
-    (``G`` and ``H``), ~650 of the LU factors of ``H`` at 45 568 unknowns, growing like ``log n``
-    (fill of a nested-dissection-like ordering of a surface mesh; :data:`LU_CACHE` factors kept
-    and two being built where they fit in :data:`LU_BUDGET_BYTES`, else one kept and one being
-    built: :func:`lu_cache`), the probe and sample blocks, and ~12 copies of the pixel vectors.
-    Calibrated at 50 018 elements (1.7 GB said, 1.9-2.1 GB measured); it UNDERESTIMATES far
-    beyond: at 199 920 elements on the same 1024² sensor (elements smaller than pixels, so G
-    couples many more unknowns per pixel) the first factorisation passed 5.8 GB against 4.6 GB
-    said (issue 22, not solved: the fill per unknown grows with G's density, not like log n)."""
+    Per unknown and pose ~40 nonzeros of T (three copies: T, its observed part, the weighted
+    copy) and :func:`g_per_unknown` of ``G`` (three: ``G``, the sum that symmetrises it, ``H``),
+    the factorisations of ``H`` (:func:`lu_bytes`, from G's density: the fill grows with how many
+    unknowns share a pixel, ~2 200 nonzeros per unknown at 200 000 elements on 1024² pixels,
+    four times 50 000's): up to four alive where they fit in :data:`LU_BUDGET_BYTES` (two kept,
+    two in the making), else one (:func:`lu_cache`); the λ search's Krylov basis
+    (``LANCZOS_STEPS + 1`` vectors) and its probes' recurrences, the probe and sample
+    blocks, ~12 copies of the pixel vectors, and :data:`BASE_BYTES` (the interpreter, its libraries
+    and the stage's own arrays: the whole process's peak is what is compared).  ``g_per``: G's
+    nonzeros per unknown where known (else :func:`g_per_unknown`).  Measured against issue 22's
+    scene by benchmarks/bench_scale.py at 2 000 - 200 000 elements (said and measured side by
+    side) and in tests/test_matfree.py (slow) at 20 000 unknowns."""
     n = float(max(n_unknowns, 1))
-    keep = lu_cache(int(n), n_poses)
-    alive = keep + 2 if keep >= LU_CACHE else 2
-    return (12.0 * n * n_poses * (3 * T_PER_UNKNOWN + 2 * G_PER_UNKNOWN) + lu_bytes(int(n), n_poses) * alive
-            + 8.0 * n * (1 + TRACE_PROBES + 32) * 3 + 12 * 8.0 * n_pixels)
+    g = g_per_unknown(int(n), n_poses, n_pixels) if g_per is None else float(g_per)
+    keep = lu_cache(int(n), n_poses, g)
+    alive = keep + 2 if keep >= LU_CACHE else 1
+    return (12.0 * n * n_poses * (3 * T_PER_UNKNOWN + 3 * g) + lu_bytes(int(n), n_poses, g) * alive
+            + 8.0 * n * (LANCZOS_STEPS + 1) + 8.0 * n * (TRACE_PROBES + 1) * 8 + 8.0 * n * 32 * 3
+            + 12 * 8.0 * n_pixels + BASE_BYTES)
 
 
 T_PER_UNKNOWN = 40.0
 G_PER_UNKNOWN = 85.0
-LU_PER_UNKNOWN = 650.0
+LU_PER_UNKNOWN = 760.0
+BASE_BYTES = 0.35e9  # the process before the solve: Python, numpy/scipy/numba, the stage's arrays (~0.25-0.3 GB measured)
+REF_DENSITY = 45568 / 1024**2  # unknowns per sensor pixel where G_PER_UNKNOWN was measured
