@@ -229,7 +229,7 @@ def test_auto_takes_the_matrix_free_path_beyond_the_dense_limit(monkeypatch):
 def test_memory_estimate_grows_far_slower_than_the_dense_one():
     """The dense path needed 8·n²·4 bytes (125 GB at 62 500 elements: refused); the sparse
     estimate stays within a desktop's memory at 200 000 elements (issue 22's scene: 181 713
-    observed unknowns on 1024² pixels; measured 7.7 GB at its peak), and is at least what was
+    observed unknowns on 1024² pixels; measured 7.5 and 7.7 GB at its peak in two runs), and is at least what was
     measured there and at 50 000 elements (45 568 unknowns: 2.0 GB through the CLI)."""
     for n in (20_000, 50_000, 200_000):
         mf = MF.memory_estimate_bytes(n, 1, 1024 * 1024)
