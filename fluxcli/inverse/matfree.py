@@ -839,6 +839,45 @@ def memory_estimate_bytes(n_unknowns: int, n_poses: int = 1, n_pixels: int = 0, 
             + 12 * 8.0 * n_pixels + BASE_BYTES)
 
 
+def stage_bytes(n_unknowns: int, n_poses: int, n_pixels_per_pose: int) -> float:
+    """The whole reconstruct's peak on this path, in bytes, before anything is allocated: the
+    larger of one pose's solve and the joint one (:func:`memory_estimate_bytes`), plus what the
+    other poses hold meanwhile (their T per fine face, per unknown and per element, and their
+    images: :data:`POSE_HELD_BYTES_PER_UNKNOWN`)."""
+    P = max(int(n_poses), 1)
+    solves = [_up_to(n_unknowns, 1, n_pixels_per_pose)]
+    if P > 1:
+        solves.append(_up_to(n_unknowns, P, n_pixels_per_pose * P))
+    return max(solves) + (P - 1) * POSE_HELD_BYTES_PER_UNKNOWN * float(max(n_unknowns, 1))
+
+
+def _up_to(n_unknowns: int, n_poses: int, n_pixels: int) -> float:
+    """:func:`memory_estimate_bytes` for any count up to ``n_unknowns``: a solve has only the
+    unknowns its pixels see, and the estimate drops where that many stop fitting
+    :data:`LU_CACHE` factorisations (one is kept instead), so it is also taken at the largest count
+    where they still fit.  (At 50 000 elements the stage counted 50 299 vertices, which said 1.3 GB;
+    the solve had 45 568 observed unknowns, kept two factorisations and took 2.0 GB.)"""
+    n = int(max(n_unknowns, 1))
+    best = memory_estimate_bytes(n, n_poses, n_pixels)
+
+    def several(m: int) -> bool:
+        return lu_cache(m, n_poses, g_per_unknown(m, n_poses, n_pixels)) == LU_CACHE
+
+    if several(n) or not several(1):
+        return best
+    lo, hi = 1, n  # several(lo), not several(hi): the fill grows with the count, so one change between
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        lo, hi = (mid, hi) if several(mid) else (lo, mid)
+    return max(best, memory_estimate_bytes(lo, n_poses, n_pixels))
+
+
+# What each further pose holds while another is solved, per unknown: issue 22's 50 000-element scene
+# (45 568 unknowns, 1024², three views) peaked at 2.02 GB with one pose and 2.75 GB with two (rotations
+# 0 and 120 deg, each alone and jointly; 26 Nov 2026), where one solve's estimate alone said 2.47 GB.
+POSE_HELD_BYTES_PER_UNKNOWN = 16e3
+
+
 T_PER_UNKNOWN = 40.0
 G_PER_UNKNOWN = 85.0
 LU_PER_UNKNOWN = 760.0

@@ -17,7 +17,7 @@ import scipy.sparse as sp
 from .. import artefacts as A
 from ..artefacts.reconstruction import SweepRecord
 from ..artefacts.transfer import load_T, load_T_tangent, load_view
-from ..inverse.matfree import DENSE_MAX_UNKNOWNS, memory_estimate_bytes as matfree_bytes
+from ..inverse.matfree import DENSE_MAX_UNKNOWNS, stage_bytes as matfree_bytes
 from ..inverse.solve import DENSE, describe
 from ..inverse.sweep import sweep_cell
 from ..inverse.unknowns import Grid, VertexMap, n_vertices, resolve_unknowns
@@ -76,8 +76,7 @@ def check_solver_size(settings, sweep, pixels, ctx: RunContext, surface, n_poses
     for s in methods:
         n = n_sub[s.unknowns]
         if s.method == "smooth" and n > DENSE_MAX_UNKNOWNS:  # the matrix-free path (fluxcli.inverse.matfree)
-            need = max(need, matfree_bytes(n, n_poses=n_poses, n_pixels=nx * ny * n_poses)
-                       * (ctx.jobs if sweep else 1))
+            need = max(need, matfree_bytes(n, n_poses, nx * ny) * (ctx.jobs if sweep else 1))
         elif s.method in DENSE:
             need = max(need, 8.0 * n ** 2 * 4 * (ctx.jobs if sweep else 1))
     if any(s.method == "smooth" and n_sub[s.unknowns] > DENSE_MAX_UNKNOWNS for s in methods):
