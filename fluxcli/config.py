@@ -713,7 +713,7 @@ class Radiometric(Model):
     darks: tuple[RadiometricDarks, ...] = Field((), description="Dark frames per exposure; two or more exposures separate dark current from clock-induced charge.")
     flats: tuple[Path, ...] = Field((), description="Flat frames of the evenly lit bare sensor, EM gain off (counts): the pixel-response map.")
     saturation_counts: float = Field(65535.0, gt=0, description="Saturation level (counts): such pixels are left out of the PTC, and a pair with over 1 % of them is dropped.")
-    excess_noise_factor_squared: float = Field(2.0, ge=1, le=2, description="F^2 of the EM register assumed for the gain-on PTC slope (2 at high gain).")
+    excess_noise_factor_squared: float | None = Field(None, ge=1, le=2, description="F^2 of the EM register assumed for the gain-on PTC slope; left out: an ideal register's 2 - 1/G, solved with the gain G.")
     gain_tolerance: float = Field(0.1, gt=0, description="Warn when the ratio and PTC EM gains differ by more than this fraction.")
 
     @field_validator("bias")

@@ -34,10 +34,10 @@ def test_flat_source_mean_counts_match_qe_gain_and_bias():
     frames = cam.sequence(8).astype(float)
     N = 30.0 * 2.0
     expected = 400.0 + 100.0 * (0.8 * N + 0.5 * 2.0 + 0.02) / 12.0  # = 827.5 counts
-    var = 2 * 100.0**2 * (0.8 * N + 1.02) / 12.0**2 + (40 / 12.0) ** 2  # F^2 = 2
+    var = (2 - 1 / 100.0) * 100.0**2 * (0.8 * N + 1.02) / 12.0**2 + (40 / 12.0) ** 2  # F^2 = 2 - 1/G
     sem = np.sqrt(var / frames.size)
     assert abs(frames.mean() - expected) < 5 * sem
-    assert abs(frames.var() / var - 1) < 0.05  # excess noise factor sqrt(2) shows in the spread
+    assert abs(frames.var() / var - 1) < 0.05  # excess noise factor sqrt(2 - 1/G) shows in the spread
 
 
 def test_dark_frame_mean_is_dark_current_times_exposure_plus_cic():

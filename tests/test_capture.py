@@ -271,7 +271,7 @@ def test_counts_to_photons_subtracts_the_dark_level_without_bias():
     wrong = EMCCDModel(quantum_efficiency=0.7, electrons_per_count=8.0, bias_counts=0.0, dark_current_e_per_s=99.0)
     photons, valid = images.photons(wrong)
     assert valid.all()
-    var_one = 2 * (0.7 * N + 1.1) / 0.7**2 / 4  # F^2 = 2, averaged over 4 repeats (read noise negligible at G=50)
+    var_one = (2 - 1 / 50) * (0.7 * N + 1.1) / 0.7**2 / 4  # F^2 = 2 - 1/G, averaged over 4 repeats (read noise negligible at G=50)
     assert abs(photons.mean() - N.mean()) < 5 * np.sqrt(var_one.sum()) / N.size + 0.05
     # unbiased per level: compare the lower and upper halves of the ramp
     assert photons[0, :32].mean() == pytest.approx(N[:32].mean(), rel=0.03)

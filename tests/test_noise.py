@@ -7,6 +7,7 @@ import pytest
 
 from fluxcli.imaging.noise import (
     EMCCDModel,
+    PhotonNoise,
     counts_to_photons,
     emccd_counts,
     expected_counts,
@@ -35,8 +36,10 @@ def mean_input_electrons(photons, m):
     [
         (200.0, EMCCDModel(em_gain=300.0)),  # the defaults: read noise 50 e-, 10 e-/count
         (5.0, EMCCDModel(em_gain=1000.0, read_noise_e=5.0)),  # photon-starved, high gain
-        # Unit gain: the gamma model still has F² = 2 (it is not a conventional CCD).
+        # Unit gain: no multiplication, F² = 1 (a conventional readout).
         (200.0, EMCCDModel(em_gain=1.0, read_noise_e=0.1, electrons_per_count=0.05)),
+        # Low gain, where F² = 2 − 1/G (1.5) and the high-gain 2 differ by a third.
+        (200.0, EMCCDModel(em_gain=2.0, read_noise_e=0.1, electrons_per_count=0.05)),
     ],
 )
 def test_emccd_flat_field_mean_and_excess_noise(photons, model):
@@ -47,7 +50,8 @@ def test_emccd_flat_field_mean_and_excess_noise(photons, model):
     lam = mean_input_electrons(photons, model)
     g, gain = model.electrons_per_count, model.em_gain
     mean_closed = model.bias_counts + gain * lam / g
-    var_closed = 2 * gain**2 * lam / g**2 + (model.read_noise_e / g) ** 2
+    f2 = 2 - 1 / gain  # ideal multiplication (many stages): Robbins & Hadwen 2003
+    var_closed = f2 * gain**2 * lam / g**2 + (model.read_noise_e / g) ** 2
     assert counts.mean() == pytest.approx(mean_closed, rel=0.03)
     assert counts.var() == pytest.approx(var_closed, rel=0.03)
     np.testing.assert_allclose(expected_counts(photons, model), mean_closed, rtol=1e-12)
@@ -56,7 +60,22 @@ def test_emccd_flat_field_mean_and_excess_noise(photons, model):
     # Excess noise factor of the EM register, read noise subtracted.
     electrons = (counts.astype(np.float64) - model.bias_counts) * g
     excess_noise_factor_sq = (electrons.var() - model.read_noise_e**2) / (gain * electrons.mean())
-    assert excess_noise_factor_sq == pytest.approx(2.0, rel=0.03)
+    assert excess_noise_factor_sq == pytest.approx(f2, rel=0.03)
+
+
+@pytest.mark.parametrize("gain", [1.0, 2.0, 300.0])
+def test_photon_noise_model_is_the_variance_of_the_simulated_chain(gain):
+    """The reconstruction's EMCCD noise model is the variance of what the simulator makes, read
+    back as photons: σ² = [F²(QE·a + d) + (σ_r/G)²] / QE², F² = 2 − 1/G, written out here and
+    compared with the sample variance of counts_to_photons(emccd_counts(a))."""
+    model = EMCCDModel(em_gain=gain, read_noise_e=0.1 * gain, electrons_per_count=0.05 * gain)
+    photons = 200.0
+    noise = PhotonNoise(kind="emccd", sensor=model, floor_photons2=0.0)
+    qe, d = model.quantum_efficiency, mean_input_electrons(0.0, model)
+    closed = ((2 - 1 / gain) * (qe * photons + d) + (model.read_noise_e / gain) ** 2) / qe**2
+    assert float(noise.variance(photons)) == pytest.approx(closed, rel=1e-12)
+    back = counts_to_photons(emccd_counts(flat(photons), model, np.random.default_rng(11)), model)
+    assert back.var() == pytest.approx(closed, rel=0.03)
 
 
 def test_emccd_no_electrons_gives_bias_exactly():

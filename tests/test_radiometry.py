@@ -55,7 +55,7 @@ def test_sample_data_recovers_the_stated_camera(sample_result):
     assert r.read_noise_e == pytest.approx(truth["read_noise_e"], rel=0.10)
     assert r.bias_counts == pytest.approx(truth["bias_counts"], abs=0.2)
     assert r.dark_current_e_per_s == pytest.approx(truth["dark_current_e_per_s"], rel=0.10)
-    # the two EM-gain estimators agree (gamma register: F^2 = 2 exactly)
+    # the two EM-gain estimators agree (the ideal register's F^2 = 2 - 1/G on both sides)
     assert r.em_gain_from_ptc == pytest.approx(r.em_gain_from_ratio, rel=0.10)
     # stated uncertainties are honest: the truth lies within 4 sigma
     assert abs(r.electrons_per_count - truth["electrons_per_count"]) < 4 * r.electrons_per_count_sigma
@@ -137,7 +137,7 @@ def test_independent_emccd_simulator_emccd_detect(tmp_path):
     assert r.em_gain == pytest.approx(truth["em_gain"], rel=0.05)
     assert r.read_noise_e == pytest.approx(truth["read_noise_e"], rel=0.10)
     # its exact register has F^2 = 1/G + 2(G-1) G^(-(N+1)/N) = 1.978 (N = 604): the PTC gain,
-    # which assumes 2, lands about 1 % low; the cross-check agrees within 10 %
+    # which assumes the many-stage 2 - 1/G = 1.9975, lands about 1 % low; the cross-check agrees within 10 %
     assert r.em_gain_from_ptc == pytest.approx(r.em_gain_from_ratio, rel=0.10)
     assert r.dark_current_e_per_s == pytest.approx(truth["dark_current_e_per_s"], rel=0.15)
     # emccd-detect's bias (electrons, plus the EXCAM fixed pattern, floored by its ADC: -0.5 count
@@ -216,7 +216,7 @@ def test_counts_to_photons_with_maps_is_unbiased():
     est = counts_to_photons_with_maps(frames.mean(axis=0), model, bias_counts_map=bias, dark_e_per_s_map=dark,
                                       flat_map=flat)
     lam = model.quantum_efficiency * flat * photons + dark * model.exposure_s + model.cic_e_per_pixel
-    sigma = np.sqrt(2 * lam / 200) / (model.quantum_efficiency * flat)  # F^2 = 2
+    sigma = np.sqrt((2 - 1 / 100.0) * lam / 200) / (model.quantum_efficiency * flat)  # F^2 = 2 - 1/G
     z = (est - photons).sum() / np.sqrt((sigma**2).sum())
     assert abs(z) < 4
     # without the maps the estimate is biased (the test can fail)
@@ -418,3 +418,47 @@ def test_fluxmap_calibrate_radiometric_cli(tmp_path):
     r = _run("calibrate", str(SAMPLE_CONFIG), "--force", *work, "--set", "system.camera.pixels=[32,32]")
     out = " ".join(r.output.split())
     assert r.exit_code == 2 and "system.camera.pixels" in out and "bias_0.tif" in out
+
+
+def test_a_low_gain_register_matches_an_independent_branching_simulator():
+    """At EM gain 3 an ideal register's excess noise factor is F² = 2 − 1/G = 1.667, a sixth below the
+    high-gain 2. emccd-detect's exact 604-stage branching register (not fluxmap's code) has
+    1/G + 2(G − 1)G^(−605/604) = 1.664 there. fluxmap's simulated register must show the same F², and
+    the gain from the gain-on PTC slope (G·F²(G) = slope·K, solved with the ideal register's F²)
+    must be 3; assuming F² = 2 would read 2.50."""
+    gain, shape, K = 3.0, (64, 64), 1.0
+    f2_branching = 1 / gain + 2 * (gain - 1) * gain ** (-605 / 604)
+    cams = [EMCCDDetect(em_gain=g, full_well_image=1e9, full_well_serial=1e9, dark_current=0.0, cic=0.0,
+                        read_noise=2.0, bias=1000.0, qe=1.0, cr_rate=0.0, eperdn=K, nbits=16, row_read_time=0.0,
+                        upstream_spill_prob=None, fast_gain_mode=False, gain_CIC_Q=0.0, fpn_path=None,
+                        bias_sigma_col=0.0, bias_sigma_row=0.0) for g in (1.0, gain)]
+    model = N.EMCCDModel(quantum_efficiency=1.0, em_gain=gain, read_noise_e=2.0, bias_counts=1000.0,
+                         electrons_per_count=K, dark_current_e_per_s=0.0, cic_e_per_pixel=0.0, exposure_s=1.0)
+
+    def f2_measured(frames, photons):  # pair-difference variance over mean signal, read noise taken off
+        var = np.mean([np.var(a - b) / 2 for a, b in zip(frames[::2], frames[1::2])])
+        return (var - model.read_noise_e**2) / (gain * (frames.mean() - model.bias_counts))
+
+    state = np.random.get_state()
+    np.random.seed(31)  # emccd-detect draws from numpy's global generator
+    try:
+        def detect(cam, photons, n):
+            return np.array([cam.sim_sub_frame(np.full(shape, photons), 1.0).astype(float) for _ in range(n)])
+
+        theirs = detect(cams[1], 300.0, 12)
+        ptc = [R.PTCLevel(detect(cams[0], p, 2), p / 1e3, False, "lamp") for p in (500.0, 2000.0, 8000.0)]
+        ptc += [R.PTCLevel(detect(cams[1], p, 4), p / 1e3, True, "lamp") for p in (500.0, 2000.0, 8000.0)]
+        bias = detect(cams[0], 0.0, 4)
+    finally:
+        np.random.set_state(state)
+    rng = np.random.default_rng(31)
+    ours = np.array([N.emccd_counts(np.full(shape, 300.0), model, rng) for _ in range(12)]).astype(float)
+    assert f2_measured(theirs, 300.0) == pytest.approx(f2_branching, rel=0.02)
+    assert f2_measured(ours, 300.0) == pytest.approx(f2_branching, rel=0.02)
+    assert N.excess_noise_factor2(gain) == pytest.approx(f2_branching, rel=0.003)
+    r = R.calibrate_radiometric(bias=bias, ptc=ptc)
+    assert r.electrons_per_count == pytest.approx(K, rel=0.03)
+    assert r.em_gain_from_ratio == pytest.approx(gain, rel=0.02)
+    assert r.em_gain_from_ptc == pytest.approx(gain, rel=0.03)
+    assert r.excess_noise_factor_squared == pytest.approx(f2_branching, rel=0.02)
+    assert not any("differ" in w for w in r.warnings)

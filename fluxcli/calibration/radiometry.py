@@ -9,7 +9,8 @@ chain and returns a :class:`RadiometricResult`.
 The camera model is the one of :mod:`fluxcli.imaging.noise` (Hirsch et al. 2013):
 ``counts = bias + x / K`` with ``x`` the electrons at the output node, ``K`` electrons
 per count, ``x = Σ`` over ``n ~ Poisson(λ)`` input electrons multiplied by the EM
-register (mean gain ``G``, excess noise factor ``F² → 2`` at high gain) or not multiplied
+register (mean gain ``G``, excess noise factor ``F² = 2 − 1/G`` of ideal multiplication,
+:func:`fluxcli.imaging.noise.excess_noise_factor2`, unless the config states another) or not multiplied
 (EM gain off: ``x = n``; the gain set to 1 in EM mode, read through the same amplifier,
 so ``K`` is the same in both), plus Gaussian read noise ``σ_r`` electrons. So for a pixel with mean signal ``S = E[counts] − bias`` (counts):
 
@@ -29,10 +30,12 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.optimize import brentq
+
 from ..errors import InputError
+from ..imaging.noise import excess_noise_factor2
 
 __all__ = [
-    "EXCESS_NOISE_FACTOR_SQUARED",
     "PTCLevel",
     "PTCSeries",
     "RadiometricResult",
@@ -46,10 +49,6 @@ __all__ = [
     "pair_statistics",
     "read_noise_counts",
 ]
-
-EXCESS_NOISE_FACTOR_SQUARED = 2.0
-"""``F²`` of an EM register at high gain (stochastic multiplication over many stages)."""
-
 
 # ------------------------------------------------------------------ input checks
 def _stack(frames, what: str, *, min_frames: int = 1) -> np.ndarray:
@@ -334,8 +333,8 @@ def _ptc_series(pairs: list, exposures_s: list[float], labels: list[str], bias_c
 
 def em_gain_from_ptc(slope_on_counts: float, slope_on_sigma_counts: float, electrons_per_count: float,
                      electrons_per_count_sigma: float, *,
-                     excess_noise_factor_squared: float = EXCESS_NOISE_FACTOR_SQUARED) -> tuple[float, float]:
-    """EM gain from the slope of the gain-on PTC: ``G = slope · K / F²``.
+                     excess_noise_factor_squared: float | None = None) -> tuple[float, float]:
+    """EM gain from the slope of the gain-on PTC: ``G · F² = slope · K``.
 
     Parameters
     ----------
@@ -343,17 +342,27 @@ def em_gain_from_ptc(slope_on_counts: float, slope_on_sigma_counts: float, elect
         Slope of variance against mean with the EM gain on (counts) and its 1-sigma.
     electrons_per_count, electrons_per_count_sigma : float
         ``K`` (electrons per count) and its 1-sigma, from the gain-off PTC.
-    excess_noise_factor_squared : float, optional
-        ``F²`` of the register (2 at high gain).
+    excess_noise_factor_squared : float or None, optional
+        ``F²`` of the register; ``None`` (the default): the ideal register's ``2 − 1/G``
+        (:func:`fluxcli.imaging.noise.excess_noise_factor2`), solved together with ``G``.
 
     Returns
     -------
     em_gain, em_gain_sigma : float
         ``G`` (dimensionless) and its 1-sigma uncertainty.
     """
-    g = slope_on_counts * electrons_per_count / excess_noise_factor_squared
+    def f2(gain: float) -> float:
+        return excess_noise_factor2(gain) if excess_noise_factor_squared is None else float(excess_noise_factor_squared)
+
+    s = slope_on_counts * electrons_per_count  # = G · F²(G), which grows with G from 1 · F²(1)
     rel = math.hypot(slope_on_sigma_counts / slope_on_counts, electrons_per_count_sigma / electrons_per_count)
-    return float(g), float(abs(g) * rel)
+    if excess_noise_factor_squared is not None or not s > f2(1.0):  # a stated F², or no multiplication seen
+        g = s / f2(1.0)
+        return float(g), float(abs(g) * rel)
+    g = brentq(lambda gain: gain * f2(gain) - s, 1.0, max(s, 1.0), xtol=1e-12 * s)
+    h = 1e-6 * g
+    slope_of_s = ((g + h) * f2(g + h) - (g - h) * f2(g - h)) / (2 * h)  # d(G F²)/dG
+    return float(g), float(abs(s) * rel / slope_of_s)
 
 
 def em_gain_from_ratio(rate_on_counts_per_s, rate_on_sigma, rate_off_counts_per_s, rate_off_sigma
@@ -515,7 +524,7 @@ class RadiometricResult:
     em_gain_from_ratio, em_gain_from_ratio_sigma : float or None
         ``G = S_on / S_off`` per second of exposure.
     em_gain_from_ptc, em_gain_from_ptc_sigma : float or None
-        ``G = slope_on · K / F²``.
+        ``G`` from ``G · F² = slope_on · K`` (:func:`em_gain_from_ptc`).
     read_noise_counts, read_noise_counts_sigma : float
         RMS read noise from bias pairs (counts).
     read_noise_e, read_noise_e_sigma : float
@@ -534,7 +543,8 @@ class RadiometricResult:
     ptc : dict of str to PTCSeries
         ``"em_gain_off"`` and, when measured, ``"em_gain_on"``.
     excess_noise_factor_squared : float
-        ``F²`` assumed for the gain-on PTC.
+        ``F²`` of the register for the gain-on PTC: the one the config states, else the
+        ideal register's ``2 − 1/G`` at the measured gain (NaN when no gain was measured).
     warnings : list of str
         Things the user should look at (poor fits, disagreeing gains, saturation).
     """
@@ -561,7 +571,7 @@ class RadiometricResult:
     cic_e_per_pixel_sigma: float | None = None
     dark_e_per_s_map: np.ndarray | None = None
     flat_map: np.ndarray | None = None
-    excess_noise_factor_squared: float = EXCESS_NOISE_FACTOR_SQUARED
+    excess_noise_factor_squared: float = math.nan
     warnings: list[str] = field(default_factory=list)
 
     def sensor_block(self) -> dict:
@@ -614,7 +624,7 @@ def calibrate_radiometric(
     darks: list[tuple[np.ndarray, float, bool]] | None = None,
     flats=None,
     max_counts: float | None = 65535.0,
-    excess_noise_factor_squared: float = EXCESS_NOISE_FACTOR_SQUARED,
+    excess_noise_factor_squared: float | None = None,
     gain_tolerance: float = 0.1,
 ) -> RadiometricResult:
     """Run the radiometric calibration on frames.
@@ -633,8 +643,8 @@ def calibrate_radiometric(
         Flat frames (counts), EM gain off.
     max_counts : float or None, optional
         Saturation level (counts): such pixels are left out of the PTC.
-    excess_noise_factor_squared : float, optional
-        ``F²`` for the gain-on PTC (2 at high gain).
+    excess_noise_factor_squared : float or None, optional
+        ``F²`` for the gain-on PTC; ``None``: the ideal register's ``2 − 1/G``.
     gain_tolerance : float, optional
         Relative difference between the ratio and PTC EM gains above which a warning is
         given.
@@ -695,7 +705,7 @@ def calibrate_radiometric(
         read_noise_counts=rn_counts, read_noise_counts_sigma=rn_counts_sigma,
         read_noise_e=rn_counts * K, read_noise_e_sigma=rn_counts * K * math.hypot(rn_counts_sigma / rn_counts, K_sigma / K),
         bias_counts=bias_level, bias_counts_sigma=bias_sigma, bias_counts_map=bias_map, ptc=series,
-        excess_noise_factor_squared=excess_noise_factor_squared, warnings=warnings)
+        warnings=warnings)
 
     on = series.get("em_gain_on")
     if on is not None:
@@ -703,6 +713,9 @@ def calibrate_radiometric(
             result.em_gain_from_ptc, result.em_gain_from_ptc_sigma = em_gain_from_ptc(
                 on.slope_counts, on.slope_sigma_counts, K, K_sigma,
                 excess_noise_factor_squared=excess_noise_factor_squared)
+            result.excess_noise_factor_squared = (excess_noise_factor2(result.em_gain_from_ptc)
+                                                  if excess_noise_factor_squared is None
+                                                  else float(excess_noise_factor_squared))
         else:
             warnings.append("one gain-on PTC level: the EM gain has no PTC-slope cross-check (take two or more).")
         ratios = []
@@ -722,7 +735,7 @@ def calibrate_radiometric(
             if diff > gain_tolerance:
                 warnings.append(
                     f"EM gain from the signal ratio ({result.em_gain_from_ratio:.4g}) and from the gain-on PTC slope "
-                    f"with F² = {excess_noise_factor_squared:g} ({result.em_gain_from_ptc:.4g}) differ by {diff:.0%}: "
+                    f"with F² = {result.excess_noise_factor_squared:.4g} ({result.em_gain_from_ptc:.4g}) differ by {diff:.0%}: "
                     "check the illumination was the same, saturation, and F².")
         elif result.em_gain_from_ptc is None:
             raise InputError("the EM gain cannot be measured: the gain-on levels share no illumination label with "
@@ -730,7 +743,7 @@ def calibrate_radiometric(
         else:
             result.em_gain, result.em_gain_sigma = result.em_gain_from_ptc, result.em_gain_from_ptc_sigma
             warnings.append("no gain-on and gain-off PTC levels share an illumination: the EM gain comes from the "
-                            f"gain-on PTC slope alone (assuming F² = {excess_noise_factor_squared:g}).")
+                            f"gain-on PTC slope alone (assuming F² = {result.excess_noise_factor_squared:.4g}).")
 
     if darks:
         gains = []

@@ -276,6 +276,6 @@ class SimulatedEmccd(Camera):
         if self._time_scale > 0:
             time.sleep(self._exposure_s * self._time_scale)
         # EM gain 1 is the gain off (calibration's bias, flat and gain-off PTC frames): no multiplication,
-        # F^2 = 1; the gamma register model keeps F^2 = 2 even at gain 1
+        # F^2 = 1, read as a conventional CCD
         read = N.conventional_counts if self._em_gain <= 1.0 else N.emccd_counts
         return read(photons, self.model(), rng)

@@ -9,6 +9,11 @@ Three models, from the paper's to the camera's:
   distributed electron-multiplying gain, read noise, bias, ADC gain, rounding and
   saturation, giving 16-bit counts. :func:`counts_to_photons` inverts its mean.
 
+The EM register's excess noise factor is written once, :func:`excess_noise_factor2`
+(``F² = 2 − 1/G``): the simulated chain draws with it, and its closed-form variance
+(:func:`expected_variance_counts`) and the reconstruction's noise model
+(:class:`PhotonNoise`) evaluate it.
+
 All inputs ``photons_per_pixel`` are noiseless expected photons reaching each pixel
 during one exposure (any shape, ≥ 0). Randomness comes only from the
 ``numpy.random.Generator`` passed in, drawn in a fixed order, so the same seed gives
@@ -158,8 +163,8 @@ class EMCCDModel:
 
     Notes
     -----
-    The gamma model has excess noise factor ``F² = 2`` for every gain, including
-    ``em_gain = 1``; it does not describe a conventional (non-EM) readout.
+    The EM register has the excess noise factor ``F² = 2 − 1/G`` of ideal multiplication
+    (:func:`excess_noise_factor2`): ``em_gain = 1`` is no multiplication (``F² = 1``).
     """
 
     quantum_efficiency: float = 0.9
@@ -242,8 +247,11 @@ def emccd_counts(photons_per_pixel, model: EMCCDModel, rng: np.random.Generator)
     Per pixel, in this order:
 
     1. electrons ``n ~ Poisson(λ)``, ``λ = QE·N + dark·t + CIC``;
-    2. EM register output ``x ~ Gamma(shape=n, scale=G)`` electrons (``x = 0`` where
-       ``n = 0``);
+    2. EM register output ``x ~ Gamma(shape=n/(F² − 1), scale=G(F² − 1))`` electrons with
+       ``F² = 2 − 1/G`` (:func:`excess_noise_factor2`): mean ``nG`` and variance ``nG²(F² − 1)``
+       = ``nG(G − 1)``, the sum of ``n`` outputs of an ideal multiplier (each geometric, mean
+       ``G``); ``Gamma(n, G)`` of Hirsch et al. at high gain, and ``x = n`` at ``G = 1``
+       (``x = 0`` where ``n = 0``);
     3. read noise: ``x + Normal(0, read_noise_e)`` electrons at the output node;
     4. ADC: ``bias_counts + (x + noise) / electrons_per_count``, rounded to the
        nearest integer and clipped to ``[0, 2**bit_depth - 1]``.
@@ -267,10 +275,14 @@ def emccd_counts(photons_per_pixel, model: EMCCDModel, rng: np.random.Generator)
     model = _check_model(model)
     _check_rng(rng)
     electrons_in = rng.poisson(_mean_input_electrons(photons, model))
-    # Gamma(0, G) is the point mass at 0; numpy returns 0 there, the where makes it explicit.
-    electrons_out = np.where(
-        electrons_in > 0, rng.gamma(np.maximum(electrons_in, 1), model.em_gain), 0.0
-    )
+    excess = excess_noise_factor2(model.em_gain) - 1.0  # per electron: variance G² (F² − 1)
+    if excess > 0:
+        # Gamma(0, ·) is the point mass at 0; numpy returns 0 there, the where makes it explicit.
+        electrons_out = np.where(
+            electrons_in > 0, rng.gamma(np.maximum(electrons_in, 1) / excess, model.em_gain * excess), 0.0
+        )
+    else:  # G = 1: no multiplication
+        electrons_out = electrons_in.astype(np.float64)
     electrons_out = electrons_out + model.read_noise_e * rng.standard_normal(photons.shape)
     counts = model.bias_counts + electrons_out / model.electrons_per_count
     return np.clip(np.rint(counts), 0, model.max_count).astype(np.uint16)
@@ -284,7 +296,7 @@ def conventional_counts(photons_per_pixel, model: EMCCDModel, rng: np.random.Gen
     rounded and clipped; ``model.em_gain`` is ignored. Mean ``bias + λ / g`` and variance
     ``λ / g² + (σ_r / g)²`` counts²: the photon-transfer curve of a conventional CCD,
     slope ``1 / g``. This is how a camera's "EM gain off" frames for calibration are made
-    (the gamma model of :func:`emccd_counts` keeps ``F² = 2`` even at ``em_gain = 1``).
+    (the same as :func:`emccd_counts` at ``em_gain = 1``, which has ``F² = 1``).
 
     Parameters
     ----------
@@ -361,15 +373,16 @@ def expected_counts(photons_per_pixel, model: EMCCDModel) -> np.ndarray:
 def expected_variance_counts(photons_per_pixel, model: EMCCDModel) -> np.ndarray:
     """Variance of the counts of :func:`emccd_counts` (before rounding and clipping).
 
-    By the law of total variance, with ``E[x | n] = n·G`` and ``Var[x | n] = n·G²``
-    (gamma distribution) and ``E[n] = Var[n] = λ`` (Poisson):
+    By the law of total variance, with ``E[x | n] = n·G`` and ``Var[x | n] = n·G²(F² − 1)``
+    (the register's gamma distribution) and ``E[n] = Var[n] = λ`` (Poisson):
 
-        Var[x] = E[Var(x | n)] + Var(E[x | n]) = λ·G² + G²·λ = 2·G²·λ,
+        Var[x] = E[Var(x | n)] + Var(E[x | n]) = λ·G²(F² − 1) + G²·λ = F²·G²·λ,
 
-    i.e. an excess noise factor ``F² = Var[x] / (G·E[x]) = 2``. Adding independent
-    read noise ``σ_r`` electrons and dividing by ``g`` electrons per count:
+    the excess noise factor ``F² = Var[x] / (G·E[x]) = 2 − 1/G``
+    (:func:`excess_noise_factor2`). Adding independent read noise ``σ_r`` electrons and
+    dividing by ``g`` electrons per count:
 
-        Var[counts] = 2·G²·λ / g² + (σ_r / g)².
+        Var[counts] = F²·G²·λ / g² + (σ_r / g)².
 
     Rounding adds about 1/12 count², which is neglected.
 
@@ -389,7 +402,7 @@ def expected_variance_counts(photons_per_pixel, model: EMCCDModel) -> np.ndarray
     model = _check_model(model)
     lam = _mean_input_electrons(photons, model)
     g = model.electrons_per_count
-    return 2.0 * model.em_gain**2 * lam / g**2 + (model.read_noise_e / g) ** 2
+    return excess_noise_factor2(model.em_gain) * model.em_gain**2 * lam / g**2 + (model.read_noise_e / g) ** 2
 
 
 def counts_to_photons(counts_per_pixel, model: EMCCDModel) -> np.ndarray:
@@ -400,7 +413,7 @@ def counts_to_photons(counts_per_pixel, model: EMCCDModel) -> np.ndarray:
     Because the mean of the counts is linear in the photons
     (:func:`expected_counts`), ``N̂`` is an unbiased estimator of the expected photons
     ``N``: ``E[N̂] = N`` (up to rounding, negligible once the noise spans a few counts).
-    Single pixels are noisy (``Var[N̂] ≈ 2·λ/QE²`` at high gain) and may be negative.
+    Single pixels are noisy (``Var[N̂] ≈ F²·λ/QE²``, ``F² → 2`` at high gain) and may be negative.
     Saturated or zero-clipped pixels are biased low/high; mask them with
     :func:`saturated`.
 
