@@ -286,14 +286,23 @@ def load_runs(paths) -> tuple[dict, dict]:
                 if k != "meta":
                     acc[k] = acc.get(k, 0) + z[k]
         if meta is None:
-            meta = {**m, "seeds": [m["seed"]], "runs": 1}
+            meta = {**m, "seeds": [m["seed"]], "runs": 1, "by": {}}
         else:
             for k in ("launched", "whole_photons", "mcx_s", "wall_s"):
                 meta[k] += m[k]
             meta["batches"] += m["batches"]
             meta["seeds"].append(m["seed"])
             meta["runs"] += 1
+        who = f"{m['code']} on {m['device']}"
+        meta["by"][who] = meta["by"].get(who, 0) + m["launched"]
+    # every run's code and device, with its photons (runs by other codes or devices are summed too)
+    meta["source"] = ", ".join(f"{who} ({n:.3g} photons)" for who, n in meta["by"].items())
     return acc, meta
+
+
+def _holds(path: Path, key: str) -> bool:
+    with np.load(path) as z:
+        return key in z.files
 
 
 def reconstruct(npzs, names) -> int:
@@ -303,12 +312,18 @@ def reconstruct(npzs, names) -> int:
     from fluxcli.config import load_config
     from fluxcli.truth import truth_refinement
 
-    z, meta = load_runs(npzs)
-    print(f"{meta['launched']:.4g} photons launched by {meta['code']} on {meta['device']} in {meta['runs']} run(s) "
-          f"(first seeds {meta['seeds']}, {len(meta['batches'])} batches); {meta['whole_photons']:.4g} left the box "
-          f"as whole photons; {meta['mcx_s']:.0f} s in MCX, {meta['wall_s']:.0f} s wall with imaging")
     ok = True
     for name in names:
+        # only the runs that imaged this experiment (a run may have imaged only some of them)
+        runs = [p for p in npzs if _holds(p, f"{name}/images")]
+        if not runs:
+            print(f"mcx-{name}: no run imaged it; skipped")
+            ok = False
+            continue
+        z, meta = load_runs(runs)
+        print(f"{meta['launched']:.4g} photons launched by {meta['source']} in {meta['runs']} run(s) "
+              f"(first seeds {meta['seeds']}, {len(meta['batches'])} batches); {meta['whole_photons']:.4g} left the "
+              f"box as whole photons; {meta['mcx_s']:.0f} s in MCX, {meta['wall_s']:.0f} s wall with imaging")
         tag = f"mcx-{name}"
         paths = B.configs(tag)
         t0 = time.perf_counter()
@@ -318,9 +333,9 @@ def reconstruct(npzs, names) -> int:
         images = z[f"{name}/images"]
         B.store_photon_images(sim, placer.surface.element_areas_mm2, views[0].camera, images, z[f"{name}/reached"],
                               z[f"{name}/fine_power"].astype(float), parent, meta["launched"],
-                              meta["whole_photons"], f"MCX {meta['code']} on {meta['device']}, first seeds "
+                              meta["whole_photons"], f"MCX: {meta['source']}, first seeds "
                               f"{meta['seeds']}, {len(meta['batches'])} batches")
-        header = (f"{tag}: {meta['launched']:.3g} photons launched by {meta['code']} on {meta['device']} "
+        header = (f"{tag}: {meta['launched']:.3g} photons launched by {meta['source']} "
                   f"({meta['whole_photons']:.3g} left as whole photons), heights {B.AM.HEIGHTS[tag]} mm"
                   + ("; directions redrawn from diffuse(1.40), reconstructed with its profile alone (the control)"
                      if name.endswith("-control") else ""))
