@@ -285,10 +285,15 @@ def reconstruct_models(name: str, paths: dict, sim: Path, imaged, header: str, t
     return AM.report(name, results)
 
 
+FOOT_BANDS_MM = ((0, 1), (1, 2), (2, 4), (4, 6), (6, 9), (9, 13), (13, 18), (18, 30))
+
+
 def exit_bands() -> None:
     """Per face of the box, the bank's photons in bands of exit angle over what diffuse(1.40)
     puts in each band (face-averaged: 2 ∫ πp μ dμ over the band), with the photons' standard
-    error: the profile against every photon, not only those a camera catches."""
+    error: the profile against every photon, not only those a camera catches.  Then the top
+    face's photons by their distance from the point straight above the source: the profile is
+    not the same everywhere (docs/accuracy.md, "The exit profile is not the same everywhere")."""
     from fluxcli.optics.emission import diffuse
     _, shape = _medium_shape()
     edges = np.array([0, 10, 30, 50, 60, 70, 75, 80, 85, 90.0])
@@ -297,6 +302,7 @@ def exit_bands() -> None:
     model = np.array([2 * np.trapezoid(np.where((mu <= np.cos(np.radians(lo))) & (mu >= np.cos(np.radians(hi))),
                                                 w * mu, 0.0), mu) for lo, hi in zip(edges[:-1], edges[1:])])
     counts = np.zeros((6, len(edges) - 1))
+    top_by_distance = np.zeros((len(FOOT_BANDS_MM), len(edges) - 1))
     for path in bank_files()[0]:
         with np.load(path) as z:
             pos, d = z["position_mm"].astype(np.float64), z["direction"].astype(np.float64)
@@ -307,12 +313,21 @@ def exit_bands() -> None:
         face = 2 * axis + (n[np.arange(len(n)), axis] < 0)
         for f in range(6):
             counts[f] += np.histogram(theta[face == f], bins=edges)[0]
+        top = face == 4
+        rho = np.hypot(pos[top, 0] - SOURCE_MM[0], pos[top, 1] - SOURCE_MM[1])
+        for b, (lo, hi) in enumerate(FOOT_BANDS_MM):
+            top_by_distance[b] += np.histogram(theta[top][(rho >= lo) & (rho < hi)], bins=edges)[0]
     print("exit angle (deg)  " + " ".join(f"{lo:g}-{hi:g}".rjust(11) for lo, hi in zip(edges[:-1], edges[1:])))
     print("diffuse(1.40)     " + " ".join(f"{m:11.4f}" for m in model))
     for f, name in enumerate(("+x", "-x", "+y", "-y", "+z", "-z")):
         N = counts[f].sum()
         print(f"{name} {int(N):>10d} photons, over the model: " + " ".join(
             f"{c / N / m:.3f}±{np.sqrt(c) / N / m:.3f}" for c, m in zip(counts[f], model)))
+    print("\nthe top face (+z) by distance from the point above the source, over the model:")
+    for (lo, hi), c in zip(FOOT_BANDS_MM, top_by_distance):
+        N = c.sum()
+        print(f"{lo:>4g}-{hi:<3g} mm {int(N):>10d} photons: " + " ".join(
+            f"{x / N / m:.3f}±{np.sqrt(x) / N / m:.3f}" for x, m in zip(c, model)))
 
 
 def faces_table(rec_path: Path) -> None:
