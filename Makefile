@@ -48,7 +48,7 @@ check-report: $(VENV)/.installed
 	@test -f runs/demo/report/index.html || $(MAKE) demo
 	$(PY) -m fluxcli.report.browser_check runs/demo/report/index.html runs/demo/report/screenshot.png
 
-# issue 8: realistic, honestly simulated cases x methods (a benchmark, ~15 min on 2 cores)
+# issue 8: realistic, honestly simulated cases x methods (~20 min on 2 cores); then issue 21's Monte Carlo battery (~50 min)
 accuracy: $(VENV)/.installed
 	$(PY) benchmarks/accuracy.py --draws 5
 	$(PY) benchmarks/accuracy_mc.py

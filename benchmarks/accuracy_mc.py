@@ -15,7 +15,7 @@ Camera: the issue's (f 23.9 mm, Ø17 mm at 317 mm) collects ~7e-4 of the photons
 a face turned to it; at the ~7e4 photons/s this CPU Monte Carlo runs on 2 busy cores that
 is ~1 photon per element per minute. The battery's camera is therefore a fast lens close by
 (f 50 mm, Ø40 mm, focused at 140 mm): ~25x the collection, the same physics; elements of
-4 mm. Photon counts per case are set by ``--photons`` (default 2e7: ~5 min of transport).
+4 mm. Photon counts per case are set by ``--photons`` (default 1e8: 4–7 min a case on 2 cores; docs/accuracy.md §1.1 gives what it measured).
 
     $ .venv/bin/python benchmarks/accuracy_mc.py --list
     $ .venv/bin/python benchmarks/accuracy_mc.py --cases box-direct --photons 1e7
@@ -186,7 +186,7 @@ def report(name: str, res: dict) -> bool:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", default="all", help="comma-separated case names, or all")
-    ap.add_argument("--photons", type=float, default=2e7, help="photons launched per case")
+    ap.add_argument("--photons", type=float, default=1e8, help="photons launched per case")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--list", action="store_true")
     a = ap.parse_args(argv)

@@ -56,7 +56,7 @@ def _links(md: Path) -> list[str]:
     return [m for m in re.findall(r"\]\(([^)#\s]+)", md.read_text()) if "://" not in m]
 
 
-@pytest.mark.parametrize("doc", ["README.md", "docs/design.md", "docs/config-reference.md"])
+@pytest.mark.parametrize("doc", ["README.md", "docs/design.md", "docs/config-reference.md", "docs/accuracy.md"])
 def test_relative_links_stay_inside_the_repository_and_exist(doc):
     path = ROOT / doc
     assert path.is_file()
