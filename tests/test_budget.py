@@ -195,3 +195,13 @@ def _html(text: str) -> str:
     import html
 
     return html.escape(text)
+
+
+def test_the_shift_warning_blames_the_geometry_unless_the_residual_is_also_structured_by_angle():
+    s = Q.Shift(0.02, 0.6, (0.01, 0.01), 55.0, 900)
+    geometry = Q.shift_warning("p", s, 1.7)
+    emission = Q.shift_warning("p", s, 1.7, angle_structured=True)
+    assert "system.camera.pose" in geometry and "subject.emission" not in geometry
+    assert "subject.emission" in emission
+    assert emission.index("subject.emission") < emission.index("system.camera.pose")
+    assert Q.shift_warning("p", Q.Shift(0.01, 0.0, (0.01, 0.01), 1.0, 900), 1.0, True) is None  # not seen: none

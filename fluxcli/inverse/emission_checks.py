@@ -19,16 +19,17 @@ from . import diagnostics as D
 
 
 def emission_checks(profile, views, todo, per_pose, joint, images, valid, noise, mismatch: str | None = None
-                    ) -> tuple[list, object, list[str], Emission]:
+                    ) -> tuple[list, object, list[str], Emission, list[bool]]:
     """``profile``: the emission model; ``views``: the camera views; ``todo``: per pose (placed
     scene, T plan); ``per_pose``: [(Result, fitted image)]; ``images``/``valid``: [pose, ny, nx];
     ``mismatch``: a warning for the first pose (images simulated under another emission model).
-    Returns the poses and joint result with the warnings added, the console lines and the record."""
+    Returns the poses and joint result with the warnings added, the console lines, the record, and
+    per pose whether its residual is structured by viewing angle (the shift test's warning uses it)."""
     prof = profile
     deg = np.linspace(0.0, 90.0, 181)
     weights = [v.weight for v in views]
     centres = [v.camera.center_mm for v in views]
-    light, totals, slopes, out, all_T, all_ang = [], [], [], [], [], []
+    light, totals, slopes, out, all_T, all_ang, structured = [], [], [], [], [], [], []
     for k, ((res, fitted), (scene, pt)) in enumerate(zip(per_pose, todo)):
         Tv = [load_view(pt.path, v) for v in range(len(views))]
         ang = D.element_angles(scene.surface, centres, prof.weight)
@@ -41,6 +42,7 @@ def emission_checks(profile, views, todo, per_pose, joint, images, valid, noise,
                                   mismatch if k == 0 else None) if w)
         out.append((replace(res, warnings=tuple(res.warnings) + warns), fitted) if warns else (res, fitted))
         slopes.append([np.nan, np.nan] if st is None else [st.slope_per_10deg, st.t])
+        structured.append(st is not None and st.significant)
         if joint is not None:
             all_T += Tv
             all_ang.append(ang)
@@ -63,4 +65,4 @@ def emission_checks(profile, views, todo, per_pose, joint, images, valid, noise,
         w = D.grazing_warning(jt)
         if w:
             joint = replace(joint, warnings=tuple(joint.warnings) + (w,))
-    return out, joint, lines, record
+    return out, joint, lines, record, structured

@@ -110,13 +110,13 @@ def reconstruct(plan: ReconstructPlan, ctx: RunContext) -> Path:
     seconds = time.perf_counter() - t0
     budget = B.error_budget(plan.system, plan.calibration_budget, plan.build_T, ctx, surface, m, gm, inp, noise,
                             per_pose, joint, todo, scale, totals, t_rate, rois)
-    per_pose = B.with_shift_warnings(per_pose, budget.shifts, [pt.pose.label for _, pt in todo])
     main = joint if joint is not None else per_pose[0][0]
     areas = surface.element_areas_mm2
     rows = _rows(per_pose, joint, todo, inp.truth)
-    checked, joint_checked, emission_lines, emission = emission_checks(
+    checked, joint_checked, emission_lines, emission, by_angle = emission_checks(
         placer.emission, views, todo, per_pose, joint, inp.images, inp.valid, noise,
         simulated_emission(plan.images, plan.subject_emission))
+    checked = B.with_shift_warnings(checked, budget.shifts, [pt.pose.label for _, pt in todo], by_angle)
     warnings = _warnings(checked, joint_checked, todo)
     summary = _total_summary(checked, joint_checked, todo, {b.label: b.sigma for b in budget.totals}) + budget.lines()
     sweep = run_sweep(plan, ctx, grids, todo) if plan.sweep is not None else None
