@@ -237,7 +237,7 @@ def main(argv=None):
             d2 = redraw_directions(shape.outward_normals(pos), diffuse(1.40).table, np.random.default_rng(11))
             imgs = reimage(p, pos, d2)
             print("redrawn photons per image:", imgs.reshape(len(rot), -1).sum(1))
-            reconstruct(p, tag, "redrawn", images=imgs, emission={"tangential_flux": False})  # p(theta) alone
+            reconstruct(p, tag, "redrawn", images=imgs, emission={"tangential_flux": False, "depth_term": False})  # P1 alone
         elif v.startswith("lam"):  # lamx0.1 / lamx10: lambda fixed at factor x the mc pick (per pose, median)
             fac = float(v[4:])
             with h5py.File(OUT / f"{tag}--mc" / "reconstruction.h5") as f:

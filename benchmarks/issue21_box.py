@@ -109,8 +109,9 @@ def configs(name: str) -> dict:
         cfg["subject"]["surface"]["element_mm"] = element_mm
         cfg["subject"]["poses"]["heights_mm"] = list(heights)
         cfg["transfer"] = {"cache_dir": str(OUT / "T-cache")}
-        if control and model == "diffuse":
+        if control and model == "diffuse":  # the redrawn directions follow P1's profile alone
             cfg["subject"]["emission"]["tangential_flux"] = False
+            cfg["subject"]["emission"]["depth_term"] = False
         p = folder / f"{name}-{model}.yaml"
         import yaml
         p.write_text(yaml.safe_dump(cfg))
@@ -288,42 +289,76 @@ def reconstruct_models(name: str, paths: dict, sim: Path, imaged, header: str, t
 FOOT_BANDS_MM = ((0, 1), (1, 2), (2, 4), (4, 6), (6, 9), (9, 13), (13, 18), (18, 30))
 
 
+EXIT_EDGES_DEG = np.array([0, 10, 30, 50, 60, 70, 75, 80, 85, 90.0])
+FACE_NAMES = ("+x", "-x", "+y", "-y", "+z", "-z")
+
+
+def band_model(edges=EXIT_EDGES_DEG, depth: bool = False) -> np.ndarray:
+    """The share of a face's photons that diffuse(1.40) puts in each band of exit angle
+    (2 ∫ πp μ dμ over the band): P1's profile, or with ``depth`` the default profile for the
+    phantom's medium (with its depth term; the tangential term moves no light between bands
+    when averaged over a face's directions)."""
+    from fluxcli.optics.emission import diffuse
+    mu = np.linspace(0.0, 1.0, 200_001)
+    w = diffuse(N_INDEX, depth=depth, reduced_scattering_per_mm=AM.TISSUE["mus_per_mm"] * (1 - AM.TISSUE["g"]),
+                absorption_per_mm=AM.TISSUE["mua_per_mm"]).weight(mu)
+    return np.array([2 * np.trapezoid(np.where((mu <= np.cos(np.radians(lo))) & (mu >= np.cos(np.radians(hi))),
+                                               w * mu, 0.0), mu) for lo, hi in zip(edges[:-1], edges[1:])])
+
+
+def exit_angles(pos: np.ndarray, d: np.ndarray, shape=None) -> tuple[np.ndarray, np.ndarray]:
+    """Each photon's face of the box (index into FACE_NAMES) and exit angle from its normal (deg);
+    positions in the box's own frame (centre at 0)."""
+    shape = shape if shape is not None else _medium_shape()[1]
+    pos, d = np.asarray(pos, np.float64), np.asarray(d, np.float64)
+    d = d / np.linalg.norm(d, axis=1)[:, None]
+    n = shape.outward_normals(pos)
+    theta = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", n, d), -1.0, 1.0)))
+    axis = np.argmax(np.abs(n), axis=1)
+    return 2 * axis + (n[np.arange(len(n)), axis] < 0), theta
+
+
+def face_band_counts(pos: np.ndarray, d: np.ndarray, shape=None) -> np.ndarray:
+    """Photons per face (rows, FACE_NAMES) and band of exit angle (EXIT_EDGES_DEG)."""
+    face, theta = exit_angles(pos, d, shape)
+    return np.stack([np.histogram(theta[face == f], bins=EXIT_EDGES_DEG)[0] for f in range(6)])
+
+
+def print_face_bands(counts: np.ndarray) -> None:
+    """Per face, the photons in each band over what diffuse(1.40) puts there, ± the standard
+    error: over P1's profile alone, and over the default profile with the depth term."""
+    print("exit angle (deg)  " + " ".join(f"{lo:g}-{hi:g}".rjust(11) for lo, hi in zip(EXIT_EDGES_DEG[:-1],
+                                                                                     EXIT_EDGES_DEG[1:])))
+    for depth, label in ((False, "P1 alone"), (True, "with its depth term (the default)")):
+        model = band_model(depth=depth)
+        print(f"diffuse(1.40), {label}: " + " ".join(f"{m:.4f}" for m in model))
+        for f, name in enumerate(FACE_NAMES):
+            N = counts[f].sum()
+            print(f"{name} {int(N):>10d} photons, over the model: " + " ".join(
+                f"{c / N / m:.3f}±{np.sqrt(c) / N / m:.3f}" for c, m in zip(counts[f], model)))
+
+
 def exit_bands() -> None:
     """Per face of the box, the bank's photons in bands of exit angle over what diffuse(1.40)
     puts in each band (face-averaged: 2 ∫ πp μ dμ over the band), with the photons' standard
     error: the profile against every photon, not only those a camera catches.  Then the top
     face's photons by their distance from the point straight above the source: the profile is
     not the same everywhere (docs/accuracy.md, "The exit profile is not the same everywhere")."""
-    from fluxcli.optics.emission import diffuse
     _, shape = _medium_shape()
-    edges = np.array([0, 10, 30, 50, 60, 70, 75, 80, 85, 90.0])
-    mu = np.linspace(0.0, 1.0, 200_001)
-    w = diffuse(N_INDEX).weight(mu)
-    model = np.array([2 * np.trapezoid(np.where((mu <= np.cos(np.radians(lo))) & (mu >= np.cos(np.radians(hi))),
-                                                w * mu, 0.0), mu) for lo, hi in zip(edges[:-1], edges[1:])])
-    counts = np.zeros((6, len(edges) - 1))
-    top_by_distance = np.zeros((len(FOOT_BANDS_MM), len(edges) - 1))
+    counts = np.zeros((6, len(EXIT_EDGES_DEG) - 1))
+    top_by_distance = np.zeros((len(FOOT_BANDS_MM), len(EXIT_EDGES_DEG) - 1))
     for path in bank_files()[0]:
         with np.load(path) as z:
             pos, d = z["position_mm"].astype(np.float64), z["direction"].astype(np.float64)
-        d /= np.linalg.norm(d, axis=1)[:, None]
-        n = shape.outward_normals(pos)
-        theta = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", n, d), -1.0, 1.0)))
-        axis = np.argmax(np.abs(n), axis=1)
-        face = 2 * axis + (n[np.arange(len(n)), axis] < 0)
-        for f in range(6):
-            counts[f] += np.histogram(theta[face == f], bins=edges)[0]
+        face, theta = exit_angles(pos, d, shape)
+        counts += face_band_counts(pos, d, shape)
         top = face == 4
         rho = np.hypot(pos[top, 0] - SOURCE_MM[0], pos[top, 1] - SOURCE_MM[1])
         for b, (lo, hi) in enumerate(FOOT_BANDS_MM):
-            top_by_distance[b] += np.histogram(theta[top][(rho >= lo) & (rho < hi)], bins=edges)[0]
-    print("exit angle (deg)  " + " ".join(f"{lo:g}-{hi:g}".rjust(11) for lo, hi in zip(edges[:-1], edges[1:])))
-    print("diffuse(1.40)     " + " ".join(f"{m:11.4f}" for m in model))
-    for f, name in enumerate(("+x", "-x", "+y", "-y", "+z", "-z")):
-        N = counts[f].sum()
-        print(f"{name} {int(N):>10d} photons, over the model: " + " ".join(
-            f"{c / N / m:.3f}±{np.sqrt(c) / N / m:.3f}" for c, m in zip(counts[f], model)))
-    print("\nthe top face (+z) by distance from the point above the source, over the model:")
+            top_by_distance[b] += np.histogram(theta[top][(rho >= lo) & (rho < hi)], bins=EXIT_EDGES_DEG)[0]
+    print_face_bands(counts)
+    model = band_model(depth=True)
+    print("\nthe top face (+z) by distance from the point above the source, over the default model:")
     for (lo, hi), c in zip(FOOT_BANDS_MM, top_by_distance):
         N = c.sum()
         print(f"{lo:>4g}-{hi:<3g} mm {int(N):>10d} photons: " + " ".join(

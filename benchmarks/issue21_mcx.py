@@ -18,6 +18,8 @@ from diffuse(1.40).
     $ python3 benchmarks/issue21_mcx.py transport --photons 2e9 --seconds 420 --out $OUT/issue21_mcx.npz
     # here: the photons' images into simulation artefacts; diffuse and lambertian reconstructed
     $ .venv/bin/python benchmarks/issue21_mcx.py reconstruct runs/issue21/mcx/issue21_mcx.npz
+    # here: every whole photon by face and exit angle against diffuse(1.40) (runs from 26 Nov 2026 on)
+    $ .venv/bin/python benchmarks/issue21_mcx.py bands runs/issue21/mcx-cpu3/issue21_mcx_cl_s26000.npz
 
 ``transport --backend pmcxcl`` runs the same code here with MCX-CL on CPU (pocl) for a small check.
 The exit-angle radiance of the top face (``mcx_reference.Tally``, the reference CSV's method) is
@@ -184,6 +186,7 @@ def _ram_folder() -> Path:
 
 def transport(photons: float, batch: float, seconds: float, out: Path, backend: str, workers: int,
               seed: int, with_tally: bool = True) -> int:
+    import issue21_box as B
     t_start = time.time()
     ctx = mp.get_context("fork")
     pool = ctx.Pool(workers, initializer=_init_worker, initargs=(str(SCENES),))  # before MCX and Embree start here
@@ -206,6 +209,8 @@ def transport(photons: float, batch: float, seconds: float, out: Path, backend: 
         acc[f"{name}/images"] = np.zeros((P, cam.nx * cam.ny), np.int64)
         acc[f"{name}/reached"] = np.zeros((P, V), np.int64)
         acc[f"{name}/fine_power"] = np.zeros(e["fine"][3], np.int64)
+    # every whole photon's face and exit angle band (issue21_box.EXIT_EDGES_DEG): the profile per face
+    acc["exit/face_bands"] = np.zeros((6, len(B.EXIT_EDGES_DEG) - 1), np.int64)
     tally = MR.Tally(5.0)
     meta = {"device": device, "code": code, "launched": 0, "whole_photons": 0, "batches": [], "wall_s": 0.0,
             "seed": seed, "mcx_s": 0.0, "imaging_wait_s": 0.0}
@@ -214,8 +219,9 @@ def transport(photons: float, batch: float, seconds: float, out: Path, backend: 
     pending = None  # (async result, photons launched, whole photons) of the batch being imaged
 
     def collect(p):
-        res, n_launched, n_whole = p
+        res, n_launched, n_whole, face_bands = p
         t = time.time()
+        acc["exit/face_bands"] += face_bands
         for part in res.get():
             for name, (img, got, fine) in part.items():
                 acc[f"{name}/images"] += img
@@ -252,7 +258,7 @@ def transport(photons: float, batch: float, seconds: float, out: Path, backend: 
                                     "energy_escaped": float(stat["energytot"]) - float(stat["energyabs"])})
             edges = np.linspace(0, len(pos), 4 * workers + 1).astype(int)
             jobs = [(str(folder), int(x), int(y), b) for x, y in zip(edges[:-1], edges[1:])]
-            pending = (pool.map_async(_work, jobs), n, int(len(pos)))
+            pending = (pool.map_async(_work, jobs), n, int(len(pos)), B.face_band_counts(pos, d))
             launched_mcx += n
             b += 1
             print(f"[issue21_mcx] batch {b}: {n:.3g} photons, {t_mcx:.1f} s of MCX, {len(pos)} whole photons "
@@ -343,6 +349,21 @@ def reconstruct(npzs, names) -> int:
     return 0 if ok else 1
 
 
+def bands(npzs) -> int:
+    """The whole photons per face of the box by exit angle, over what diffuse(1.40) puts there
+    (the runs that tallied them)."""
+    import issue21_box as B
+    runs = [p for p in npzs if _holds(p, "exit/face_bands")]
+    if not runs:
+        print("no run tallied the exit angles per face (runs from before 26 November 2026 did not)")
+        return 1
+    z, meta = load_runs(runs)
+    print(f"{meta['launched']:.4g} photons launched by {meta['source']} in {meta['runs']} run(s), "
+          f"{int(z['exit/face_bands'].sum()):.4g} whole photons left the box")
+    B.print_face_bands(z["exit/face_bands"])
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="step", required=True)
@@ -360,6 +381,8 @@ def main(argv=None) -> int:
     r = sub.add_parser("reconstruct")
     r.add_argument("npz", type=Path, nargs="+", help="transport outputs (independent seeds), summed")
     r.add_argument("--experiments", default=",".join(EXPERIMENTS))
+    b = sub.add_parser("bands", help="the whole photons' exit angles per face against diffuse(1.40)")
+    b.add_argument("npz", type=Path, nargs="+")
     a = ap.parse_args(argv)
     if a.step == "prepare":
         prepare(a.experiments.split(","))
@@ -367,6 +390,8 @@ def main(argv=None) -> int:
     if a.step == "transport":
         a.out.parent.mkdir(parents=True, exist_ok=True)
         return transport(a.photons, a.batch, a.seconds, a.out, a.backend, a.workers, a.seed, not a.no_tally)
+    if a.step == "bands":
+        return bands(a.npz)
     return reconstruct(a.npz, a.experiments.split(","))
 
 

@@ -366,8 +366,9 @@ class DiffuseEmission(Model):
     model: Literal["diffuse"]
     refractive_index: float = Field(1.40, ge=1.0, le=3.0, description="Refractive index of the medium (tissue ~1.37-1.40; 1 = no Fresnel).")
     tangential_flux: bool = Field(True, description="Also model the tangential flux of diffusion theory: where the exitance varies along the surface the light leaves tilted away from the brighter side (acts on reconstruct.unknowns: vertices, whose exitance has a gradient; docs/design.md, Emission).")
-    reduced_scattering_per_mm: float = Field(1.0, gt=0, le=1000, description="The medium's reduced scattering coefficient mu_s' (1/mm) for the tangential flux; default 1 /mm, the order of soft tissue and phantoms in the red / near infrared (Jacques 2013).")
-    absorption_per_mm: float = Field(0.01, ge=0, le=1000, description="The medium's absorption coefficient mu_a (1/mm) for the tangential flux (it enters only as mu_a + mu_s').")
+    depth_term: bool = Field(True, description="Also model the fluence's curvature with depth (mu_eff^2 = 3 mu_a mu_s'): in an absorbing medium the light leaves more along the normal, by the factor 1 + c cos^2(theta inside), c = 3 mu_a / (mu_a + mu_s') (3 % for mu_a 0.01 /mm, 30 % for 0.1 /mm; docs/design.md, Emission: the depth term).")
+    reduced_scattering_per_mm: float = Field(1.0, gt=0, le=1000, description="The medium's reduced scattering coefficient mu_s' (1/mm) for the depth term and the tangential flux; default 1 /mm, the order of soft tissue and phantoms in the red / near infrared (Jacques 2013).")
+    absorption_per_mm: float = Field(0.01, ge=0, le=1000, description="The medium's absorption coefficient mu_a (1/mm) for the depth term and the tangential flux; default 0.01 /mm, a phantom's or tissue's in the near infrared. Set it to the tissue's at the emission wavelength: 0.1-1 /mm for a mouse in the visible (Jacques 2013), where the profile is 30 % steeper or more.")
 
 
 class TableEmission(Model):

@@ -18,6 +18,11 @@ Profiles (docs/design.md, "Emission"):
     unpolarised Fresnel reflectance (Haskell et al. 1994), carried out through the surface by
     Fresnel transmission at the internal angle theta' (sin theta = n sin theta') and the n^2
     change of radiance; then normalised.
+    Given the medium (on by default), the fluence's curvature with depth: the diffusion equation
+    makes phi'' = mu_eff^2 phi under a flat, slowly varying exitance, so the deeper light that
+    leaves along the normal is brighter, by the factor ``1 + c mu'^2``, c = 3 mu_a / mu_t'
+    (:func:`depth_term`; docs/design.md, "Emission: the depth term"). Nothing for a clear
+    medium; 3 % for a phantom (mu_a 0.01, mu_s' 1 /mm); 30 % and more for tissue in the visible.
     With it (on by default) the tangential flux of the same diffusion field: where the
     exitance varies along the surface the light leaves tilted away from where it is
     brighter, ``L_t(r, s) = -p(theta) g(theta) grad_t M . s`` with
@@ -98,14 +103,36 @@ def boundary_A(n: float) -> float:
     return (1 + r_eff) / (1 - r_eff)
 
 
-def diffuse_radiance(cos_theta: np.ndarray, n: float) -> np.ndarray:
+def diffuse_radiance(cos_theta: np.ndarray, n: float, depth: float = 0.0) -> np.ndarray:
     """Radiance leaving a diffusive medium of index ``n`` into air at the angle whose cosine is
-    ``cos_theta`` (outside), unnormalised: ``T_F(theta') (1 + 3 mu' / 2A)`` with
-    ``cos theta' = mu' = sqrt(1 - sin^2 theta / n^2)``; the constant factors (phi/4pi, 1/n^2)
+    ``cos_theta`` (outside), unnormalised: ``T_F(theta') (1 + 3 mu' / 2A) (1 + depth mu'^2)``
+    with ``cos theta' = mu' = sqrt(1 - sin^2 theta / n^2)`` and ``depth`` the depth term's
+    coefficient (:func:`depth_term`; 0: P1's profile); the constant factors (phi/4pi, 1/n^2)
     drop out when normalised."""
     mu = np.clip(np.asarray(cos_theta, float), 0.0, 1.0)
     mu_in = np.sqrt(1.0 - (1.0 - mu * mu) / n**2)
-    return (1.0 - fresnel_reflectance(mu_in, n)) * (1.0 + 3.0 * mu_in / (2.0 * boundary_A(n)))
+    return ((1.0 - fresnel_reflectance(mu_in, n)) * (1.0 + 3.0 * mu_in / (2.0 * boundary_A(n)))
+            * (1.0 + depth * mu_in * mu_in))
+
+
+def depth_term(reduced_scattering_per_mm: float, absorption_per_mm: float) -> float:
+    """The coefficient ``c = (mu_eff l)^2 = 3 mu_a / (mu_a + mu_s')`` of the depth term
+    ``1 + c mu'^2`` of the diffuse profile.
+
+    Derivation (docs/design.md, "Emission: the depth term"): the radiance leaving along s_i is
+    the scattering source integrated back along the ray, ``int phi(z) e^{-z / l mu'} dz / l mu'``
+    (l = 1 / mu_t', z depth).  Under a surface whose exitance varies slowly along it, the
+    diffusion equation gives ``phi'' = mu_eff^2 phi`` (mu_eff^2 = 3 mu_a mu_t'), and the Robin
+    boundary ``phi'(0) = phi(0) / z_b`` (z_b = 2 A l / 3), so ``phi = phi(0) (1 + z / z_b +
+    mu_eff^2 z^2 / 2 + mu_eff^2 z^3 / 6 z_b + ...)``; the ray integral is then
+    ``phi(0) (1 + 3 mu' / 2A) (1 + (mu_eff l)^2 mu'^2)`` to first order in mu_eff^2 (all orders
+    in l / z_b).  Where the exitance curves along the surface the curvature adds to mu_eff^2
+    locally; averaged over a face it adds nothing (the integral of a Laplacian), which is why the
+    term is a property of the medium.  Checked against fluxcli's photon Monte Carlo
+    (tests/test_emission.py): for mu_a from 0.01 to 0.3 /mm it takes the profile's error from up
+    to 13 % to within 3 % in every band."""
+    mus, mua = float(reduced_scattering_per_mm), float(absorption_per_mm)
+    return 3.0 * mua / (mua + mus)
 
 
 # ------------------------------------------------------------------ the profile
@@ -127,6 +154,7 @@ class Profile:
     tangent: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
     reduced_scattering_per_mm: float | None = None
     absorption_per_mm: float | None = None
+    depth_term: float = 0.0  # diffuse: the coefficient c of the depth term 1 + c mu'^2 in the table (0: none)
 
     @property
     def has_tangent(self) -> bool:
@@ -176,6 +204,8 @@ class Profile:
         out = {"model": self.model, "weights_sha256": hashlib.sha256(self.table.tobytes()).hexdigest()}
         if self.refractive_index is not None:
             out["refractive_index"] = float(self.refractive_index)
+        if self.depth_term:  # absent when off: the key of a diffuse T before the term existed
+            out["depth_term"] = round(float(self.depth_term), 9)  # as artefacts store numbers (store.canonical)
         if self.has_tangent:  # absent when off: the key of a diffuse T before the term existed
             out["tangent_sha256"] = hashlib.sha256(self.tangent.tobytes()).hexdigest()
             out["tangent_layout"] = TANGENT_LAYOUT
@@ -183,8 +213,10 @@ class Profile:
 
     def describe(self) -> str:
         if self.model == "diffuse":
-            if self.has_tangent:
-                return (f"diffuse (refractive index {self.refractive_index:g}) with its tangential flux "
+            terms = [t for t, on in ((f"its depth term (c {self.depth_term:.3g})", self.depth_term),
+                                     ("its tangential flux", self.has_tangent)) if on]
+            if terms:
+                return (f"diffuse (refractive index {self.refractive_index:g}) with {' and '.join(terms)} "
                         f"(mu_s' {self.reduced_scattering_per_mm:g} /mm, mu_a {self.absorption_per_mm:g} /mm)")
             return f"diffuse (refractive index {self.refractive_index:g})"
         if self.model == "table":
@@ -256,26 +288,29 @@ def tangent_length(cos_theta: np.ndarray, n: float, transport_per_mm: float) -> 
     return (1.0 + 3.0 * mu_in / A) / (n * transport_per_mm * (1.0 + 3.0 * mu_in / (2.0 * A)))
 
 
-def diffuse(refractive_index: float = 1.40, *, tangential: bool = False,
+def diffuse(refractive_index: float = 1.40, *, tangential: bool = False, depth: bool = False,
             reduced_scattering_per_mm: float = DEFAULT_REDUCED_SCATTERING_PER_MM,
             absorption_per_mm: float = DEFAULT_ABSORPTION_PER_MM) -> Profile:
-    """The diffusion-theory profile; with ``tangential`` also the tangential-flux term of a
-    medium with these coefficients (the profile itself does not depend on them)."""
+    """The diffusion-theory profile (P1 with a Fresnel boundary); with ``depth`` the depth term
+    of a medium with these coefficients (:func:`depth_term`), with ``tangential`` its
+    tangential-flux term (:func:`tangent_length`).  Neither: the coefficients are not used."""
     n = float(refractive_index)
     if not (np.isfinite(n) and n >= 1.0):
         raise ValueError(f"refractive index must be a number >= 1, got {refractive_index}")
-    mu = np.linspace(0.0, 1.0, N_TABLE)
-    table = _normalised(diffuse_radiance(mu, n))
-    if not tangential:
-        return Profile("diffuse", table, refractive_index=n)
     mus, mua = float(reduced_scattering_per_mm), float(absorption_per_mm)
-    if not (np.isfinite(mus) and mus > 0):
-        raise ValueError(f"reduced_scattering_per_mm must be a number > 0, got {reduced_scattering_per_mm}")
-    if not (np.isfinite(mua) and mua >= 0):
-        raise ValueError(f"absorption_per_mm must be a number >= 0, got {absorption_per_mm}")
-    tangent = np.ascontiguousarray(table * tangent_length(mu, n, mus + mua))
+    if tangential or depth:
+        if not (np.isfinite(mus) and mus > 0):
+            raise ValueError(f"reduced_scattering_per_mm must be a number > 0, got {reduced_scattering_per_mm}")
+        if not (np.isfinite(mua) and mua >= 0):
+            raise ValueError(f"absorption_per_mm must be a number >= 0, got {absorption_per_mm}")
+    c = depth_term(mus, mua) if depth else 0.0
+    mu = np.linspace(0.0, 1.0, N_TABLE)
+    table = _normalised(diffuse_radiance(mu, n, c))
+    if not (tangential or depth):
+        return Profile("diffuse", table, refractive_index=n)
+    tangent = np.ascontiguousarray(table * tangent_length(mu, n, mus + mua)) if tangential else np.zeros(0)
     return Profile("diffuse", table, refractive_index=n, tangent=tangent, reduced_scattering_per_mm=mus,
-                   absorption_per_mm=mua)
+                   absorption_per_mm=mua, depth_term=c)
 
 
 def table(x, radiance, *, unit: str = "deg", source: str | None = None) -> Profile:
@@ -361,6 +396,7 @@ def profile(model) -> Profile:
         return lambertian()
     if kind == "diffuse":
         return diffuse(get("refractive_index", 1.40), tangential=bool(get("tangential_flux", True)),
+                       depth=bool(get("depth_term", True)),
                        reduced_scattering_per_mm=get("reduced_scattering_per_mm", DEFAULT_REDUCED_SCATTERING_PER_MM),
                        absorption_per_mm=get("absorption_per_mm", DEFAULT_ABSORPTION_PER_MM))
     if kind == "table":
