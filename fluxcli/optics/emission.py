@@ -130,7 +130,10 @@ def depth_term(reduced_scattering_per_mm: float, absorption_per_mm: float) -> fl
     locally; averaged over a face it adds nothing (the integral of a Laplacian), which is why the
     term is a property of the medium.  Checked against fluxcli's photon Monte Carlo
     (tests/test_emission.py; docs/design.md has the table): at n 1.40 and mu_a 0.01-0.3 /mm it
-    takes the profile's worst band to 80 deg from up to 13 % off to within 3 % (n 1: 15 % -> 4.4 %)."""
+    takes the profile's worst band to 80 deg from up to 13 % off to within 3 % (n 1: 15 % -> 4.4 %).
+    That is for isotropic scattering (mu_s reduced to mu_s' by similarity); with forward-peaked
+    scattering of the same mu_s' (g 0.5-0.9) the photons want 0-0.85 of c, less at low mu_a
+    (docs/design.md, "Forward-peaked scattering: a limit")."""
     mus, mua = float(reduced_scattering_per_mm), float(absorption_per_mm)
     return 3.0 * mua / (mua + mus)
 
