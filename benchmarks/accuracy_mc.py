@@ -65,9 +65,19 @@ CASES = {
     "cylinder-direct": (CYLINDER, 1.40, [5.0, 0.0, 7.5], [-90, -45, 0, 45, 90], False),
     "cylinder-mirrors-deep8": (CYLINDER, 1.37, [0.0, 0.0, 4.5], [-60, 0, 60], True),
     "cylinder-direct-40-facets": (CYLINDER_FINE, 1.40, [5.0, 0.0, 7.5], [-90, -45, 0, 45, 90], False),
+    # tissue-like absorption (mu_a 0.1 /mm, red light): where the depth term of diffuse matters
+    "box-absorbing": ({**BOX, "element_mm": 2.0}, 1.40, [5.0, 0.0, 6.0], [-60, -30, 0, 30, 60], False),
 }
 HEIGHTS = {"box-mirrors-2h": [0.0, 8.0]}  # stage heights (mm) of the cases that have more than one
+# the cases whose medium is not TISSUE; their diffuse model is told the medium
+MEDIA = {"box-absorbing": {"mua_per_mm": 0.1, "mus_per_mm": 1.0, "g": 0.0}}
 MODELS = ("diffuse", "lambertian")
+# more models for some cases: diffuse-p1 is diffuse without its depth term (P1's profile)
+EXTRA_MODELS = {"box-absorbing": ("diffuse-p1",)}
+
+
+def models_of(name: str) -> tuple:
+    return MODELS[:1] + EXTRA_MODELS.get(name, ()) + MODELS[1:]
 
 
 def fluxmap(*args) -> str:
@@ -79,7 +89,16 @@ def fluxmap(*args) -> str:
 
 def config(name: str, model: str, n_photons: int, seed: int) -> dict:
     surface, n, src, rotations, mirrors = CASES[name]
-    emission = {"model": "diffuse", "refractive_index": n} if model == "diffuse" else {"model": "lambertian"}
+    medium = MEDIA.get(name, TISSUE)
+    if model.startswith("diffuse"):
+        emission = {"model": "diffuse", "refractive_index": n}
+        if name in MEDIA:  # told the phantom's medium (the default medium is TISSUE's)
+            emission |= {"absorption_per_mm": medium["mua_per_mm"],
+                         "reduced_scattering_per_mm": medium["mus_per_mm"] * (1 - medium["g"])}
+        if model == "diffuse-p1":
+            emission["depth_term"] = False
+    else:
+        emission = {"model": "lambertian"}
     return {
         "workdir": f"../{name}",  # beside configs/
         "system": {"camera": copy.deepcopy(CAMERA), "mirrors": copy.deepcopy(MIRRORS) if mirrors else [],
@@ -87,7 +106,7 @@ def config(name: str, model: str, n_photons: int, seed: int) -> dict:
         "subject": {"surface": dict(surface), "poses": {"rotations_deg": list(rotations),
                                                         **({"heights_mm": HEIGHTS[name]} if name in HEIGHTS else {})},
                     "emission": emission},
-        "simulate": {"flux": {"kind": "montecarlo", **TISSUE, "refractive_index": n, "position_mm": list(src),
+        "simulate": {"flux": {"kind": "montecarlo", **medium, "refractive_index": n, "position_mm": list(src),
                               "n_photons": int(n_photons), "seed": seed}},
         "reconstruct": {},
     }
@@ -135,10 +154,10 @@ def run_case(name: str, n_photons: int, seed: int) -> dict:
     folder.mkdir(parents=True, exist_ok=True)
     results = {}
     t0 = time.perf_counter()
-    for model in MODELS:
+    for model in models_of(name):
         p = folder / f"{name}-{model}.yaml"
         p.write_text(yaml.safe_dump(config(name, model, n_photons, seed)))
-        if model == MODELS[0]:  # one photon run serves every model (simulate ignores the emission model)
+        if model == models_of(name)[0]:  # one photon run serves every model (simulate ignores the emission model)
             fluxmap("simulate", p, "--quiet")
             with h5py.File(OUT / name / "simulation.h5") as f:
                 imaged = f["images/noisy"][0, 0].reshape(f["images/noisy"].shape[2], -1).sum(axis=1)
@@ -161,7 +180,7 @@ def report(name: str, res: dict) -> bool:
           f"photons in the images per pose {res['diffuse']['photons_in_images']} ({res['seconds']:.0f} s)")
     print(f"{'model':<11} {'elements':<9} {'totals per pose (truth = 1)':<48} {'spread':>7} {'errors per pose':<44} "
           f"{'joint':>13} warnings")
-    for model in MODELS:
+    for model in models_of(name):
         r = res[model]
         for tag, label in (("", "observed"), ("well_", "well-obs.")):
             tot = " ".join(f"{x:.3f}" for x in r[tag + "ratio"])
@@ -174,10 +193,10 @@ def report(name: str, res: dict) -> bool:
             ok &= bars
             print(f"{'':<11} issue bars over observed elements (totals within 2 %, spread <= 2 %, error <= 5 %, "
                   f"each pose and joint): {'MET' if bars else 'NOT MET'}")
-    for model in MODELS:
+    for model in models_of(name):
         print(f"{model:<11} photons imaged / sum(T b_true) per pose: "
               + " ".join(f"{x:.3f}" for x in res[model]["image_over_model"]))
-    for model in MODELS:
+    for model in models_of(name):
         for w in res[model]["warnings"][:6]:
             print(f"  [{model}] {w.strip()}")
     return ok
@@ -192,7 +211,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.list:
         for k, (s, n, src, rot, mir) in CASES.items():
-            print(f"{k}: {s['phantom']}, n {n}, source {src} mm, rotations {rot}, mirrors {mir}"
+            print(f"{k}: {s['phantom']}, n {n}, source {src} mm, rotations {rot}, mirrors {mir}, medium {MEDIA.get(k, TISSUE)}"
                   + (f", heights {HEIGHTS[k]} mm" if k in HEIGHTS else ""))
         return 0
     names = list(CASES) if a.cases == "all" else a.cases.split(",")
