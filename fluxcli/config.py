@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
@@ -1132,6 +1133,18 @@ class Config(Model):
         return _distinct_rois(v)
 
 
+@dataclass(frozen=True)
+class PathResolver:
+    """Turns a path the config gives into the file it means: as given when absolute, else beside
+    the config file. What a plan hands on instead of the config itself."""
+
+    base_dir: Path  # the config file's folder
+
+    def __call__(self, p: Path | str) -> Path:
+        p = Path(p)
+        return p if p.is_absolute() else (self.base_dir / p).resolve()
+
+
 class LoadedConfig:
     """A validated config with where it came from."""
 
@@ -1144,9 +1157,13 @@ class LoadedConfig:
     def base_dir(self) -> Path:
         return self.path.parent
 
+    @property
+    def resolver(self) -> PathResolver:
+        """:meth:`resolve` without the config: what plans hand on."""
+        return PathResolver(self.base_dir)
+
     def resolve(self, p: Path | str) -> Path:
-        p = Path(p)
-        return p if p.is_absolute() else (self.base_dir / p).resolve()
+        return self.resolver(p)
 
     @property
     def workdir(self) -> Path:

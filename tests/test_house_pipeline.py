@@ -215,3 +215,67 @@ def test_the_whole_house_keeps_its_walls():
             if a.arg == "cfg" or "LoadedConfig" in ann:
                 takes.append(f"{f}:{fn.lineno} {fn.name}({a.arg})")
     assert takes == []
+
+
+def _holders_of(obj, kinds, path="plan", seen=None) -> list[str]:
+    """Where, inside ``obj``, an instance of ``kinds`` can be reached: through fields, containers,
+    attributes, bound methods and the cells of closures (a closure over the config hands the whole
+    of it to whoever calls it)."""
+    import types
+
+    seen = set() if seen is None else seen
+    if id(obj) in seen or isinstance(obj, (str, bytes, int, float, bool, type(None), Path, np.ndarray, type)):
+        return []
+    seen.add(id(obj))
+    if isinstance(obj, kinds):
+        return [path]
+    if isinstance(obj, dict):
+        items = [(f"{path}[{k!r}]", v) for k, v in obj.items()]
+    elif isinstance(obj, (list, tuple, set, frozenset)):
+        items = [(f"{path}[{i}]", v) for i, v in enumerate(obj)]
+    elif isinstance(obj, types.MethodType):
+        items = [(f"{path}.__self__", obj.__self__), (f"{path}.__func__", obj.__func__)]
+    elif isinstance(obj, types.FunctionType):
+        items = [(f"{path}<closure {name}>", c.cell_contents)
+                 for name, c in zip(obj.__code__.co_freevars, obj.__closure__ or ())]
+    elif isinstance(obj, types.ModuleType):
+        return []
+    else:
+        items = [(f"{path}.{k}", v) for k, v in getattr(obj, "__dict__", {}).items()]
+    return [h for p, v in items for h in _holders_of(v, kinds, p, seen)]
+
+
+def test_the_reconstruct_plan_is_read_once_and_does_not_carry_the_config(write_config, minimal_config):
+    """issue 23: ``plan_of`` reads the config once; nothing in the plan it hands to the stage's
+    helpers holds the config (the plan's T builder used to be a closure over it, and its path
+    resolver a method of it, so the error budget and the grids reached the whole config)."""
+    from fluxcli.config import Config, LoadedConfig, load_config
+    from fluxcli.stages._reconstruct_plan import plan_of
+
+    plan = plan_of(load_config(write_config(minimal_config)))
+    assert _holders_of(plan, (LoadedConfig, Config)) == []
+    assert _holders_of(plan.build_T, (LoadedConfig, Config)) == []
+    # the probe finds a config where one hides: in a closure cell, behind a bound method
+    cfg = load_config(write_config(minimal_config))
+
+    class Holder:
+        def __init__(self):
+            self.parts = {"nested": [cfg.model]}
+
+        def method(self):
+            return self
+
+    assert _holders_of({"f": [lambda: cfg]}, (LoadedConfig,)) == ["plan['f'][0]<closure cfg>"]
+    assert _holders_of(Holder().method, (Config,)) == ["plan.__self__.parts['nested'][0]"]
+
+
+@pytest.mark.parametrize("stage, config", [("simulate", "demo.yaml"), ("calibrate", "calibrate.yaml"),
+                                           ("capture", "demo-rig.yaml")])
+def test_no_stage_plan_carries_the_config(stage, config):
+    """The other commands' plans, made from the repository's own configs, hold no config either."""
+    from fluxcli.config import Config, LoadedConfig, load_config
+    from fluxcli.stages import _calibrate_plan, _capture_plan, simulate
+
+    make = {"simulate": simulate.plan_simulation, "calibrate": _calibrate_plan.plan_of, "capture": _capture_plan.plan_of}
+    plan = make[stage](load_config(ROOT / "configs" / config))
+    assert _holders_of(plan, (LoadedConfig, Config)) == []

@@ -75,7 +75,7 @@ def plan_of(cfg: C.LoadedConfig) -> CalibratePlan:
                              mirrors=[m.model_dump(mode="json") for m in system.mirrors] if system is not None else [],
                              files={n: d["sha256"] for n, d in prov.input_files.items()})
     return CalibratePlan(cfg.path, cfg.sha256, sec, system, cfg.workdir / AC.FILE_NAME, cfg.workdir / AC.YAML_NAME,
-                         cfg.workdir / "projector_frames", capture_path, tuple(image_paths), frame_paths, cfg.resolve,
+                         cfg.workdir / "projector_frames", capture_path, tuple(image_paths), frame_paths, cfg.resolver,
                          prov, digest)
 
 

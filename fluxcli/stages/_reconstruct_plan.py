@@ -10,12 +10,12 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable
 
 from .. import artefacts as A
 from .. import config as C
 from ..artefacts.reconstruction import FILENAME as RECONSTRUCTION_FILE
-from .plans import check_folders, ensure_T, geometry_of, plan, provenance
+from ..transfer_cache import TransferSource
+from .plans import check_folders, source_of
 from ._radiometric import assumed_qe_warning, counts_in
 from .outputs import reconstruction_exposure_s, simulation_exposure_s
 
@@ -78,14 +78,25 @@ class ReconstructPlan:
     views: list  # the camera views (direct, mirrors)
     placer: object  # the subject placed at each pose (surface, axis, emission)
     todo: list  # per pose (placed scene, T plan with its key and cache path)
-    new_provenance: Callable[[], A.Provenance]  # a fresh provenance record of this run
-    build_T: Callable  # (ctx, label, unknowns, system=None) -> (views, placer, todo, _): T built or from the cache
+    transfer: TransferSource  # what the T cache needs (rig, subject, sampling, cache folder), read once from the config
+    surface_sha256: str  # the built surface's digest (what the artefact's geometry records)
 
     def transmission(self, name: str | None) -> float:
         """The filter's transmission (1 without a capture's filter)."""
         if name is None or not self.images.is_capture:
             return 1.0
         return float(self.transmissions.get(name, 1.0))
+
+    def build_T(self, ctx, label: str, unknowns: str, system: C.System | None = None):
+        """Every pose's T on ``unknowns``, built or from the cache (never forced: ``--force`` redoes
+        the reconstruction, not T): views, placer, [(scene, PoseT)], summaries. ``system``: another
+        rig (the error budget's moved parameters)."""
+        source = self.transfer if system is None else self.transfer.with_system(system)
+        return source.ensure(replace(ctx, force=False), label, unknowns)
+
+    def new_provenance(self) -> A.Provenance:
+        """A fresh provenance record of this run (the files read are added to it)."""
+        return self.transfer.provenance(self.surface_sha256)
 
     def rate_exposure_s(self, inp_exposure_s: float) -> float | None:
         """The exposure that makes rates: a capture knows its frames', else as the config states it."""
@@ -106,10 +117,6 @@ def _image_sources(cfg: C.LoadedConfig, capture: Path | None) -> list[str]:
     return [A.file_sha256(sim)] if sim.is_file() else []
 
 
-def _with_system(cfg: C.LoadedConfig, system: C.System | None) -> C.LoadedConfig:
-    return cfg if system is None else C.LoadedConfig(cfg.model.model_copy(update={"system": system}), cfg.path, cfg.raw)
-
-
 def plan_of(cfg: C.LoadedConfig) -> ReconstructPlan:
     """The run plan of ``fluxmap reconstruct`` (checks the folders, places the poses)."""
     m_ = cfg.model
@@ -117,12 +124,15 @@ def plan_of(cfg: C.LoadedConfig) -> ReconstructPlan:
     check_folders(cfg)
     src = rc.images
     capture = cfg.images_capture_path() if isinstance(src, C.CaptureSource) else None
-    digest = A.inputs_digest(system=m_.system.model_dump(mode="json"), subject=geometry_of(cfg)["subject"],
+    source = source_of(cfg)
+    geometry = source.geometry()
+    digest = A.inputs_digest(system=m_.system.model_dump(mode="json"), subject=geometry["subject"],
                              transfer=m_.transfer.model_dump(mode="json"),
                              reconstruct=rc.model_dump(mode="json", by_alias=True), images=_image_sources(cfg, capture),
                              solver=SOLVER_VERSION,
                              **({"rois": [r.model_dump(mode="json") for r in m_.rois]} if m_.rois else {}))
-    views, placer, todo = plan(cfg)
+    tp = source.plan()
+    views, placer, todo = tp.views, tp.placer, tp.poses
     surface_sha = placer.surface.digest()
     files = tuple(cfg.resolve(p) for p in getattr(src, "files", None) or ())
     calibration = getattr(src, "calibration", None) if isinstance(src, C.ImageFiles) else None
@@ -136,10 +146,6 @@ def plan_of(cfg: C.LoadedConfig) -> ReconstructPlan:
         sensor=m_.system.camera.sensor, sensor_given="sensor" in m_.system.camera.model_fields_set,
         heights_mm=tuple(p.height_mm for p in poses_from_config(m_.subject)) if capture is not None else ())
     surface = m_.subject.surface if m_.subject is not None else None
-
-    def build_T(ctx, label: str, unknowns: str, system: C.System | None = None):
-        return ensure_T(_with_system(cfg, system), replace(ctx, force=False), label=label, unknowns=unknowns)
-
     return ReconstructPlan(
         config_path=cfg.path, config_sha256=cfg.sha256, workdir=cfg.workdir, output=cfg.workdir / RECONSTRUCTION_FILE,
         images=images, settings=rc.settings(), noise=rc.noise, read_noise_photons=rc.read_noise_photons,
@@ -149,7 +155,6 @@ def plan_of(cfg: C.LoadedConfig) -> ReconstructPlan:
         rois=tuple(m_.rois or ()), roi_mesh=cfg.resolve(surface.mesh) if isinstance(surface, C.MeshSurface) else None,
         config_exposure_s=reconstruction_exposure_s(src, m_.simulate), simulation_exposure_s=simulation_exposure_s(m_.simulate),
         camera=m_.system.camera, system=m_.system, calibration_budget=rc.calibration_budget, digest=digest,
-        geometry=geometry_of(cfg, surface_sha), subject_emission=copy.deepcopy(
-            (geometry_of(cfg).get("subject") or {}).get("emission")),
+        geometry=source.geometry(surface_sha), subject_emission=copy.deepcopy((geometry.get("subject") or {}).get("emission")),
         qe_warning=assumed_qe_warning(m_.system, "reconstruct", real_counts=counts_in(src, m_.rig)),
-        views=views, placer=placer, todo=todo, new_provenance=lambda: provenance(cfg, surface_sha), build_T=build_T)
+        views=views, placer=placer, todo=todo, transfer=source, surface_sha256=surface_sha)

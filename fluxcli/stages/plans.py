@@ -15,13 +15,21 @@ from ..config import FileFlux, LoadedConfig, Sensor, Transfer, emission_profile
 from ..imaging import noise as N
 from ..resources import check_folders as _check_folders
 from ..scene import Pose, SubjectPlacer, poses_from_config, views_from_config
-from ..transfer_cache import TransferPlan, ensure, place, pose_T, with_columns
+from ..transfer_cache import TransferPlan, TransferSource, pose_T, with_columns
 from ..truth import TruthPlan, truth_refinement
+
+
+def source_of(cfg: LoadedConfig) -> TransferSource:
+    """What the T cache needs of this config (:class:`~fluxcli.transfer_cache.TransferSource`), read once."""
+    m = cfg.model
+    return TransferSource(m.system, m.subject, emission_profile(cfg), cfg.resolver, m.transfer, cache_dir(cfg),
+                          cfg.sha256, m.model_dump(mode="json", by_alias=True),
+                          emission_assumed=m.subject is not None and m.subject.emission is None)
 
 
 def placer_of(cfg: LoadedConfig) -> SubjectPlacer:
     """The subject as the config describes it, ready to be placed at any pose."""
-    return SubjectPlacer(cfg.model.subject, cfg.model.system.stage, emission_profile(cfg), cfg.resolve)
+    return SubjectPlacer(cfg.model.subject, cfg.model.system.stage, emission_profile(cfg), cfg.resolver)
 
 
 def cache_dir(cfg: LoadedConfig) -> Path:
@@ -51,18 +59,9 @@ def emccd_model(sensor: Sensor, exposure_s: float) -> N.EMCCDModel:
 
 
 def transfer_plan(cfg: LoadedConfig, transfer: Transfer | None = None, unknowns: str = "elements") -> TransferPlan:
-    """What this config asks of the T cache: views, placer, per pose its placed scene and entry.
-
-    ``transfer`` overrides ``cfg.model.transfer`` (simulate builds a finer T this way);
-    ``unknowns="sub_elements"`` gives T's columns per sub-element (Surface.unknowns),
-    ``"refined:n"`` per face of the surface refined n times (Surface.refined)."""
-    tr = transfer or cfg.model.transfer
-    views = views_from_config(cfg.model.system)
-    placer = placer_of(cfg)
-    cdir = cache_dir(cfg)
-    poses = place(placer, cfg.model.system, poses_from_config(cfg.model.subject), views, tr, cdir, unknowns)
-    return TransferPlan(views, placer, poses, tr, cdir, cfg.sha256, provenance(cfg, placer.surface.digest()),
-                        emission_assumed=cfg.model.subject is not None and cfg.model.subject.emission is None)
+    """What this config asks of the T cache (:meth:`TransferSource.plan`): views, placer, per pose
+    its placed scene and entry."""
+    return source_of(cfg).plan(transfer, unknowns)
 
 
 # ------------------------------------------------------------------ the former pipeline's cfg-taking calls
@@ -70,14 +69,6 @@ def plan(cfg: LoadedConfig, transfer: Transfer | None = None, unknowns: str = "e
     """``(views, placer, [(scene, PoseT)])`` of :func:`transfer_plan`."""
     tp = transfer_plan(cfg, transfer, unknowns)
     return tp.views, tp.placer, tp.poses
-
-
-def ensure_T(cfg: LoadedConfig, ctx, transfer: Transfer | None = None, label: str = "building T",
-             unknowns: str = "elements"):
-    """Every pose's T in the cache (:func:`fluxcli.transfer_cache.ensure`): views, placer,
-    [(scene, PoseT)], and per key a summary dict (cached, seconds, nnz, efficiency per view)."""
-    tp = transfer_plan(cfg, transfer, unknowns)
-    return tp.views, tp.placer, tp.poses, ensure(tp, ctx, label)
 
 
 def ensure_pose_T(cfg: LoadedConfig, pose: Pose, transfer: Transfer | None = None,

@@ -1,26 +1,31 @@
 """The T cache as a service: what a stage asks for (its poses' T, built or read from the
 cache), keyed by the content of everything T depends on.
 
-The stage turns its config into a :class:`TransferPlan` (:func:`fluxcli.stages.plans.transfer_plan`);
-everything here takes that plan or its parts, never the config.
+The stage reads what T needs from its config once, into a :class:`TransferSource`
+(:func:`fluxcli.stages.plans.source_of`), which makes the :class:`TransferPlan` of its poses;
+everything here takes those or their parts, never the config.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from functools import cached_property
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
 from .. import _numba_cache
 from .. import artefacts as A
 from ..artefacts import transfer as AT
-from ..config import System, Transfer
+from ..artefacts import provenance as AP
+from ..config import Subject, System, Transfer
 from ..errors import UserError
 from ..optics.transfer import ALGORITHM_VERSION, LensSampling, PairwiseSampling, View, default_threads, surface_sample_count
 from ..progress import run_tasks
 from ..resources import check_memory
-from ..scene import PlacedScene, Pose, SubjectPlacer
+from ..optics.emission import Profile
+from ..scene import PlacedScene, Pose, SubjectPlacer, poses_from_config, views_from_config
 from ..workers import pool_for
 from .build import SAMPLE_BYTES, build_and_store, transfer_bytes
 from .cluster import build_on_cluster, check_shared
@@ -52,6 +57,60 @@ class TransferPlan:
     config_sha256: str
     provenance: A.Provenance
     emission_assumed: bool = False  # subject.emission absent (Lambertian assumed): a notice once per run
+
+
+@dataclass(frozen=True)
+class TransferSource:
+    """What the T cache needs of a config, read once by a stage's plan: the rig, the subject with
+    its emission profile, T's sampling, the cache folder and what T files record. A stage hands
+    this on instead of the config; :meth:`with_system` is the same subject under another rig
+    (the error budget moves the calibrated parameters)."""
+
+    system: System  # system: camera, mirrors, stage
+    subject: Subject  # subject: surface, poses, emission
+    emission: Profile  # the subject's emission profile (Lambertian when subject.emission is absent)
+    resolve: Callable[[Path], Path]  # a path the config gives -> the file it means (beside the config)
+    transfer: Transfer  # transfer: T's estimator and sampling
+    cache_dir: Path  # the T cache folder
+    config_sha256: str  # the config file's sha256 (what T files record)
+    config_json: dict  # the resolved config, dumped by alias in JSON mode (what provenance records)
+    emission_assumed: bool = False  # subject.emission absent (Lambertian assumed): a notice once per run
+
+    @cached_property
+    def placer(self) -> SubjectPlacer:
+        """The subject, built once, ready to be placed at any pose on this rig's stage."""
+        return SubjectPlacer(self.subject, self.system.stage, self.emission, self.resolve)
+
+    def with_system(self, system: System) -> "TransferSource":
+        """The same subject and sampling under another rig (the config as if it stated ``system``)."""
+        return replace(self, system=system,
+                       config_json={**self.config_json, "system": system.model_dump(mode="json", by_alias=True)})
+
+    def geometry(self, surface_sha256: str | None = None) -> dict:
+        """The set-up an artefact of this source is made for (:func:`fluxcli.artefacts.provenance.geometry_of`)."""
+        return AP.geometry_of(self.system, self.subject, self.emission.key, surface_sha256)
+
+    def provenance(self, surface_sha256: str | None = None) -> A.Provenance:
+        """A fresh provenance record: the resolved config and the geometry (with the built surface's digest)."""
+        return AP.provenance_of(self.config_json, self.geometry(surface_sha256))
+
+    def plan(self, transfer: Transfer | None = None, unknowns: str = "elements") -> "TransferPlan":
+        """What to ask the T cache for: views, placer, per pose its placed scene and entry.
+
+        ``transfer`` overrides :attr:`transfer` (simulate builds a finer T this way);
+        ``unknowns="sub_elements"`` gives T's columns per sub-element (Surface.unknowns),
+        ``"refined:n"`` per face of the surface refined n times (Surface.refined)."""
+        tr = transfer or self.transfer
+        views, placer = views_from_config(self.system), self.placer
+        poses = place(placer, self.system, poses_from_config(self.subject), views, tr, self.cache_dir, unknowns)
+        return TransferPlan(views, placer, poses, tr, self.cache_dir, self.config_sha256,
+                            self.provenance(placer.surface.digest()), emission_assumed=self.emission_assumed)
+
+    def ensure(self, ctx, label: str = "building T", unknowns: str = "elements", transfer: Transfer | None = None):
+        """Every pose's T in the cache (:func:`ensure`): views, placer, [(scene, PoseT)], and per
+        key a summary dict (cached, seconds, nnz, efficiency per view)."""
+        tp = self.plan(transfer, unknowns)
+        return tp.views, tp.placer, tp.poses, ensure(tp, ctx, label)
 
 
 EMISSION_NOTICE = ("subject.emission is not set: the surface is taken as Lambertian. Light leaving tissue or a turbid "
