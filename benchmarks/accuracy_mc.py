@@ -72,12 +72,20 @@ HEIGHTS = {"box-mirrors-2h": [0.0, 8.0]}  # stage heights (mm) of the cases that
 # the cases whose medium is not TISSUE; their diffuse model is told the medium
 MEDIA = {"box-absorbing": {"mua_per_mm": 0.1, "mus_per_mm": 1.0, "g": 0.0}}
 MODELS = ("diffuse", "lambertian")
-# more models for some cases: diffuse-p1 is diffuse without its depth term (P1's profile)
-EXTRA_MODELS = {"box-absorbing": ("diffuse-p1",)}
+# more models for some cases: diffuse-p1 is diffuse without its depth term (P1's profile);
+# diffuse-fine is diffuse on faces split into four (subject.refine_faces: 1; the same elements), for
+# the spots about an element wide, with a deep source as the control (the same photons: seeded)
+EXTRA_MODELS = {"box-absorbing": ("diffuse-p1", "diffuse-fine"), "box-n1.56-shallow2": ("diffuse-fine",),
+                "box-direct": ("diffuse-fine",), "box-n1.33-deep8": ("diffuse-fine",)}
 
 
 def models_of(name: str) -> tuple:
     return MODELS[:1] + EXTRA_MODELS.get(name, ()) + MODELS[1:]
+
+
+def workdir_of(name: str, model: str) -> Path:
+    """Where a case's model runs: its own folder, or beside it for models on another surface."""
+    return OUT / (f"{name}-fine" if model == "diffuse-fine" else name)
 
 
 def fluxmap(*args) -> str:
@@ -100,12 +108,12 @@ def config(name: str, model: str, n_photons: int, seed: int) -> dict:
     else:
         emission = {"model": "lambertian"}
     return {
-        "workdir": f"../{name}",  # beside configs/
+        "workdir": f"../{workdir_of(name, model).name}",  # beside configs/
         "system": {"camera": copy.deepcopy(CAMERA), "mirrors": copy.deepcopy(MIRRORS) if mirrors else [],
                    "stage": {"top_z_mm": STAGE_TOP_MM, "size_mm": [100, 34], "thickness_mm": 5}},
         "subject": {"surface": dict(surface), "poses": {"rotations_deg": list(rotations),
                                                         **({"heights_mm": HEIGHTS[name]} if name in HEIGHTS else {})},
-                    "emission": emission},
+                    "emission": emission, **({"refine_faces": 1} if model == "diffuse-fine" else {})},
         "simulate": {"flux": {"kind": "montecarlo", **medium, "refractive_index": n, "position_mm": list(src),
                               "n_photons": int(n_photons), "seed": seed}},
         "reconstruct": {},
@@ -152,20 +160,22 @@ def forward_check(cfg_path: Path, sim_path: Path) -> list[float]:
 def run_case(name: str, n_photons: int, seed: int) -> dict:
     folder = OUT / "configs"
     folder.mkdir(parents=True, exist_ok=True)
-    results = {}
+    results, simulated = {}, set()
     t0 = time.perf_counter()
     for model in models_of(name):
         p = folder / f"{name}-{model}.yaml"
         p.write_text(yaml.safe_dump(config(name, model, n_photons, seed)))
-        if model == models_of(name)[0]:  # one photon run serves every model (simulate ignores the emission model)
-            fluxmap("simulate", p, "--quiet")
-            with h5py.File(OUT / name / "simulation.h5") as f:
+        work = workdir_of(name, model)
+        if work not in simulated:  # one photon run serves every model on a surface (simulate ignores the
+            fluxmap("simulate", p, "--quiet")  # emission model); another surface gets the same photons again
+            simulated.add(work)
+            with h5py.File(work / "simulation.h5") as f:
                 imaged = f["images/noisy"][0, 0].reshape(f["images/noisy"].shape[2], -1).sum(axis=1)
         text = fluxmap("reconstruct", p, "--force")
-        kept = OUT / name / f"reconstruction-{model}.h5"
-        (OUT / name / "reconstruction.h5").replace(kept)
+        kept = work / f"reconstruction-{model}.h5"
+        (work / "reconstruction.h5").replace(kept)
         res = summarise(kept)
-        res["image_over_model"] = forward_check(p, OUT / name / "simulation.h5")
+        res["image_over_model"] = forward_check(p, work / "simulation.h5")
         res["warnings"] = [ln for ln in text.splitlines() if "warning" in ln.lower()]
         res["photons_in_images"] = imaged.tolist()
         results[model] = res

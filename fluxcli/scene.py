@@ -132,6 +132,12 @@ class SubjectPlacer:
             point, axis = (lo + hi) / 2, np.array([1.0, 0, 0])
         if surf.n_elements == 0:
             raise UserError("subject.surface: the surface has no elements.")
+        n_faces = len(surf.faces) * 4 ** subject.refine_faces
+        if n_faces > C.MAX_PHANTOM_PIECES:
+            raise UserError(f"subject.refine_faces: {subject.refine_faces} splits the surface's {len(surf.faces)} faces "
+                            f"into {n_faces:.3g}; at most {C.MAX_PHANTOM_PIECES:.0e} (no camera resolves more, and "
+                            "building them would exhaust the memory). Lower subject.refine_faces.")
+        surf = surf.subdivided(subject.refine_faces)  # finer faces, the same elements
         self.own_surface = surf  # in the generator's own frame (what a Monte Carlo truth is computed in)
         self.rest_shift_mm = np.zeros(3)
         if self.rests_on_stage:

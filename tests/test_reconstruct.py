@@ -305,3 +305,30 @@ def test_rates_are_fixed_at_reconstruct_time(write_config, patch_config, tmp_pat
     assert run("reconstruct", p, "--quiet").exit_code == 0
     r = run("summary", p, "--set", "reconstruct.images.exposure_s=5")
     assert r.exit_code == 2 and "no exposure time" in " ".join(r.output.split())
+
+
+def test_faces_split_finer_keep_the_elements_and_their_geometry():
+    """subject.refine_faces splits every face into four at its edge midpoints; the elements (what is
+    reported) keep their areas, centroids and normals, written out here for the box's flat faces:
+    an element of side a x b has area a b; the surface stays closed; each level gives 4x the faces
+    and, on a closed triangulated surface, V' = V + E new vertices (E = 3F/2)."""
+    from fluxcli.surface import phantoms
+
+    surf = phantoms.box(size_mm=(12.0, 16.0, 8.0), element_mm=4.0)[0]
+    assert np.allclose(surf.element_areas_mm2, 16.0)
+    for levels in (1, 2):
+        fine = surf.subdivided(levels)
+        assert fine.n_elements == surf.n_elements and len(fine.faces) == len(surf.faces) * 4 ** levels
+        assert np.allclose(fine.element_areas_mm2, 16.0, rtol=1e-12)
+        assert np.allclose(fine.element_centroids_mm, surf.element_centroids_mm, atol=1e-12)
+        assert np.allclose(fine.element_normals, surf.element_normals, atol=1e-12)
+        assert fine.is_closed
+        v, f = len(surf.vertices_mm), len(surf.faces)
+        for _ in range(levels):
+            v, f = v + 3 * f // 2, 4 * f
+        assert len(fine.vertices_mm) == v
+        # each fine face lies inside its element's coarse face: its centroid is within the element's square
+        c = fine.face_vertices_mm.mean(axis=1)
+        half = np.abs(c - surf.element_centroids_mm[fine.element_of_face])
+        assert (np.sort(half, axis=1)[:, 1:] <= 2.0 + 1e-9).all() and (np.sort(half, axis=1)[:, 0] < 1e-9).all()
+    assert surf.subdivided(0) is surf

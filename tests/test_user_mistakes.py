@@ -450,3 +450,22 @@ def test_info_names_a_missing_or_foreign_file(tmp_path):
 
 def test_there_are_at_least_60_mistakes():
     assert len(MISTAKES) + 2 >= 60
+
+
+def test_faces_split_past_what_any_camera_resolves_are_refused_by_key(tmp_path, write_config, minimal_config):
+    """subject.refine_faces: 3 on a mesh of 10^5 faces would make 6 x 10^6: exit 2 naming the key."""
+    import pyvista as pv
+
+    from fluxcli.surface import phantoms
+
+    surf = phantoms.sphere(radius_mm=10.0, n_latitude=160, n_longitude=320)[0]
+
+    cells = np.hstack([np.full((len(surf.faces), 1), 3), surf.faces]).ravel()
+    pv.PolyData(surf.vertices_mm, cells).save(tmp_path / "dense.vtp")
+    cfg = copy.deepcopy(minimal_config)
+    cfg["subject"]["surface"] = {"mesh": "dense.vtp"}
+    cfg["subject"]["refine_faces"] = 3
+    r = runner.invoke(app, ["build-T", str(write_config(cfg))])
+    assert r.exit_code == 2, r.output
+    text = " ".join(r.output.split())
+    assert "subject.refine_faces" in text and "Traceback" not in text
