@@ -24,7 +24,10 @@ def run(cfg: LoadedConfig, ctx: RunContext) -> Path:
     check_folders(cfg)
     tp = transfer_plan(cfg)  # validates the geometry before anything is printed
     index = cfg.workdir / AT.INDEX_FILE_NAME
-    ctx.say(f"build-T: {len(tp.poses)} pose(s), {tp.placer.surface.n_elements} elements, views "
+    surf = tp.placer.surface
+    faces = (f" on {len(surf.faces)} faces (subject.refine_faces: {cfg.model.subject.refine_faces})"
+             if cfg.model.subject.refine_faces else "")
+    ctx.say(f"build-T: {len(tp.poses)} pose(s), {surf.n_elements} elements{faces}, views "
             f"{', '.join(v.name for v in tp.views)}, estimator {tp.transfer.estimator}, cache {tp.cache_dir}")
     results = ensure(tp, ctx)
     write_index(index, tp, results, ctx)
