@@ -47,6 +47,9 @@ def plan_of(cfg: C.LoadedConfig) -> CalibratePlan:
     from .plans import provenance
 
     sec = cfg.model.calibrate
+    if sec is None:
+        raise UserError(f"config {cfg.path}: 'calibrate' is missing: what to calibrate from (images of the grid at "
+                        "known heights, calibrate.images, or the frames capture-surface took, calibrate.capture).")
     system = cfg.model.system
     cam = system.camera if system is not None else None
     capture_path = cfg.resolve(sec.capture) if sec.capture is not None else None
