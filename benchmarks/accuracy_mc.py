@@ -6,7 +6,9 @@ MCML-style, Fresnel at every face, no emission model assumed), makes the images 
 photons themselves through the thin lens and mirrors (whole photons: their count is the
 shot noise) and reconstructs them, each pose alone and all poses jointly, with
 ``subject.emission: diffuse`` (refractive index matching the phantom) AND ``lambertian``,
-from the same photons. Printed per case x model: the totals over observed elements against
+from the same photons (four cases also ``diffuse-fine``: the same photons on faces split once,
+``subject.refine_faces: 1``; and the absorbing box ``diffuse-p1``, without the depth term).
+Printed per case x model: the totals over observed elements against
 the truth over the same elements (per pose and joint), the spread of the per-pose totals,
 the error (paper Eq. 15) over observed elements, and the warnings. The issue's bars, for
 diffuse: totals within 2 % of the truth at every pose, spread <= 2 %, error <= 5 %.
