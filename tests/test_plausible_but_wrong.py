@@ -17,6 +17,7 @@ from typer.testing import CliRunner
 
 from fluxcli.artefacts.transfer import load_T
 from fluxcli.cli import app
+from fluxcli.errors import UserError
 from fluxcli.imaging.imagefiles import write_image
 from fluxcli.surface.mesh import read_mesh, read_mesh_checked, validated
 
@@ -339,3 +340,25 @@ def test_sweep_without_methods_and_slice_outside_the_subject_are_refused(run):
     assert r.exit_code == 2 and "reconstruct.sweep.methods" in out
     r, out = invoke("report", p, "--set", "report.slice_axial_mm=1000")
     assert r.exit_code == 2 and "report.slice_axial_mm: 1000 mm is outside the subject" in out
+
+
+def test_an_artefact_made_before_a_set_up_key_existed_is_read_with_that_key_off(run, tmp_path):
+    """subject.refine_faces came after artefacts were made: one that does not record it was made
+    on the faces as they are (refine_faces 0), and is refused only for a config that splits them."""
+    from fluxcli.artefacts.store import check_geometry, read_provenance
+
+    d, cfg, p = run
+    with h5py.File(d / "run" / "simulation.h5") as f:
+        stored = read_provenance(f)
+    now = copy.deepcopy(stored.geometry)
+    assert now["subject"]["refine_faces"] == 0
+    older = copy.deepcopy(stored)
+    del older.geometry["subject"]["refine_faces"]
+    check_geometry(tmp_path / "simulation.h5", older, now, remedy="simulate again")  # the same set-up
+    now["subject"]["refine_faces"] = 1
+    with pytest.raises(UserError, match=r"subject.refine_faces: not set in simulation.h5, 1 now"):
+        check_geometry(tmp_path / "simulation.h5", older, now, remedy="simulate again")
+    del now["subject"]["refine_faces"]
+    now["subject"]["poses"]["heights_mm"] = [0, 7]  # any other key still counts
+    with pytest.raises(UserError, match=r"heights_mm: \[0, 5\] in simulation.h5, \[0, 7\] now"):
+        check_geometry(tmp_path / "simulation.h5", older, now, remedy="simulate again")

@@ -90,9 +90,20 @@ def _show(v: Any) -> str:
     return str(v)
 
 
+# Set-up keys added after artefacts were first made, with the value that means what an artefact
+# made without the key meant: absent and this value are the same set-up (an artefact made
+# before the key existed is not refused for it).
+ADDED_KEYS = {"subject.refine_faces": 0}
+
+
+def _comparable(geometry: dict) -> dict:
+    flat = _flatten(canonical(geometry))
+    return {k: v for k, v in flat.items() if not (k in ADDED_KEYS and v == ADDED_KEYS[k])}
+
+
 def geometry_differences(stored: dict, now: dict, name: str = "the artefact") -> list[str]:
     """Dotted keys whose values differ: ``"key: OLD in NAME, NEW now"`` pieces."""
-    a, b = _flatten(canonical(stored)), _flatten(canonical(now))
+    a, b = _comparable(stored), _comparable(now)
     out = []
     for k in sorted(set(a) | set(b)):
         if a.get(k) != b.get(k):
@@ -106,7 +117,7 @@ def check_geometry(path: Path, stored: Provenance, now_geometry: dict, *, remedy
     if not stored.geometry:
         raise UserError(f"{path} records no geometry (made by an older fluxmap), so it cannot be checked "
                         f"against this config; {remedy}.")
-    if canonical(stored.geometry) == canonical(now_geometry):
+    if _comparable(stored.geometry) == _comparable(now_geometry):
         return
     diffs = geometry_differences(stored.geometry, now_geometry, Path(path).name)
     shown = "; ".join(diffs[:6]) + (f" (and {len(diffs) - 6} more)" if len(diffs) > 6 else "")
