@@ -10,7 +10,7 @@ import hashlib
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal, Union, get_args
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, ValidationError, field_validator, model_validator
@@ -1280,6 +1280,13 @@ def _format_validation_error(err: ValidationError, path: Path, raw: Any = None) 
             msg = "unknown key (check its spelling against the README's config reference)"
         elif e["type"] == "missing":
             msg = "required key is missing"
+        elif e["type"] in ("union_tag_not_found", "union_tag_invalid"):  # the key that picks a variant
+            ctx = e.get("ctx") or {}
+            tag = str(ctx.get("discriminator", "")).strip("'")
+            kinds = _UNION_CHOICES.get(tag, "")
+            loc = f"{loc}.{tag}" if loc else tag
+            msg = (f"{ctx.get('tag')!r} is not one of {kinds}" if e["type"] == "union_tag_invalid"
+                   else f"required key is missing: one of {kinds}")
         else:
             msg = e["msg"].removeprefix("Value error, ")
         lines.append(f"'{loc}': {msg}" if loc else msg)
@@ -1287,6 +1294,13 @@ def _format_validation_error(err: ValidationError, path: Path, raw: Any = None) 
     return f"config {path}: " + "; ".join(lines) + more + "."
 
 
+# the values of the keys that pick a variant of a section, for the messages that name them
+def _tags(union: Any, key: str) -> str:
+    members = get_args(get_args(union)[0])
+    return ", ".join(str(get_args(m.model_fields[key].annotation)[0]) for m in members)
+
+
+_UNION_CHOICES = {"model": _tags(Emission, "model"), "kind": _tags(Flux, "kind"), "phantom": _tags(Phantom, "phantom")}
 # pydantic puts union member names into error locations; they are not keys the user wrote.
 _UNION_TAGS = {"cylinder", "ring", "sphere", "patch", "MeshSurface", "ArtefactSurface",
                "gaussian", "uniform", "file", "diffusion", "float", "literal['auto']",
@@ -1399,7 +1413,8 @@ def emission_profile(cfg: "LoadedConfig"):
     if isinstance(em, TableEmission):
         f = cfg.resolve(em.file)
         if not f.is_file():
-            raise UserError(f"config {cfg.path}: 'subject.emission.file': {f} does not exist.")
+            what = "is a folder, not a CSV file" if f.is_dir() else "does not exist"
+            raise UserError(f"config {cfg.path}: 'subject.emission.file': {f} {what}.")
         try:
             return E.table_from_csv(f.read_text(), source=f.name)
         except (ValueError, OSError, UnicodeDecodeError) as e:
