@@ -159,6 +159,10 @@ def test_table_of_the_diffuse_curve_reproduces_it(tmp_path):
     c = tmp_path / "cos.csv"
     c.write_text("cos_theta,radiance\n1,2\n0,2\n")
     assert E.table_from_csv(c.read_text()).weight(mu) == pytest.approx(1.0, rel=1e-12)
+    # as a spreadsheet saves "CSV UTF-8": a byte-order mark first, CRLF line ends
+    excel = tmp_path / "excel.csv"
+    excel.write_bytes(f.read_text().replace("\n", "\r\n").encode("utf-8-sig"))
+    assert np.array_equal(E.table_from_csv(excel.read_text(encoding="utf-8")).table, tab.table)
 
 
 @pytest.mark.parametrize("rows,words", [

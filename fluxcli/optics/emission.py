@@ -363,12 +363,17 @@ def table_from_csv(text: str, source: str | None = None) -> Profile:
     import csv
     import io
 
+    text = text.removeprefix("\ufeff")  # the byte-order mark a spreadsheet's "CSV UTF-8" starts with
     rows = [row for row in csv.reader(io.StringIO(text)) if row and not row[0].lstrip().startswith("#")]
     if not rows:
         raise ValueError("is empty")
     head = [c.strip().lower() for c in rows[0]]
     if len(head) < 2 or head[0] not in ("angle_deg", "cos_theta"):
-        raise ValueError("must start with a header row 'angle_deg,radiance' or 'cos_theta,radiance'")
+        sep = next((c for c in ";\t" if c in rows[0][0]), None)
+        found = f" (its first row is {','.join(rows[0])[:60]!r}" + (
+            f", separated by {'semicolons' if sep == ';' else 'tabs'}; the columns must be separated by commas)"
+            if sep else ")")
+        raise ValueError("must start with a header row 'angle_deg,radiance' or 'cos_theta,radiance'" + found)
     x, r = [], []
     for k, row in enumerate(rows[1:], start=2):
         if len(row) < 2:
