@@ -92,6 +92,26 @@ def _emission_table(text):
     return edit
 
 
+def _emission_folder(cfg, d):
+    (d / "profiles").mkdir()
+    cfg["subject"]["emission"] = {"model": "table", "file": "profiles"}
+    return "build-T"
+
+
+def _emission(section):
+    def edit(cfg, d):
+        cfg["subject"]["emission"] = section
+        return "build-T"
+    return edit
+
+
+def _flux(section):
+    def edit(cfg, d):
+        cfg["simulate"]["flux"] = section
+        return "simulate"
+    return edit
+
+
 def _collinear_triangle(cfg, d):
     v = [[0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10], [5, 0, 0]]
     f = [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3], [0, 4, 1]]  # the last: three distinct points on one line
@@ -123,6 +143,14 @@ HOSTILE = [
      ["subject.emission.file", "table.csv", "finite"]),
     ("emission-table-angles-back", _tiny(_emission_table("angle_deg,radiance\n0,1\n60,0.5\n30,0.8\n")),
      ["subject.emission.file", "table.csv", "increase"]),
+    ("emission-table-semicolons", _tiny(_emission_table("angle_deg;radiance\n0;1\n60;0,5\n")),
+     ["subject.emission.file", "table.csv", "semicolons", "commas"]),
+    ("emission-table-a-folder", _tiny(_emission_folder), ["subject.emission.file", "is a folder"]),
+    ("emission-without-model", _tiny(_emission({"refractive_index": 1.4})),
+     ["subject.emission.model", "missing", "lambertian, diffuse, table"]),
+    ("emission-model-misspelt", _tiny(_emission({"model": "lambertain"})),
+     ["subject.emission.model", "'lambertain' is not one of lambertian, diffuse, table"]),
+    ("flux-without-kind", _tiny(_flux({"width_mm": 4.0})), ["simulate.flux.kind", "missing", "montecarlo"]),
     ("mesh-collinear-triangle", _tiny(_collinear_triangle), ["subject.surface.mesh", "m.ply", "zero area"]),
     ("images-three-channels", _tiny(_rgb_emission_images), ["reconstruct.images.files[0]", "i0.tif", "channels"]),
     ("grid-frame-nan-pixel", _grid_frame(_nan_pixel), ["calibrate.images[0]", "g0.tif", "NaN"]),
