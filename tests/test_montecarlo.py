@@ -256,6 +256,33 @@ def test_box_end_to_end_images_are_the_photons_that_reach_the_lens(write_config,
         assert np.abs(np.bincount(el, minlength=len(power)) - power).sum() <= 2
 
 
+def test_too_few_photons_to_reconstruct_are_said_with_how_many_to_launch(write_config, tmp_path):
+    """A run whose images hold a handful of photons (or none) warns per pose with the count that
+    would give ~1e5 an image, from this run's own collection; reconstructing images that hold
+    no light prints no spread (no 'nan %', no RuntimeWarning)."""
+    cfg = mc_config(BOX, n_photons=3000)
+    p = write_config(cfg)
+    r = runner.invoke(app, ["simulate", str(p), "--force"])
+    text = " ".join(r.output.split())
+    assert r.exit_code == 0, r.output
+    with h5py.File(tmp_path / "run" / "simulation.h5") as f:
+        n = f["images/noisy"][0, 0].reshape(2, -1).sum(axis=1)
+    assert 0 < n[0] < 1000
+    assert f"pose h=+0mm rot=0deg: only {n[0]:.0f} photons reached the image" in text
+    assert f"about {3000 * 1e5 / n[0]:.2g} launched (simulate.flux.n_photons, 3e+03 now)" in text
+    cfg["simulate"]["flux"]["n_photons"] = 20  # (this seed's 20 photons all miss the lens)
+    r = runner.invoke(app, ["simulate", str(write_config(cfg)), "--force"])
+    text = " ".join(r.output.split())
+    assert r.exit_code == 0 and text.count("no photon reached the image; check that the subject is in view") == 2, r.output
+    with h5py.File(tmp_path / "run" / "simulation.h5") as f:
+        assert f["images/noisy"][()].sum() == 0
+    r = runner.invoke(app, ["reconstruct", str(p), "--force"])
+    text = " ".join(r.output.split())
+    assert r.exit_code == 0, r.output
+    assert "no spread: no pose found light" in text and "nan" not in text.lower() and "RuntimeWarning" not in text
+    assert text.count("its images hold no light") == 2
+
+
 def test_cylinder_end_to_end(write_config, tmp_path):
     cyl = {"phantom": "cylinder", "radius_mm": 5.0, "length_mm": 16.0, "n_angular": 12, "n_axial": 4}
     simulate(write_config, mc_config(cyl, rotations=(0.0, 90.0)))

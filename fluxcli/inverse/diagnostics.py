@@ -241,7 +241,9 @@ def angle_structure(measured: np.ndarray, model: np.ndarray, variance: np.ndarra
 
 
 def describe_shares(shares: np.ndarray) -> str:
-    return ", ".join(f"{s:.0%} beyond {b:g} deg" for s, b in zip(shares, BANDS_DEG))
+    if not np.isfinite(shares).any():  # no light to share out (images or a fit that hold none)
+        return "none to share (no light)"
+    return ", ".join((f"{s:.0%}" if np.isfinite(s) else "-") + f" beyond {b:g} deg" for s, b in zip(shares, BANDS_DEG))
 
 
 def grazing_warning(total_shares: np.ndarray) -> str | None:

@@ -543,7 +543,10 @@ def totals_figure(heights_mm, rotations_deg, totals: dict[str, np.ndarray], *, t
     ax.axhline(1.0, color="0.6", lw=0.8)
     ax.set_ylabel("total / its mean over poses (dimensionless)")
     ax.set_title("spread of each estimate over poses")
-    ax.legend(fontsize=8)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=8)
+    else:  # every total is 0: nothing to spread
+        ax.text(0.5, 0.5, "no light in any pose:\nno spread to show", ha="center", va="center", transform=ax.transAxes)
     ax2.plot(x, totals["reconstruction"], "o-", color=JOINT_COLOUR, label="reconstruction, per pose")
     if joint_total is not None:
         ax2.axhline(joint_total, color="C1", ls="-.", label=f"joint over poses: {joint_total:.4g}")

@@ -117,7 +117,7 @@ def reconstruct(plan: ReconstructPlan, ctx: RunContext) -> Path:
         placer.emission, views, todo, per_pose, joint, inp.images, inp.valid, noise,
         simulated_emission(plan.images, plan.subject_emission))
     checked = B.with_shift_warnings(checked, budget.shifts, [pt.pose.label for _, pt in todo], by_angle)
-    warnings = _warnings(checked, joint_checked, todo)
+    warnings = _dark_poses(inp, todo) + _warnings(checked, joint_checked, todo)
     summary = _total_summary(checked, joint_checked, todo, {b.label: b.sigma for b in budget.totals}) + budget.lines()
     sweep = run_sweep(plan, ctx, grids, todo) if plan.sweep is not None else None
     prov = plan.new_provenance()
@@ -240,6 +240,15 @@ def _headline_cell(res) -> str:
     return f"{h.photons:.4g}" if h.reason is None else f"{h.photons:.4g} over well-observed (see below)"
 
 
+def _dark_poses(inp: Inputs, todo) -> list[str]:
+    """A pose whose images hold no light at all: its total is 0 and what the fit says of it
+    (the regularisation, the misfit) is about nothing, which the user should hear first."""
+    return [f"pose {pt.pose.label}: its images hold no light (no valid pixel above 0): its total is 0 within "
+            "the noise floor, and its warnings about the fit below say nothing about the subject; check the "
+            "exposure, the filter and that the subject is in view" for k, (_, pt) in enumerate(todo)
+            if not np.any(np.asarray(inp.images[k])[np.asarray(inp.valid[k], bool)] > 0)]
+
+
 def _warnings(per_pose, joint, todo) -> list[str]:
     """Every warning of every solve (to the console and to /warnings: never silent)."""
     out = [f"pose {pt.pose.label}: {w}" for (r, _), (_, pt) in zip(per_pose, todo) for w in r.warnings]
@@ -264,9 +273,11 @@ def _total_summary(per_pose, joint, todo, sigmas: dict | None = None) -> list[st
                      if h.reason else
                      f"total flux, {what}: {t:.4g}{pm(what)} photons over observed elements ({w:.4g} over well-observed)")
     if len(tot) > 1:
-        spread = (tot.max() - tot.min()) / tot.mean() if tot.mean() > 0 else np.nan
-        lines.append(f"total flux over {len(tot)} poses: mean {tot.mean():.4g} photons, spread (max-min)/mean "
-                     f"{spread:.1%}, sd/mean {tot.std(ddof=1) / tot.mean():.1%}")
+        if tot.mean() > 0:
+            lines.append(f"total flux over {len(tot)} poses: mean {tot.mean():.4g} photons, spread (max-min)/mean "
+                         f"{(tot.max() - tot.min()) / tot.mean():.1%}, sd/mean {tot.std(ddof=1) / tot.mean():.1%}")
+        else:  # no light anywhere: a spread relative to nothing means nothing
+            lines.append(f"total flux over {len(tot)} poses: mean {tot.mean():.4g} photons (no spread: no pose found light)")
     if joint is not None:
         h, what, t = headline_of(joint), "all poses jointly", np.nansum(joint.power)
         lines.append(h.line(f"total flux, {what}") + (f"; observed total {t:.4g}{pm(what)} photons" if pm(what) else "")

@@ -93,7 +93,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     for note in summary["notes"]:
         ctx.say(f"note: {note}")
     sp = summary["spreads"]
-    ctx.say("spread over poses: " + ", ".join(f"{k} {v:.1%}" for k, v in sp.items() if v is not None))
+    ctx.say("spread over poses: " + (", ".join(f"{k} {v:.1%}" for k, v in sp.items() if v is not None)
+                                     or "none (no pose found light)"))
     if summary.get("error") is not None:
         obs = (f"; over observed elements {summary['error_observed']:.2%}, {summary['total_ratio_observed']:.3f}"
                if summary.get("error_observed") is not None else "")

@@ -252,4 +252,25 @@ def _simulate_montecarlo(sp: SimulatePlan, shape, ctx: RunContext) -> Path:
     rows = [[p.height_mm, p.rotation_deg, int(mc.images[k].sum()), *[int(x) for x in mc.reached_lens[k]]]
             for k, p in enumerate(poses)]
     ctx.table(["height_mm", "rotation_deg", "photons in image", *[f"reached lens: {v.name}" for v in views]], rows)
+    for k, p in enumerate(poses):
+        for w in few_photons_warning(float(mc.images[k].sum()), t.launched, f"pose h={p.height_mm:+g}mm "
+                                                                             f"rot={p.rotation_deg:g}deg"):
+            ctx.warn(w)
     return sp.out
+
+
+FEW_PHOTONS = 1000  # whole photons in an image below which its reconstruction is mostly photon noise
+
+
+def few_photons_warning(in_image: float, launched: float, where: str) -> list[str]:
+    """What to say when a Monte Carlo image holds so few photons that its reconstruction would
+    be mostly shot noise (a per-element error of tens of per cent): the photons to launch for
+    ~10^5 an image, as this run's own collection implies."""
+    if in_image >= FEW_PHOTONS:
+        return []
+    if in_image <= 0:
+        return [f"{where}: no photon reached the image; check that the subject is in view, or launch more "
+                f"(simulate.flux.n_photons, {launched:.3g} now)."]
+    return [f"{where}: only {in_image:.0f} photon{'' if in_image == 1 else 's'} reached the image, so its reconstruction is mostly photon "
+            f"noise; about {launched * 1e5 / in_image:.2g} launched (simulate.flux.n_photons, {launched:.3g} now) "
+            f"would give 10^5."]
