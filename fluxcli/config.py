@@ -324,7 +324,7 @@ class PatchPhantom(Model):
 
 
 class MeshSurface(Model):
-    """A triangle mesh file; each triangle an element unless the file has an integer cell array 'element'."""
+    """A triangle mesh file; each triangle an element unless the file has a cell array (VTK) or face property (PLY) 'element' of whole-number ids (also read under the names elements, element_id, any case)."""
 
     mesh: Path = Field(description="Mesh file pyvista reads (PLY, STL, VTK, OBJ); relative to the config file.")
     scale_to_mm: float = Field(1.0, gt=0, description="Multiply file coordinates by this to get mm.")

@@ -263,6 +263,58 @@ def test_an_inward_wound_mesh_is_turned_outward_with_a_notice_and_gives_the_same
     assert Ts[0].sum() > 0 and (Ts[0] != Ts[1]).nnz == 0
 
 
+def test_a_mesh_whose_faces_each_have_their_own_corners_is_welded_and_reconstructs_the_same(run, tmp_path):
+    """STL exports and some writers give every face its own three vertices. Unwelded, no vertex is
+    shared: the surface is not closed and a reconstruction on vertex unknowns solves a heap of
+    loose triangles (on a box seen at 45 deg its total read 11 % low). It is welded, with a note."""
+    d, cfg, p = run
+    m = _mouse()
+    loose_v = m.vertices_mm[m.faces].reshape(-1, 3)
+    loose_f = np.arange(len(loose_v)).reshape(-1, 3)
+    files = {"shared": ply(tmp_path / "shared.ply", m.vertices_mm.tolist(), m.faces.tolist(), m.element_of_face.tolist()),
+             "loose": ply(tmp_path / "loose.ply", loose_v.tolist(), loose_f.tolist(), m.element_of_face.tolist())}
+    s, notes = read_mesh_checked(files["loose"])
+    assert s.is_closed and len(np.unique(s.faces)) == len(m.vertices_mm)
+    assert np.allclose(s.face_vertices_mm, m.face_vertices_mm, atol=1e-5)  # (PLY stores float32)
+    assert any(f"{len(loose_v) - len(m.vertices_mm)} vertex(es) repeated at the same place" in n for n in notes)
+    power = {}
+    for name, f in files.items():
+        c = copy.deepcopy(cfg)
+        c["workdir"] = str(tmp_path / name)
+        c["transfer"]["cache_dir"] = str(tmp_path / "cache")
+        c["subject"] = {"surface": {"mesh": str(f)}, "poses": {"rotations_deg": [0, 50]}}
+        c["reconstruct"] = {"unknowns": "vertices"}
+        q = write(tmp_path, c, f"{name}.yaml")
+        for stage in ("simulate", "reconstruct"):
+            r, out = invoke(stage, q)
+            assert r.exit_code == 0, out
+        with h5py.File(tmp_path / name / "reconstruction.h5") as h:
+            power[name] = h["per_pose/power"][()]
+    assert np.nansum(power["loose"]) > 0
+    # the same unknowns in another order: the same result to rounding
+    assert np.allclose(power["loose"], power["shared"], rtol=0, atol=1e-9 * np.nanmax(power["shared"]), equal_nan=True)
+
+
+@pytest.mark.parametrize("values, ok", [
+    (np.array([7.0, 3.0]), "whole numbers stored as float64"),
+    (np.array([7.5, 3.0]), "face 0 has 7.5"),
+    (np.array([np.nan, 3.0]), "face 0 has nan"),
+])
+def test_element_ids_stored_as_floating_point_are_read_when_whole_and_refused_when_not(values, ok, tmp_path):
+    import pyvista as pv
+
+    quads = pv.PolyData(np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0], [2, 1, 0]], float),
+                        np.array([4, 0, 1, 2, 3, 4, 1, 4, 5, 2]))
+    quads.cell_data["Element"] = values  # another tool's spelling
+    quads.save(tmp_path / "q.vtp")
+    if "whole" in ok:
+        s, notes = read_mesh_checked(tmp_path / "q.vtp")
+        assert s.n_elements == 2 and list(s.element_ids) == [3, 7] and ok in notes[0]
+    else:
+        with pytest.raises(ValueError, match=f"cell array 'Element' must hold whole-number element ids; {ok}"):
+            read_mesh_checked(tmp_path / "q.vtp")
+
+
 def test_ply_face_property_element_is_honoured():
     import tempfile
     from pathlib import Path

@@ -591,14 +591,12 @@ def _read_ply(path: Path):
     if lists is None or len(f.data) == 0 or len(verts) == 0:
         raise ValueError(f"mesh file {path} holds no surface triangles")
     polys = f.data[lists]
-    element = None
-    how = "one per triangle"
-    if "element" in names:
-        e = np.asarray(f.data["element"])
-        if np.issubdtype(e.dtype, np.integer):
-            element, how = e.astype(np.int64), "from its integer face property 'element'"
-        else:
-            how = f"one per triangle; its face property 'element' is {e.dtype}, not integer, and is ignored"
+    element, how = None, "one per triangle"
+    key = _element_key(names)
+    if key is not None:
+        raw = np.asarray(f.data[key])
+        element = element_ids_of(raw, f"mesh file {path}: face property {key!r}")
+        how = _element_how("face property", key, raw.dtype)
     tris, owner = [], []
     for k, poly in enumerate(polys):
         poly = np.asarray(poly, np.int64)
@@ -623,17 +621,57 @@ def _read_pyvista(path: Path):
     mesh = mesh.extract_surface(algorithm=None) if not isinstance(mesh, pv.PolyData) else mesh
     if mesh.n_cells == 0 or mesh.n_points == 0:
         raise ValueError(f"mesh file {path} holds no surface triangles")
-    has_element = "element" in mesh.cell_data and np.issubdtype(mesh.cell_data["element"].dtype, np.integer)
-    if has_element:
-        mesh.cell_data["_element"] = mesh.cell_data["element"]
+    key = _element_key(list(mesh.cell_data.keys()))
+    if key is not None:
+        dtype = np.asarray(mesh.cell_data[key]).dtype
+        mesh.cell_data["_element"] = element_ids_of(np.asarray(mesh.cell_data[key]),
+                                                    f"mesh file {path}: cell array {key!r}")
     tri = mesh.triangulate()
     faces = tri.faces.reshape(-1, 4)[:, 1:]
     if len(faces) == 0:
         raise ValueError(f"mesh file {path} holds no surface triangles")
     verts = np.asarray(tri.points, dtype=np.float64)
-    if has_element:
-        return verts, faces, np.asarray(tri.cell_data["_element"]).ravel(), "from its integer cell array 'element'"
+    if key is not None:
+        return verts, faces, np.asarray(tri.cell_data["_element"]).ravel(), _element_how("cell array", key, dtype)
     return verts, faces, None, "one per triangle"
+
+
+# what a mesh file may call the array that groups its faces into elements (the first found, in
+# this order; case does not matter): DESIGN's 'element', and the names other tools write
+ELEMENT_NAMES = ("element", "elements", "element_id", "element_ids", "elementid")
+
+
+def _element_key(names) -> str | None:
+    """The face property / cell array that holds each face's element, if the file has one."""
+    lower = {str(n).lower(): n for n in reversed(list(names))}
+    return next((lower[k] for k in ELEMENT_NAMES if k in lower), None)
+
+
+def _element_how(kind: str, key: str, dtype) -> str:
+    if np.issubdtype(dtype, np.integer):
+        return f"from its integer {kind} {key!r}"
+    return f"from its {kind} {key!r} (whole numbers stored as {dtype})"
+
+
+def element_ids_of(values: np.ndarray, what: str) -> np.ndarray:
+    """A file's element ids as int64: integers, or floating-point numbers that are whole (as
+    MATLAB and many writers store them); ValueError naming ``what`` for anything else (a
+    fraction, NaN, more than one component per face), rather than a silent one-per-triangle."""
+    v = np.asarray(values)
+    if v.ndim > 1 and v.shape[1:] != (1,) * (v.ndim - 1):
+        raise ValueError(f"{what} has {int(np.prod(v.shape[1:]))} components per face; it must hold one "
+                         "element id per face")
+    v = v.reshape(len(v))
+    if np.issubdtype(v.dtype, np.integer):
+        return v.astype(np.int64)
+    if not (np.issubdtype(v.dtype, np.floating) or v.dtype == bool):
+        raise ValueError(f"{what} holds {v.dtype} values; it must hold an integer element id per face")
+    bad = ~np.isfinite(v) | (v != np.round(v)) | (np.abs(v) > 2.0**53)
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise ValueError(f"{what} must hold whole-number element ids; face {k} has {v[k].item()!r} "
+                         f"({int(bad.sum())} face(s) like it)")
+    return v.astype(np.int64)
 
 
 def validated(vertices_mm, faces, element_of_face, n_elements: int, *, name: str = "the mesh",
@@ -660,9 +698,14 @@ def validated(vertices_mm, faces, element_of_face, n_elements: int, *, name: str
         k = int(np.argmax(out.any(axis=1)))
         raise ValueError(f"{name}: face {k} uses vertex index {int(f[k][out[k]][0])}, but there are only "
                          f"{len(v)} vertices (indices 0 to {len(v) - 1})")
+    scale = float(np.ptp(v, axis=0).max()) if len(v) else 0.0
+    v, f, merged = _welded(v, f, WELD_RELATIVE * scale)
+    if merged:
+        notes.append(f"{name}: {merged} vertex(es) repeated at the same place (as STL exports and some writers "
+                     "store a mesh, each face with its own corners) were merged, so that faces that meet share "
+                     "their corners")
     t = v[f]
     area = triangle_areas(t)
-    scale = float(np.ptp(v, axis=0).max()) if len(v) else 0.0
     degenerate = (area <= 1e-12 * max(scale, 1e-300) ** 2) | (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
     if degenerate.any():
         keep_area = np.bincount(eof[~degenerate & (eof >= 0)], weights=area[~degenerate & (eof >= 0)],
@@ -689,6 +732,36 @@ def validated(vertices_mm, faces, element_of_face, n_elements: int, *, name: str
             notes.append(f"{name}: the closed surface was wound inward (its faces' normals pointed into the subject); "
                          "all faces were flipped to face outward")
     return Surface(v, f, eof, n_elements, element_ids), notes
+
+
+# Vertices closer than this fraction of the mesh's size are one vertex (float32 rounding of a
+# 100-mm mesh is ~1e-7 of it; real features are ~1e-3 of it or more)
+WELD_RELATIVE = 1e-6
+
+
+def _welded(v: np.ndarray, f: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """Merge the vertices that faces use which lie within ``tol`` of each other (each group to its
+    first vertex); returns (vertices, faces, how many were merged).  A mesh whose faces each have
+    their own corners is otherwise a heap of loose triangles: no vertex is shared, so neither the
+    surface's closedness, its winding nor an exitance continuous across faces can be seen."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    used = np.unique(f)
+    if len(used) < 2:
+        return v, f, 0
+    pairs = cKDTree(v[used]).query_pairs(max(tol, 0.0), output_type="ndarray")
+    if len(pairs) == 0:
+        return v, f, 0
+    n = len(used)
+    _, label = connected_components(coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)),
+                                    directed=False)
+    first = np.full(label.max() + 1, n)
+    np.minimum.at(first, label, np.arange(n))
+    to = np.arange(len(v))
+    to[used] = used[first[label]]
+    return v, to[f], int(n - (label.max() + 1))
 
 
 def _consistent_winding(faces: np.ndarray) -> tuple[np.ndarray, int]:
