@@ -373,7 +373,7 @@ class DiffuseEmission(Model):
 
 
 class TableEmission(Model):
-    """A measured or computed curve: a CSV with a header row 'angle_deg,radiance' (angle from the normal, 0-90 deg) or 'cos_theta,radiance'."""
+    """A measured or computed curve: a CSV of the angle from the normal (degrees, 0-90; or cos theta) and the relative radiance, one row per angle, e.g. with a header row 'angle_deg,radiance' or 'cos_theta,radiance' (theta_deg, theta_rad and mu are read too; without a header, a first column within 0..1 is cos theta, else degrees); commas, semicolons, tabs or spaces between columns."""
 
     model: Literal["table"]
     file: Path = Field(description="The CSV (relative to the config file); radiance relative, any scale.")

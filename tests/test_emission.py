@@ -165,13 +165,33 @@ def test_table_of_the_diffuse_curve_reproduces_it(tmp_path):
     assert np.array_equal(E.table_from_csv(excel.read_text(encoding="utf-8")).table, tab.table)
 
 
+@pytest.mark.parametrize("text", [
+    "angle_deg,radiance\n0,1\n45,0.9\n75,0.6\n90,0.2\n",  # as the docs write it
+    "0,1\n45,0.9\n75,0.6\n90,0.2\n",  # no header: values beyond 1, so degrees
+    "theta_deg,L\n90,0.2\n75,0.6\n45,0.9\n0,1\n",  # another tool's header, rows from 90 down
+    "Theta (rad),relative radiance\n0,1\n0.785398163397,0.9\n1.308996938996,0.6\n1.570796326795,0.2\n",
+    "angle_deg;radiance\n0;1\n45;0,9\n75;0,6\n90;0,2\n",  # a decimal-comma spreadsheet
+    "angle_deg\tradiance\n0\t1\n45\t0.9\n75\t0.6\n90\t0.2\n",
+    "# measured 2026\n0 1\n45 0.9\n75 0.6\n90 0.2\n",  # whitespace, a comment
+])
+def test_a_table_reads_the_same_however_a_lab_writes_it(text):
+    ref = E.table([0, 45, 75, 90], [1, 0.9, 0.6, 0.2])
+    assert np.allclose(E.table_from_csv(text).table, ref.table, rtol=1e-10, atol=0)
+
+
+def test_a_table_without_a_header_in_0_to_1_is_cos_theta():
+    a = E.table_from_csv("1,1\n0.5,0.8\n0,0.1\n", source="p.csv")
+    assert np.array_equal(a.table, E.table([1, 0.5, 0], [1, 0.8, 0.1], unit="cos").table)
+    assert a.source == "p.csv (no header: the first column read as cos theta)"
+
+
 @pytest.mark.parametrize("rows,words", [
     ("angle_deg,radiance\n0,1\n95,1\n", "0..90"),
     ("angle_deg,radiance\n0,1\n40,1\n30,1\n", "increase"),
     ("angle_deg,radiance\n0,1\n40,-1\n", "negative"),
     ("angle_deg,radiance\n0,1\n40,nan\n", "finite"),
     ("angle_deg,radiance\n0,1\n40,x\n", "numbers"),
-    ("0,1\n40,1\n", "header"),
+    ("intensity,value\n0,1\n40,1\n", "names neither an angle"),
     ("angle_deg,radiance\n0,0\n40,1\n", "normal"),
     ("angle_deg,radiance\n0,0\n40,0\n", "nothing"),
     ("angle_deg\n0\n", "header"),

@@ -331,8 +331,10 @@ def table(x, radiance, *, unit: str = "deg", source: str | None = None) -> Profi
     if unit == "deg":
         if x.min() < 0 or x.max() > 90:
             raise ValueError(f"angles must lie in 0..90 degrees from the normal (got {x.min():g}..{x.max():g})")
-        if not np.all(np.diff(x) > 0):
-            raise ValueError("angles must increase strictly from row to row")
+        if not (np.all(np.diff(x) > 0) or np.all(np.diff(x) < 0)):
+            raise ValueError("angles must increase (or decrease) strictly from row to row")
+        order = np.argsort(x)
+        x, r = x[order], r[order]
     elif unit == "cos":
         if x.min() < 0 or x.max() > 1:
             raise ValueError(f"cos theta must lie in 0..1 (got {x.min():g}..{x.max():g})")
@@ -356,26 +358,42 @@ def table(x, radiance, *, unit: str = "deg", source: str | None = None) -> Profi
 
 
 def table_from_csv(text: str, source: str | None = None) -> Profile:
-    """A tabulated profile from the text of a CSV: a header row whose first column is
-    ``angle_deg`` (angle from the normal, degrees) or ``cos_theta``, the second the relative
-    radiance; then one row per angle (lines starting with # are skipped).  ValueError says
-    what is wrong (the caller names the file)."""
-    import csv
-    import io
-
-    text = text.removeprefix("\ufeff")  # the byte-order mark a spreadsheet's "CSV UTF-8" starts with
-    rows = [row for row in csv.reader(io.StringIO(text)) if row and not row[0].lstrip().startswith("#")]
-    if not rows:
+    """A tabulated profile from the text of a CSV: one row per angle, the first column the angle
+    from the normal, the second the relative radiance (more columns are ignored; lines starting
+    with # are skipped).  The first column is in degrees unless its header names a cosine
+    (``cos_theta``, ``mu``) or radians (``theta_rad``); a header is optional (``angle_deg`` as
+    in the docs, or any of ``theta``, ``angle``, ``deg``); without one the column is read as
+    cos theta when every value lies in 0..1, else as degrees.  Commas, semicolons (then a decimal
+    comma is read too), tabs or spaces separate the columns; a spreadsheet's byte-order mark is
+    skipped.  ValueError says what is wrong (the caller names the file)."""
+    lines = [ln for ln in text.removeprefix("\ufeff").splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    if not lines:
         raise ValueError("is empty")
-    head = [c.strip().lower() for c in rows[0]]
-    if len(head) < 2 or head[0] not in ("angle_deg", "cos_theta"):
-        sep = next((c for c in ";\t" if c in rows[0][0]), None)
-        found = f" (its first row is {','.join(rows[0])[:60]!r}" + (
-            f", separated by {'semicolons' if sep == ';' else 'tabs'}; the columns must be separated by commas)"
-            if sep else ")")
-        raise ValueError("must start with a header row 'angle_deg,radiance' or 'cos_theta,radiance'" + found)
+    first = lines[0]
+    sep = "," if "," in first and ";" not in first else ";" if ";" in first else "\t" if "\t" in first else None
+    rows = [[c.strip().strip('"').strip() for c in (ln.split(sep) if sep else ln.split())] for ln in lines]
+    if sep == ";":  # a spreadsheet in a decimal-comma locale
+        rows = [[c.replace(",", ".") for c in row] for row in rows]
+    header, body = (None, rows) if _numbers(rows[0][:2]) else (rows[0], rows[1:])
+    how = ""
+    if header is None:
+        unit = None
+    else:
+        head = header[0].lower()
+        if len(header) < 2:
+            raise ValueError(f"has one column ({header[0]!r}); two are needed: the angle and the radiance "
+                             "(a header row like 'angle_deg,radiance' or 'cos_theta,radiance')")
+        if "cos" in head or head in ("mu", "cos"):
+            unit = "cos"
+        elif "rad" in head.replace("radiance", "") and "deg" not in head:
+            unit = "rad"
+        elif any(k in head for k in ("deg", "theta", "angle")):
+            unit = "deg"
+        else:
+            raise ValueError(f"its first column's header {header[0]!r} names neither an angle (angle_deg, theta_deg, "
+                             "theta_rad) nor a cosine (cos_theta); write 'angle_deg,radiance' or 'cos_theta,radiance'")
     x, r = [], []
-    for k, row in enumerate(rows[1:], start=2):
+    for k, row in enumerate(body, start=2 if header is not None else 1):
         if len(row) < 2:
             raise ValueError(f"row {k} has {len(row)} column(s); two are needed")
         try:
@@ -383,7 +401,20 @@ def table_from_csv(text: str, source: str | None = None) -> Profile:
             r.append(float(row[1]))
         except ValueError:
             raise ValueError(f"row {k} holds {row[0]!r}, {row[1]!r}, which are not both numbers") from None
-    return table(x, r, unit="deg" if head[0] == "angle_deg" else "cos", source=source)
+    if unit is None:  # no header: a cosine if every value could be one, else degrees
+        unit = "cos" if len(x) and 0 <= min(x) and max(x) <= 1 else "deg"
+        how = f" (no header: the first column read as {'cos theta' if unit == 'cos' else 'degrees'})"
+    if unit == "rad":  # pi/2 written to 12 digits is 90 degrees, not a hair past it
+        x, unit = list(np.clip(np.degrees(x), None, 90.0) if max(x) <= np.pi / 2 + 1e-9 else np.degrees(x)), "deg"
+    return table(x, r, unit=unit, source=(source + how) if source else None)
+
+
+def _numbers(cells) -> bool:
+    """Whether a row's first two cells are numbers (a data row, not a header)."""
+    try:
+        return len(cells) == 2 and [float(c) for c in cells] is not None
+    except ValueError:
+        return False
 
 
 def profile(model) -> Profile:
