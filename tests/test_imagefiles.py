@@ -221,3 +221,53 @@ def test_multichannel_file_raises(tmp_path):
     out.close()
     with pytest.raises(ValueError, match="3 channels"):
         read_image(path)
+
+
+def _fits_hdu(cards, payload=b""):
+    header = "".join(card.ljust(80) for card in [*cards, "END"]).encode("ascii")
+    header += b" " * (-len(header) % FITS_BLOCK)
+    return header + payload + b"\0" * (-len(payload) % FITS_BLOCK)
+
+
+def _image_cards(first, bitpix, ny, nx, extra=()):
+    head = ["SIMPLE  =                    T"] if first else ["XTENSION= 'IMAGE   '"]
+    cards = [*head, f"BITPIX  = {bitpix:20d}", "NAXIS   =                    2", f"NAXIS1  = {nx:20d}",
+             f"NAXIS2  = {ny:20d}"]
+    return cards + ([] if first else ["PCOUNT  =                    0", "GCOUNT  =                    1"]) + list(extra)
+
+
+def test_unsigned_16_bit_fits_as_camera_software_writes_it_reads_as_0_to_65535(tmp_path):
+    """The FITS standard stores uint16 as int16 with BZERO = 32768 (astropy, Andor Solis,
+    MicroManager do); the physical value is BZERO + BSCALE x stored. Read unscaled, every count
+    would be 32768 too low (0 -> -32768)."""
+    counts = asymmetric_image(np.uint16)
+    stored = (counts.astype(np.int32) - 32768).astype(">i2")
+    path = tmp_path / "camera.fits"
+    path.write_bytes(_fits_hdu(_image_cards(True, 16, NY, NX, ["BZERO   =                32768",
+                                                              "BSCALE  =                    1"]), stored.tobytes()))
+    read, _ = read_image(path)
+    np.testing.assert_array_equal(read, counts.astype(np.float64))
+    assert imagefiles.sample_type(path) == "uint16"  # counts, as a TIFF of them would say
+    # a scaled image holds physical values that are not whole: floating point, with BZERO and BSCALE
+    path2 = tmp_path / "scaled.fits"
+    path2.write_bytes(_fits_hdu(_image_cards(True, 16, NY, NX, ["BZERO   =                  5.0",
+                                                               "BSCALE  =                 0.25"]),
+                                np.arange(NY * NX, dtype=">i2").reshape(NY, NX).tobytes()))
+    read2, _ = read_image(path2)
+    np.testing.assert_allclose(read2, 5.0 + 0.25 * np.arange(NY * NX).reshape(NY, NX), rtol=1e-7)
+    assert imagefiles.sample_type(path2) == "float64"
+
+
+def test_fits_with_an_empty_primary_reads_its_image_extension_and_two_images_are_refused(tmp_path):
+    image = asymmetric_image(np.float32)
+    ext = _fits_hdu(_image_cards(False, -32, NY, NX), image.astype(">f4").tobytes())
+    one = tmp_path / "ext.fits"
+    one.write_bytes(_fits_hdu(["SIMPLE  =                    T", "BITPIX  =                    8",
+                               "NAXIS   =                    0", "EXTEND  =                    T"]) + ext)
+    read, _ = read_image(one)
+    np.testing.assert_array_equal(read, image.astype(np.float64))
+    two = tmp_path / "two.fits"
+    two.write_bytes(_fits_hdu(_image_cards(True, -32, NY, NX, ["EXTEND  =                    T"]),
+                              image.astype(">f4").tobytes()) + ext)
+    with pytest.raises(ValueError, match="holds 2 images .FITS extensions.; fluxmap reads one image per file"):
+        read_image(two)

@@ -15,6 +15,14 @@ File conventions, including where OpenImageIO needs help:
   stores both natively. OpenImageIO converts ``uint16`` lossily for FITS (to a
   normalised int16) and EXR (to half), so there counts are stored exactly as int32
   (FITS, ``BITPIX = 32``) or float32 (EXR).
+- **FITS scaling.** A FITS file's ``BZERO`` and ``BSCALE`` are applied (physical = BZERO +
+  BSCALE x stored), as the standard says and astropy does: unsigned 16-bit counts, what camera
+  software writes, are stored as int16 with ``BZERO = 32768`` and read back as 0..65535
+  (OpenImageIO alone returns them shifted by -32768). Such a file's sample type is ``uint16``
+  (``uint32`` for int32 with ``BZERO = 2^31``); any other scaling makes it ``float64``.
+- **One image per file.** A FITS file whose primary HDU is empty is read from its first image
+  extension. A file holding more than one image (TIFF pages, FITS extensions) is refused: which
+  of them is the pose's image cannot be guessed.
 - **Metadata.** OpenImageIO drops unknown attributes from TIFF, and its FITS writer
   truncates keywords to 8 characters and values to one unquoted card. So the metadata
   dict is stored as one JSON record: in the ``ImageDescription`` attribute (TIFF tag
@@ -238,10 +246,7 @@ def read_image(path) -> tuple[np.ndarray, dict[str, str | float | int]]:
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"Image file '{path}' does not exist.")
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        reason = oiio.geterror().strip().rstrip(".") or "unknown format"
-        raise ValueError(f"Image file '{path}' cannot be read: {reason}.")
+    inp = _open(path)
     try:
         spec = inp.spec()
         is_fits = inp.format_name() == "fits"
@@ -262,6 +267,9 @@ def read_image(path) -> tuple[np.ndarray, dict[str, str | float | int]]:
     image = np.asarray(pixels, dtype=np.float64).reshape(spec.height, spec.width)
     if is_fits:
         image = image[::-1]  # undo OIIO's flip: row 0 is the first row stored in the file
+        zero, scale = _fits_scaling(attributes)
+        if (zero, scale) != (0.0, 1.0):  # the standard's physical values (OIIO returns the stored ones)
+            image = zero + scale * image
     image = np.ascontiguousarray(image)
 
     if is_fits:
@@ -280,6 +288,45 @@ def read_image(path) -> tuple[np.ndarray, dict[str, str | float | int]]:
     return image, metadata
 
 
+def _open(path: Path):
+    """An OpenImageIO input on the file's one image (see the module docstring: an empty FITS
+    primary HDU is skipped; a second image is refused)."""
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        reason = oiio.geterror().strip().rstrip(".") or "unknown format"
+        raise ValueError(f"Image file '{path}' cannot be read: {reason}.")
+    sizes = []
+    k = 0
+    while inp.seek_subimage(k, 0):
+        spec = inp.spec()
+        sizes.append(spec.width * spec.height)
+        k += 1
+    images = [i for i, n in enumerate(sizes) if n > 0]
+    if len(images) > 1:
+        inp.close()
+        what = "FITS extensions" if inp.format_name() == "fits" else "pages"
+        raise ValueError(f"Image file '{path}' holds {len(images)} images ({what}); fluxmap reads one image per "
+                         f"file, one file per pose (save each image to its own file).")
+    if not images or not inp.seek_subimage(images[0], 0):
+        inp.close()
+        raise ValueError(f"Image file '{path}' holds no image data (every HDU or page is empty).")
+    return inp
+
+
+def _fits_scaling(attributes: dict) -> tuple[float, float]:
+    """(BZERO, BSCALE) of a FITS image, (0, 1) when absent."""
+    def number(name, default):
+        v = attributes.get(name, attributes.get(name.upper(), default))
+        try:
+            return float(v)
+        except (TypeError, ValueError):
+            return default
+    scale = number("Bscale", 1.0)
+    if abs(scale - 1.0) < 1e-7:  # OIIO keeps BSCALE as float32: 1 is 1
+        scale = 1.0
+    return number("Bzero", 0.0), scale
+
+
 def sample_type(path) -> str:
     """The sample type the file stores, as numpy names it (``"uint16"``, ``"float32"``, ...).
 
@@ -292,12 +339,17 @@ def sample_type(path) -> str:
         The file does not exist or cannot be read.
     """
     path = Path(path)
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        reason = oiio.geterror().strip().rstrip(".") or "unknown format"
-        raise ValueError(f"Image file '{path}' cannot be read: {reason}.")
+    inp = _open(path)
     try:
         fmt = inp.spec().format
+        if inp.format_name() == "fits":
+            zero, scale = _fits_scaling({a.name: a.value for a in inp.spec().extra_attribs})
+            if (zero, scale) != (0.0, 1.0):
+                unsigned = {oiio.INT16: (2.0**15, "uint16"), oiio.INT32: (2.0**31, "uint32")}
+                for t, (offset, name) in unsigned.items():
+                    if fmt == t and (zero, scale) == (offset, 1.0):
+                        return name
+                return "float64"
     finally:
         inp.close()
     names = {oiio.UINT8: "uint8", oiio.INT8: "int8", oiio.UINT16: "uint16", oiio.INT16: "int16",
