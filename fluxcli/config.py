@@ -1081,7 +1081,7 @@ class Roi(Model):
     min_mm: Vec3 | None = Field(None, description="box: the lower corner (mm, subject at rest).")
     max_mm: Vec3 | None = Field(None, description="box: the upper corner (mm).")
     fraction: float | None = Field(None, gt=0, le=1, description="threshold: elements at or above this fraction of the peak exitance.")
-    array: str | None = Field(None, min_length=1, description="cell_array: the integer cell array of the mesh file (e.g. region).")
+    array: str | None = Field(None, min_length=1, description="cell_array: a cell array of the mesh file holding a whole number per face, integer or floating point (e.g. region).")
     value: int | None = Field(None, description="cell_array: the value whose elements form the region.")
     ids: tuple[int, ...] | None = Field(None, min_length=1, description="elements: element ids (the mesh file's, else indices from 0).")
 

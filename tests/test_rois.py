@@ -10,6 +10,7 @@ import pytest
 import scipy.sparse as sp
 import yaml
 
+from fluxcli.errors import UserError
 from fluxcli.imaging import noise as N
 from fluxcli.inverse import reconstruct
 from fluxcli.quantify import rois as Q
@@ -286,6 +287,16 @@ def test_cell_array_roi_reads_the_mesh_files_integer_array(tmp_path):
     np.testing.assert_array_equal(got, upper[ids].astype(np.int64))
     r = Q.Region("upper", "cell_array", array="region", value=1)
     assert np.array_equal(Q.members(r, surf, cell_array=got), got == 1)
+    # the same region stored as floating point (as MATLAB writes it) reads the same; a fraction
+    # is refused naming the array and the face
+    mesh.cell_data["region_f"] = region.astype(np.float64)
+    mesh.cell_data["region_x"] = region + 0.5
+    mesh.save(str(tmp_path / "m.vtk"))
+    path = cfg.resolve(cfg.model.subject.surface.mesh)
+    np.testing.assert_array_equal(cell_array_of_elements(path, surf, "region_f", "rois[0]"), got)
+    with pytest.raises(UserError, match=r"rois\[0\]: the cell array 'region_x' of .*m.vtk must hold whole-number "
+                                        r"region values; face 0 has [01].5 .(80|[0-9]+) face.s. like it.\."):
+        cell_array_of_elements(path, surf, "region_x", "rois[0]")
 
 
 # ------------------------------------------------------------------ fluxmap study

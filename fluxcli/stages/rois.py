@@ -18,6 +18,7 @@ from .. import artefacts as A
 from ..artefacts import reconstruction as RA
 from ..errors import UserError
 from ..quantify import rois as Q
+from ..surface.mesh import element_ids_of
 
 
 def regions(rois) -> list[Q.Region]:
@@ -45,9 +46,10 @@ def cell_array_of_elements(mesh: Path | None, surface, name: str, where: str) ->
     if name not in mesh.cell_data:
         have = ", ".join(sorted(mesh.cell_data.keys())) or "none"
         raise UserError(f"{where}: {path} has no cell array '{name}' (its cell arrays: {have}).")
-    if not np.issubdtype(np.asarray(mesh.cell_data[name]).dtype, np.integer):
-        raise UserError(f"{where}: the cell array '{name}' of {path} is not integer.")
-    mesh.cell_data["_roi"] = mesh.cell_data[name]
+    try:  # whole numbers, integer or floating point (as MATLAB and many writers store them)
+        mesh.cell_data["_roi"] = element_ids_of(np.asarray(mesh.cell_data[name]), f"the cell array '{name}' of {path}")
+    except ValueError as e:
+        raise UserError(f"{where}: {str(e).replace('element ids', 'region values')}.") from None
     values = np.asarray(mesh.triangulate().cell_data["_roi"]).ravel()
     if len(values) != len(surface.faces):
         raise UserError(f"{where}: {path} has {len(values)} triangles but the subject's surface {len(surface.faces)} "
