@@ -448,7 +448,7 @@ class FileFlux(Model):
     """Per-element values from a file."""
 
     kind: Literal["file"]
-    path: Path = Field(description="Per-element values: .npy, or text with one value per line.")
+    path: Path = Field(description="Per-element values in element order: .npy, or text with one value per line (a header line, # comments and blank lines are skipped).")
     quantity: Literal["power", "exitance"] = Field("power", description="power (photons) or exitance (photons/mm^2).")
 
 

@@ -106,11 +106,7 @@ def _truth_per_element(flux, surface: Surface, path: Path | None) -> tuple[np.nd
     if isinstance(flux, C.FileFlux):
         if not path.is_file():
             raise UserError(f"simulate.flux.path: file {path} does not exist.")
-        try:
-            values = np.load(path) if path.suffix == ".npy" else np.loadtxt(path)
-        except Exception as e:  # numpy raises several kinds for malformed files
-            raise UserError(f"simulate.flux.path: {path} is not a readable list of numbers ({e}).") from None
-        values = np.asarray(values, float).ravel()
+        values = per_element_values(path, "simulate.flux.path")
         if len(values) != surface.n_elements:
             raise UserError(f"simulate.flux.path: {path} holds {len(values)} values; the surface has "
                             f"{surface.n_elements} elements.")
@@ -118,6 +114,41 @@ def _truth_per_element(flux, surface: Surface, path: Path | None) -> tuple[np.nd
             raise UserError(f"simulate.flux.path: {path} holds negative or non-finite values.")
         return (values if flux.quantity == "power" else values * areas), {}
     raise AssertionError(f"unhandled flux kind {flux.kind}")
+
+
+def per_element_values(path: Path, key: str) -> np.ndarray:
+    """One number per element from a file: ``.npy`` (any shape, read flat) or text with one value
+    per line (a header line, ``#`` comments, blank lines and a spreadsheet's byte-order mark are
+    skipped).  A UserError naming ``key`` and the file for anything else."""
+    where = f"{key}: {path}"
+    if path.suffix.lower() == ".npy":
+        try:
+            raw = np.load(path, allow_pickle=False)
+        except Exception as e:  # numpy raises several kinds for malformed files
+            raise UserError(f"{where} is not a readable .npy array ({e}).") from None
+        if not (np.issubdtype(raw.dtype, np.number) or raw.dtype == bool):
+            raise UserError(f"{where} holds {raw.dtype} values, not numbers.")
+        return np.asarray(raw, float).ravel()
+    try:
+        text = path.read_bytes().decode("utf-8-sig")
+    except (OSError, UnicodeDecodeError) as e:
+        raise UserError(f"{where} is not a text file of numbers, one per line ({e}).") from None
+    lines = [(k, ln.strip()) for k, ln in enumerate(text.splitlines(), start=1)
+             if ln.strip() and not ln.lstrip().startswith("#")]
+    values = []
+    for i, (k, ln) in enumerate(lines):
+        cells = [c for c in ln.replace(";", ",").replace("\t", ",").split(",")] if any(
+            c in ln for c in ",;\t") else ln.split()
+        if len(cells) != 1:
+            raise UserError(f"{where}: line {k} holds {len(cells)} values ({ln[:40]!r}); give one value per line, "
+                            "in element order.")
+        try:
+            values.append(float(cells[0]))
+        except ValueError:
+            if i == 0:  # a header line
+                continue
+            raise UserError(f"{where}: line {k} holds {cells[0][:40]!r}, which is not a number.") from None
+    return np.asarray(values, float)
 
 
 def source_positions(flux: C.DiffusionFlux, surface: Surface) -> np.ndarray:

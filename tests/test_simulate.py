@@ -172,3 +172,14 @@ def test_a_source_deeper_than_the_centre_and_one_deeper_than_the_subject(write_c
     assert pos[0] == pytest.approx([0, 0, 4.0], abs=1e-3)
     cfg["simulate"]["flux"]["sources"][0]["depth_mm"] = 16.5
     assert_user_error(run("simulate", write_config(cfg)), "depth_mm", "deeper than the subject")
+
+
+def test_a_per_element_text_file_reads_as_a_spreadsheet_saves_it(tmp_path):
+    """simulate.flux.path as text: a header line, # comments, blank lines, a byte-order mark and
+    CRLF line ends are skipped; the numbers are the file's, in order."""
+    from fluxcli.truth import per_element_values
+
+    values = [1.5, 2e3, 0.0, 7.25]
+    p = tmp_path / "flux.csv"
+    p.write_bytes(("power_photons\r\n# from the lab\r\n\r\n" + "\r\n".join(map(str, values)) + "\r\n").encode("utf-8-sig"))
+    assert per_element_values(p, "simulate.flux.path").tolist() == values

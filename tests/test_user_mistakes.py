@@ -189,6 +189,14 @@ def _flux_file(values):
     return edit
 
 
+def _flux_file_raw(name, write):
+    def edit(cfg, d, b):
+        write(d / name)
+        cfg["simulate"]["flux"] = {"kind": "file", "path": str(d / name)}
+        cfg["workdir"] = str(d / "run")
+    return edit
+
+
 def _diffusion(**over):
     def edit(cfg, d, b):
         flux = {"kind": "diffusion", "wavelength_nm": 650, "mesh_edge_mm": 3.0,
@@ -312,6 +320,10 @@ MISTAKES = [
      ["simulate.flux.path", "nope.npy"]),
     ("flux-file-wrong-count", "simulate", _flux_file(np.ones(5)), ["simulate.flux.path", "flux.npy", "5 values"]),
     ("flux-file-negative", "simulate", _flux_file(-np.ones(24)), ["simulate.flux.path", "negative"]),
+    ("flux-file-of-strings", "simulate", _flux_file_raw("flux.npy", lambda p: np.save(p, np.array(["a"] * 24))),
+     ["simulate.flux.path", "flux.npy", "<U1 values, not numbers"]),  # was a traceback
+    ("flux-file-two-columns", "simulate", _flux_file_raw("flux.csv", lambda p: p.write_text("1,2\n" * 24)),
+     ["simulate.flux.path", "flux.csv", "line 1 holds 2 values", "one value per line"]),
     ("flux-width-zero", "simulate", _cfg("simulate.flux.width_mm", 0), ["simulate.flux", "width_mm"]),
     # lengths beyond 1 km: their squares overflowed inside the ray tracer (found by fuzzing every key)
     ("flux-width-absurd", "simulate", _cfg("simulate.flux.width_mm", 1e300), ["simulate.flux.width_mm", "1 km"]),
