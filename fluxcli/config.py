@@ -1416,7 +1416,12 @@ def emission_profile(cfg: "LoadedConfig"):
             what = "is a folder, not a CSV file" if f.is_dir() else "does not exist"
             raise UserError(f"config {cfg.path}: 'subject.emission.file': {f} {what}.")
         try:
-            return E.table_from_csv(f.read_text(), source=f.name)
+            raw = f.read_bytes()
+            try:
+                text = raw.decode("utf-8-sig")
+            except UnicodeDecodeError:  # a spreadsheet's ANSI code page ("angle (°)" in Windows-1252)
+                text = raw.decode("latin-1")
+            return E.table_from_csv(text, source=f.name)
         except (ValueError, OSError, UnicodeDecodeError) as e:
             raise UserError(f"config {cfg.path}: 'subject.emission.file': {f} {e}.") from None
     try:

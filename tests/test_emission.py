@@ -179,6 +179,19 @@ def test_a_table_reads_the_same_however_a_lab_writes_it(text):
     assert np.allclose(E.table_from_csv(text).table, ref.table, rtol=1e-10, atol=0)
 
 
+def test_a_table_saved_in_a_windows_code_page_reads_through_the_config(tmp_path, minimal_config):
+    """A spreadsheet on Windows saves "angle (°)" in Windows-1252, which is not UTF-8."""
+    from fluxcli.config import emission_profile, load_config
+
+    (tmp_path / "p.csv").write_bytes("angle (°);radiance\n0;1\n45;0,9\n75;0,6\n90;0,2\n".encode("cp1252"))
+    cfg = copy.deepcopy(minimal_config)
+    cfg["subject"]["emission"] = {"model": "table", "file": "p.csv"}
+    cfg["subject"]["surface"] = {"phantom": "sphere", "radius_mm": 5, "n_latitude": 4, "n_longitude": 6}
+    (tmp_path / "c.yaml").write_text(yaml.safe_dump(cfg))
+    got = emission_profile(load_config(tmp_path / "c.yaml"))
+    assert np.allclose(got.table, E.table([0, 45, 75, 90], [1, 0.9, 0.6, 0.2]).table, rtol=1e-10, atol=0)
+
+
 def test_a_table_without_a_header_in_0_to_1_is_cos_theta():
     a = E.table_from_csv("1,1\n0.5,0.8\n0,0.1\n", source="p.csv")
     assert np.array_equal(a.table, E.table([1, 0.5, 0], [1, 0.8, 0.1], unit="cos").table)
