@@ -274,7 +274,7 @@ def test_a_mesh_whose_faces_each_have_their_own_corners_is_welded_and_reconstruc
     files = {"shared": ply(tmp_path / "shared.ply", m.vertices_mm.tolist(), m.faces.tolist(), m.element_of_face.tolist()),
              "loose": ply(tmp_path / "loose.ply", loose_v.tolist(), loose_f.tolist(), m.element_of_face.tolist())}
     s, notes = read_mesh_checked(files["loose"])
-    assert s.is_closed and len(np.unique(s.faces)) == len(m.vertices_mm)
+    assert s.is_closed and len(s.vertices_mm) == len(np.unique(s.faces)) == len(m.vertices_mm)
     assert np.allclose(s.face_vertices_mm, m.face_vertices_mm, atol=1e-5)  # (PLY stores float32)
     assert any(f"{len(loose_v) - len(m.vertices_mm)} vertex(es) repeated at the same place" in n for n in notes)
     power = {}

@@ -741,7 +741,8 @@ WELD_RELATIVE = 1e-6
 
 def _welded(v: np.ndarray, f: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray, int]:
     """Merge the vertices that faces use which lie within ``tol`` of each other (each group to its
-    first vertex); returns (vertices, faces, how many were merged).  A mesh whose faces each have
+    first vertex; the vertices no face uses then are dropped); returns (vertices, faces, how many
+    were merged).  A mesh whose faces each have
     their own corners is otherwise a heap of loose triangles: no vertex is shared, so neither the
     surface's closedness, its winding nor an exitance continuous across faces can be seen."""
     from scipy.sparse import coo_matrix
@@ -761,7 +762,11 @@ def _welded(v: np.ndarray, f: np.ndarray, tol: float) -> tuple[np.ndarray, np.nd
     np.minimum.at(first, label, np.arange(n))
     to = np.arange(len(v))
     to[used] = used[first[label]]
-    return v, to[f], int(n - (label.max() + 1))
+    f = to[f]
+    keep = np.unique(f)  # the merged-away copies are no vertex of any face: drop them
+    index = np.full(len(v), -1)
+    index[keep] = np.arange(len(keep))
+    return v[keep], index[f], int(n - (label.max() + 1))
 
 
 def _consistent_winding(faces: np.ndarray) -> tuple[np.ndarray, int]:
