@@ -411,10 +411,13 @@ def table_from_csv(text: str, source: str | None = None) -> Profile:
 
 def _numbers(cells) -> bool:
     """Whether a row's first two cells are numbers (a data row, not a header)."""
+    if len(cells) != 2:
+        return False
     try:
-        return len(cells) == 2 and [float(c) for c in cells] is not None
+        float(cells[0]), float(cells[1])
     except ValueError:
         return False
+    return True
 
 
 def profile(model) -> Profile:

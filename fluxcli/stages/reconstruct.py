@@ -277,7 +277,8 @@ def _total_summary(per_pose, joint, todo, sigmas: dict | None = None) -> list[st
             lines.append(f"total flux over {len(tot)} poses: mean {tot.mean():.4g} photons, spread (max-min)/mean "
                          f"{(tot.max() - tot.min()) / tot.mean():.1%}, sd/mean {tot.std(ddof=1) / tot.mean():.1%}")
         else:  # no light anywhere: a spread relative to nothing means nothing
-            lines.append(f"total flux over {len(tot)} poses: mean {tot.mean():.4g} photons (no spread: no pose found light)")
+            lines.append(f"total flux over {len(tot)} poses: mean {tot.mean():.4g} photons "
+                         "(no spread: no pose found light)")
     if joint is not None:
         h, what, t = headline_of(joint), "all poses jointly", np.nansum(joint.power)
         lines.append(h.line(f"total flux, {what}") + (f"; observed total {t:.4g}{pm(what)} photons" if pm(what) else "")

@@ -271,6 +271,7 @@ def few_photons_warning(in_image: float, launched: float, where: str) -> list[st
     if in_image <= 0:
         return [f"{where}: no photon reached the image; check that the subject is in view, or launch more "
                 f"(simulate.flux.n_photons, {launched:.3g} now)."]
-    return [f"{where}: only {in_image:.0f} photon{'' if in_image == 1 else 's'} reached the image, so its reconstruction is mostly photon "
+    photons = f"{in_image:.0f} photon{'' if in_image == 1 else 's'}"
+    return [f"{where}: only {photons} reached the image, so its reconstruction is mostly photon "
             f"noise; about {launched * 1e5 / in_image:.2g} launched (simulate.flux.n_photons, {launched:.3g} now) "
             f"would give 10^5."]
