@@ -6,7 +6,7 @@ MCML-style, Fresnel at every face, no emission model assumed), makes the images 
 photons themselves through the thin lens and mirrors (whole photons: their count is the
 shot noise) and reconstructs them, each pose alone and all poses jointly, with
 ``subject.emission: diffuse`` (refractive index matching the phantom) AND ``lambertian``,
-from the same photons (four cases also ``diffuse-fine``: the same photons on faces split once,
+from the same photons (five cases also ``diffuse-fine``: the same photons on faces split once (on the cylinder onto its round body),
 ``subject.refine_faces: 1``; and the absorbing box ``diffuse-p1``, without the depth term).
 Printed per case x model: the totals over observed elements against
 the truth over the same elements (per pose and joint), the spread of the per-pose totals,
@@ -78,7 +78,8 @@ MODELS = ("diffuse", "lambertian")
 # diffuse-fine is diffuse on faces split into four (subject.refine_faces: 1; the same elements), for
 # the spots about an element wide, with a deep source as the control (the same photons: seeded)
 EXTRA_MODELS = {"box-absorbing": ("diffuse-p1", "diffuse-fine"), "box-n1.56-shallow2": ("diffuse-fine",),
-                "box-direct": ("diffuse-fine",), "box-n1.33-deep8": ("diffuse-fine",)}
+                "box-direct": ("diffuse-fine",), "box-n1.33-deep8": ("diffuse-fine",),
+                "cylinder-direct": ("diffuse-fine",)}  # on the cylinder: faces split onto its round body
 
 
 def models_of(name: str) -> tuple:

@@ -388,7 +388,7 @@ class Subject(Model):
     poses: Poses | None = Field(None, description="Heights x rotations; without it the subject stays put (height 0).")
     rotation_axis: RotationAxis | None = Field(None, description="Axis for rotations (default: the phantom's own axis).")
     emission: Emission | None = Field(None, description="How light leaves the surface (its angular profile), in every stage that models light. Absent: lambertian, with a notice; tissue and turbid phantoms are better described by {model: diffuse, refractive_index: 1.40}.")
-    refine_faces: int = Field(0, ge=0, le=3, description="Split every face of the surface into four (at its edge midpoints) this many times; the elements, what is reported, stay as they are. The light within an element is modelled per face, so a spot about an element wide (a source 2-4 mm deep under elements of 2-4 mm) needs faces finer than the elements (docs/accuracy.md, Monte Carlo battery). Each level gives about 4x the vertex unknowns and build-T work.")
+    refine_faces: int = Field(0, ge=0, le=3, description="Split every face of the surface into four (at its edge midpoints) this many times; the elements, what is reported, stay as they are. The light within an element is modelled per face, so a spot about an element wide (a source 2-4 mm deep under elements of 2-4 mm) needs faces finer than the elements (docs/accuracy.md, Monte Carlo battery). On a round phantom (cylinder, ring, sphere) the split faces follow its round body, not its flat facets. Each level gives about 4x the vertex unknowns and build-T work.")
 
 
 # --------------------------------------------------------------------------- transfer

@@ -92,16 +92,20 @@ class SubjectPlacer:
         self.rests_on_stage = isinstance(s, (C.CylinderPhantom, C.BoxPhantom, C.RingPhantom, C.SpherePhantom))
         self.notes: list[str] = []  # what a mesh file yielded and what was repaired in it
         self.emission = emission  # Lambertian when subject.emission is absent
+        body = None  # a round phantom's own curved surface, which split faces follow
         if isinstance(s, C.CylinderPhantom):
             surf, point, axis = phantoms.cylinder(radius_mm=s.radius_mm, length_mm=s.length_mm, n_angular=s.n_angular,
                                                   n_axial=s.n_axial, cap_elements=s.cap_elements)
+            body = phantoms.RoundBody(s.radius_mm, axis=0)
         elif isinstance(s, C.BoxPhantom):
             surf, point, axis = phantoms.box(size_mm=s.size_mm, element_mm=s.element_mm)
         elif isinstance(s, C.RingPhantom):
             surf, point, axis = phantoms.ring(radius_mm=s.radius_mm, thickness_mm=s.thickness_mm, n_elements=s.n_elements,
                                               strips_per_element=s.strips_per_element)
+            body = phantoms.RoundBody(s.radius_mm, axis=1)
         elif isinstance(s, C.SpherePhantom):
             surf, point, axis = phantoms.sphere(radius_mm=s.radius_mm, n_latitude=s.n_latitude, n_longitude=s.n_longitude)
+            body = phantoms.RoundBody(s.radius_mm)
         elif isinstance(s, C.PatchPhantom):
             surf, point, axis = phantoms.patch(size_mm=s.size_mm, n=s.n, center_mm=s.center_mm, normal=s.normal)
         elif isinstance(s, C.MeshSurface):
@@ -137,7 +141,7 @@ class SubjectPlacer:
             raise UserError(f"subject.refine_faces: {subject.refine_faces} splits the surface's {len(surf.faces)} faces "
                             f"into {n_faces:.3g}; at most {C.MAX_PHANTOM_PIECES:.0e} (no camera resolves more, and "
                             "building them would exhaust the memory). Lower subject.refine_faces.")
-        surf = surf.subdivided(subject.refine_faces)  # finer faces, the same elements
+        surf = surf.subdivided(subject.refine_faces, body)  # finer faces (on a round phantom's body), the same elements
         self.own_surface = surf  # in the generator's own frame (what a Monte Carlo truth is computed in)
         self.rest_shift_mm = np.zeros(3)
         if self.rests_on_stage:

@@ -126,3 +126,20 @@ def test_a_wrong_emission_model_reads_as_a_shift_and_the_warning_says_so(rig):
             else:
                 assert st.significant and s.seen, (render, model, st, s)
                 assert "subject.emission" in w and "likely a calibration error" not in w
+
+
+def test_a_coarse_faceting_of_a_round_body_is_named_in_the_grazing_warning():
+    """A prism of n facets meets itself at 360/n deg; split with its round body, at half that. A box
+    bends only at 90 deg (not a faceted curve) and the sample mouse mesh at ~8 deg: neither gets the
+    hint. The warning names the crease and the remedy only where it is coarse (>= 10 deg)."""
+    for n in (12, 20, 40):
+        cyl = phantoms.cylinder(radius_mm=12.5, length_mm=50, n_angular=n, n_axial=6)[0]
+        assert D.median_crease_deg(cyl) == pytest.approx(360 / n)
+        assert D.median_crease_deg(cyl.subdivided(1, phantoms.RoundBody(12.5, axis=0))) == pytest.approx(180 / n)
+    assert np.isnan(D.median_crease_deg(phantoms.box(size_mm=(30, 40, 20), element_mm=4.0)[0]))
+    shares = np.array([0.6, 0.4])
+    hint = D.grazing_warning(shares, 18.0)
+    assert "18 deg" in hint and "subject.refine_faces: 1" in hint and "9 deg off" in hint
+    for fine in (9.0, float("nan")):
+        assert "refine_faces" not in D.grazing_warning(shares, fine)
+    assert D.grazing_warning(np.array([0.5, 0.2]), 18.0) is None

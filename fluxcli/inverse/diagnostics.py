@@ -246,14 +246,44 @@ def describe_shares(shares: np.ndarray) -> str:
     return ", ".join((f"{s:.0%}" if np.isfinite(s) else "-") + f" beyond {b:g} deg" for s, b in zip(shares, BANDS_DEG))
 
 
-def grazing_warning(total_shares: np.ndarray) -> str | None:
+# A surface whose faces meet at this much or more where it bends (the median crease between 2 and
+# 45 deg) is a coarse faceting of a round body: its normals are up to half that off the body's,
+# and diffuse light at 80 deg changes by ~5 % a degree.
+COARSE_CREASE_DEG = 10.0
+
+
+def median_crease_deg(surface) -> float:
+    """The median angle (deg) between the normals of faces that share an edge, over the edges
+    where the surface bends gently (2-45 deg: a faceted curve, not a box's edges, not a flat
+    face's diagonals); NaN where it bends nowhere in that range."""
+    f = np.asarray(surface.faces)
+    edges = np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    _, inv, count = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    face = np.repeat(np.arange(len(f)), 3)
+    order = np.argsort(inv, kind="stable")
+    shared = count[inv[order]] == 2
+    a, b = face[order][shared][0::2], face[order][shared][1::2]
+    nrm = surface.face_normals
+    deg = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", nrm[a], nrm[b]), -1.0, 1.0)))
+    bend = deg[(deg > 2.0) & (deg < 45.0)]
+    return float(np.median(bend)) if len(bend) else float("nan")
+
+
+def grazing_warning(total_shares: np.ndarray, crease_deg: float = float("nan")) -> str | None:
     """A warning when a large share of the total rests on views beyond 75 deg
-    (:func:`total_shares`)."""
+    (:func:`total_shares`); ``crease_deg`` (:func:`median_crease_deg`) adds what a coarse
+    faceting of a round body does there."""
     s75 = float(total_shares[BANDS_DEG.index(75.0)])
     if np.isfinite(s75) and s75 > GRAZING_SHARE_WARN:
+        coarse = (f" The surface's faces meet at {crease_deg:.0f} deg where it bends (median): if the body is round "
+                  f"there, their normals are up to {crease_deg / 2:.0f} deg off its own, which moves the light seen "
+                  "at 80 deg by tens of per cent; a finer mesh, or subject.refine_faces: 1 on a round phantom "
+                  "(its split faces follow the round body), models it better."
+                  if np.isfinite(crease_deg) and crease_deg >= COARSE_CREASE_DEG else "")
         return (f"{s75:.0%} of the total rests on elements seen beyond 75 deg from their normal, where the emission "
                 "model is least certain (Lambertian and diffuse differ by 20-35 % there): add a pose or a mirror "
-                "that sees them more head-on, or check subject.emission.")
+                "that sees them more head-on, or check subject.emission." + coarse)
     return None
 
 

@@ -30,6 +30,7 @@ def emission_checks(profile, views, todo, per_pose, joint, images, valid, noise,
     weights = [v.weight for v in views]
     centres = [v.camera.center_mm for v in views]
     light, totals, slopes, out, all_T, all_ang, structured = [], [], [], [], [], [], []
+    crease = D.median_crease_deg(todo[0][0].surface) if todo else float("nan")  # the same surface in every pose
     for k, ((res, fitted), (scene, pt)) in enumerate(zip(per_pose, todo)):
         Tv = [load_view(pt.path, v) for v in range(len(views))]
         ang = D.element_angles(scene.surface, centres, prof.weight)
@@ -38,7 +39,7 @@ def emission_checks(profile, views, todo, per_pose, joint, images, valid, noise,
         px = D.pixel_angles(Tv, weights, res.power, ang)
         model = np.nan_to_num(fitted.ravel())
         st = D.angle_structure(images[k].ravel(), model, noise.variance(model), px, valid[k].ravel())
-        warns = tuple(w for w in (D.grazing_warning(totals[-1]), D.structure_warning(st, prof.describe()),
+        warns = tuple(w for w in (D.grazing_warning(totals[-1], crease), D.structure_warning(st, prof.describe()),
                                   mismatch if k == 0 else None) if w)
         out.append((replace(res, warnings=tuple(res.warnings) + warns), fitted) if warns else (res, fitted))
         slopes.append([np.nan, np.nan] if st is None else [st.slope_per_10deg, st.t])
@@ -62,7 +63,7 @@ def emission_checks(profile, views, todo, per_pose, joint, images, valid, noise,
         record.joint_light_beyond_deg, record.joint_total_beyond_deg = jl, jt
         lines.append(f"seen at grazing angles, all poses jointly: light {D.describe_shares(jl)}; "
                      f"total {D.describe_shares(jt)}")
-        w = D.grazing_warning(jt)
+        w = D.grazing_warning(jt, crease)
         if w:
             joint = replace(joint, warnings=tuple(joint.warnings) + (w,))
     return out, joint, lines, record, structured

@@ -109,26 +109,36 @@ class Surface:
         faces = self.faces if np.linalg.det(rotation) > 0 else self.faces[:, ::-1]
         return Surface(v, faces, self.element_of_face, self.n_elements, self.element_ids, self.subelement_of_face)
 
-    def subdivided(self, levels: int = 1) -> "Surface":
+    def subdivided(self, levels: int = 1, body=None) -> "Surface":
         """The same elements on finer faces: every triangle split into 4 (edge midpoints)
         ``levels`` times, each fine face in its coarse face's element. The light within an element
         is modelled per face (linear within each, for vertex unknowns), so finer faces follow a
-        spot that is about an element wide; the elements, what is reported, are unchanged."""
+        spot that is about an element wide; the elements, what is reported, are unchanged.
+
+        ``body`` (a phantom's :class:`~fluxcli.surface.phantoms.RoundBody`, or None): the curved
+        surface the coarse vertices lie on. The midpoint of an edge whose two ends lie on it is
+        moved onto it, so the finer faces follow the round body (a cylinder's 20 facets become
+        40 around) rather than the flat facets between its vertices."""
         if int(levels) == 0:
             return self
-        v, f, eof = self._split_faces(levels)
+        v, f, eof = self._split_faces(levels, body)
         sub = None if self.subelement_of_face is None else np.tile(self.subelement_of_face, 4 ** int(levels))
         return Surface(v, f, eof, self.n_elements, self.element_ids, sub)
 
-    def _split_faces(self, levels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _split_faces(self, levels: int, body=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(vertices, faces, element of each face) with every triangle split into 4 at its edge
-        midpoints ``levels`` times; fine face k of a split is face k mod F of the coarser surface."""
+        midpoints ``levels`` times; fine face k of a split is face k mod F of the coarser surface.
+        With ``body``, midpoints of edges whose ends both lie on it are moved onto it."""
         v, f, eof = self.vertices_mm, self.faces, self.element_of_face
         for _ in range(int(levels)):
             edges = np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
             uniq, inv = np.unique(edges, axis=0, return_inverse=True)
             mid = len(v) + inv.reshape(-1, 3)  # midpoint vertex of edges (01, 12, 20)
-            v = np.concatenate([v, 0.5 * (v[uniq[:, 0]] + v[uniq[:, 1]])])
+            centre = 0.5 * (v[uniq[:, 0]] + v[uniq[:, 1]])
+            if body is not None:
+                on = body.holds(v[uniq[:, 0]]) & body.holds(v[uniq[:, 1]])
+                centre[on] = body.project(centre[on])
+            v = np.concatenate([v, centre])
             a, b, c = f[:, 0], f[:, 1], f[:, 2]
             ab, bc, ca = mid[:, 0], mid[:, 1], mid[:, 2]
             f = np.concatenate([np.stack(t, axis=1) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])

@@ -5,9 +5,41 @@ Each returns the surface and its own rotation axis (a point and a unit direction
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .mesh import Surface
+
+
+@dataclass(frozen=True)
+class RoundBody:
+    """The curved surface a round phantom's vertices lie on, in its own frame (centred at the
+    origin): a cylinder or band of ``radius_mm`` about coordinate axis ``axis`` (0: x, 1: y), or
+    a sphere (``axis`` None). Its flat facets are chords of it; :meth:`Surface.subdivided` moves
+    the midpoints it makes onto it, so finer faces follow the body the light leaves (a Monte
+    Carlo truth is transported through the round body itself, ``fluxcli.montecarlo``)."""
+
+    radius_mm: float
+    axis: int | None = None
+
+    def _rho(self, p_mm: np.ndarray) -> np.ndarray:
+        q = np.array(p_mm, float)
+        if self.axis is not None:
+            q[:, self.axis] = 0.0
+        return np.linalg.norm(q, axis=1)
+
+    def holds(self, p_mm: np.ndarray) -> np.ndarray:
+        """Which points lie on the curved surface (to 1e-7 of its radius)."""
+        return np.abs(self._rho(p_mm) - self.radius_mm) <= 1e-7 * self.radius_mm
+
+    def project(self, p_mm: np.ndarray) -> np.ndarray:
+        """The points moved straight out from the axis (the centre) onto the surface."""
+        p = np.asarray(p_mm, float)
+        q = p * (self.radius_mm / self._rho(p))[:, None]
+        if self.axis is not None:
+            q[:, self.axis] = p[:, self.axis]
+        return q
 
 
 def _grid_quads(n_a: int, n_b: int, wrap_a: bool) -> np.ndarray:
