@@ -73,7 +73,10 @@ def _provisional_upre(T_obs, a, prior, variance, k, lambdas, gamma, tau) -> S.Ch
     return S.choose(spec, "gcv", k=k, lambdas=lambdas, gamma=gamma, tau=tau)
 
 
-DOF_SHARE_MAX = 0.5  # UPRE's pick may spend at most this share of the pixels on degrees of freedom
+DOF_SHARE_MAX = 0.5  # UPRE's pick may spend at most this share of the pixels on degrees of freedom ...
+# ... unless its minimum lies this many times its own noise, √(2m), below its value at the grid's
+# smallest λ (the interpolating end): then the curve is not flat and its pick stands
+UPRE_CLEAR_MIN = 1.0
 
 
 def _unless_interpolating(spec: S.Spectrum, choice: S.Choice, k, lambdas, gamma, tau):
@@ -85,13 +88,21 @@ def _unless_interpolating(spec: S.Spectrum, choice: S.Choice, k, lambdas, gamma,
     the useful range (399 at 1e-9, 437 at 1e-4, against its own noise of √(2m) = 29), and its
     minimum lands on an interpolant of the noise and of the model error (19.8 % error, 2.9 %
     at λ = 1e-4). When the pick's degrees of freedom exceed :data:`DOF_SHARE_MAX` of the
-    pixels, the known noise level decides instead: ``‖W^½r‖² = τm`` (Morozov's discrepancy
-    principle, which cannot fit below the noise; there 2.6 %). Returns the choice and a
-    note (None when UPRE's pick stands)."""
+    pixels and the curve is that flat — its minimum not :data:`UPRE_CLEAR_MIN` × √(2m) below
+    its value at the grid's smallest λ — the known noise level decides instead: ``‖W^½r‖² = τm``
+    (Morozov's discrepancy principle, which cannot fit below the noise; there 2.6 %). Where
+    the minimum is clear, UPRE's pick stands however many degrees of freedom it spends: the
+    demo's cylinder on faces split once (850 vertex unknowns on 962 pixels) has its minimum
+    300 below the λ → 0 end (√(2m) = 44) at 560 degrees of freedom, 5 % error; the discrepancy
+    principle, which over-smooths wherever the model can fit below the noise, gave 20 %.
+    Returns the choice and a note (None when UPRE's pick stands)."""
     m = spec.m
     df = float(spec.curves([choice.lam * spec.scale], k)[2][0])
     if df <= DOF_SHARE_MAX * m:
         return choice, None
+    crit = np.asarray(choice.criterion, float)
+    if len(crit) and np.isfinite(crit[0]) and crit[0] - np.nanmin(crit) > UPRE_CLEAR_MIN * np.sqrt(2.0 * m):
+        return choice, None  # a minimum well above the interpolating end (λ → 0): UPRE can choose here
     disc = S.choose(spec, "discrepancy", k=k, lambdas=lambdas, gamma=gamma, tau=tau, noise_total=float(m))
     if disc.at_edge:
         return choice, None
