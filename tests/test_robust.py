@@ -556,6 +556,18 @@ def test_linear_elements_through_the_cli_each_pose_solved_once(write_config, min
     assert errors["linear_elements"] < 1.25 * errors["vertices"] + 0.01, errors
 
 
+def _reconstructed(runner, app, config, run_dir, truth=None, pose=None):
+    """Reconstruct through the CLI: (error over observed elements, total over truth, console) of the
+    joint solve (``pose`` None) or one pose; ``truth`` None: the reconstruction's own record of it."""
+    r = runner.invoke(app, ["reconstruct", str(config), "--quiet", "--force"])
+    assert r.exit_code == 0, r.output
+    with h5py.File(run_dir / "reconstruction.h5") as f:
+        t = f["truth/power"][()] if truth is None else truth
+        b, obs = ((f["flux/power"][()], f["flux/observed"][()]) if pose is None else
+                  (f["per_pose/power"][pose], f["per_pose/observed"][pose]))
+    return np.abs(b[obs] - t[obs]).sum() / t[obs].sum(), b[obs].sum() / t[obs].sum(), r.output
+
+
 @pytest.mark.slow
 def test_lambda_where_the_pixels_are_fewer_than_the_unknowns(tmp_path, monkeypatch):
     """Issue 25's scene at 0.5 pixels per element (90 x 90 pixels of 148 µm: 420 pixels see the
@@ -582,11 +594,7 @@ def test_lambda_where_the_pixels_are_fewer_than_the_unknowns(tmp_path, monkeypat
     assert runner.invoke(app, ["build-T", str(p), "--quiet"]).exit_code == 0
 
     def figures():
-        r = runner.invoke(app, ["reconstruct", str(p), "--quiet", "--force"])
-        assert r.exit_code == 0, r.output
-        with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
-            power, obs = f["flux/power"][()], f["flux/observed"][()]
-        return np.abs(power[obs] - truth[obs]).sum() / truth[obs].sum(), power[obs].sum() / truth[obs].sum(), r.output
+        return _reconstructed(runner, app, p, tmp_path / "run", truth)
 
     err, tot, out = figures()
     assert err < 0.03 and abs(tot - 1) < 0.02, (err, tot)
@@ -624,11 +632,8 @@ def test_a_clear_upre_minimum_stands_when_the_unknowns_are_about_as_many_as_the_
     assert runner.invoke(app, ["simulate", str(p), "--quiet"]).exit_code == 0
 
     def error():
-        r = runner.invoke(app, ["reconstruct", str(p), "--quiet", "--force"])
-        assert r.exit_code == 0, r.output
-        with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
-            t, b, obs = f["truth/power"][()], f["per_pose/power"][0], f["per_pose/observed"][0]
-        return np.abs(b[obs] - t[obs]).sum() / t[obs].sum(), r.output
+        err, _, out = _reconstructed(runner, app, p, tmp_path / "run", pose=0)
+        return err, out
 
     err, out = error()
     assert err < 0.09 and "discrepancy principle" not in out, (err, out)
