@@ -640,3 +640,30 @@ def test_a_clear_upre_minimum_stands_when_the_unknowns_are_about_as_many_as_the_
     monkeypatch.setattr(F, "UPRE_CLEAR_MIN", np.inf)  # the rule before: degrees of freedom alone
     err_before, out = error()
     assert err_before > 0.14 and "discrepancy principle" in out, err_before
+
+
+def test_gcv_beside_lambdas_with_no_degrees_of_freedom_left_searches_without_nan():
+    """Unweighted GCV is +inf where the filter spends every pixel (m - dof <= 0: about as many unknowns
+    as pixels, lambda small). When its grid minimum sits next to such a lambda, the bounded search
+    between the neighbours met inf; Brent's parabola made inf - inf of it: a numpy RuntimeWarning on the
+    console (seen on the paper's ring on faces split once) and a search steered by nan. The search now
+    sees a finite value above the curve there, quietly, and still returns a pick no worse than the grid's."""
+    import warnings
+
+    from fluxcli.inverse.smooth import exitance_prior
+
+    rng = np.random.default_rng(77)
+    n, m = 40, int(rng.integers(38, 44))  # 38 pixels for 40 unknowns
+    T = sp.csr_array(np.abs(rng.normal(size=(m, n))) * (rng.random((m, n)) < 0.3) + np.eye(m, n))
+    a = rng.poisson(T @ (rng.random(n) * 100)).astype(float)
+    prior = exitance_prior(sp.diags([np.ones(n - 1), np.ones(n - 1)], [-1, 1]), np.ones(n, bool))
+    spec = S.Spectrum(T, a, None, prior, noise_weighted=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        ch = S.choose(spec, "gcv", k=10)
+    rho, _, dof = spec.curves(ch.lambdas * spec.scale, 10)
+    assert (dof >= m).any()  # the curve is infinite over part of the grid
+    ok = m - dof > 0
+    r, _, d = spec.curves(np.array([ch.lam]) * spec.scale, 10)
+    assert np.isfinite(ch.lam) and m - d[0] > 0
+    assert m * r[0] / (m - d[0]) ** 2 <= (m * rho[ok] / (m - dof[ok]) ** 2).min() * (1 + 1e-9)

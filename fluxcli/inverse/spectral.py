@@ -294,7 +294,11 @@ def _pick(spec, rule, k, grid, gamma, tau, noise_total) -> Choice:  # also regul
         i = int(np.argmin(crit))
         lam, at_edge = grid[i], i in (0, n - 1)
         if not at_edge:
-            res = sopt.minimize_scalar(lambda x: float(gcv(x)[0]), method="bounded",
+            # GCV is +inf where no degrees of freedom are left; Brent's parabola would make inf - inf
+            # of it (nan and a RuntimeWarning), so the search sees a finite value above the curve there
+            fin = crit[np.isfinite(crit)]
+            cap = float(fin.max() + (fin.max() - fin.min()) + 1.0)
+            res = sopt.minimize_scalar(lambda x: min(float(gcv(x)[0]), cap), method="bounded",
                                        bounds=(np.log(grid[i - 1]), np.log(grid[i + 1])))
             if res.success and float(gcv(res.x)[0]) <= crit[i]:
                 lam = float(np.exp(res.x))
