@@ -14,8 +14,10 @@ from diffuse(1.40).
 
     # here: the geometry the GPU machine needs (views, poses, occluders, truth surface) + wheels
     $ .venv/bin/python benchmarks/issue21_mcx.py prepare
-    # on the GPU machine, in the repository's root with .gpu21 carried (see prepare's output):
-    $ python3 benchmarks/issue21_mcx.py transport --photons 2e9 --seconds 420 --out $OUT/issue21_mcx.npz
+    # on the GPU machine, in the repository's root with .gpu21 carried (see prepare's output);
+    # install the wheels with `python3 -m pip` (a bare `pip` there may serve another interpreter):
+    $ python3 -m pip install --no-index --no-deps --break-system-packages .gpu21/whl/*.whl
+    $ PYTHONPATH=. python3 benchmarks/issue21_mcx.py transport --photons 2e9 --seconds 420 --seed 27000 --out $OUT/issue21_mcx.npz
     # here: the photons' images into simulation artefacts; diffuse and lambertian reconstructed
     $ .venv/bin/python benchmarks/issue21_mcx.py reconstruct runs/issue21/mcx/issue21_mcx.npz
     # here: every whole photon by face and exit angle against diffuse(1.40) (runs from 26 Nov 2026 on)
