@@ -12,6 +12,7 @@ import yaml
 from typer.testing import CliRunner
 
 from fluxcli import config as C
+from fluxcli.artefacts.reconstruction import read_budget
 from fluxcli.cli import app
 from fluxcli.errors import UserError
 from fluxcli.quantify import budget as Q
@@ -130,7 +131,7 @@ def _budget_run(tiny, tmp_path, uncertainty, rois=None):
     r = CliRunner().invoke(app, ["reconstruct", str(p), "--force"])
     assert r.exit_code == 0, r.output
     with h5py.File(d / "run" / "reconstruction.h5") as f:
-        return Q.read_group(f["budget"]), r.output, cfg
+        return read_budget(f["budget"]), r.output, cfg
 
 
 def test_aperture_sigma_moves_the_total_as_the_collected_light(tiny_run, tmp_path):

@@ -10,6 +10,7 @@ import pytest
 import scipy.sparse as sp
 import yaml
 
+from fluxcli.artefacts.reconstruction import read_rois
 from fluxcli.errors import UserError
 from fluxcli.imaging import noise as N
 from fluxcli.inverse import reconstruct
@@ -226,7 +227,7 @@ def test_reconstruct_report_and_vtp_carry_the_rois(tiny_run, tmp_path):
     assert [(x["roi"], x["pose"]) for x in rows] == [(n, k) for n in ("top", "under", "listed")
                                                       for k in ("1", "2", "joint")]
     with h5py.File(run / "reconstruction.h5") as f:
-        got = Q.read_group(f["rois"])
+        got = read_rois(f["rois"])
         power, obs, areas = f["flux/power"][()], f["flux/observed"][()].astype(bool), f["surface/areas"][()]
     top = got["members"][0, -1]
     assert float(rows[2]["total_photons_per_s"]) == pytest.approx(np.nansum(np.where(top & obs, power, 0.0)), rel=1e-6)

@@ -334,6 +334,11 @@ def write(path: Path, r: Reconstruction) -> Path:
     return path
 
 
+# the numbers /rois holds per region and map, one dataset each [roi, map]
+ROI_NUMBER_KEYS = ("total_photons_per_s", "sigma_photons_per_s", "mean_radiance", "peak_radiance", "area_mm2",
+                   "observed_share", "well_observed_share")
+
+
 def write_rois(g: h5py.Group, regions, labels: list[str], exposure_s: float | None, numbers, members) -> None:
     """``/rois`` of reconstruction.h5: one column per number, [roi, map] (``regions``: the ROIs in order;
     ``labels``: the maps measured; ``numbers[map][roi]``: what was measured; ``members[map]``: [roi, element])."""
@@ -348,6 +353,7 @@ def write_rois(g: h5py.Group, regions, labels: list[str], exposure_s: float | No
              "sigma_photons_per_s": "photons/s (1 sd)" if exposure_s is not None else "photons per exposure (1 sd)",
              "mean_radiance": "photons s^-1 cm^-2 sr^-1", "peak_radiance": "photons s^-1 cm^-2 sr^-1",
              "area_mm2": "mm^2", "observed_share": "of the area", "well_observed_share": "of the area"}
+    assert tuple(units) == ROI_NUMBER_KEYS
     for key, unit in units.items():
         d = g.create_dataset(key, data=np.array([[getattr(numbers[m][i], key) for m in range(len(labels))]
                                                  for i in range(len(regions))], float).reshape(len(regions), -1))
@@ -362,8 +368,6 @@ def write_rois(g: h5py.Group, regions, labels: list[str], exposure_s: float | No
 
 def write_budget(g: h5py.Group, b) -> None:
     """``/budget``: per total (poses, then joint) its σ by cause (``b``: fluxcli.stages.budget.Budget)."""
-    from ..quantify.budget import SHIFT_MIN_PX, SHIFT_Z
-
     g.attrs["meaning"] = ("1 sd of each total (photons per exposure) by cause: photon noise sqrt(w'Cw); "
                           "regularisation max |t(lambda/2) - t|, |t(2 lambda) - t|; calibration sqrt(sum_i delta_i^2 "
                           "+ (t gain_relative)^2) with delta_i the total's change when T is rebuilt with parameter i "
@@ -387,10 +391,41 @@ def write_budget(g: h5py.Group, b) -> None:
         g.create_dataset("shift_px", data=np.array([[s.dx_px, s.dy_px] for s in b.shifts], float)).attrs["meaning"] = \
             "per pose: the shift (x, y pixels) of the fitted image that best explains the residual"
         g.create_dataset("shift_z", data=np.array([s.z for s in b.shifts], float)).attrs["meaning"] = \
-            f"per pose: |shift| in units of its standard error; warned above {SHIFT_Z:g} (and {SHIFT_MIN_PX:g} px)"
+            f"per pose: |shift| in units of its standard error; {b.shifts[0].RULE}"
 
 
 # ------------------------------------------------------------------ reading
+def read_rois(g: h5py.Group) -> dict:
+    """``/rois`` (as :func:`write_rois` wrote it) as plain data: names, definitions, maps (pose
+    numbers and 'joint'), exposure_s (None: per exposure), numbers[key] (n_roi, n_maps) for each
+    of :data:`ROI_NUMBER_KEYS`, status (n_roi, n_maps) and members (n_roi, n_maps, n_elements) bool."""
+    t = float(g.attrs.get("exposure_s", np.nan))
+    return {"names": json.loads(g.attrs["names"]), "maps": json.loads(g.attrs["maps"]),
+            "definitions": json.loads(g.attrs.get("definitions", "[]")),
+            "exposure_s": t if np.isfinite(t) else None,
+            "numbers": {k: g[k][()] for k in ROI_NUMBER_KEYS},
+            "status": np.array([[x.decode() if isinstance(x, bytes) else str(x) for x in row] for row in g["status"][()]]),
+            "members": g["members"][()].astype(bool)}
+
+
+def read_budget(g: h5py.Group) -> dict:
+    """``/budget`` (as :func:`write_budget` wrote it) as plain lists (photons per exposure; NaN:
+    not computed)."""
+    out = {"labels": json.loads(g.attrs["labels"]), "t_builds": int(g.attrs.get("t_builds", 0)),
+           "parameters": json.loads(g.attrs.get("parameters", "[]")),
+           "gain_relative": float(g.attrs.get("gain_relative", np.nan))}
+    for key in ("total", "sigma_noise", "sigma_regularisation", "sigma_calibration", "sigma"):
+        out[key] = np.asarray(g[key][()], float).tolist()
+    if "rois" in g:
+        out["rois"] = {"names": json.loads(g["rois"].attrs["names"]),
+                       "sigma_regularisation": g["rois/sigma_regularisation"][()].tolist(),
+                       "sigma_calibration": g["rois/sigma_calibration"][()].tolist()}
+    if "shift_z" in g:
+        out["shift_z"] = g["shift_z"][()].tolist()
+        out["shift_px"] = g["shift_px"][()].tolist()
+    return out
+
+
 def up_to_date_summary(path: Path) -> list[str]:
     """The total lines an up-to-date reconstruction said when it was made."""
     with open_artefact(path, KIND) as f:
@@ -412,15 +447,12 @@ class Summary:
     joint_over_poses: bool  # /flux is the joint solve
     truth: np.ndarray | None  # [element] photons (None: no truth)
     error: float | None  # L1 error of /flux against the truth
-    budget: dict | None  # /budget (fluxcli.quantify.budget.read_group)
-    rois: dict | None  # /rois (fluxcli.quantify.rois.read_group)
+    budget: dict | None  # /budget (read_budget)
+    rois: dict | None  # /rois (read_rois)
 
 
 def read_summary(path: Path) -> Summary:
     """The summary's view of reconstruction.h5."""
-    from ..quantify.budget import read_group as read_budget
-    from ..quantify.rois import read_group as read_rois
-
     with open_artefact(path, KIND) as f:
         pp = f["per_pose"]
         totals = pp["total"][()]
@@ -463,7 +495,7 @@ class Maps:
     pose_observed: np.ndarray | None  # [pose, element] bool
     method: str  # reconstruct.method
     joint_over_poses: bool  # /flux is the joint solve
-    rois: dict | None  # /rois (fluxcli.quantify.rois.read_group)
+    rois: dict | None  # /rois (read_rois)
     per_filter: dict  # filter -> [element] photons before the filter, NaN unobserved
     headline: tuple | None  # (photons, over, reason) of /flux/headline_total
 
@@ -478,9 +510,7 @@ def read_maps(path: Path) -> Maps:
         pp = f["per_pose"] if "per_pose" in f else None
         rois = None
         if "rois" in f:  # one cell array per region of interest (the last map's: joint, or the only pose)
-            from ..quantify.rois import read_group
-
-            rois = read_group(f["rois"])
+            rois = read_rois(f["rois"])
         per_filter = {}
         if "filters" in f:  # several filters in one reconstruct: each filter's map
             for name in json.loads(f["filters"].attrs["order"]):
@@ -502,8 +532,6 @@ def read_maps(path: Path) -> Maps:
 def read_roi_spectrum(path: Path) -> tuple[dict | None, dict]:
     """/rois (None: no regions) and, when several filters were reconstructed, filter ->
     (transmission, that filter's /rois)."""
-    from ..quantify.rois import read_group
-
     with open_artefact(path, KIND) as f:
         if "rois" not in f:
             return None, {}
@@ -512,8 +540,8 @@ def read_roi_spectrum(path: Path) -> tuple[dict | None, dict]:
             for name in json.loads(f["filters"].attrs["order"]):
                 if "rois" in f[f"filters/{name}"]:
                     spectrum[name] = (float(f[f"filters/{name}"].attrs["transmission"]),
-                                      read_group(f[f"filters/{name}/rois"]))
-        return read_group(f["rois"]), spectrum
+                                      read_rois(f[f"filters/{name}/rois"]))
+        return read_rois(f["rois"]), spectrum
 
 
 def read_provenance(path: Path) -> Provenance:
@@ -533,14 +561,13 @@ class StudyView:
     has_rois: bool  # the file holds regions of interest
     heights_mm: np.ndarray  # [pose] mm
     rotations_deg: np.ndarray  # [pose] deg
-    parts: list  # per filter: (filter, /rois as read_group gives it, truth power [element] photons or None,
+    parts: list  # per filter: (filter, /rois as read_rois gives it, truth power [element] photons or None,
     #             direct_roi_photons [pose] photons); ``filter_name`` for a file of one filter
 
 
 def read_for_study(path: Path, filter_name: str) -> StudyView:
     """The session's numbers, one part per filter of the artefact (``filter_name``: the study
     file's filter, for a file of one filter)."""
-    from ..quantify.rois import read_group
     from .digest import unchanged
     from .store import read_provenance as _read
 
@@ -548,11 +575,11 @@ def read_for_study(path: Path, filter_name: str) -> StudyView:
         pp = f["per_pose"]
         parts = []
         if "rois" in f:  # one reconstruct of several filters: a part per filter
-            parts = [(filter_name, read_group(f["rois"]),
+            parts = [(filter_name, read_rois(f["rois"]),
                       f["truth/power"][()] if "truth" in f and "power" in f["truth"] else None,
                       pp["direct_roi_photons"][()])]
             if "filters" in f:
-                parts = [(name, read_group(h["rois"]), h["truth_power"][()] if "truth_power" in h else None,
+                parts = [(name, read_rois(h["rois"]), h["truth_power"][()] if "truth_power" in h else None,
                           h["direct_roi_photons"][()])
                          for name in json.loads(f["filters"].attrs["order"])
                          for h in [f[f"filters/{name}"]] if "rois" in h]

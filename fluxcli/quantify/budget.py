@@ -25,8 +25,8 @@ Arrays and numbers only: the stage that rebuilds T is :mod:`fluxcli.stages.budge
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -88,6 +88,7 @@ class Shift:
     sd_px: tuple[float, float]
     z: float
     pixels: int
+    RULE: ClassVar[str] = f"warned above {SHIFT_Z:g} (and {SHIFT_MIN_PX:g} px)"  # when :attr:`seen`, in words
 
     @property
     def size_px(self) -> float:
@@ -166,20 +167,3 @@ def shift_warning(label: str, shift: Shift, chi2_per_pixel: float, angle_structu
     return (head + ": the camera or a mirror is likely a calibration error away from where the config puts it "
             "(check system.camera.pose, system.mirrors, or calibrate again); the total may be off by more than "
             "its sigma")
-
-
-def read_group(g) -> dict:
-    """``/budget`` of reconstruction.h5 as plain lists (photons per exposure; NaN: not computed)."""
-    out = {"labels": json.loads(g.attrs["labels"]), "t_builds": int(g.attrs.get("t_builds", 0)),
-           "parameters": json.loads(g.attrs.get("parameters", "[]")),
-           "gain_relative": float(g.attrs.get("gain_relative", np.nan))}
-    for key in ("total", "sigma_noise", "sigma_regularisation", "sigma_calibration", "sigma"):
-        out[key] = np.asarray(g[key][()], float).tolist()
-    if "rois" in g:
-        out["rois"] = {"names": json.loads(g["rois"].attrs["names"]),
-                       "sigma_regularisation": g["rois/sigma_regularisation"][()].tolist(),
-                       "sigma_calibration": g["rois/sigma_calibration"][()].tolist()}
-    if "shift_z" in g:
-        out["shift_z"] = g["shift_z"][()].tolist()
-        out["shift_px"] = g["shift_px"][()].tolist()
-    return out

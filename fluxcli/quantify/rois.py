@@ -300,26 +300,6 @@ def csv_text(rows: list[tuple[str, str, float, float, RoiNumbers]]) -> str:
     return out.getvalue()
 
 
-# ------------------------------------------------------------------ reading /rois back
-NUMBER_KEYS = ("total_photons_per_s", "sigma_photons_per_s", "mean_radiance", "peak_radiance", "area_mm2",
-               "observed_share", "well_observed_share")
-
-
-def read_group(g) -> dict:
-    """``/rois`` of a reconstruction artefact as plain data: names, maps (pose numbers and
-    'joint'), exposure_s (None: per exposure), numbers[key] (n_roi, n_maps), status (n_roi,
-    n_maps) and members (n_roi, n_maps, n_elements) bool."""
-    import json
-
-    t = float(g.attrs.get("exposure_s", np.nan))
-    return {"names": json.loads(g.attrs["names"]), "maps": json.loads(g.attrs["maps"]),
-            "definitions": json.loads(g.attrs.get("definitions", "[]")),
-            "exposure_s": t if np.isfinite(t) else None,
-            "numbers": {k: g[k][()] for k in NUMBER_KEYS},
-            "status": np.array([[x.decode() if isinstance(x, bytes) else str(x) for x in row] for row in g["status"][()]]),
-            "members": g["members"][()].astype(bool)}
-
-
 SPECTRUM_COLUMNS = ("roi", "filter", "transmission", "pose", "total_photons_per_s", "sigma_photons_per_s",
                     "mean_radiance", "observed_share", "well_observed_share")
 

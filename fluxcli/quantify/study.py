@@ -27,7 +27,7 @@ class Session:
     date: str | None
     filter: str
     artefact: str  # path as given
-    rois: dict  # fluxcli.quantify.rois.read_group(...)
+    rois: dict  # fluxcli.artefacts.reconstruction.read_rois(...)
     direct_image_photons: np.ndarray  # (n_poses,) photons summed over the direct view's pixels, per exposure
     heights_mm: np.ndarray
     rotations_deg: np.ndarray
@@ -66,7 +66,7 @@ def study_rows(sessions: list[Session], flags: dict[str, str]) -> tuple[list[str
     session's filter and its set-up flag on every row.  ``direct_image_photons_per_s`` is
     the older number: photons summed over the pixels the direct view reaches, per pose
     (the same for every ROI: the image region labs draw, not the surface region)."""
-    from .rois import NUMBER_KEYS
+    from ..artefacts.reconstruction import ROI_NUMBER_KEYS as NUMBER_KEYS
 
     header = ["subject", "day", "date", "filter", "session", "roi", "pose", "height_mm", "rotation_deg",
               *NUMBER_KEYS, "true_total_photons_per_s", "direct_image_photons_per_s", "status", "setup_flag"]

@@ -91,7 +91,7 @@ class Study:
     emission: dict | None = None  # /emission and the grazing shares of the reconstruction (issue 21)
     headline: tuple | None = None  # (photons, over what, why not over all observed elements or "")
     pose_chi2: np.ndarray | None = None  # (P,) χ²/pixel as reconstruct computed and warned on (its noise model)
-    budget: dict | None = None  # /budget: each total's σ by cause (fluxcli.quantify.budget.read_group)
+    budget: dict | None = None  # /budget: each total's σ by cause (fluxcli.artefacts.reconstruction.read_budget)
 
     @property
     def n_poses(self) -> int:
@@ -166,9 +166,9 @@ def load(reconstruction: Path, *, t_cache_dir: Path | None = None, simulation: P
             st.warnings = [w.decode() if isinstance(w, bytes) else str(w) for w in f["warnings"][()]]
         st.pose_chi2 = _opt(pp, "chi2_per_pixel")
         if "budget" in f:
-            from ..quantify.budget import read_group
+            from ..artefacts.reconstruction import read_budget
 
-            st.budget = read_group(f["budget"])
+            st.budget = read_budget(f["budget"])
         if "emission" in f:
             st.emission = _load_emission(f)
         if "truth" in f:

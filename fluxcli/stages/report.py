@@ -179,8 +179,7 @@ def _sections_only(out_dir: Path, title: str, cal: Path | None, surf: Path | Non
 
 def _rois_section(rec: Path) -> list:
     """The regions of interest (issue 24): a table per region and map, numbers into summary.json."""
-    from ..artefacts.reconstruction import read_roi_spectrum
-    from ..quantify.rois import NUMBER_KEYS
+    from ..artefacts.reconstruction import ROI_NUMBER_KEYS as NUMBER_KEYS, read_roi_spectrum
 
     # spectrum: filter -> (transmission, ROI numbers) when several filters were reconstructed
     r, spectrum = read_roi_spectrum(rec)
