@@ -122,6 +122,22 @@ def load_view(path: Path, k: int) -> sp.csr_matrix:
         return read_csr(f[f"views/{k}"])
 
 
+def load_T_curvature(path: Path, ratios: list) -> sp.csr_matrix:
+    """The emission's curvature term for one cached pose (pixels x columns, mm^2): the sum over
+    its views of weight x view T x diag(ratio), ``ratios`` per view per column
+    (:func:`fluxcli.transfer_cache.curvature_ratios`), so that ``this @ (S_f lap_t M|_f)`` is
+    the light the term sends to each pixel (:func:`fluxcli.optics.emission.curvature_operator`)."""
+    out = None
+    with open_artefact(path, "transfer") as f:
+        if len(ratios) != len(f["views"]):
+            raise ValueError(f"{path} holds {len(f['views'])} view(s), {len(ratios)} given")
+        for k, r in enumerate(ratios):
+            w = float(f[f"views/{k}"].attrs["weight"])
+            part = read_csr(f[f"views/{k}"]) @ sp.diags_array(w * np.asarray(r, float))
+            out = part if out is None else out + part
+    return sp.csr_matrix(out)
+
+
 def read_summary(path: Path, view_names: list[str], areas: np.ndarray) -> dict:
     """Summary of a T file; reads every chunk, so a corrupt file raises UserError."""
     with open_artefact(path, "transfer") as f:

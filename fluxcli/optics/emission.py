@@ -55,6 +55,7 @@ CHECK_DEG = (30.0, 45.0, 60.0, 70.0, 75.0, 80.0)  # where reports and notices qu
 # (fluxcli.inverse.diagnostics.leave_out_edge_on).  Applied to ``diffuse`` only: Lambertian and
 # table profiles keep their results (the Lambertian battery's figures are unchanged).
 DIFFUSE_TRUSTED_TO_DEG = 80.0
+KAPPA_L2_MAX = 0.5  # the curvature term: |lap_t M / M| l^2 at most this (it is first order in it)
 TANGENT_LAYOUT = "face-frame-2"  # how T_tangent is stored (2 in-plane components per face): in its cache key
 
 
@@ -158,6 +159,8 @@ class Profile:
     reduced_scattering_per_mm: float | None = None
     absorption_per_mm: float | None = None
     depth_term: float = 0.0  # diffuse: the coefficient c of the depth term 1 + c mu'^2 in the table (0: none)
+    # the curvature term (diffuse only): l^2 h(theta) / p(theta) on the same mu grid, mm^2; empty: off
+    curvature: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
 
     @property
     def has_tangent(self) -> bool:
@@ -170,6 +173,19 @@ class Profile:
         if not self.has_tangent:
             return np.zeros_like(mu)
         return np.where(mu > 0, interp_weight(self.tangent, np.clip(mu, 0.0, 1.0)), 0.0)
+
+    @property
+    def has_curvature(self) -> bool:
+        return len(self.curvature) > 0
+
+    def curvature_ratio(self, cos_theta) -> np.ndarray:
+        """``l^2 h(theta) / p(theta)`` (mm^2) at ``cos_theta``: the light the curvature term sends
+        along theta per unit of ``lap_t M``, over the light the profile sends per unit of M (0
+        behind the surface, or when the term is off; :func:`curvature_ratio`)."""
+        mu = np.asarray(cos_theta, float)
+        if not self.has_curvature:
+            return np.zeros_like(mu)
+        return np.where(mu > 0, interp_weight(self.curvature, np.clip(mu, 0.0, 1.0)), 0.0)
 
     @property
     def is_lambertian(self) -> bool:
@@ -212,12 +228,15 @@ class Profile:
         if self.has_tangent:  # absent when off: the key of a diffuse T before the term existed
             out["tangent_sha256"] = hashlib.sha256(self.tangent.tobytes()).hexdigest()
             out["tangent_layout"] = TANGENT_LAYOUT
+        if self.has_curvature:  # absent when off: the key of a diffuse T before the term existed
+            out["curvature_sha256"] = hashlib.sha256(self.curvature.tobytes()).hexdigest()
         return out
 
     def describe(self) -> str:
         if self.model == "diffuse":
             terms = [t for t, on in ((f"its depth term (c {self.depth_term:.3g})", self.depth_term),
-                                     ("its tangential flux", self.has_tangent)) if on]
+                                     ("its tangential flux", self.has_tangent),
+                                     ("its curvature term", self.has_curvature)) if on]
             if terms:
                 return (f"diffuse (refractive index {self.refractive_index:g}) with {' and '.join(terms)} "
                         f"(mu_s' {self.reduced_scattering_per_mm:g} /mm, mu_a {self.absorption_per_mm:g} /mm)")
@@ -291,17 +310,59 @@ def tangent_length(cos_theta: np.ndarray, n: float, transport_per_mm: float) -> 
     return (1.0 + 3.0 * mu_in / A) / (n * transport_per_mm * (1.0 + 3.0 * mu_in / (2.0 * A)))
 
 
+def _moment(values: np.ndarray) -> float:
+    """``int_0^1 f(mu) mu dmu`` of the linear interpolant of ``values`` on the mu grid (exact)."""
+    mu = np.linspace(0.0, 1.0, len(values))
+    h = mu[1] - mu[0]
+    a, b, m0, m1 = values[:-1], values[1:], mu[:-1], mu[1:]
+    return float(np.sum(h * (a * (2 * m0 + m1) + b * (m0 + 2 * m1)) / 6.0))
+
+
+def curvature_ratio(cos_theta: np.ndarray, n: float, depth: float, transport_per_mm: float) -> np.ndarray:
+    """``l^2 h(theta) / p(theta)`` (mm^2): where the exitance curves along the surface
+    (``lap_t M``, 1/mm^2 times M) the light leaving at theta is ``M p (1 + this x lap_t M / M)``.
+
+    Derivation (docs/design.md, "Emission: the curvature term"): the depth term's ray integral
+    with the diffusion equation in full, ``phi'' = mu_eff^2 phi - lap_t phi``, and with the
+    tangential walk of the ray back into the medium (depth z, sideways z tan theta'), whose
+    second-order part averaged over azimuth is ``(z tan theta')^2 lap_t phi / 4``.  To first
+    order in ``kappa = lap_t phi / phi`` (= lap_t M / M at the surface):
+
+        L_in(mu') / phi(0) ~ (1 + 3 mu'/2A)(1 + c mu'^2)
+                             + kappa l^2 [(1 - mu'^2)(1 + 9 mu'/2A) / 2 - mu'^2 (1 + 3 mu'/2A)],
+
+    l = 1 / mu_t'.  The second line carries flux of its own; M is the light that leaves, so its
+    share of the profile is taken out (``h`` carries none: ``int h cos dOmega = 0``) and the term
+    moves light between angles: for kappa < 0 (over a buried source) more along the normal and
+    less at grazing angles, for kappa > 0 (far from it) the reverse.  Fresnel's transmission is
+    common to both lines and cancels in the ratio.  Checked against photons (tests/test_emission.py)."""
+    mu = np.clip(np.asarray(cos_theta, float), 0.0, 1.0)
+    A = boundary_A(n)
+
+    def ratio(m):
+        mi = np.sqrt(1.0 - (1.0 - m * m) / n**2)
+        p_in = (1.0 + 1.5 * mi / A) * (1.0 + depth * mi * mi)
+        h_in = 0.5 * (1.0 - mi * mi) * (1.0 + 4.5 * mi / A) - mi * mi * (1.0 + 1.5 * mi / A)
+        return h_in / p_in
+
+    grid = np.linspace(0.0, 1.0, N_TABLE)
+    p_grid = diffuse_radiance(grid, n, depth)  # the flux each part carries, by the tables' own rule
+    share = _moment(p_grid * ratio(grid)) / _moment(p_grid)
+    return (ratio(mu) - share) / transport_per_mm**2
+
+
 def diffuse(refractive_index: float = 1.40, *, tangential: bool = False, depth: bool = False,
-            reduced_scattering_per_mm: float = DEFAULT_REDUCED_SCATTERING_PER_MM,
+            curvature: bool = False, reduced_scattering_per_mm: float = DEFAULT_REDUCED_SCATTERING_PER_MM,
             absorption_per_mm: float = DEFAULT_ABSORPTION_PER_MM) -> Profile:
     """The diffusion-theory profile (P1 with a Fresnel boundary); with ``depth`` the depth term
     of a medium with these coefficients (:func:`depth_term`), with ``tangential`` its
-    tangential-flux term (:func:`tangent_length`).  Neither: the coefficients are not used."""
+    tangential-flux term (:func:`tangent_length`), with ``curvature`` its curvature term
+    (:func:`curvature_ratio`).  None: the coefficients are not used."""
     n = float(refractive_index)
     if not (np.isfinite(n) and n >= 1.0):
         raise ValueError(f"refractive index must be a number >= 1, got {refractive_index}")
     mus, mua = float(reduced_scattering_per_mm), float(absorption_per_mm)
-    if tangential or depth:
+    if tangential or depth or curvature:
         if not (np.isfinite(mus) and mus > 0):
             raise ValueError(f"reduced_scattering_per_mm must be a number > 0, got {reduced_scattering_per_mm}")
         if not (np.isfinite(mua) and mua >= 0):
@@ -309,11 +370,12 @@ def diffuse(refractive_index: float = 1.40, *, tangential: bool = False, depth: 
     c = depth_term(mus, mua) if depth else 0.0
     mu = np.linspace(0.0, 1.0, N_TABLE)
     table = _normalised(diffuse_radiance(mu, n, c))
-    if not (tangential or depth):
+    if not (tangential or depth or curvature):
         return Profile("diffuse", table, refractive_index=n)
     tangent = np.ascontiguousarray(table * tangent_length(mu, n, mus + mua)) if tangential else np.zeros(0)
+    curv = np.ascontiguousarray(curvature_ratio(mu, n, c, mus + mua)) if curvature else np.zeros(0)
     return Profile("diffuse", table, refractive_index=n, tangent=tangent, reduced_scattering_per_mm=mus,
-                   absorption_per_mm=mua, depth_term=c)
+                   absorption_per_mm=mua, depth_term=c, curvature=curv)
 
 
 def table(x, radiance, *, unit: str = "deg", source: str | None = None) -> Profile:
@@ -438,7 +500,7 @@ def profile(model) -> Profile:
         return lambertian()
     if kind == "diffuse":
         return diffuse(get("refractive_index", 1.40), tangential=bool(get("tangential_flux", True)),
-                       depth=bool(get("depth_term", True)),
+                       depth=bool(get("depth_term", True)), curvature=bool(get("curvature_term", False)),
                        reduced_scattering_per_mm=get("reduced_scattering_per_mm", DEFAULT_REDUCED_SCATTERING_PER_MM),
                        absorption_per_mm=get("absorption_per_mm", DEFAULT_ABSORPTION_PER_MM))
     if kind == "table":
@@ -557,3 +619,82 @@ def tangent_light(surface, power_per_element: np.ndarray, same_plane_cos: float 
     out = np.zeros((surface.n_elements, 2))
     out[el] = -S[:, None] * np.stack([g1, g2], axis=1)
     return out.ravel()
+
+
+def curvature_operator(surface, same_plane_cos: float = 0.8, radius_mm: float | None = None):
+    """The curvature term's map from power per element to ``S_e lap_t M|_e`` per element:
+    sparse (E, E), so that the light the term sends to pixel i is ``sum_e T[i, e] r_e (K @
+    power)_e`` with ``r_e`` the profile's :meth:`Profile.curvature_ratio` at the element's emission
+    angle (:func:`fluxcli.transfer_cache.curvature_ratios`).
+
+    lap_t M at element e is the trace of the Hessian of the least-squares quadratic through the
+    exitances (power / area) of e and of the elements around it that face nearly the same way
+    (normals within ~37 deg, as :func:`tangent_light`: a box's other faces do not count, a
+    faceted cylinder's neighbours do), at their centroids in e's tangent plane: exact for an
+    exitance quadratic on a plane, and for a linear function on a sphere (its planar Hessian
+    in the tangent plane is the Laplace-Beltrami operator's value there).  "Around": sharing a
+    vertex, or with ``radius_mm`` every element whose centroid lies within it (a wider fit, for
+    exitances known only as a value per element, whose steps a fit over its next neighbours
+    would read as curvature).  An element whose neighbourhood cannot hold a quadratic (fewer than
+    six elements in its plane around it, or all on a line) gets no term."""
+    import scipy.sparse as sp
+
+    ok = surface.element_of_face >= 0
+    faces, fe = surface.faces[ok], surface.element_of_face[ok]
+    E_n = surface.n_elements
+    fa = surface.face_areas_mm2[ok]
+    S = np.bincount(fe, fa, E_n)
+    tri = surface.vertices_mm[faces]
+    cen = np.stack([np.bincount(fe, fa * tri[:, :, k].mean(axis=1), E_n) for k in range(3)], axis=1)
+    cen = np.divide(cen, S[:, None], out=np.zeros_like(cen), where=S[:, None] > 0)
+    nrm = np.stack([np.bincount(fe, fa * surface.face_normals[ok][:, k], E_n) for k in range(3)], axis=1)
+    nrm = np.divide(nrm, np.linalg.norm(nrm, axis=1)[:, None], out=np.zeros_like(nrm),
+                    where=np.linalg.norm(nrm, axis=1)[:, None] > 0)
+    # an in-plane frame per element (any: the Laplacian does not depend on it)
+    helper = np.where(np.abs(nrm[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+    e1 = np.cross(nrm, helper)
+    e1 /= np.maximum(np.linalg.norm(e1, axis=1), 1e-300)[:, None]
+    e2 = np.cross(nrm, e1)
+    if radius_mm is not None:
+        from scipy.spatial import cKDTree
+
+        pp = cKDTree(cen).query_pairs(float(radius_mm), output_type="ndarray")
+        pf, pg = np.concatenate([pp[:, 0], pp[:, 1]]), np.concatenate([pp[:, 1], pp[:, 0]])
+    else:  # elements sharing a vertex, through the faces around each vertex
+        corner_v, corner_e = faces.ravel(), np.repeat(fe, 3)
+        order = np.argsort(corner_v, kind="stable")
+        sv, se = corner_v[order], corner_e[order]
+        start = np.searchsorted(sv, corner_v, side="left")
+        count = np.searchsorted(sv, corner_v, side="right") - start
+        pf = np.repeat(corner_e, count)
+        pg = se[np.repeat(start, count) + (np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count))]
+    keep = (pf != pg) & (np.einsum("ij,ij->i", nrm[pf], nrm[pg]) >= same_plane_cos)
+    pairs = np.unique(np.stack([pf[keep], pg[keep]], axis=1), axis=0)
+    pf = np.concatenate([np.arange(E_n), pairs[:, 0]])
+    pg = np.concatenate([np.arange(E_n), pairs[:, 1]])
+    h = np.sqrt(np.maximum(S, 1e-300))  # each element's own scale: the fit is made in units of it
+    delta = cen[pg] - cen[pf]
+    d = np.stack([np.einsum("ij,ij->i", e1[pf], delta), np.einsum("ij,ij->i", e2[pf], delta)], axis=1) / h[pf, None]
+    phi = np.stack([np.ones(len(pf)), d[:, 0], d[:, 1], d[:, 0] ** 2 / 2, d[:, 0] * d[:, 1], d[:, 1] ** 2 / 2], axis=1)
+    outer = (phi[:, :, None] * phi[:, None, :]).reshape(len(pf), 36)
+    N = np.stack([np.bincount(pf, outer[:, k], E_n) for k in range(36)], axis=1).reshape(E_n, 6, 6)
+    ev = np.linalg.eigvalsh(N)
+    good = (np.bincount(pf, minlength=E_n) >= 6) & (ev[:, 0] > 1e-6 * np.maximum(ev[:, -1], 1e-300))
+    u = np.zeros((E_n, 6))
+    rhs = np.broadcast_to(np.array([0, 0, 0, 1.0, 0, 1.0]), (int(good.sum()), 6))[..., None]
+    u[good] = np.linalg.solve(N[good], rhs)[..., 0]
+    w = np.einsum("ij,ij->i", u[pf], phi) / S[pf]  # lap_t M|_e = sum_g w_eg M_g (1/mm^2); N symmetric
+    vals = S[pf] * w / np.where(S[pg] > 0, S[pg], np.inf)  # K @ power, with M_g = power_g / S_g
+    return sp.csr_array(sp.coo_array((vals, (pf, pg)), shape=(E_n, E_n)).tocsr())
+
+
+def curvature_power(surface, power_per_face: np.ndarray, profile: Profile,
+                    radius_mm: float | None = None) -> np.ndarray:
+    """``S_e lap_t M|_e`` per element of a truth given as power per element (simulate: the faces
+    of its refined surface, one per element), with ``kappa = lap_t M / M`` clipped to
+    ``|kappa| l^2 <= KAPPA_L2_MAX`` (the term is first order in it), so that ``load_T_curvature(...) @ this`` is the light the profile's
+    curvature term sends to each pixel (:func:`curvature_operator`, :func:`curvature_ratio`)."""
+    p = np.maximum(np.asarray(power_per_face, float), 0.0)
+    kappa = np.divide(curvature_operator(surface, radius_mm=radius_mm) @ p, p, out=np.zeros_like(p), where=p > 0)
+    transport = profile.reduced_scattering_per_mm + profile.absorption_per_mm
+    return np.clip(kappa, -KAPPA_L2_MAX * transport**2, KAPPA_L2_MAX * transport**2) * p

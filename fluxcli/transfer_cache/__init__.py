@@ -12,11 +12,12 @@ The files themselves (T entries, the index) are :mod:`fluxcli.artefacts.transfer
 from .build import CHECKPOINT_RAYS, SAMPLE_BYTES, PartialFiles, build_and_store, summarise, transfer_bytes
 from .cluster import build_on_cluster, check_shared
 from .service import (EMISSION_NOTICE, SEEN_FRACTION, WEAK_VIEW_FRACTION, PoseT, TransferPlan, TransferSource, announce,
-                      check_collection, emission_notice, ensure, key_parts, place, pose_T, with_columns)
+                      check_collection, curvature_ratios, emission_notice, ensure, key_parts, place,
+                      pose_entry, pose_T, with_columns)
 
 __all__ = [
     "CHECKPOINT_RAYS", "EMISSION_NOTICE", "SAMPLE_BYTES", "SEEN_FRACTION", "WEAK_VIEW_FRACTION", "PartialFiles",
     "PoseT", "TransferPlan", "TransferSource", "announce", "build_and_store", "build_on_cluster", "check_collection",
-    "check_shared", "emission_notice", "ensure", "key_parts", "place", "pose_T", "summarise", "transfer_bytes",
-    "with_columns",
+    "check_shared", "curvature_ratios", "emission_notice", "ensure", "key_parts", "place", "pose_entry", "pose_T",
+    "summarise", "transfer_bytes", "with_columns",
 ]

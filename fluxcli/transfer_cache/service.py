@@ -250,17 +250,41 @@ def ensure(plan: TransferPlan, ctx, label: str = "building T") -> dict[str, dict
 
 
 
+def pose_entry(scene: PlacedScene, views: list[View], transfer: Transfer, cache_dir: Path) -> Path:
+    """Where the T cache keeps (or will keep) the T of one placed scene."""
+    return AT.entry_path(cache_dir, A.cache_key(key_parts(scene, views, transfer)))
+
+
 def pose_T(scene: PlacedScene, views: list[View], transfer: Transfer, cache_dir: Path, config_sha256: str,
            provenance: A.Provenance, tangent: bool = False):
     """T (CSR) of one placed scene (a pose that need not be in ``subject.poses``: the simulated
     rig renders at the stage's physical height), from the T cache or built and cached; with
     ``tangent`` also its tangential-flux matrix (None without one): (T, T_tangent)."""
-    path = AT.entry_path(cache_dir, A.cache_key(key_parts(scene, views, transfer)))
+    path = pose_entry(scene, views, transfer, cache_dir)
     if not path.is_file():
         build_and_store(scene, views, transfer, path, config_sha256, provenance)
     if tangent:
         return AT.load_T(path), AT.load_T_tangent(path)
     return AT.load_T(path)
+
+
+def curvature_ratios(surface, views: list[View], emission: Profile) -> list[np.ndarray]:
+    """Per view, per column of ``surface`` (one face per element, placed) the emission profile's
+    curvature ratio (:meth:`Profile.curvature_ratio`, mm^2) at the face's emission angle towards
+    the view's lens centre (a mirror view's virtual one: the ray leaving the real surface runs
+    towards it).  Across the aperture the angle moves by its half-width seen from the subject
+    (1.5 deg at 317 mm for a 17-mm aperture); the chief ray stands for it."""
+    ok = surface.element_of_face >= 0
+    cen = surface.vertices_mm[surface.faces[ok]].mean(axis=1)
+    nrm = surface.face_normals[ok]
+    out = []
+    for v in views:
+        d = np.asarray(v.camera.center_mm, float) - cen
+        cos = np.einsum("ij,ij->i", nrm, d) / np.linalg.norm(d, axis=1)
+        r = np.zeros(surface.n_elements)
+        r[surface.element_of_face[ok]] = emission.curvature_ratio(cos)
+        out.append(r)
+    return out
 
 
 def check_collection(todo, results: dict, view_names: list[str], ctx) -> None:
