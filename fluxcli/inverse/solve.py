@@ -89,9 +89,9 @@ def solve_poses(gm, inp, m, noise, stray, todo, shape, joint_too: bool, rois, sc
     P = len(todo)
     per_pose = []
     for k in range(P):
-        def solve_pose():
-            res, keep = run_method(gm.Ts[k], inp.images[k], inp.valid[k], m, noise, gm.adjacency,
-                                   gm.parts(k), gm.n_elements, gm.areas)
+        def solve_pose(T=None):  # T: pose k's T bent by the curvature term (None: gm's)
+            res, keep = run_method(gm.Ts[k] if T is None else T, inp.images[k], inp.valid[k], m, noise,
+                                   gm.adjacency, gm.parts(k), gm.n_elements, gm.areas)
             fitted = np.full(nx * ny, np.nan)
             fitted[keep] = res.fitted
             return res, fitted.reshape(ny, nx)
@@ -103,6 +103,8 @@ def solve_poses(gm, inp, m, noise, stray, todo, shape, joint_too: bool, rois, sc
         if valid_k is not valid_before:  # solved again without them; the joint solve leaves them out too
             inp.valid[k] = valid_k
             res, fitted = solve_pose()
+        if gm.curvature is not None:  # the emission's curvature term: solved again, bent by this solution
+            res, fitted = solve_pose(gm.curvature.T(k, res.power))
         res = scaled(replace(res, warnings=tuple(w for w in (stray[k], spiked) if w) + tuple(res.warnings)), scale)
         if rois:
             rois.measure(str(k + 1), todo[k][1].pose.height_mm, todo[k][1].pose.rotation_deg, res)
@@ -112,6 +114,10 @@ def solve_poses(gm, inp, m, noise, stray, todo, shape, joint_too: bool, rois, sc
         Tj = sp.vstack(gm.Ts).tocsr()
         joint, _ = run_method(Tj, inp.images, inp.valid, m, noise, gm.adjacency, gm.parts(),
                               gm.n_elements, gm.areas)
+        if gm.curvature is not None:
+            Tj = sp.vstack([gm.curvature.T(k, joint.power) for k in range(P)]).tocsr()
+            joint, _ = run_method(Tj, inp.images, inp.valid, m, noise, gm.adjacency, gm.parts(),
+                                  gm.n_elements, gm.areas)
         joint = scaled(joint, scale)
         if rois:
             rois.measure("joint", None, None, joint)

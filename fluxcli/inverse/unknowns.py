@@ -28,6 +28,7 @@ class Grid:
     paths: list | None = None  # per pose, the T cache file Ts[k] was read from (vertices: the fine T)
     vmap: "VertexMap | None" = None  # vertices: how the fine T gives T per vertex and per element
     maps: list | None = None  # vertices: per pose the ElementMap (parent is then None)
+    curvature: object = None  # the emission's curvature term: inverse.curvature.CurvaturePass (None: off)
 
     def parts(self, k: int | None = None):
         """What run_method takes as ``parent`` for pose k (None: all poses jointly)."""

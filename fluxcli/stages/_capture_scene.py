@@ -119,6 +119,15 @@ class SimulatedScene:
                 from ..optics.emission import tangent_light
 
                 image = np.maximum(image + T_tangent @ tangent_light(self.placer.surface.refined(refine)[0], rate), 0.0)
+            if refine > 0 and scene.emission is not None and scene.emission.has_curvature:  # and its curvature term
+                from ..artefacts.transfer import load_T_curvature
+                from ..optics.emission import curvature_power
+                from ..transfer_cache import curvature_ratios, pose_entry
+
+                Tc = load_T_curvature(pose_entry(scene, p.views, p.forward_transfer, p.cache_dir),
+                                      curvature_ratios(scene.surface, p.views, scene.emission))
+                image = np.maximum(image + Tc @ curvature_power(self.placer.surface.refined(refine)[0], rate,
+                                                                scene.emission), 0.0)
             self._images[key] = image.reshape(ny, nx)
         return self._images[key]
 

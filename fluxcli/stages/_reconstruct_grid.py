@@ -16,12 +16,14 @@ import scipy.sparse as sp
 
 from .. import artefacts as A
 from ..artefacts.reconstruction import SweepRecord
-from ..artefacts.transfer import load_T, load_T_tangent, load_view
+from ..artefacts.transfer import load_T, load_T_curvature, load_T_tangent, load_view
+from ..inverse.curvature import curvature_pass
 from ..inverse.matfree import DENSE_MAX_UNKNOWNS, stage_bytes as matfree_bytes
 from ..inverse.solve import DENSE, describe
 from ..inverse.sweep import sweep_cell
 from ..inverse.unknowns import Grid, VertexMap, n_vertices, resolve_unknowns
 from ..resources import check_memory
+from ..transfer_cache import curvature_ratios
 from ..workers import pool_for
 from ._reconstruct_inputs import photon_noise, simulation_path
 from .context import RunContext
@@ -33,10 +35,25 @@ def direct_roi(T_path, image: np.ndarray) -> float:
     return float(np.nansum(image.ravel()[rows]))
 
 
-def make_grid(build_T, ctx: RunContext, surface, unknowns: str, system=None) -> Grid:
-    """T per pose on ``unknowns`` (``build_T``: the plan's; ``system``: another rig, for the error budget)."""
+def _curvature(ctx, todo, views, surface, T_columns, to_unknowns, columns: str):
+    """The emission's curvature term's second pass (:mod:`fluxcli.inverse.curvature`), or None."""
+    emission = todo[0][0].emission if todo else None
+    if emission is None or not emission.has_curvature:
+        return None
+    T_curv = [load_T_curvature(pt.path, curvature_ratios(scene.surface, views, emission)) for scene, pt in todo]
+    cp = curvature_pass(emission, surface, T_columns, T_curv, to_unknowns, columns)
+    ctx.say(f"reconstruct: the emission's curvature term: each solve is made again with the profile bent by the "
+            f"curvature of its own exitance (fitted over {cp.radius_mm:.3g} mm, |lap_t M / M| <= "
+            f"{cp.kappa_max:.3g} /mm^2)")
+    return cp
+
+
+def make_grid(build_T, ctx: RunContext, surface, unknowns: str, system=None, curvature: bool = False) -> Grid:
+    """T per pose on ``unknowns`` (``build_T``: the plan's; ``system``: another rig, for the error budget);
+    with ``curvature`` also the emission's curvature pass, when its profile has the term (not on
+    sub-elements)."""
     if unknowns in ("vertices", "linear_elements"):  # T per face of the once-refined surface, per hat function
-        _, _, todo, _ = build_T(ctx, f"building T ({unknowns.replace('_', ' ')})", "refined:1", system)
+        views, _, todo, _ = build_T(ctx, f"building T ({unknowns.replace('_', ' ')})", "refined:1", system)
         vb = surface.vertex_basis()
         _, fine_parent = surface.refined(1)
         fine_to_el = sp.csr_array((np.ones(fine_parent.size), (np.arange(fine_parent.size), fine_parent)),
@@ -53,13 +70,23 @@ def make_grid(build_T, ctx: RunContext, surface, unknowns: str, system=None) -> 
             from ..optics.emission import tangent_operator
 
             vmap = replace(vmap, tangent=tangent_operator(surface, 1))
+        cp = None
+        if curvature:
+            cp = _curvature(ctx, todo, views, surface, Tf, lambda k, T: vmap.unknowns_T(T, Tt[k]), "refined:1")
         return Grid([vmap.unknowns_T(T, t) for T, t in zip(Tf, Tt)], stiffness, None, surface.n_elements, areas, surface,
-                    [str(pt.path) for _, pt in todo], vmap, [vmap.element_map(T) for T in Tf])
+                    [str(pt.path) for _, pt in todo], vmap, [vmap.element_map(T) for T in Tf], cp)
     label = "building T" if unknowns == "elements" else "building T (sub-elements)"
-    _, _, todo, _ = build_T(ctx, label, unknowns, system)
+    views, _, todo, _ = build_T(ctx, label, unknowns, system)
     grid_surface, parent = surface.unknowns() if unknowns == "sub_elements" else (surface, None)
-    return Grid([load_T(pt.path) for _, pt in todo], grid_surface.element_adjacency(), parent, surface.n_elements,
-                grid_surface.element_areas_mm2, surface, [str(pt.path) for _, pt in todo])
+    Ts = [load_T(pt.path) for _, pt in todo]
+    cp = None
+    if curvature and unknowns == "elements":
+        cp = _curvature(ctx, todo, views, surface, Ts, lambda k, T: T, "elements")
+    elif curvature and todo and todo[0][0].emission is not None and todo[0][0].emission.has_curvature:
+        ctx.say("reconstruct: subject.emission.curvature_term acts on reconstruct.unknowns vertices, linear_elements "
+                "and elements; on sub_elements it is not applied")
+    return Grid(Ts, grid_surface.element_adjacency(), parent, surface.n_elements,
+                grid_surface.element_areas_mm2, surface, [str(pt.path) for _, pt in todo], curvature=cp)
 
 
 def check_solver_size(settings, sweep, pixels, ctx: RunContext, surface, n_poses: int) -> None:

@@ -75,7 +75,7 @@ def reconstruct(plan: ReconstructPlan, ctx: RunContext) -> Path:
     P = len(todo)
     nx, ny = plan.images.pixels
     m = resolve_unknowns(plan.settings, surface)
-    grids = {u: make_grid(plan.build_T, ctx, surface, u)
+    grids = {u: make_grid(plan.build_T, ctx, surface, u, curvature=u == m.unknowns)
              for u in {"elements", m.unknowns,
                        *[resolve_unknowns(s, surface).unknowns for s in (plan.sweep.methods if plan.sweep else ())]}}
     Ts = grids["elements"].Ts

@@ -22,7 +22,7 @@ from .. import artefacts as A
 from .. import config as C
 from ..artefacts import simulation as AS
 from ..artefacts.provenance import without_emission
-from ..artefacts.transfer import load_T, load_T_tangent
+from ..artefacts.transfer import load_T, load_T_curvature, load_T_tangent
 from ..errors import UserError
 from ..imaging import noise as N
 from ..imaging.imagefiles import write_image
@@ -150,6 +150,7 @@ def _simulate(sp: SimulatePlan, ctx: RunContext) -> Path:
     noisy = np.zeros((L, R, P, ny, nx), np.float32)
     counts = np.zeros((L, R, P, ny, nx), np.uint16) if sim.noise.model == "emccd" else None
     tangent = None  # the emission's tangential flux (diffuse): the truth's gradient, once
+    curvature = None  # the emission's curvature term: the truth's Laplacian, once
     for k, (scene, pt) in enumerate(todo):
         a1 = load_T(pt.path) @ fine_power  # the truth varies within the elements
         T_tangent = load_T_tangent(pt.path) if sp.truth.refinement > 0 else None  # one face per column
@@ -159,6 +160,14 @@ def _simulate(sp: SimulatePlan, ctx: RunContext) -> Path:
             if tangent is None:
                 tangent = tangent_light(surface.refined(sp.truth.refinement)[0], fine_power)
             a1 = np.maximum(a1 + T_tangent @ tangent, 0.0)
+        if sp.truth.refinement > 0 and scene.emission is not None and scene.emission.has_curvature:
+            from ..optics.emission import curvature_power
+            from ..transfer_cache import curvature_ratios
+
+            if curvature is None:
+                curvature = curvature_power(surface.refined(sp.truth.refinement)[0], fine_power, scene.emission)
+            a1 = np.maximum(a1 + load_T_curvature(pt.path, curvature_ratios(scene.surface, fwd.views, scene.emission))
+                            @ curvature, 0.0)
         for li in range(L):
             a = a1 * scale[li]
             clean[li, k] = a.reshape(ny, nx)
