@@ -103,7 +103,7 @@ def configs(name: str) -> dict:
     folder = OUT / "configs"
     folder.mkdir(parents=True, exist_ok=True)
     paths = {}
-    for model in AM.MODELS:
+    for model in AM.models_of(name):
         cfg = AM.config(name, model, 10_000, 0)  # the photons come from the bank, not from this
         cfg["system"]["camera"] = copy.deepcopy(camera)
         cfg["subject"]["surface"]["element_mm"] = element_mm
@@ -272,7 +272,7 @@ def simulation_frame(name: str, paths: dict) -> Path:
 def reconstruct_models(name: str, paths: dict, sim: Path, imaged, header: str, t0: float) -> bool:
     """Reconstruct the simulation with each emission model and print the issue's table."""
     results = {}
-    for model in AM.MODELS:
+    for model in AM.models_of(name):
         text = AM.fluxmap("reconstruct", paths[model], "--force")
         kept = OUT / name / f"reconstruction-{model}.h5"
         (OUT / name / "reconstruction.h5").replace(kept)
