@@ -578,6 +578,20 @@ def tangent_operator(surface, levels: int = 1):
     return sp.csr_array(G.tocsr())
 
 
+def vertex_sharing_pairs(faces: np.ndarray, owner: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(a, b) pairs of owners (``owner[f]`` for each face: the face itself, or its element) whose
+    faces share a vertex, through the faces around each vertex: every ordered pair, repeats and
+    an owner with itself included."""
+    corner_v, corner_o = faces.ravel(), np.repeat(owner, 3)
+    order = np.argsort(corner_v, kind="stable")
+    sv, so = corner_v[order], corner_o[order]
+    start = np.searchsorted(sv, corner_v, side="left")
+    count = np.searchsorted(sv, corner_v, side="right") - start
+    pa = np.repeat(corner_o, count)
+    pb = so[np.repeat(start, count) + (np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count))]
+    return pa, pb
+
+
 def tangent_light(surface, power_per_element: np.ndarray, same_plane_cos: float = 0.8) -> np.ndarray:
     """What a forward image adds for the tangential flux of a truth given as power per face
     (``surface`` one face per element, as ``Surface.refined``): ``-S_f grad_t M|_f`` in each
@@ -595,14 +609,7 @@ def tangent_light(surface, power_per_element: np.ndarray, same_plane_cos: float 
     frames = face_frames(surface.vertices_mm[faces])
     M = np.divide(np.asarray(power_per_element, float)[el], S, out=np.zeros(len(S)), where=S > 0)
     F = len(faces)
-    # (face, face sharing one of its vertices) pairs, through the faces around each vertex
-    corner_v, corner_f = faces.ravel(), np.repeat(np.arange(F), 3)
-    order = np.argsort(corner_v, kind="stable")
-    sv, sf = corner_v[order], corner_f[order]
-    start = np.searchsorted(sv, corner_v, side="left")
-    count = np.searchsorted(sv, corner_v, side="right") - start
-    pf = np.repeat(corner_f, count)
-    pg = sf[np.repeat(start, count) + (np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count))]
+    pf, pg = vertex_sharing_pairs(faces, np.arange(F))
     keep = (pf != pg) & (np.einsum("ij,ij->i", nrm[pf], nrm[pg]) >= same_plane_cos)
     pf, pg = pf[keep], pg[keep]
     d = np.einsum("iaj,ij->ia", frames[pf], cen[pg] - cen[pf])  # in f's frame
@@ -660,14 +667,8 @@ def curvature_operator(surface, same_plane_cos: float = 0.8, radius_mm: float | 
 
         pp = cKDTree(cen).query_pairs(float(radius_mm), output_type="ndarray")
         pf, pg = np.concatenate([pp[:, 0], pp[:, 1]]), np.concatenate([pp[:, 1], pp[:, 0]])
-    else:  # elements sharing a vertex, through the faces around each vertex
-        corner_v, corner_e = faces.ravel(), np.repeat(fe, 3)
-        order = np.argsort(corner_v, kind="stable")
-        sv, se = corner_v[order], corner_e[order]
-        start = np.searchsorted(sv, corner_v, side="left")
-        count = np.searchsorted(sv, corner_v, side="right") - start
-        pf = np.repeat(corner_e, count)
-        pg = se[np.repeat(start, count) + (np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count))]
+    else:
+        pf, pg = vertex_sharing_pairs(faces, fe)
     keep = (pf != pg) & (np.einsum("ij,ij->i", nrm[pf], nrm[pg]) >= same_plane_cos)
     pairs = np.unique(np.stack([pf[keep], pg[keep]], axis=1), axis=0)
     pf = np.concatenate([np.arange(E_n), pairs[:, 0]])
