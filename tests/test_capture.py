@@ -255,7 +255,7 @@ def test_counts_to_photons_subtracts_the_dark_level_without_bias():
     whatever the bias, dark current and CIC (they are in the dark frames too)."""
     from fluxcli.acquisition import CaptureImages
     from fluxcli.hardware.camera import SimulatedEmccd
-    from fluxcli.imaging.noise import EMCCDModel
+    from fluxcli.imaging.noise import EMCCDModel, capture_photons
 
     sensor = EMCCDModel(quantum_efficiency=0.7, em_gain=50.0, read_noise_e=30.0, bias_counts=321.0,
                         electrons_per_count=8.0, dark_current_e_per_s=2.0, cic_e_per_pixel=0.1, exposure_s=0.5)
@@ -269,7 +269,7 @@ def test_counts_to_photons_subtracts_the_dark_level_without_bias():
                            light.max(axis=0)[None], float(darks.astype(float).mean()), 6, 4, 0.5, 50.0, "open", None)
     # the sensor's bias/dark/CIC are deliberately wrong here: the dark frames must carry them
     wrong = EMCCDModel(quantum_efficiency=0.7, electrons_per_count=8.0, bias_counts=0.0, dark_current_e_per_s=99.0)
-    photons, valid = images.photons(wrong)
+    photons, valid = capture_photons(images, wrong)
     assert valid.all()
     var_one = (2 - 1 / 50) * (0.7 * N + 1.1) / 0.7**2 / 4  # F^2 = 2 - 1/G, averaged over 4 repeats (read noise negligible at G=50)
     assert abs(photons.mean() - N.mean()) < 5 * np.sqrt(var_one.sum()) / N.size + 0.05

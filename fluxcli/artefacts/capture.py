@@ -51,7 +51,6 @@ import h5py
 import numpy as np
 
 from ..errors import UserError
-from ..imaging import noise as N
 from .store import Provenance, open_artefact, put, write_artefact
 
 
@@ -393,20 +392,6 @@ class CaptureImages:
                             "mm; they must match one to one (one pose per captured height, no rotations).")
         return order
 
-    def photons(self, sensor: "N.EMCCDModel") -> tuple[np.ndarray, np.ndarray]:
-        """Photons per pixel per exposure ``(P, ny, nx)`` and the mask of usable pixels.
-
-        The mean dark frame (bias + dark current + clock-induced charge, taken at the same
-        exposure and gain) is subtracted, then electrons = counts x electrons_per_count /
-        EM gain and photons = electrons / QE: ``N = (C - D) g / (G QE)``, unbiased since
-        E[C] - E[D] = G QE N / g.  ``sensor`` gives QE, electrons per count and bit depth;
-        the gain is the one read back from the camera.  Pixels that saturated in any
-        repeat are masked."""
-        model = replace(sensor, em_gain=self.em_gain, exposure_s=self.exposure_s, bias_counts=self.dark_mean_counts,
-                        dark_current_e_per_s=0.0, cic_e_per_pixel=0.0)
-        valid = ~N.saturated(self.counts_max, model)
-        return N.counts_to_photons(self.counts_mean, model), valid
-
 
 def read_capture(path: Path, filter: str | None = None, exposure_s: float | None = None) -> CaptureImages:
     """Read a complete capture: per planned height the mean of its light frames for ``filter``
@@ -476,12 +461,6 @@ class PatternCapture:
     n_gray: int
     n_steps: int
     path: Path | None = None
-
-    def photons(self, sensor: "N.EMCCDModel") -> dict[str, np.ndarray]:
-        """Photons per pixel per exposure of every frame (the sensor's bias, dark and CIC
-        removed at the gain and exposure read back; :func:`fluxcli.imaging.noise.counts_to_photons`)."""
-        model = replace(sensor, em_gain=self.em_gain, exposure_s=self.exposure_s)
-        return {p: N.counts_to_photons(c, model) for p, c in self.counts.items()}
 
 
 def _complete_group(f: h5py.File, path: Path, group: str, what: str, missing: str) -> h5py.Group:

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -547,3 +547,27 @@ class PhotonNoise:
         if self.kind == "emccd":
             return excess_noise_factor2(self.sensor.em_gain) / self.sensor.quantum_efficiency
         return 1.0
+
+
+def capture_photons(cap, sensor: EMCCDModel) -> tuple[np.ndarray, np.ndarray]:
+    """Photons per pixel per exposure ``(P, ny, nx)`` of a capture's mean light frames, and the
+    mask of usable pixels (``cap``: :class:`fluxcli.artefacts.capture.CaptureImages`).
+
+    The mean dark frame (bias + dark current + clock-induced charge, taken at the same
+    exposure and gain) is subtracted, then electrons = counts x electrons_per_count /
+    EM gain and photons = electrons / QE: ``N = (C - D) g / (G QE)``, unbiased since
+    E[C] - E[D] = G QE N / g.  ``sensor`` gives QE, electrons per count and bit depth;
+    the gain is the one read back from the camera.  Pixels that saturated in any
+    repeat are masked."""
+    model = replace(sensor, em_gain=cap.em_gain, exposure_s=cap.exposure_s, bias_counts=cap.dark_mean_counts,
+                    dark_current_e_per_s=0.0, cic_e_per_pixel=0.0)
+    valid = ~saturated(cap.counts_max, model)
+    return counts_to_photons(cap.counts_mean, model), valid
+
+
+def pattern_photons(pc, sensor: EMCCDModel) -> dict[str, np.ndarray]:
+    """Photons per pixel per exposure of every structured-light frame of a capture (``pc``:
+    :class:`fluxcli.artefacts.capture.PatternCapture`; the sensor's bias, dark and CIC removed
+    at the gain and exposure read back; :func:`counts_to_photons`)."""
+    model = replace(sensor, em_gain=pc.em_gain, exposure_s=pc.exposure_s)
+    return {p: counts_to_photons(c, model) for p, c in pc.counts.items()}

@@ -20,6 +20,7 @@ def make_surface(plan: CapturePlan, ctx: RunContext, scene, capture_path: Path) 
     """Decode the pattern frames of ``capture_path``, triangulate, mesh, write ``surface.h5``."""
     from ..artefacts.capture import read_patterns
     from ..hardware.projector import projector_model
+    from ..imaging.noise import pattern_photons
     from ..artefacts.surface import write_surface_artefact
     from ..structured.scan import decode_by_view
     from .plans import emccd_model
@@ -39,7 +40,7 @@ def make_surface(plan: CapturePlan, ctx: RunContext, scene, capture_path: Path) 
     camera = camera_at_binning(system.camera, (rig.camera or C.RigCamera()).binning // pc.binning)
     mirrors = plane_mirrors(system)
     views = ["direct"] + mirror_names(system)
-    photons = pc.photons(emccd_model(system.camera.sensor, pc.exposure_s))
+    photons = pattern_photons(pc, emccd_model(system.camera.sensor, pc.exposure_s))
     warning = assumed_qe_warning(system, "capture-surface", real_counts=scene is None)
     if warning:
         ctx.say(warning)

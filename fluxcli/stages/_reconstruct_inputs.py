@@ -54,7 +54,7 @@ def from_capture(im, n_elements: int, filter_name: str | None = None) -> Inputs:
         filter_name = src.filters[0] if src.filters else src.filter
     cap = read_capture(path, filter_name, src.exposures_s.get(filter_name, src.exposure_s) if filter_name else src.exposure_s)
     order = cap.pose_order(list(im.heights_mm))
-    photons, valid = cap.photons(emccd_model(im.sensor, cap.exposure_s))
+    photons, valid = N.capture_photons(cap, emccd_model(im.sensor, cap.exposure_s))
     nx, ny = im.pixels
     if photons.shape[1:] != (ny, nx):
         raise UserError(f"reconstruct.images.capture: {path} holds {photons.shape[2]} x {photons.shape[1]} pixel "
