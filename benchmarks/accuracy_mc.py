@@ -8,7 +8,8 @@ shot noise) and reconstructs them, each pose alone and all poses jointly, with
 ``subject.emission: diffuse`` (refractive index matching the phantom) AND ``lambertian``,
 from the same photons (five cases also ``diffuse-fine``: the same photons on faces split once (on the cylinder onto its round body),
 ``subject.refine_faces: 1``; and the absorbing box ``diffuse-p1``, without the depth term; every
-case ``diffuse-curv``, with the curvature term, ``subject.emission.curvature_term: true``).
+case ``diffuse-curv``, with the curvature term, ``subject.emission.curvature_term: true``, and
+``diffuse-fine-curv`` beside ``diffuse-fine``).
 Printed per case x model: the totals over observed elements against
 the truth over the same elements (per pose and joint), the spread of the per-pose totals,
 the error (paper Eq. 15) over observed elements, and the warnings. The issue's bars, for
@@ -86,13 +87,16 @@ EXTRA_MODELS = {"box-absorbing": ("diffuse-p1", "diffuse-fine"), "box-n1.56-shal
 
 
 def models_of(name: str) -> tuple:
+    extra = EXTRA_MODELS.get(name, ())
     curv = () if name.endswith("-control") else ("diffuse-curv",)  # the control's light follows the profile alone
-    return MODELS[:1] + EXTRA_MODELS.get(name, ()) + curv + MODELS[1:]
+    if "diffuse-fine" in extra:
+        curv += ("diffuse-fine-curv",)
+    return MODELS[:1] + extra + curv + MODELS[1:]
 
 
 def workdir_of(name: str, model: str) -> Path:
     """Where a case's model runs: its own folder, or beside it for models on another surface."""
-    return OUT / (f"{name}-fine" if model == "diffuse-fine" else name)
+    return OUT / (f"{name}-fine" if model.startswith("diffuse-fine") else name)
 
 
 def fluxmap(*args) -> str:
@@ -112,7 +116,7 @@ def config(name: str, model: str, n_photons: int, seed: int) -> dict:
                          "reduced_scattering_per_mm": medium["mus_per_mm"] * (1 - medium["g"])}
         if model == "diffuse-p1":
             emission["depth_term"] = False
-        if model == "diffuse-curv":
+        if model.endswith("-curv"):
             emission["curvature_term"] = True
     else:
         emission = {"model": "lambertian"}
@@ -122,7 +126,7 @@ def config(name: str, model: str, n_photons: int, seed: int) -> dict:
                    "stage": {"top_z_mm": STAGE_TOP_MM, "size_mm": [100, 34], "thickness_mm": 5}},
         "subject": {"surface": dict(surface), "poses": {"rotations_deg": list(rotations),
                                                         **({"heights_mm": HEIGHTS[name]} if name in HEIGHTS else {})},
-                    "emission": emission, **({"refine_faces": 1} if model == "diffuse-fine" else {})},
+                    "emission": emission, **({"refine_faces": 1} if model.startswith("diffuse-fine") else {})},
         "simulate": {"flux": {"kind": "montecarlo", **medium, "refractive_index": n, "position_mm": list(src),
                               "n_photons": int(n_photons), "seed": seed}},
         "reconstruct": {},
