@@ -10,7 +10,9 @@ kappa is a property of the unknown exitance, so it is taken from the data: each 
 once with the profile alone, kappa per element is estimated from that solution (the quadratic
 fit of :func:`fluxcli.optics.emission.curvature_operator` through the elements within
 :data:`RADIUS_ELEMENTS` element widths: a fit over next neighbours alone reads the solution's
-element-to-element noise as curvature), clipped to the first-order theory's range
+element-to-element noise as curvature), its power-weighted mean over each region that faces one
+way taken out (a face's light, all positions together, follows the profile), clipped to the
+first-order theory's range
 (:data:`fluxcli.optics.emission.KAPPA_L2_MAX`), and the solve is made again with each column of
 T scaled by ``1 + r(theta_view) kappa`` per view.  The Laplacian is not put into the unknowns' T
 itself: tried, the hats' own Laplacians let the inversion fit noise with angle-dependent light
@@ -26,7 +28,7 @@ from typing import Callable
 import numpy as np
 import scipy.sparse as sp
 
-from ..optics.emission import KAPPA_L2_MAX, curvature_operator
+from ..optics.emission import KAPPA_L2_MAX, curvature_kappa, curvature_operator, curvature_regions
 
 RADIUS_ELEMENTS = 2.0  # kappa fitted over faces within this many element widths (2-mm elements: 4 mm)
 
@@ -45,11 +47,16 @@ class CurvaturePass:
     kappa_max: float  # 1/mm^2
     radius_mm: float  # kappa fitted over faces within this distance
     used: dict = field(default_factory=dict)  # pose -> the kappa (per column) its last second pass used
+    regions: np.ndarray | None = None  # per element, where kappa's power-weighted mean is 0 (default: K's own)
+
+    def __post_init__(self):
+        if self.regions is None:
+            self.regions = curvature_regions(self.K)
 
     def kappa(self, power_per_element: np.ndarray) -> np.ndarray:
-        """kappa (1/mm^2) per column from a solution's power per element (unobserved: 0)."""
-        p = np.maximum(np.nan_to_num(np.asarray(power_per_element, float), nan=0.0), 0.0)
-        k = np.clip(np.divide(self.K @ p, p, out=np.zeros_like(p), where=p > 0), -self.kappa_max, self.kappa_max)
+        """kappa (1/mm^2) per column from a solution's power per element (unobserved: 0), its
+        mean over each region taken out (:func:`fluxcli.optics.emission.curvature_kappa`)."""
+        k = curvature_kappa(self.K, power_per_element, self.regions, self.kappa_max)
         return k if self.element_of_column is None else k[self.element_of_column]
 
     def T(self, k: int, power_per_element: np.ndarray) -> sp.csr_array:
