@@ -15,6 +15,7 @@ the truth per element is the photons that left through it, and no emission model
     $ nice -n 5 .venv/bin/python benchmarks/issue21_box.py --run close-direct    # the battery's lens, -90..60
     $ .venv/bin/python benchmarks/issue21_box.py --bands     # the bank's exit angles against diffuse(1.40)
     $ .venv/bin/python benchmarks/issue21_box.py --faces runs/issue21/close-m90/reconstruction-diffuse.h5
+    $ .venv/bin/python benchmarks/issue21_box.py --rings runs/issue21/close-nine/reconstruction-diffuse.h5
 """
 
 from __future__ import annotations
@@ -351,22 +352,103 @@ def exit_bands() -> None:
     _, shape = _medium_shape()
     counts = np.zeros((6, len(EXIT_EDGES_DEG) - 1))
     top_by_distance = np.zeros((len(FOOT_BANDS_MM), len(EXIT_EDGES_DEG) - 1))
+    half, h = np.asarray(AM.BOX["size_mm"], float) / 2, 1.0
+    in_plane = [[i for i in range(3) if i != f // 2] for f in range(6)]
+    exitance = [np.zeros(tuple((2 * half[ax] / h).astype(int))) for ax in in_plane]
     for path in bank_files()[0]:
         with np.load(path) as z:
             pos, d = z["position_mm"].astype(np.float64), z["direction"].astype(np.float64)
         face, theta = exit_angles(pos, d, shape)
         counts += face_band_counts(pos, d, shape)
+        for f, ax in enumerate(in_plane):
+            q = pos[face == f][:, ax]
+            idx = [np.clip(((q[:, i] + half[ax[i]]) / h).astype(int), 0, exitance[f].shape[i] - 1) for i in range(2)]
+            np.add.at(exitance[f], tuple(idx), 1.0 / h**2)
         top = face == 4
         rho = np.hypot(pos[top, 0] - SOURCE_MM[0], pos[top, 1] - SOURCE_MM[1])
         for b, (lo, hi) in enumerate(FOOT_BANDS_MM):
             top_by_distance[b] += np.histogram(theta[top][(rho >= lo) & (rho < hi)], bins=EXIT_EDGES_DEG)[0]
     print_face_bands(counts)
+    print_border_flux(exitance, h)
     model = band_model(depth=True)
     print("\nthe top face (+z) by distance from the point above the source, over the default model:")
     for (lo, hi), c in zip(FOOT_BANDS_MM, top_by_distance):
         N = c.sum()
         print(f"{lo:>4g}-{hi:<3g} mm {int(N):>10d} photons: " + " ".join(
             f"{x / N / m:.3f}±{np.sqrt(x) / N / m:.3f}" for x, m in zip(c, model)))
+
+
+def border_flux_kappa(exitance: list[np.ndarray], h_mm: float) -> np.ndarray:
+    """Per face, kappa's power-weighted mean as the exitance's flux through the face's border,
+    ``oint dM/dn dl / int M dS`` (1/mm^2), from the exitance binned on an ``h_mm`` grid (one 2-D
+    array per face); dM/dn outward at the border, one-sided to second order.  What a planar
+    field's Laplacian integrates to over a face (docs/accuracy.md §1.4: the photons do not follow it)."""
+    out = []
+    for M in exitance:
+        def outward(a, b, c):  # a at the border, b and c one and two bins in
+            return (3 * a - 4 * b + c) / (2 * h_mm)
+        flux = h_mm * (outward(M[0], M[1], M[2]).sum() + outward(M[-1], M[-2], M[-3]).sum()
+                       + outward(M[:, 0], M[:, 1], M[:, 2]).sum() + outward(M[:, -1], M[:, -2], M[:, -3]).sum())
+        out.append(flux / (M.sum() * h_mm**2))
+    return np.array(out)
+
+
+def band_curvature_ratio(edges=EXIT_EDGES_DEG) -> np.ndarray:
+    """The curvature term's ratio r (mm^2) averaged over each band of exit angle with the default
+    profile's weight (:func:`fluxcli.optics.emission.curvature_ratio`, the phantom's medium)."""
+    from fluxcli.optics.emission import curvature_ratio, depth_term, diffuse
+    mus, mua = AM.TISSUE["mus_per_mm"] * (1 - AM.TISSUE["g"]), AM.TISSUE["mua_per_mm"]
+    mu = np.linspace(0.0, 1.0, 200_001)
+    w = diffuse(N_INDEX, depth=True, reduced_scattering_per_mm=mus, absorption_per_mm=mua).weight(mu) * mu
+    r = curvature_ratio(mu, N_INDEX, depth_term(mus, mua), mus + mua)
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        band = (mu <= np.cos(np.radians(lo))) & (mu >= np.cos(np.radians(hi)))
+        out.append(np.trapezoid(np.where(band, w * r, 0.0), mu) / np.trapezoid(np.where(band, w, 0.0), mu))
+    return np.array(out)
+
+
+def print_border_flux(exitance: list[np.ndarray], h_mm: float) -> None:
+    """Per face: kappa's mean from the border flux, and the bands the curvature term would then
+    give the face as a whole over the profile (normalised as the photons' are), to set beside
+    the photons' own bands above."""
+    kbar, r = border_flux_kappa(exitance, h_mm), band_curvature_ratio()
+    model = band_model(depth=True)
+    print(f"\nkappa's mean per face from the exitance's flux through its border ({h_mm:g}-mm bins), and the bands"
+          " the curvature term would give the face with it:")
+    for name, k in zip(FACE_NAMES, kbar):
+        pred = 1 + r * k
+        pred /= np.sum(pred * model) / model.sum()
+        print(f"{name} kappa {k:+.4f} /mm^2: " + " ".join(f"{x:.3f}" for x in pred))
+
+
+def rings_table(rec_path: Path) -> None:
+    """Per pose: the top face's elements by distance from the point above the source, each ring's
+    share of the pose's error (points of Eq. 15) and its estimate over its truth (observed
+    elements), then the other faces together (docs/accuracy.md §1.4, "Where the −75° error sits")."""
+    import h5py
+    with h5py.File(rec_path) as f:
+        truth, pp, obs = f["truth/power"][()], f["per_pose/power"][()], f["per_pose/observed"][()]
+        rots, v, fa, eof = (f[k][()] for k in ("per_pose/rotations_deg", "surface/vertices", "surface/faces",
+                                               "surface/element_of_face"))
+    n = len(truth)
+    cr = np.cross(v[fa[:, 1]] - v[fa[:, 0]], v[fa[:, 2]] - v[fa[:, 0]])
+    count = np.bincount(eof, minlength=n)[:, None]
+    cen = np.stack([np.bincount(eof, weights=v[fa].mean(axis=1)[:, i], minlength=n) for i in range(3)], 1) / count
+    nz = np.bincount(eof, weights=cr[:, 2] / np.linalg.norm(cr, axis=1), minlength=n) / count[:, 0]
+    top = nz > 0.9
+    rho = np.hypot(cen[:, 0] - SOURCE_MM[0], cen[:, 1] - SOURCE_MM[1])
+    rings = ((0, 2.1), (2.1, 4.5), (4.5, 8), (8, 14), (14, np.inf))
+    print("pose   error | " + " | ".join(f"top {lo:g}-{hi:g} mm" for lo, hi in rings) + " | other faces   (points, ratio)")
+    for k, rot in enumerate(rots):
+        o = obs[k]
+        err = np.abs(np.nan_to_num(pp[k]) - truth) * o
+        tot = truth[o].sum()
+        cells = []
+        for sel in [top & o & (rho >= lo) & (rho < hi) for lo, hi in rings] + [~top & o]:
+            cells.append(f"{100 * err[sel].sum() / tot:4.1f} {np.nansum(pp[k][sel]) / truth[sel].sum():.3f}"
+                         if truth[sel].sum() > 0 else "   -      ")
+        print(f"{rot:5g} {100 * err.sum() / tot:5.1f} % | " + " | ".join(cells))
 
 
 def faces_table(rec_path: Path) -> None:
@@ -413,12 +495,15 @@ def main(argv=None) -> int:
                     + " (NAME-control: the issue's control on the same exit points)")
     ap.add_argument("--bands", action="store_true", help="the bank's exit angles per face against diffuse(1.40)")
     ap.add_argument("--faces", default=None, help="a reconstruction.h5: the per-face table")
+    ap.add_argument("--rings", default=None, help="a reconstruction.h5: the top face's error ring by ring, per pose")
     ap.add_argument("--max-photons", type=float, default=None, help="use at most this many launched photons of the bank")
     a = ap.parse_args(argv)
     if a.bands:
         exit_bands()
     if a.faces:
         faces_table(Path(a.faces))
+    if a.rings:
+        rings_table(Path(a.rings))
     if a.import_sim:
         bank_from_simulation(Path(a.import_sim), f"s{a.seed}-imported")
     if a.transport:
