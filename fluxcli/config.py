@@ -1414,14 +1414,18 @@ def emission_profile(cfg: "LoadedConfig"):
     if isinstance(em, TableEmission):
         f = cfg.resolve(em.file)
         if not f.is_file():
-            what = "is a folder, not a CSV file" if f.is_dir() else "does not exist"
+            what = ("is a folder, not a CSV file" if f.is_dir() else "is not a regular file (a device or a pipe?)"
+                    if f.exists() else "does not exist")
             raise UserError(f"config {cfg.path}: 'subject.emission.file': {f} {what}.")
         try:
             raw = f.read_bytes()
-            try:
-                text = raw.decode("utf-8-sig")
-            except UnicodeDecodeError:  # a spreadsheet's ANSI code page ("angle (°)" in Windows-1252)
-                text = raw.decode("latin-1")
+            if raw[:2] in (b"\xff\xfe", b"\xfe\xff"):  # a spreadsheet's "Unicode text": UTF-16 with its BOM
+                text = raw.decode("utf-16")
+            else:
+                try:
+                    text = raw.decode("utf-8-sig")
+                except UnicodeDecodeError:  # a spreadsheet's ANSI code page ("angle (°)" in Windows-1252)
+                    text = raw.decode("latin-1")
             return E.table_from_csv(text, source=f.name)
         except (ValueError, OSError, UnicodeDecodeError) as e:
             raise UserError(f"config {cfg.path}: 'subject.emission.file': {f} {e}.") from None

@@ -192,6 +192,36 @@ def test_a_table_saved_in_a_windows_code_page_reads_through_the_config(tmp_path,
     assert np.allclose(got.table, E.table([0, 45, 75, 90], [1, 0.9, 0.6, 0.2]).table, rtol=1e-10, atol=0)
 
 
+@pytest.mark.parametrize("encoding", ["utf-16", "utf-16-be"])
+def test_a_table_saved_as_unicode_text_reads_through_the_config(tmp_path, minimal_config, encoding):
+    """A spreadsheet's "Unicode Text" export is UTF-16 behind a byte-order mark, tab-separated;
+    read as UTF-8 or Latin-1 its header is 'ÿþa\x00n\x00...' and names no angle."""
+    from fluxcli.config import emission_profile, load_config
+
+    text = "angle (°)\tradiance\r\n0\t1\r\n45\t0.9\r\n75\t0.6\r\n90\t0.2\r\n"
+    raw = text.encode(encoding)
+    (tmp_path / "p.txt").write_bytes(raw if raw[:2] in (b"\xff\xfe", b"\xfe\xff") else b"\xfe\xff" + raw)
+    cfg = copy.deepcopy(minimal_config)
+    cfg["subject"]["emission"] = {"model": "table", "file": "p.txt"}
+    cfg["subject"]["surface"] = {"phantom": "sphere", "radius_mm": 5, "n_latitude": 4, "n_longitude": 6}
+    (tmp_path / "c.yaml").write_text(yaml.safe_dump(cfg))
+    got = emission_profile(load_config(tmp_path / "c.yaml"))
+    assert np.allclose(got.table, E.table([0, 45, 75, 90], [1, 0.9, 0.6, 0.2]).table, rtol=1e-10, atol=0)
+
+
+def test_a_table_file_that_is_not_a_regular_file_is_named_as_such(tmp_path, minimal_config):
+    from fluxcli.config import emission_profile, load_config
+    from fluxcli.errors import UserError
+
+    cfg = copy.deepcopy(minimal_config)
+    cfg["subject"]["surface"] = {"phantom": "sphere", "radius_mm": 5, "n_latitude": 4, "n_longitude": 6}
+    for name, words in (("/dev/null", "not a regular file"), ("nothere.csv", "does not exist"), (".", "folder")):
+        cfg["subject"]["emission"] = {"model": "table", "file": name}
+        (tmp_path / "c.yaml").write_text(yaml.safe_dump(cfg))
+        with pytest.raises(UserError, match=words):
+            emission_profile(load_config(tmp_path / "c.yaml"))
+
+
 def test_a_table_without_a_header_in_0_to_1_is_cos_theta():
     a = E.table_from_csv("1,1\n0.5,0.8\n0,0.1\n", source="p.csv")
     assert np.array_equal(a.table, E.table([1, 0.5, 0], [1, 0.8, 0.1], unit="cos").table)
