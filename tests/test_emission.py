@@ -179,30 +179,20 @@ def test_a_table_reads_the_same_however_a_lab_writes_it(text):
     assert np.allclose(E.table_from_csv(text).table, ref.table, rtol=1e-10, atol=0)
 
 
-def test_a_table_saved_in_a_windows_code_page_reads_through_the_config(tmp_path, minimal_config):
-    """A spreadsheet on Windows saves "angle (°)" in Windows-1252, which is not UTF-8."""
+@pytest.mark.parametrize("name,text,encoding", [
+    # a spreadsheet on Windows saves "angle (°)" in Windows-1252, which is not UTF-8
+    ("p.csv", "angle (°);radiance\n0;1\n45;0,9\n75;0,6\n90;0,2\n", "cp1252"),
+    # its "Unicode Text" export: UTF-16 behind a byte-order mark, tab-separated; read as UTF-8 or
+    # Latin-1 its header is 'ÿþa\x00n\x00...' and names no angle
+    ("p.txt", "angle (°)\tradiance\r\n0\t1\r\n45\t0.9\r\n75\t0.6\r\n90\t0.2\r\n", "utf-16"),
+    ("p.txt", "\ufeffangle (°)\tradiance\r\n0\t1\r\n45\t0.9\r\n75\t0.6\r\n90\t0.2\r\n", "utf-16-be"),
+])
+def test_a_table_saved_by_a_spreadsheet_reads_through_the_config(tmp_path, minimal_config, name, text, encoding):
     from fluxcli.config import emission_profile, load_config
 
-    (tmp_path / "p.csv").write_bytes("angle (°);radiance\n0;1\n45;0,9\n75;0,6\n90;0,2\n".encode("cp1252"))
+    (tmp_path / name).write_bytes(text.encode(encoding))
     cfg = copy.deepcopy(minimal_config)
-    cfg["subject"]["emission"] = {"model": "table", "file": "p.csv"}
-    cfg["subject"]["surface"] = {"phantom": "sphere", "radius_mm": 5, "n_latitude": 4, "n_longitude": 6}
-    (tmp_path / "c.yaml").write_text(yaml.safe_dump(cfg))
-    got = emission_profile(load_config(tmp_path / "c.yaml"))
-    assert np.allclose(got.table, E.table([0, 45, 75, 90], [1, 0.9, 0.6, 0.2]).table, rtol=1e-10, atol=0)
-
-
-@pytest.mark.parametrize("encoding", ["utf-16", "utf-16-be"])
-def test_a_table_saved_as_unicode_text_reads_through_the_config(tmp_path, minimal_config, encoding):
-    """A spreadsheet's "Unicode Text" export is UTF-16 behind a byte-order mark, tab-separated;
-    read as UTF-8 or Latin-1 its header is 'ÿþa\x00n\x00...' and names no angle."""
-    from fluxcli.config import emission_profile, load_config
-
-    text = "angle (°)\tradiance\r\n0\t1\r\n45\t0.9\r\n75\t0.6\r\n90\t0.2\r\n"
-    raw = text.encode(encoding)
-    (tmp_path / "p.txt").write_bytes(raw if raw[:2] in (b"\xff\xfe", b"\xfe\xff") else b"\xfe\xff" + raw)
-    cfg = copy.deepcopy(minimal_config)
-    cfg["subject"]["emission"] = {"model": "table", "file": "p.txt"}
+    cfg["subject"]["emission"] = {"model": "table", "file": name}
     cfg["subject"]["surface"] = {"phantom": "sphere", "radius_mm": 5, "n_latitude": 4, "n_longitude": 6}
     (tmp_path / "c.yaml").write_text(yaml.safe_dump(cfg))
     got = emission_profile(load_config(tmp_path / "c.yaml"))
