@@ -247,6 +247,8 @@ def test_reconstruct_report_and_vtp_carry_the_rois(tiny_run, tmp_path):
     ({"name": "a", "kind": "box", "min_mm": [0, 0, 0], "max_mm": [1, -1, 1]}, "min_mm"),
     ({"name": "a", "kind": "cell_array", "array": "region", "value": 2}, "not a mesh file"),
     ({"name": "joint", "kind": "threshold", "fraction": 0.5}, "joint"),
+    # the tiny cylinder's 24 elements are 0..23: 24 is one past the end, as an id counted from 1 is
+    ({"name": "a", "kind": "elements", "ids": [3, 24]}, "element id(s) 24 are not on the subject's surface"),
 ])
 def test_bad_rois_exit_2_naming_the_key(tiny_run, tmp_path, roi, needle):
     from typer.testing import CliRunner

@@ -71,6 +71,8 @@ def reconstruct(plan: ReconstructPlan, ctx: RunContext) -> Path:
                       plan.config_path, [pt.pose for _, pt in plan.todo])
     if plan.sweep is not None:
         check_sweep(plan.sweep, plan.images, inp)
+    t_rate = plan.rate_exposure_s(inp.exposure_s)
+    rois = RoiMeter(plan.rois, plan.roi_mesh, surface, t_rate)  # regions of interest (issue 24): checked before T
     views, placer, todo, _ = plan.build_T(ctx, "building T", "elements")
     P = len(todo)
     nx, ny = plan.images.pixels
@@ -86,8 +88,6 @@ def reconstruct(plan: ReconstructPlan, ctx: RunContext) -> Path:
     ctx.say(f"reconstruct: {inp.source}; {describe(m)}, {P} pose(s); {noise.kind} noise model")
     if plan.qe_warning:  # QE scales every photon
         ctx.say(plan.qe_warning)
-    t_rate = plan.rate_exposure_s(inp.exposure_s)
-    rois = RoiMeter(plan.rois, plan.roi_mesh, surface, t_rate)  # regions of interest (issue 24)
     t0 = time.perf_counter()
     scale = plan.transmission(plan.main_filter)
     if inp.truth is not None and scale != 1.0:

@@ -65,6 +65,22 @@ def cell_array_of_elements(mesh: Path | None, surface, name: str, where: str) ->
     return out
 
 
+def check_ids(ids, surface, where: str) -> None:
+    """An ``elements`` region's ids must all be elements of ``surface``: an id that is not (an
+    off-by-one, ids from another mesh) would leave the region smaller than asked, silently."""
+    known = np.asarray(surface.element_ids) if surface.element_ids is not None else np.arange(surface.n_elements)
+    missing = sorted(set(int(i) for i in ids) - set(known.tolist()))
+    if not missing:
+        return
+    lo, hi = int(known.min()), int(known.max())
+    kind = ("the mesh file's element ids" if surface.element_ids is not None
+            else f"indices from 0 (the surface has no element ids of its own, so {surface.n_elements} elements: 0..{hi})")
+    shown = ", ".join(map(str, missing[:8])) + (f" and {len(missing) - 8} more" if len(missing) > 8 else "")
+    raise UserError(f"{where}: element id(s) {shown} are not on the subject's surface, whose ids are {kind}"
+                    + (f", from {lo} to {hi}" if surface.element_ids is not None else "")
+                    + "; give ids the surface has.")
+
+
 class RoiMeter:
     """Measures the config's regions on each reconstruction of a run."""
 
@@ -79,6 +95,8 @@ class RoiMeter:
             where = f"rois[{k}] ({r.name})"
             if r.needs_map:
                 continue
+            if r.kind == "elements":
+                check_ids(r.ids, surface, where)
             cells = cell_array_of_elements(mesh, surface, r.array, where) if r.kind == "cell_array" else None
             self.fixed[r.name] = Q.members(r, surface, cell_array=cells)
         self.labels: list[str] = []
