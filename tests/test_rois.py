@@ -10,6 +10,7 @@ import pytest
 import scipy.sparse as sp
 import yaml
 
+from fluxcli import config as C
 from fluxcli.artefacts.reconstruction import read_rois
 from fluxcli.errors import UserError
 from fluxcli.imaging import noise as N
@@ -297,6 +298,13 @@ def test_cell_array_roi_reads_the_mesh_files_integer_array(tmp_path):
     mesh.save(str(tmp_path / "m.vtk"))
     path = cfg.resolve(cfg.model.subject.surface.mesh)
     np.testing.assert_array_equal(cell_array_of_elements(path, surf, "region_f", "rois[0]"), got)
+    # a value the array does not hold is a mistake, not an empty region
+    from fluxcli.stages.rois import RoiMeter
+
+    assert RoiMeter([C.Roi(name="upper", kind="cell_array", array="region", value=1)], path, surf, None).fixed["upper"].any()
+    with pytest.raises(UserError, match=r"rois\[0\] \(upper\): no element of the surface has region = 2; the cell "
+                                        r"array holds 0, 1\."):
+        RoiMeter([C.Roi(name="upper", kind="cell_array", array="region", value=2)], path, surf, None)
     with pytest.raises(UserError, match=r"rois\[0\]: the cell array 'region_x' of .*m.vtk must hold whole-number "
                                         r"region values; face 0 has [01].5 .(80|[0-9]+) face.s. like it.\."):
         cell_array_of_elements(path, surf, "region_x", "rois[0]")

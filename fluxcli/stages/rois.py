@@ -98,6 +98,11 @@ class RoiMeter:
             if r.kind == "elements":
                 check_ids(r.ids, surface, where)
             cells = cell_array_of_elements(mesh, surface, r.array, where) if r.kind == "cell_array" else None
+            if cells is not None and not np.any(cells == int(r.value)):
+                have = np.unique(cells[cells != np.iinfo(np.int64).min])
+                shown = ", ".join(map(str, have[:12])) + (f" and {len(have) - 12} more" if len(have) > 12 else "")
+                raise UserError(f"{where}: no element of the surface has {r.array} = {r.value}; the cell array "
+                                f"holds {shown or 'no value'}.")
             self.fixed[r.name] = Q.members(r, surface, cell_array=cells)
         self.labels: list[str] = []
         self.poses: list[tuple] = []
