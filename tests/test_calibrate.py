@@ -132,6 +132,43 @@ def test_bad_input_exits_2(grid_set, tmp_path, case):
     assert "calibrate" in r.output
 
 
+@pytest.mark.parametrize("k, z", [(0, 0.0), (0, 1e-9), (4, 100000.0), (2, 4.0)])
+def test_a_wrong_height_is_named_with_the_height_its_image_shows(grid_set, tmp_path, k, z):
+    """One plane_z_mm wrong (a typo, a sign, a stage reading in the wrong unit): the images
+    say where that grid lay.  The first three used to stop inside the initial camera fit with
+    a traceback (exit 1): the grid's image then no longer grows as the heights rise."""
+    _, _, files, _ = grid_set
+    heights = list(HEIGHTS)
+    heights[k] = z
+    r = _run(_config(tmp_path, files, heights=heights))
+    assert r.exit_code == 2, r.output
+    text = " ".join(r.output.split())
+    assert f"calibrate.images[{k}]" in text and f"its plane_z_mm is {z:g} mm" in text
+    implied = float(text.split("lies at z = ")[1].split(" mm")[0])
+    assert implied == pytest.approx(HEIGHTS[k], abs=0.5)
+
+
+def test_odd_height_against_a_pinhole_s_closed_form():
+    """1/s = pitch (C_z - z) / v for a camera looking straight down (s: px per mm on the plane):
+    with one stated height wrong, the odd one is found and put back where its scale says; all
+    right, or too few heights to vouch for a line, nothing is named."""
+    from fluxcli.calibration.geometry import odd_height
+
+    pitch, v, cz = 0.013, 25.4, 180.0
+    z = np.array([-30.0, -15.0, 0.0, 12.0, 25.0])
+    inv_s = pitch * (cz - z) / v
+    assert odd_height(z, inv_s) is None
+    for k, wrong in ((0, 30.0), (2, 3.0), (4, -25.0), (3, 60.0)):
+        given = z.copy()
+        given[k] = wrong
+        got = odd_height(given, inv_s)
+        assert got is not None and got[0] == k and got[1] == pytest.approx(z[k], abs=1e-9)
+    given = z.copy()
+    given[2] = 1.0  # within max(2 mm, 1 % of 180 mm): not a mistake
+    assert odd_height(given, inv_s) is None
+    assert odd_height(z[:3] + [0, 0, 9.0], inv_s[:3]) is None  # three heights: no two vouch for a line
+
+
 def test_renderer_matches_the_transfer_matrix():
     """The ray tracer that makes the calibration images against fluxmap's own T (lens estimator).
 

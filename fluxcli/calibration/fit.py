@@ -14,7 +14,8 @@ import numpy as np
 from . import dots as D
 from . import grid as G
 from .geometry import (BlurFit, CameraGeometry, FocusCurve, GeometryFit, angle_sigmas_deg, fit_blur,
-                       fit_focus_curve, fit_geometry, focus_measure, grid_points_mm, initial_geometry)
+                       HeightsDisagree, fit_focus_curve, fit_geometry, focus_measure, grid_points_mm,
+                       image_scales, initial_geometry, odd_height)
 
 REPROJECTION_WARN_PX = 0.5
 BLUR_WARN_PX = 2.0  # defocus blur (px) the farthest heights should reach for the aperture to be measured
@@ -121,7 +122,16 @@ def calibrate_geometry(images: list[np.ndarray], heights_mm: list[float], *, kin
     def views(idx):
         return [(grid_points_mm(dets[k].ij, pitch_mm, shape, heights_mm[k]), dets[k].xy_px) for k in idx]
 
-    init = initial_geometry(views(known), pixel_pitch_mm, nx, ny)
+    odd = odd_height(*image_scales(views(known))[:2])  # a wrong plane_z_mm, named before it skews the fit
+    if odd is not None:
+        k = known[odd[0]]
+        raise CalibrationError(f"the grid in this image lies at z = {odd[1]:.1f} mm by its scale against the other "
+                               f"images, but its plane_z_mm is {heights_mm[k]:g} mm (the heights do not match the "
+                               "images)", k)
+    try:
+        init = initial_geometry(views(known), pixel_pitch_mm, nx, ny)
+    except HeightsDisagree as e:
+        raise CalibrationError(str(e)) from None
     geo = _fit(dets, known, heights_mm, pitch_mm, shape, init)
     # ambiguous images: label from the camera fitted so far
     allij = np.stack(np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij"), -1).reshape(-1, 2)

@@ -82,11 +82,9 @@ def _unpack(x: np.ndarray, pitch: float, nx: int, ny: int) -> CameraGeometry:
     return CameraGeometry(x[0:3].copy(), Rotation.from_rotvec(x[3:6]).as_matrix(), float(x[6]), pitch, nx, ny)
 
 
-def initial_geometry(views: list[tuple[np.ndarray, np.ndarray]], pitch_mm: float, nx: int, ny: int) -> CameraGeometry:
-    """A camera looking straight down, from an affine fit per height (views: (world (n,3), image (n,2))).
-
-    The scale s of each height obeys 1/s = pitch (C_z - z)/v: a line in z gives v and C_z.
-    """
+def image_scales(views: list[tuple[np.ndarray, np.ndarray]]):
+    """Per view (world (n,3), image (n,2)) of a grid plane: its height z (mm), 1/s with s its
+    scale (px per mm, from an affine fit), and the affine part A (2x2) and offset t (px)."""
     inv_s, z, A_list, t_list = [], [], [], []
     for P, q in views:
         M = np.column_stack([P[:, :2], np.ones(len(P))])
@@ -96,15 +94,68 @@ def initial_geometry(views: list[tuple[np.ndarray, np.ndarray]], pitch_mm: float
         z.append(P[0, 2])
         A_list.append(A)
         t_list.append(t)
-    z, inv_s = np.array(z), np.array(inv_s)
+    return np.array(z, float), np.array(inv_s), A_list, t_list
+
+
+def _scale_line(z: np.ndarray, inv_s: np.ndarray) -> tuple[float, float]:
+    """beta and the intercept of 1/s = icpt - beta z (beta > 0 when the image grows as it rises)."""
     if np.ptp(z) > 0:
         slope, icpt = np.polyfit(z, inv_s, 1)
-        beta = -slope
-    else:
-        beta, icpt = np.nan, inv_s[0]
+        return float(-slope), float(icpt)
+    return float("nan"), float(inv_s[0])
+
+
+class HeightsDisagree(ValueError):
+    """The stated heights of the grid's planes contradict the images: as given, the grid's image
+    does not grow as it rises."""
+
+    def __init__(self, z: np.ndarray):
+        super().__init__("the grid's image does not grow as it rises over the heights given (plane_z_mm "
+                         + ", ".join(f"{v:g}" for v in z) + " mm): a height does not match its image")
+
+
+def odd_height(z: np.ndarray, inv_s: np.ndarray, tol_mm: float = 2.0, tol_fraction: float = 0.01):
+    """The view whose stated height ``z`` the others' scales contradict: of the views without
+    which the rest lie on one line 1/s = icpt - beta z (beta > 0) within tolerance, the one that
+    leaves them on it most closely, if its own 1/s puts it beyond tolerance from its stated
+    height.  Tolerance: max(``tol_mm``, ``tol_fraction`` of the distance from the camera to the
+    plane), as the full fit's height check uses.  Returns (index, implied height mm), or None
+    when the heights agree or no single view explains the disagreement (the rest must hold three
+    distinct heights to vouch for a line)."""
+    z, inv_s = np.asarray(z, float), np.asarray(inv_s, float)
+    best, closest = None, np.inf
+    for k in range(len(z)):
+        rest = np.arange(len(z)) != k
+        if len(set(z[rest])) < 3:
+            continue
+        beta, icpt = _scale_line(z[rest], inv_s[rest])
+        if not beta > 0:
+            continue
+        camera_z = icpt / beta
+
+        def off(zz, s):
+            return np.abs((icpt - s) / beta - zz) - np.maximum(tol_mm, tol_fraction * np.abs(camera_z - zz))
+
+        spread = float(np.max(np.abs((icpt - inv_s[rest]) / beta - z[rest])))
+        if np.any(off(z[rest], inv_s[rest]) > 0) or spread >= closest:
+            continue
+        closest = spread
+        best = (k, float((icpt - inv_s[k]) / beta)) if off(z[k], inv_s[k]) > 0 else None
+    return best
+
+
+def initial_geometry(views: list[tuple[np.ndarray, np.ndarray]], pitch_mm: float, nx: int, ny: int) -> CameraGeometry:
+    """A camera looking straight down, from an affine fit per height (views: (world (n,3), image (n,2))).
+
+    The scale s of each height obeys 1/s = pitch (C_z - z)/v: a line in z gives v and C_z.
+    """
+    z, inv_s, A_list, t_list = image_scales(views)
+    beta, icpt = _scale_line(z, inv_s)
     if not (np.isfinite(beta) and beta > 0):
-        raise ValueError("the grid's image does not grow as it rises: give images at two or more "
-                         "distinct heights (the image distance cannot be separated from the camera height)")
+        if np.ptp(z) == 0:
+            raise ValueError("the grid's image does not grow as it rises: give images at two or more "
+                             "distinct heights (the image distance cannot be separated from the camera height)")
+        raise HeightsDisagree(z)
     v = pitch_mm / beta
     cz = icpt / beta
     A = A_list[int(np.argmax(inv_s))] if len(A_list) else A_list[0]
