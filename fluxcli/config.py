@@ -38,8 +38,10 @@ class Model(BaseModel):
     @field_validator("*", mode="after")
     @classmethod
     def _lengths_in_range(cls, v, info):
-        """Every ``*_mm`` value (and each number in a ``*_mm`` list) is at most 1 km."""
-        if info.field_name and info.field_name.endswith("_mm") and _longest(v) > MAX_LENGTH_MM:
+        """Every ``*_mm`` value (and each number in a ``*_mm`` list) is at most 1 km; a ``*_per_mm``
+        is a density, not a length (the L490MZ's 2155789 counts per mm)."""
+        name = info.field_name or ""
+        if name.endswith("_mm") and not name.endswith("_per_mm") and _longest(v) > MAX_LENGTH_MM:
             raise ValueError(f"lengths are in millimetres here and at most {MAX_LENGTH_MM:g} mm (1 km); "
                              f"got {_longest(v):g}")
         return v
@@ -454,8 +456,8 @@ class FileFlux(Model):
 
 
 class Optical(Model):
-    mua_per_mm: float = Field(ge=0, description="Absorption coefficient mu_a (1/mm).")
-    musp_per_mm: float = Field(gt=0, description="Reduced scattering coefficient mu_s' (1/mm).")
+    mua_per_mm: float = Field(ge=0, le=1e3, description="Absorption coefficient mu_a (1/mm).")
+    musp_per_mm: float = Field(gt=0, le=1e3, description="Reduced scattering coefficient mu_s' (1/mm).")
     refractive_index: float = Field(1.4, ge=1, description="Refractive index n (outside is air).")
 
 
@@ -877,6 +879,22 @@ class RigStage(Model):
             raise ValueError("travel_mm must be [low, high] with low < high")
         return v
 
+    @model_validator(mode="after")
+    def _fits_the_wire(self) -> "RigStage":
+        """APT carries positions, velocities and accelerations as signed 32-bit device units."""
+        top = 2**31 - 1
+        for what, units, keys in (
+                ("travel_mm's far end", max(abs(t) for t in self.travel_mm) * self.counts_per_mm,
+                 "travel_mm x counts_per_mm"),
+                ("velocity_mm_s", self.velocity_mm_s * self.counts_per_mm * self.velocity_scale,
+                 "velocity_mm_s x counts_per_mm x velocity_scale"),
+                ("acceleration_mm_s2", self.acceleration_mm_s2 * self.counts_per_mm * self.acceleration_scale,
+                 "acceleration_mm_s2 x counts_per_mm x acceleration_scale")):
+            if units > top:
+                raise ValueError(f"{what} is {units:.4g} device units ({keys}), beyond the 2^31 - 1 the APT "
+                                 "protocol carries (a signed 32-bit count); check counts_per_mm and the key's unit")
+        return self
+
 
 class FilterLight(Model):
     wavelength_nm: int | None = Field(None, description="Simulated camera: the wavelength whose simulate.flux.optical properties apply behind this filter (diffusion truths; default simulate's own).")
@@ -913,7 +931,7 @@ class RigProjector(ProjectorModel):
 
 
 class Rig(Model):
-    time_scale: float = Field(1.0, gt=0, description="Simulated device timing x this (tests use less); drivers scale their move timeouts by it.")
+    time_scale: float = Field(1.0, gt=0, le=100, description="Simulated device timing x this (tests use less; at most 100, when a move already takes minutes); drivers scale their move timeouts by it.")
     filter_wheel: RigFilterWheel | None = Field(None, description="The FW102C filter wheel.")
     stage: RigStage | None = Field(None, description="The L490MZ lab jack (APT).")
     camera: RigCamera | None = Field(None, description="The EMCCD.")

@@ -202,3 +202,27 @@ def test_serve_on_a_busy_port_exits_2_naming_the_device(tmp_path):
                            capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert "rig.filter_wheel simulator on socket://127.0.0.1:" in r.stderr and "cannot serve there" in r.stderr
+
+
+@pytest.mark.parametrize("stage, rig, words", [
+    # 100 m of travel at the L490MZ's 134737 counts/mm is 1.3e10 counts: the simulator's APT
+    # reply failed to pack (struct.error, exit 1) before this was checked
+    ({"travel_mm": [0.0, 100000.0]}, {}, "travel_mm's far end is 1.347e+10 device units"),
+    ({"velocity_scale": 1e6}, {}, "velocity_mm_s is 6.737e+10 device units"),
+    ({}, {"time_scale": 1e5}, "time_scale"),  # a move of seconds would last days, and the check with it
+])
+def test_a_rig_the_wire_cannot_carry_exits_2_before_a_device_starts(tmp_path, stage, rig, words):
+    cfg = tmp_path / "rig.yaml"
+    cfg.write_text(yaml.safe_dump({"rig": {**rig, "stage": {"port": "socket://127.0.0.1:0", "counts_per_mm": CPM,
+                                                             **stage}}}))
+    r = subprocess.run([sys.executable, "-m", "fluxcli.cli", "rig", "check", str(cfg)],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert words in " ".join(r.stderr.split())
+
+
+def test_the_l490mz_s_finer_count_fits_the_wire():
+    """2155789 counts/mm (the other figure given for the L490MZ) over its 50 mm at its top speed."""
+    from fluxcli.config import RigStage
+
+    RigStage(port="pty", counts_per_mm=2155789.0, travel_mm=(0.0, 50.0), velocity_mm_s=1.1)
