@@ -22,6 +22,7 @@ Vec3 = tuple[float, float, float]
 
 
 MAX_LENGTH_MM = 1e6  # 1 km: no imaging rig is larger, and squares of lengths beyond ~1e150 overflow
+MAX_DURATION_S = 86400.0  # a day: no exposure, settle or timeout is longer, and a sleep of 1e300 s overflows the clock
 
 
 def _longest(v) -> float:
@@ -38,11 +39,16 @@ class Model(BaseModel):
     @field_validator("*", mode="after")
     @classmethod
     def _lengths_in_range(cls, v, info):
-        """Every ``*_mm`` value (and each number in a ``*_mm`` list) is at most 1 km; a ``*_per_mm``
-        is a density, not a length (the L490MZ's 2155789 counts per mm)."""
+        """Every ``*_mm`` value (and each number in a ``*_mm`` list) is at most 1 km, every ``*_s``
+        duration at most a day; a ``*_per_mm`` is a density, not a length (the L490MZ's 2155789
+        counts per mm), and a ``*_per_s`` or ``*_mm_s`` a rate."""
         name = info.field_name or ""
         if name.endswith("_mm") and not name.endswith("_per_mm") and _longest(v) > MAX_LENGTH_MM:
             raise ValueError(f"lengths are in millimetres here and at most {MAX_LENGTH_MM:g} mm (1 km); "
+                             f"got {_longest(v):g}")
+        if (name.endswith("_s") and not name.endswith(("_per_s", "_mm_s"))  # a duration, not a rate
+                and _longest(v) > MAX_DURATION_S):
+            raise ValueError(f"durations are in seconds here and at most {MAX_DURATION_S:g} s (a day); "
                              f"got {_longest(v):g}")
         return v
 

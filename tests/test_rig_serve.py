@@ -226,3 +226,17 @@ def test_the_l490mz_s_finer_count_fits_the_wire():
     from fluxcli.config import RigStage
 
     RigStage(port="pty", counts_per_mm=2155789.0, travel_mm=(0.0, 50.0), velocity_mm_s=1.1)
+
+
+def test_a_duration_beyond_a_day_is_refused_naming_the_key(tmp_path):
+    """capture.exposure_s 1e300 reached time.sleep in the simulated camera (OverflowError, exit 1)."""
+    from pydantic import ValidationError
+
+    from fluxcli.config import Capture, RigStage
+
+    with pytest.raises(ValidationError, match="durations are in seconds here and at most 86400 s"):
+        Capture.model_validate({"heights_mm": [0], "exposure_s": 1e300})
+    with pytest.raises(ValidationError, match="exposure_s"):
+        Capture.model_validate({"heights_mm": [0], "exposure_s": [1.0, 1e5]})
+    Capture.model_validate({"heights_mm": [0], "exposure_s": 600.0})  # a long bioluminescence exposure
+    RigStage(port="pty", counts_per_mm=CPM, velocity_mm_s=1.1)  # mm/s is a rate, not a duration
