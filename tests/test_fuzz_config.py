@@ -39,18 +39,18 @@ def leaves(node, path=()):
 
 
 def hostile_runs(tmp_path, cfg, paths, stages, skip=("cache_dir",),
-                 first=("build-T", "simulate", "reconstruct", "report"), too_long=()) -> list[str]:
+                 first=("build-T", "simulate", "reconstruct", "report"), too_long=None, options=("-q",)) -> list[str]:
     """Run a good ``cfg`` through the stages ``first`` once, then every leaf under ``paths`` (key
     prefixes, tuples) set to each hostile value through the stages after the first that reads it
     (its prefix's entry of ``stages``; leaves named in ``skip`` are left alone, and numbers above
-    1e6 for those named in ``too_long``: legal, and hours to run); every exit must be 0 or 2.
+    ``too_long[name]`` for those it names: legal, and hours to run); every exit must be 0 or 2.
     Returns the bugs found."""
     runner = CliRunner()
     p = tmp_path / "c.yaml"
 
     def run(stage, c):
         p.write_text(yaml.safe_dump(c))
-        return runner.invoke(app, [stage, str(p), "-q"])
+        return runner.invoke(app, [stage, str(p), *options])
 
     for stage in first:  # a good run to start each from
         r = run(stage, cfg)
@@ -64,7 +64,7 @@ def hostile_runs(tmp_path, cfg, paths, stages, skip=("cache_dir",),
             if path[-1] in skip:
                 continue
             for value in HOSTILE:
-                if path[-1] in too_long and isinstance(value, (int, float)) and value > 1e6:
+                if isinstance(value, (int, float)) and value > (too_long or {}).get(path[-1], float("inf")):
                     continue  # legal and slow (2^31 photons: an hour), not hostile
                 c = copy.deepcopy(cfg)
                 node = c
@@ -119,7 +119,7 @@ def test_no_hostile_value_of_an_emission_or_photon_transport_key_is_a_bug(tmp_pa
     cfg["reconstruct"]["unknowns"] = "vertices"  # the tangential and curvature terms act on vertices
     bugs = hostile_runs(tmp_path, cfg, [("subject", "emission"), ("simulate", "flux")],
                         [("build-T", "reconstruct"), ("simulate",)], skip=("model", "kind"),  # fuzzed above
-                        too_long=("n_photons",))
+                        too_long={"n_photons": 1e6})
     assert not bugs, "\n\n".join(bugs)
 
 
@@ -135,4 +135,22 @@ def test_no_hostile_value_of_a_calibrate_key_is_a_bug(tmp_path):
         im["file"] = str((root / "configs" / im["file"]).resolve())
     bugs = hostile_runs(tmp_path, cfg, [("system",), ("calibrate", "grid"), ("calibrate", "images", 0)],
                         [("calibrate",)] * 3, first=("calibrate",))
+    assert not bugs, "\n\n".join(bugs)
+
+
+@pytest.mark.slow
+def test_no_hostile_value_of_a_capture_or_rig_key_is_a_bug(tmp_path):
+    """capture-surface on the simulated rig (filter wheel and stage on pseudo terminals, the
+    simulated EMCCD): the acquisition plan's keys and the camera's and wheel's.  This found
+    capture.exposure_s 1e300 overflowing the clock in the simulated camera's sleep (exit 1)."""
+    cfg = full_config(tmp_path)
+    cfg["simulate"]["noise"] = {"model": "poisson", "exposure_s": 1.0, "peaks_photons": [1e6], "repeats": 1, "seed": 5}
+    cfg["rig"] = {"time_scale": 0.02, "filter_wheel": {"port": "pty", "positions": 6, "filters": {"open": 1, "red": 3}},
+                  "stage": {"port": "pty", "counts_per_mm": 134737.0, "travel_mm": [0.0, 50.0]},
+                  "camera": {"backend": "simulated", "binning": 1, "filters": {"red": {"transmission": 0.5}}}}
+    cfg["capture"] = {"heights_mm": [0, 5], "filters": ["open", "red"], "exposure_s": 1.0, "em_gain": 100.0,
+                      "repeats": 2, "darks": 2, "seed": 3}
+    bugs = hostile_runs(tmp_path, cfg, [("capture",), ("rig", "camera"), ("rig", "filter_wheel")],
+                        [("capture-surface",)] * 3, first=("capture-surface",), options=("-q", "--force"),
+                        too_long={"repeats": 100, "darks": 100})  # 1e5 frames: legal, an hour
     assert not bugs, "\n\n".join(bugs)
