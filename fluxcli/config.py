@@ -1247,6 +1247,18 @@ class _UniqueKeyLoader(yaml.SafeLoader):
             seen[key] = key_node.start_mark.line
         return super().construct_mapping(node, deep=deep)
 
+    def construct_yaml_timestamp(self, node):
+        """A date YAML's pattern takes but the calendar does not (2026-13-01, 2026-02-30) is a
+        YAML error at its line, not a ValueError from inside the parser."""
+        try:
+            return super().construct_yaml_timestamp(node)
+        except ValueError as e:
+            raise yaml.constructor.ConstructorError(None, None, f"{node.value!r} is not a date ({e})",
+                                                    node.start_mark) from None
+
+
+_UniqueKeyLoader.add_constructor("tag:yaml.org,2002:timestamp", _UniqueKeyLoader.construct_yaml_timestamp)
+
 
 def _apply_override(raw: dict[str, Any], item: str) -> None:
     """Apply ``dotted.key=value`` (list items by index: ``system.mirrors.0.reflectance=0.9``)."""
@@ -1284,7 +1296,7 @@ _SURFACE_MEMBERS = {"phantom": ("MeshSurface", "ArtefactSurface"), "mesh": ("Art
 def _relevant(errors: list, raw: Any) -> list:
     """Drop errors from union members the user did not choose (a phantom with a bad radius
     is not also 'missing its mesh key'), and a list's 'too short' when one of its items failed."""
-    items = {tuple(e["loc"][:-1]) for e in errors if e["loc"] and isinstance(e["loc"][-1], int)}
+    items = {tuple(e["loc"][:i]) for e in errors for i, x in enumerate(e["loc"]) if isinstance(x, int)}
     errors = [e for e in errors if not (e["type"] == "too_short" and tuple(e["loc"]) in items)]
     surf = raw.get("subject", {}).get("surface") if isinstance(raw, dict) and isinstance(raw.get("subject"), dict) else None
     if not isinstance(surf, dict):
@@ -1296,7 +1308,7 @@ def _relevant(errors: list, raw: Any) -> list:
     return errors
 
 
-def _format_validation_error(err: ValidationError, path: Path, raw: Any = None) -> str:
+def _format_validation_error(err: ValidationError, path: Path, raw: Any = None, what: str = "config") -> str:
     lines = []
     errors = _relevant(err.errors(), raw)
     for e in errors[:6]:
@@ -1316,7 +1328,7 @@ def _format_validation_error(err: ValidationError, path: Path, raw: Any = None) 
             msg = e["msg"].removeprefix("Value error, ")
         lines.append(f"'{loc}': {msg}" if loc else msg)
     more = "" if len(errors) <= 6 else f" (and {len(errors) - 6} more)"
-    return f"config {path}: " + "; ".join(lines) + more + "."
+    return f"{what} {path}: " + "; ".join(lines) + more + "."
 
 
 # the values of the keys that pick a variant of a section, for the messages that name them

@@ -260,6 +260,9 @@ MISTAKES = [
     ("config-is-a-folder", "build-T", None, ["is a folder"]),
     ("yaml-not-mapping", "build-T", None, ["mapping"]),
     ("yaml-duplicate-key", "build-T", None, ["duplicate key", "'workdir'"]),
+    # a date YAML's pattern takes but the calendar does not: was a ValueError from inside the parser
+    ("yaml-impossible-date", "build-T", None, ["not valid YAML", "'2026-02-30' is not a date", "line"]),
+    ("set-impossible-date", "build-T", _set("workdir=2026-13-01"), ["--set 'workdir=2026-13-01'", "not a date"]),
     ("unknown-top-key", "build-T", _cfg("sytem", {}), ["'sytem'", "unknown key"]),
     ("unknown-nested-key", "build-T", _cfg("system.camera.pixel_pitch", 0.1), ["system.camera.pixel_pitch"]),
     ("missing-lens", "build-T", _del("system.camera.lens"), ["system.camera.lens"]),
@@ -436,6 +439,8 @@ def test_user_mistake_exits_2_naming_the_key_or_file(case, base, tmp_path):
         p.write_text("- 1\n- 2\n")
     elif name == "yaml-duplicate-key":
         p.write_text(yaml.safe_dump(cfg) + f"workdir: {tmp_path}\n")
+    elif name == "yaml-impossible-date":
+        p.write_text(yaml.safe_dump(cfg) + "note: 2026-02-30\n")
     else:
         p.write_text(yaml.safe_dump(cfg))
     if name == "sim-saturated-level":  # a saturated simulation, then its reconstruction
