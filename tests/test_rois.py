@@ -375,7 +375,41 @@ def test_study_file_mistakes_exit_2(tmp_path):
     assert r.exit_code == 2 and "day or a date" in " ".join(r.output.split())
     s.write_text(yaml.safe_dump({"sessions": [{"artefact": "nowhere.h5", "subject": "a", "day": 1}]}))
     r = CliRunner().invoke(app, ["study", str(s)])
-    assert r.exit_code == 2 and "nowhere.h5" in " ".join(r.output.split())
+    assert r.exit_code == 2 and "sessions[0] (a day 1 -): artefact" in " ".join(r.output.split())
+    assert "nowhere.h5" in " ".join(r.output.split())
+
+
+def test_study_dates_are_iso_and_a_subject_keeps_one_time_axis(tmp_path):
+    """A date as YAML writes it unquoted (a date, or a date and time for a kinetic series) is
+    taken and written as ISO; a date that is not one, or a subject with one session by day
+    and another by date (the page's plot once stopped on it, exit 1), exits 2 naming it."""
+    from typer.testing import CliRunner
+
+    from fluxcli.cli import app
+
+    s = tmp_path / "s.yaml"
+
+    def study(sessions: str) -> str:
+        s.write_text("sessions:\n" + sessions)
+        r = CliRunner().invoke(app, ["study", str(s)])
+        assert r.exit_code == 2, r.output
+        return " ".join(r.output.split())
+
+    # read as dates (it fails later, on the missing artefact, naming the session by its ISO date)
+    assert "sessions[0] (a 2026-11-20 -): artefact" in study("- {artefact: x.h5, subject: a, date: 2026-11-20}")
+    assert "sessions[0] (a 2026-11-20 10:30:00 -)" in study("- {artefact: x.h5, subject: a, date: 2026-11-20 10:30:00}")
+    assert "sessions[0] (a 2026-11-20 10:30:00 -)" in study("- {artefact: x.h5, subject: a, date: '2026-11-20T10:30'}")
+    # a date YAML's pattern takes but the calendar does not: a YAML error at its line (was exit 1 in
+    # every YAML file fluxmap reads, configs too)
+    assert "is not valid YAML: '2026-13-01' is not a date (month must be in 1..12) at line 2" in study(
+        "- {artefact: x.h5, subject: a, date: 2026-13-01}")
+    for bad in ("tuesday", "'2026-13-01'", "[1]", "5"):
+        text = study(f"- {{artefact: x.h5, subject: a, date: {bad}}}")
+        assert text.startswith(f"fluxmap: error: study file {s}: 'sessions.0.date': ") and "is not an ISO date" in text
+        assert "too short" not in text and "at least 1 item" not in text  # not the tuple's echo of its item
+    text = study("- {artefact: x.h5, subject: a, day: 3}\n- {artefact: x.h5, subject: b, date: 2026-11-20}\n"
+                 "- {artefact: x.h5, subject: a, date: 2026-11-21}")
+    assert ("subject 'a': sessions[0] (a day 3 -) gives a day and sessions[2] (a 2026-11-21 -) only a date" in text)
 
 
 # ------------------------------------------------------------------ several filters in one reconstruct

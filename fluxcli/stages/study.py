@@ -25,11 +25,12 @@ files changed since, is refused (exit 2), naming the file.
 
 from __future__ import annotations
 
+import datetime
 import json
 from pathlib import Path
 
 import yaml
-from pydantic import Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 
 from .. import artefacts as A
 from .. import config as C
@@ -45,7 +46,8 @@ class StudySession(C.Model):
     artefact: Path = Field(description="A reconstruction.h5, relative to the study file.")
     subject: str = Field(min_length=1, description="The animal or phantom (its id).")
     day: float | None = Field(None, description="Day of the session (e.g. days after implantation).")
-    date: str | None = Field(None, description="Date of the session (ISO, e.g. 2026-11-20), when no day is given.")
+    date: str | None = Field(None, description="Date of the session (ISO, e.g. 2026-11-20, or 2026-11-20 10:30 for "
+                             "time points within a day), when no day is given.")
     filter: str = Field("-", description="The emission filter of the images (free text).")
     label: str | None = Field(None, description="Name of the session in tables (default subject/day/filter).")
 
@@ -54,6 +56,24 @@ class StudySession(C.Model):
         if self.day is None and self.date is None:
             raise ValueError("a session needs a day or a date")
         return self
+
+    @field_validator("date", mode="before")
+    @classmethod
+    def _iso(cls, v):
+        """An ISO date, or date and time (a kinetic series within a day), written as ISO so that
+        the table and the plot's axis sort by time; YAML reads an unquoted 2026-11-20 (and
+        2026-11-20 10:30:00) as a date (a datetime) already."""
+        if v is None or isinstance(v, datetime.date):
+            return v if v is None else v.isoformat(sep=" ") if isinstance(v, datetime.datetime) else v.isoformat()
+        if isinstance(v, str):
+            for kind in (datetime.date, datetime.datetime):
+                try:
+                    t = kind.fromisoformat(v.strip())
+                    return t.isoformat(sep=" ") if kind is datetime.datetime else t.isoformat()
+                except ValueError:
+                    pass
+        raise ValueError(f"{v!r} is not an ISO date (YYYY-MM-DD, e.g. 2026-11-20) or date and time "
+                         "(2026-11-20 10:30)")
 
     @property
     def name(self) -> str:
@@ -66,19 +86,33 @@ class StudyFile(C.Model):
     rois: tuple[str, ...] | None = Field(None, min_length=1, description="Regions to report (default: all the sessions share).")
     sessions: tuple[StudySession, ...] = Field(min_length=1, description="The sessions.")
 
+    @model_validator(mode="after")
+    def _one_time_axis(self) -> "StudyFile":
+        """A subject's sessions lie on one time axis: all by day, or all by date."""
+        by_day = {}
+        for k, s in enumerate(self.sessions):
+            by_day.setdefault(s.subject, {}).setdefault(s.day is not None, k)
+        for subject, kinds in by_day.items():
+            if len(kinds) == 2:
+                d, t = kinds[True], kinds[False]
+                raise ValueError(f"subject {subject!r}: sessions[{d}] ({self.sessions[d].name}) gives a day and "
+                                 f"sessions[{t}] ({self.sessions[t].name}) only a date; give all of a subject's "
+                                 "sessions a day, or all of them a date, so that they share one time axis")
+        return self
+
 
 def load_study(path: Path) -> StudyFile:
     path = Path(path)
     if not path.is_file():
         raise UserError(f"study file {path} does not exist.")
     try:
-        raw = yaml.safe_load(path.read_text())
+        raw = yaml.load(path.read_text(), Loader=C._UniqueKeyLoader)
     except yaml.YAMLError as e:
         raise UserError(f"study file {path} is not valid YAML: {C._yaml_problem(e)}.") from None
     try:
         return StudyFile.model_validate(raw if raw is not None else {})
     except ValidationError as e:
-        raise UserError(C._format_validation_error(e, path, raw)) from None
+        raise UserError(C._format_validation_error(e, path, raw, what="study file")) from None
 
 
 def read_session(s: StudySession, k: int, base: Path) -> list[Session]:
@@ -86,7 +120,10 @@ def read_session(s: StudySession, k: int, base: Path) -> list[Session]:
     after the fact."""
     path = s.artefact if s.artefact.is_absolute() else (base / s.artefact).resolve()
     where = f"sessions[{k}] ({s.name})"
-    view = read_for_study(path, s.filter)
+    try:
+        view = read_for_study(path, s.filter)
+    except UserError as e:
+        raise UserError(f"{where}: {e}") from None
     if view.unchanged is None:
         raise UserError(f"{where}: {path} records no digest of its results (made by an older fluxmap), so it "
                         "cannot be checked; reconstruct it again.")
