@@ -363,6 +363,37 @@ def test_study_table_flags_another_calibration_and_refuses_a_changed_artefact(ti
     r = CliRunner().invoke(app, ["study", str(s)])
     assert r.exit_code == 2 and "day2/simulation.h5 (simulation.h5) changed after" in " ".join(r.output.split())
 
+    # the numbers' attributes are sealed too: the exposure that makes photons/s, a region's names
+    # (digest version 2; version 1 hashed the datasets alone and let these through)
+    for edit in (lambda f: f["rois"].attrs.__setitem__("exposure_s", 2.0),  # per exposure (NaN) made per 2 s
+                 lambda f: f["rois"].attrs.__setitem__("names", '["bottom"]'),
+                 lambda f: f.attrs.__setitem__("rate_exposure_s", 2.0)):
+        shutil.rmtree(tmp_path / "day2")
+        shutil.copytree(run, tmp_path / "day2")
+        with h5py.File(tmp_path / "day2" / "reconstruction.h5", "r+") as f:
+            edit(f)
+        r = CliRunner().invoke(app, ["study", str(s)])
+        assert r.exit_code == 2 and "day2/reconstruction.h5 was changed after it was written" in " ".join(r.output.split())
+
+    # a file sealed by version 1 (no version attribute) is still read, by version 1's rule
+    from fluxcli.artefacts.digest import results_sha256
+
+    shutil.rmtree(tmp_path / "day2")
+    shutil.copytree(run, tmp_path / "day2")
+    with h5py.File(tmp_path / "day2" / "reconstruction.h5", "r+") as f:
+        assert int(f.attrs["results_sha256_version"]) == 2
+        del f.attrs["results_sha256_version"]
+        f.attrs["results_sha256"] = results_sha256(f, __import__("json").loads(f.attrs["results_sha256_groups"]), 1)
+    assert CliRunner().invoke(app, ["study", str(s), "-q"]).exit_code == 0
+
+    # sealed as it is but missing what reconstruct writes (another tool's file): exit 2, naming it
+    with h5py.File(tmp_path / "day2" / "reconstruction.h5", "r+") as f:
+        del f["per_pose/direct_roi_photons"]
+        f.attrs["results_sha256"] = results_sha256(f, __import__("json").loads(f.attrs["results_sha256_groups"]), 1)
+    r = CliRunner().invoke(app, ["study", str(s)])
+    text = " ".join(r.output.split())
+    assert r.exit_code == 2 and "day2/reconstruction.h5 lacks what a study reads" in text and "direct_roi_photons" in text
+
 
 def test_study_file_mistakes_exit_2(tmp_path):
     from typer.testing import CliRunner
@@ -473,3 +504,11 @@ def test_filters_reconstructed_one_by_one_in_one_run(tmp_path):
     assert joint["580nm"] == pytest.approx(got["580nm"], rel=1e-6) and joint["open"] == pytest.approx(got["open"], rel=1e-6)
     direct = {x["filter"]: float(x["direct_image_photons_per_s"]) for x in rows if x["pose"] == "1"}
     assert direct["580nm"] == pytest.approx(0.5 * direct["open"], rel=0.1)  # the image through a 0.5 filter
+    # a filter's numbers edited after the fact are refused like the first filter's (/filters was
+    # outside the digest: an edit there went into the study unseen)
+    import h5py
+
+    with h5py.File(run / "reconstruction.h5", "r+") as f:
+        f["filters/580nm/rois/total_photons_per_s"][-1, -1] *= 1.1
+    r = CliRunner().invoke(app, ["study", str(tmp_path / "study.yaml"), "-q"])
+    assert r.exit_code == 2 and "was changed after it was written" in " ".join(r.output.split()), r.output

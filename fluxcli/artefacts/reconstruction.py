@@ -18,13 +18,14 @@ from typing import Callable
 import h5py
 import numpy as np
 
+from ..errors import UserError
 from .digest import seal
 from .pieces import write_surface
 from .store import Provenance, open_artefact, write_artefact
 
 KIND = "reconstruction"
 FILENAME = "reconstruction.h5"
-SEALED = ("flux", "per_pose", "rois", "surface", "truth")  # fluxmap study refuses a file changed after writing
+SEALED = ("flux", "per_pose", "rois", "surface", "truth", "filters")  # fluxmap study refuses a file changed after writing
 
 
 @dataclass
@@ -572,18 +573,24 @@ def read_for_study(path: Path, filter_name: str) -> StudyView:
     from .store import read_provenance as _read
 
     with open_artefact(path, KIND) as f:
-        pp = f["per_pose"]
-        parts = []
-        if "rois" in f:  # one reconstruct of several filters: a part per filter
+        same, prov, has_rois = unchanged(f), _read(f), "rois" in f
+        if not same or not has_rois:  # the caller refuses it, saying why: read nothing more
+            return StudyView(same, prov, has_rois, np.zeros(0), np.zeros(0), [])
+        try:
+            pp = f["per_pose"]
             parts = [(filter_name, read_rois(f["rois"]),
                       f["truth/power"][()] if "truth" in f and "power" in f["truth"] else None,
                       pp["direct_roi_photons"][()])]
-            if "filters" in f:
+            if "filters" in f:  # one reconstruct of several filters: a part per filter
                 parts = [(name, read_rois(h["rois"]), h["truth_power"][()] if "truth_power" in h else None,
                           h["direct_roi_photons"][()])
                          for name in json.loads(f["filters"].attrs["order"])
                          for h in [f[f"filters/{name}"]] if "rois" in h]
-        return StudyView(unchanged(f), _read(f), "rois" in f, pp["heights_mm"][()], pp["rotations_deg"][()], parts)
+            heights, rotations = pp["heights_mm"][()], pp["rotations_deg"][()]
+        except (KeyError, ValueError) as e:  # sealed as it is, yet not what reconstruct writes
+            raise UserError(f"artefact {path} lacks what a study reads ({e}); it was not written by this fluxmap's "
+                            "reconstruct. Reconstruct it again.") from None
+        return StudyView(same, prov, has_rois, heights, rotations, parts)
 
 
 def read_warnings(path: Path) -> tuple[list[str], int | None]:
