@@ -392,7 +392,7 @@ def test_study_table_flags_another_calibration_and_refuses_a_changed_artefact(ti
         f.attrs["results_sha256"] = results_sha256(f, __import__("json").loads(f.attrs["results_sha256_groups"]), 1)
     r = CliRunner().invoke(app, ["study", str(s)])
     text = " ".join(r.output.split())
-    assert r.exit_code == 2 and "day2/reconstruction.h5 lacks what a study reads" in text and "direct_roi_photons" in text
+    assert r.exit_code == 2 and "day2/reconstruction.h5 is incomplete: it has no dataset 'per_pose/direct_roi_photons'" in text
 
 
 def test_study_file_mistakes_exit_2(tmp_path):

@@ -161,6 +161,15 @@ def _garbage(name):
     return edit
 
 
+def _h5_edit(name, statement):
+    def edit(run: Path, cfg, d):
+        import h5py
+
+        with h5py.File(run / name, "r+") as f:
+            exec(statement, {"f": f})
+    return edit
+
+
 def _swap_kind(run: Path, cfg, d):
     shutil.copy(run / "transfer.h5", run / "simulation.h5")
 
@@ -419,6 +428,13 @@ MISTAKES = [
     ("report-slice-outside", "report", _set("report.slice_axial_mm=1000"), ["report.slice_axial_mm", "1000"]),
     ("report-config-changed", "report", _report_changed, ["reconstruction.h5", "system.camera.lens.f_number"]),
     ("report-corrupt-reconstruction", "report", _own_run(_garbage("reconstruction.h5")), ["reconstruction.h5"]),
+    # a dataset or an attribute missing inside a group (an edited file, another tool's): the readers
+    # met h5py's KeyError (exit 1); any name at any depth is now named with the file
+    ("report-reconstruction-lacks-a-dataset", "report", _own_run(_h5_edit("reconstruction.h5", "del f['budget/sigma']")),
+     ["reconstruction.h5 is incomplete: it has no dataset 'budget/sigma'", "fluxmap reconstruct"]),
+    ("summary-reconstruction-lacks-an-attribute", "summary",
+     _own_run(_h5_edit("reconstruction.h5", "del f['budget'].attrs['labels']")),
+     ["reconstruction.h5 is incomplete: it has no attribute 'labels' of 'budget'"]),
 ]
 
 
@@ -486,3 +502,4 @@ def test_faces_split_past_what_any_camera_resolves_are_refused_by_key(tmp_path, 
     assert r.exit_code == 2, r.output
     text = " ".join(r.output.split())
     assert "subject.refine_faces" in text and "Traceback" not in text
+

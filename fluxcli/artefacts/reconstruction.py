@@ -587,7 +587,7 @@ def read_for_study(path: Path, filter_name: str) -> StudyView:
                          for name in json.loads(f["filters"].attrs["order"])
                          for h in [f[f"filters/{name}"]] if "rois" in h]
             heights, rotations = pp["heights_mm"][()], pp["rotations_deg"][()]
-        except (KeyError, ValueError) as e:  # sealed as it is, yet not what reconstruct writes
+        except (KeyError, json.JSONDecodeError) as e:  # sealed as it is, yet not what reconstruct writes
             raise UserError(f"artefact {path} lacks what a study reads ({e}); it was not written by this fluxmap's "
                             "reconstruct. Reconstruct it again.") from None
         return StudyView(same, prov, has_rois, heights, rotations, parts)

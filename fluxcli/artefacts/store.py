@@ -201,28 +201,77 @@ def put(group: h5py.Group, name: str, data, **kwargs) -> h5py.Dataset:
 
 
 # ------------------------------------------------------------------ reading
-class ArtefactFile(h5py.File):
-    """An artefact open for reading: a missing or unreadable dataset becomes a UserError
-    naming the file, the dataset and the command that remakes it."""
+class _Missing:
+    """What an artefact's groups, datasets and attributes share: a name the file lacks is a
+    UserError naming the file, the dataset (or attribute) and the command that remakes it."""
+
+    _fx_file: "ArtefactFile"
+
+    def _fx_wrap(self, obj):
+        kind = _CheckedGroup if isinstance(obj, h5py.Group) else _CheckedDataset if isinstance(obj, h5py.Dataset) else None
+        if kind is None:
+            return obj
+        out = kind(obj.id)
+        out._fx_file = self._fx_file
+        return out
+
+    def __getitem__(self, name):
+        if isinstance(name, str):
+            self._fx_file._fx_last = name
+        try:
+            return self._fx_wrap(super().__getitem__(name))
+        except KeyError:
+            if isinstance(name, str) and not isinstance(self, h5py.Dataset):
+                where = name if self.name in ("/", None) else f"{self.name.strip('/')}/{name}"
+                raise UserError(f"artefact {self._fx_file._fx_path} is incomplete: it has no dataset '{where}'; "
+                                f"{self._fx_file._remedy()}.") from None
+            raise
+
+    def get(self, name, default=None, getclass=False, getlink=False):
+        if getclass or getlink or name in self:
+            return super().get(name, default, getclass, getlink)
+        return default
+
+    @property
+    def attrs(self):
+        a = _CheckedAttrs(self)
+        a._fx_file, a._fx_owner = self._fx_file, self.name
+        return a
+
+
+class _CheckedAttrs(h5py.AttributeManager):
+    def get(self, name, default=None):
+        return super().__getitem__(name) if name in self else default
+
+    def __getitem__(self, name):
+        try:
+            return super().__getitem__(name)
+        except KeyError:
+            on = "" if self._fx_owner in ("/", None) else f" of '{self._fx_owner.strip('/')}'"
+            raise UserError(f"artefact {self._fx_file._fx_path} is incomplete: it has no attribute '{name}'{on}; "
+                            f"{self._fx_file._remedy()}.") from None
+
+
+class _CheckedGroup(_Missing, h5py.Group):
+    pass
+
+
+class _CheckedDataset(_Missing, h5py.Dataset):
+    pass
+
+
+class ArtefactFile(_Missing, h5py.File):
+    """An artefact open for reading: a missing or unreadable dataset (or attribute), at any
+    depth, becomes a UserError naming the file, the dataset and the command that remakes it."""
 
     def _setup(self, path: Path, kind: str) -> "ArtefactFile":
-        self._fx_path, self._fx_kind, self._fx_last = Path(path), kind, None
+        self._fx_path, self._fx_kind, self._fx_last, self._fx_file = Path(path), kind, None, self
         return self
 
     def _remedy(self) -> str:
         k = KINDS.get(self._fx_kind)
         return (f"delete it and run '{k.made_by}' again (or use --force)" if k is not None
                 else "delete it and make it again")
-
-    def __getitem__(self, name):
-        self._fx_last = name if isinstance(name, str) else self._fx_last
-        try:
-            return super().__getitem__(name)
-        except KeyError:
-            if isinstance(name, str):
-                raise UserError(f"artefact {self._fx_path} is incomplete: it has no dataset '{name}'; "
-                                f"{self._remedy()}.") from None
-            raise
 
     def __exit__(self, exc_type, exc, tb):
         super().__exit__(exc_type, exc, tb)

@@ -142,7 +142,7 @@ class Page:
         cols += [("observed", lambda k, p: fmt(p["observed_fraction"], "%")), ("λ", lambda k, p: fmt(p["lambda"])),
                  ("χ²/pixel", lambda k, p: fmt(p["chi2_per_pixel"]))]
         if "error" in poses[0]:
-            cols += [("error", lambda k, p: fmt(p["error"], "%")), ("total ratio", lambda k, p: fmt(p["total_ratio"]))]
+            cols += [("error", lambda k, p: fmt(p["error"], "%")), ("total ratio", lambda k, p: fmt(p.get("total_ratio")))]
         rows = [[str(k + 1)] + [f(k, p) for _, f in cols] for k, p in enumerate(poses)]
         if s.get("joint_over_poses"):
             row = ["joint", "", ""] + [""] * (len(cols) - 2)
