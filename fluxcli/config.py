@@ -54,9 +54,11 @@ class Model(BaseModel):
 
 
 def _unit(v: Vec3, what: str) -> Vec3:
-    n = math.sqrt(sum(c * c for c in v))
+    n = math.hypot(*v)  # scaled: no overflow in the squares
     if n == 0:
         raise ValueError(f"{what} must be a non-zero vector")
+    if not 1e-100 < n < 1e100:  # a direction; code downstream normalises it with plain squares
+        raise ValueError(f"{what} is a direction: give it components of ordinary size (its length is {n:g})")
     return tuple(c / n for c in v)  # type: ignore[return-value]
 
 

@@ -281,6 +281,10 @@ MISTAKES = [
     ("focus-inside-focal-length", "build-T", _cfg("system.camera.lens.focus_distance_mm", 10), ["focus_distance_mm"]),
     ("look-parallel-up", "build-T", _cfg("system.camera.pose.up", [0, 0, 1]), ["system.camera.pose", "up"]),
     ("look-zero", "build-T", _cfg("system.camera.pose.look", [0, 0, 0]), ["look"]),
+    # a direction of length 1e300: its squares overflowed, normalising it gave (0, 0, 0) and the
+    # projector calibration stopped in its solver (exit 1; found by fuzzing calibrate's keys)
+    ("look-huge", "build-T", _cfg("system.camera.pose.look", [0, 0, -1e300]),
+     ["system.camera.pose", "look is a direction", "1e+300"]),
     ("mirror-axis-off-plane", "build-T", _mirror(axis=[0, 1, 0]), ["system.mirrors.0", "axis"]),
     ("mirror-faces-away", "build-T", _mirror(normal=[0, 1, -1]), ["system.mirrors", "faces away"]),
     ("mirror-size-negative", "build-T", _mirror(size_mm=[-70, 40]), ["system.mirrors.0", "size_mm"]),
@@ -503,3 +507,15 @@ def test_faces_split_past_what_any_camera_resolves_are_refused_by_key(tmp_path, 
     text = " ".join(r.output.split())
     assert "subject.refine_faces" in text and "Traceback" not in text
 
+
+def test_a_projector_direction_of_absurd_length_is_refused():
+    """calibrate's simulated projector with up = [1e300, 0, 0] stopped in the pose solver with
+    non-finite residuals (exit 1): every direction is now checked as the camera's is."""
+    from pydantic import ValidationError
+
+    from fluxcli.config import ProjectorPose
+
+    ok = ProjectorPose(center_mm=(0, -200, 150), look=(0, 200, -140), up=(-1e-9, 0, 0))  # small is fine
+    assert ok.up == (-1e-9, 0, 0)
+    with pytest.raises(ValidationError, match="up is a direction: give it components of ordinary size"):
+        ProjectorPose(center_mm=(0, -200, 150), look=(0, 200, -140), up=(1e300, 0, 0))
