@@ -154,3 +154,67 @@ def test_no_hostile_value_of_a_capture_or_rig_key_is_a_bug(tmp_path):
                         [("capture-surface",)] * 3, first=("capture-surface",), options=("-q", "--force"),
                         too_long={"repeats": 100, "darks": 100})  # 1e5 frames: legal, an hour
     assert not bugs, "\n\n".join(bugs)
+
+
+@pytest.mark.slow
+def test_no_hostile_study_file_or_damaged_reconstruction_is_a_bug(tmp_path):
+    """``fluxmap study`` on a study file with every leaf set to each hostile value (and a few
+    path-like ones), then on a reconstruction.h5 with each dataset, each group's attributes
+    and each root attribute deleted in turn, through summary, report and study.  This found
+    a subject with sessions by day and by date stopping in the page's plot, and h5py's
+    KeyError from every reader on a name missing inside a group (exit 1).  ~9 min on 2 busy cores."""
+    import h5py
+
+    runner = CliRunner()
+    cfg = tiny_config(tmp_path)
+    cfg["workdir"] = str(tmp_path / "run")
+    cfg["rois"] = [{"name": "top", "kind": "box", "min_mm": [-20, -20, 12], "max_mm": [20, 20, 40]},
+                   {"name": "half", "kind": "threshold", "fraction": 0.5}]
+    cfg["report"] = {"title": "fuzz"}
+    p = tmp_path / "c.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    for stage in ("build-T", "simulate", "reconstruct"):
+        r = runner.invoke(app, [stage, str(p), "-q"])
+        assert r.exit_code == 0, r.output
+    shutil.copytree(tmp_path / "run", tmp_path / "good")
+    study = {"title": "t", "output": "out", "rois": ["top", "half"], "sessions": [
+        {"artefact": "run/reconstruction.h5", "subject": "a", "day": 1, "filter": "F1", "label": "x"},
+        {"artefact": "good/reconstruction.h5", "subject": "a", "day": 2.5, "filter": "F1"},
+        {"artefact": "good/reconstruction.h5", "subject": "b", "date": "2026-11-20", "filter": "F2"}]}
+    s = tmp_path / "study.yaml"
+    bugs = []
+
+    def check(tag, args):
+        r = runner.invoke(app, args)
+        if r.exit_code not in (0, 2):
+            bugs.append(f"{tag}: exit {r.exit_code}\n{r.output[-800:]}")
+
+    s.write_text(yaml.safe_dump(study))
+    assert runner.invoke(app, ["study", str(s), "-q"]).exit_code == 0
+    for path, _ in list(leaves(study)):
+        for value in HOSTILE + ["", "/dev/null", "run", "2026-02-30", "x" * 5000]:
+            c = copy.deepcopy(study)
+            node = c
+            for k in path[:-1]:
+                node = node[k]
+            node[path[-1]] = value
+            s.write_text(yaml.safe_dump(c))
+            check(f"{'.'.join(map(str, path))} = {value!r}"[:120], ["study", str(s), "-q"])
+    s.write_text(yaml.safe_dump(study))
+
+    names = []
+    with h5py.File(tmp_path / "good" / "reconstruction.h5") as f:
+        f.visit(names.append)
+        root = list(f.attrs)
+    edits = [(f"no {n}", lambda f, n=n: f.__delitem__(n) if n in f else None) for n in names]
+    edits += [(f"no attributes of {n}", lambda f, n=n: [f[n].attrs.__delitem__(a) for a in list(f[n].attrs)] if n in f else None)
+              for n in names]
+    edits += [(f"no root attribute {a}", lambda f, a=a: f.attrs.__delitem__(a)) for a in root]
+    for tag, edit in edits:
+        shutil.rmtree(tmp_path / "run")
+        shutil.copytree(tmp_path / "good", tmp_path / "run")
+        with h5py.File(tmp_path / "run" / "reconstruction.h5", "r+") as f:
+            edit(f)
+        for args in (["summary", str(p), "-q"], ["report", str(p), "-q"], ["study", str(s), "-q"]):
+            check(f"reconstruction.h5 with {tag} -> {args[0]}", args)
+    assert not bugs, "\n\n".join(bugs)
