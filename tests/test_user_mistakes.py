@@ -432,13 +432,20 @@ MISTAKES = [
     ("report-slice-outside", "report", _set("report.slice_axial_mm=1000"), ["report.slice_axial_mm", "1000"]),
     ("report-config-changed", "report", _report_changed, ["reconstruction.h5", "system.camera.lens.f_number"]),
     ("report-corrupt-reconstruction", "report", _own_run(_garbage("reconstruction.h5")), ["reconstruction.h5"]),
-    # a dataset or an attribute missing inside a group (an edited file, another tool's): the readers
-    # met h5py's KeyError (exit 1); any name at any depth is now named with the file
-    ("report-reconstruction-lacks-a-dataset", "report", _own_run(_h5_edit("reconstruction.h5", "del f['budget/sigma']")),
+    # a dataset or an attribute missing inside a group (another tool's file, or one sealed by no digest):
+    # the readers met h5py's KeyError (exit 1); any name at any depth is now named with the file
+    ("report-reconstruction-lacks-a-dataset", "report",
+     _own_run(_h5_edit("reconstruction.h5", "del f['budget/sigma']; del f.attrs['results_sha256']")),
      ["reconstruction.h5 is incomplete: it has no dataset 'budget/sigma'", "fluxmap reconstruct"]),
     ("summary-reconstruction-lacks-an-attribute", "summary",
-     _own_run(_h5_edit("reconstruction.h5", "del f['budget'].attrs['labels']")),
+     _own_run(_h5_edit("reconstruction.h5", "del f['budget'].attrs['labels']; del f.attrs['results_sha256']")),
      ["reconstruction.h5 is incomplete: it has no attribute 'labels' of 'budget'"]),
+    # and a sealed one edited after it was written (a pose's numbers one short: the report's
+    # figures met arrays of different lengths, exit 1) is refused by its seal before anything is read
+    ("report-reconstruction-edited", "report",
+     _own_run(_h5_edit("reconstruction.h5", "d = f['per_pose/total'][()]; del f['per_pose/total']; "
+                                            "f['per_pose/total'] = d[:-1]")),
+     ["reconstruction.h5 was changed after it was written", "fluxmap reconstruct"]),
 ]
 
 

@@ -25,7 +25,9 @@ from .store import Provenance, open_artefact, write_artefact
 
 KIND = "reconstruction"
 FILENAME = "reconstruction.h5"
-SEALED = ("flux", "per_pose", "rois", "surface", "truth", "filters")  # fluxmap study refuses a file changed after writing
+# every group and dataset reconstruct writes: every reader refuses a file changed after writing
+SEALED = ("flux", "per_pose", "rois", "surface", "truth", "filters", "fit", "budget", "emission", "geometry", "sweep",
+          "warnings")
 
 
 @dataclass

@@ -33,6 +33,7 @@ import numpy as np
 from .. import __version__
 from ..errors import UserError
 from .atomic import atomic_path
+from .digest import unchanged
 from .kinds import KINDS, SCHEMA_VERSIONS
 
 
@@ -310,6 +311,11 @@ def open_artefact(path: Path, kind: str, *, check: bool = True) -> ArtefactFile:
             f.close()
             raise UserError(f"artefact {path} is incomplete: it has no dataset '{missing[0]}'"
                             + (f" (nor {len(missing) - 1} other(s))" if len(missing) > 1 else "") + f"; {remedy}.")
+    if check and unchanged(f) is False:  # sealed when written (reconstruction.h5), and edited since
+        made_by = spec.made_by if spec is not None else "the stage that made it"
+        f.close()
+        raise UserError(f"artefact {path} was changed after it was written: its results no longer match the digest "
+                        f"{made_by} recorded when it made it. Refusing it; make it again with '{made_by}'.")
     return f
 
 
