@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -248,6 +249,31 @@ def test_reconstruct_from_the_capture_recovers_the_total(reference, tmp_path):
     r = run("reconstruct", p, "--force")
     text = " ".join(r.output.split())
     assert r.exit_code == 2 and "[0.0, 1.0]" in text and "[0.0, 10.0]" in text
+
+
+@pytest.mark.parametrize("damage, words", [
+    ("d = f['plan/height_mm'][()]; del f['plan/height_mm']; f['plan/height_mm'] = d[:-1]",
+     "plan/height_mm holds 17 frames but frames/committed 18"),
+    ("f['frames/em_gain'][3] = float('nan')", "frames/em_gain[3] is nan, not an EM gain of at least 1"),
+    ("f['frames/stage_height_mm'][5] = float('inf')", "frames/stage_height_mm[5] is inf, not a finite height"),
+    ("f['plan/height_mm'][:] = 7.0", "its plan names height 0 mm, but no light frame"),
+])
+def test_a_damaged_capture_exits_2_naming_what_is_wrong(reference, tmp_path, damage, words):
+    """A capture whose per-frame datasets disagree in length, or whose read-back settings no
+    camera gives (NaN gain), stopped inside the reader with an index or broadcast error, or
+    in the EMCCD model (exit 1; found by fuzzing capture.h5)."""
+    cfg, ref_path = reference
+    shutil.copytree(ref_path.parent, tmp_path / "run", ignore=shutil.ignore_patterns("reconstruction*", "report"))
+    cfg = copy.deepcopy(cfg)
+    cfg["workdir"] = str(tmp_path / "run")
+    cfg["reconstruct"] = {"images": {"capture": "capture.h5", "filter": "open"}}
+    p = tmp_path / "cfg.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    with h5py.File(tmp_path / "run" / "capture.h5", "r+") as f:
+        exec(damage, {"f": f})
+    r = run("reconstruct", p)
+    text = " ".join(r.output.split())
+    assert r.exit_code == 2 and "is damaged" in text and words in text, r.output
 
 
 def test_counts_to_photons_subtracts_the_dark_level_without_bias():

@@ -393,6 +393,35 @@ class CaptureImages:
         return order
 
 
+_READ_BACK = {  # what a frame's read-back value must be, by name: (test, in words)
+    "stage_height_mm": (np.isfinite, "a finite height"),
+    "height_mm": (np.isfinite, "a finite height"),
+    "exposure_s": (lambda x: np.isfinite(x) & (x > 0), "a positive exposure"),
+    "em_gain": (lambda x: np.isfinite(x) & (x >= 1), "an EM gain of at least 1"),
+}
+
+
+def _frame_table(f: h5py.File, path: Path, names: list[str]) -> None:
+    """The per-frame datasets ``names`` (``frames/counts``, ``plan/height_mm``, ...) hold one
+    entry per frame each, and the read-back settings are numbers a camera and a stage can
+    give; else UserError naming the dataset (a file damaged, or not written by
+    capture-surface: the readers below index one by another)."""
+    lengths = {n: f[n].shape[0] if f[n].ndim else 1 for n in names}
+    first = names[0]
+    for n, k in lengths.items():
+        if k != lengths[first]:
+            raise UserError(f"capture {path} is damaged: {n} holds {k} frames but {first} {lengths[first]}; each "
+                            "per-frame dataset holds one entry per frame. Take the capture again.")
+    for n in names:
+        test = _READ_BACK.get(n.rsplit("/", 1)[-1])
+        if test is not None:
+            x = f[n][()].astype(float)
+            bad = np.flatnonzero(~test[0](x))
+            if bad.size:
+                raise UserError(f"capture {path} is damaged: {n}[{bad[0]}] is {x[bad[0]]:g}, not {test[1]}"
+                                + (f" ({bad.size} such frames)" if bad.size > 1 else "") + ". Take the capture again.")
+
+
 def read_capture(path: Path, filter: str | None = None, exposure_s: float | None = None) -> CaptureImages:
     """Read a complete capture: per planned height the mean of its light frames for ``filter``
     at ``exposure_s``, and the mean of the dark frames at that exposure.
@@ -402,6 +431,8 @@ def read_capture(path: Path, filter: str | None = None, exposure_s: float | None
     path = Path(path)
     with open_artefact(path, KIND) as f:
         plan = json.loads(f.attrs["plan"])
+        _frame_table(f, path, ["frames/committed", "frames/counts", "frames/stage_height_mm", "frames/em_gain",
+                               "plan/height_mm", "plan/filter", "plan/exposure_s", "plan/dark"])
         committed = f["frames/committed"][()].astype(bool)
         if not committed.all():
             raise UserError(f"capture {path} is incomplete: {committed.sum()} of {committed.size} frames; finish it "
@@ -423,6 +454,10 @@ def read_capture(path: Path, filter: str | None = None, exposure_s: float | None
         mean, mx, read, used = [], [], [], []
         for h in heights:
             sel = np.flatnonzero(~dark & (pf == filter) & (ph == h) & (pe == exposure_s))
+            if not sel.size:
+                raise UserError(f"capture {path} is damaged: its plan names height {h:g} mm, but no light frame of "
+                                f"filter {filter!r} at {exposure_s:g} s lies there (plan/height_mm). Take the "
+                                "capture again.")
             stack = counts[sel[0]:sel[-1] + 1][sel - sel[0]]
             mean.append(stack.astype(float).mean(axis=0))
             mx.append(stack.max(axis=0))
@@ -483,6 +518,8 @@ def read_patterns(path: Path) -> PatternCapture:
         g = _complete_group(f, path, "patterns", "pattern frames",
                             f"capture {path} holds no structured-light pattern frames (capture.surface was not set "
                             "when it was taken); capture them with 'fluxmap capture-surface CONFIG --force'.")
+        _frame_table(f, path, [f"patterns/{n}" for n in ("committed", "counts", "projector", "pattern_index",
+                                                          "em_gain", "exposure_s", "stage_height_mm")])
         proj = np.char.decode(g["projector"][()])
         order = g["pattern_index"][()]
         counts = g["counts"][()]
@@ -536,6 +573,8 @@ def read_calibration(path: Path) -> CalibrationCapture:
         g = _complete_group(f, path, "calibration", "calibration frames",
                             f"capture {path} holds no calibration frames (capture.calibration was not set when it "
                             "was taken); take them with 'fluxmap capture-surface CONFIG' and capture.calibration.")
+        _frame_table(f, path, [f"calibration/{n}" for n in ("committed", "counts", "kind", "series", "exposure_s",
+                                                             "em_gain", "stage_height_mm")])
         kind = np.char.decode(g["kind"][()])
         series = g["series"][()]
         counts = g["counts"]
