@@ -135,6 +135,31 @@ def test_subject_surface_artefact_names_the_key_when_the_file_is_another_kind(tm
         placer_of(load_config(write_config(minimal_config)))
 
 
+@pytest.mark.parametrize("edit, words", [
+    (lambda f: _replace(f, "surface/element_of_face", f["surface/element_of_face"][()][:-1]),
+     r"79 element number\(s\) for 80 faces"),
+    (lambda f: f["surface"].attrs.__setitem__("n_elements", 3), r"its faces name elements 0 to 47, but it has 3"),
+    (lambda f: _replace(f, "surface/faces", f["surface/faces"][()][:-1]), r"80 element number\(s\) for 79 faces"),
+])
+def test_a_captured_surface_whose_parts_disagree_is_named(tmp_path, write_config, minimal_config, edit, words):
+    """A surface.h5 whose faces and element numbers disagree (an edited file, another tool's)
+    stopped inside the mesh check with a broadcast error (exit 1; found by fuzzing it)."""
+    from fluxcli.config import load_config
+    from fluxcli.stages.plans import placer_of
+
+    path = ASF.write(tmp_path / "surface.h5", ASF.CapturedSurface(_sphere()))
+    with h5py.File(path, "r+") as f:
+        edit(f)
+    minimal_config["subject"]["surface"] = {"artefact": str(path)}
+    with pytest.raises(UserError, match=r"subject\.surface\.artefact: .*surface\.h5: " + words):
+        placer_of(load_config(write_config(minimal_config)))
+
+
+def _replace(f, name, data):
+    del f[name]
+    f[name] = data
+
+
 def test_a_tetmesh_reads_back_and_a_foreign_file_is_refused(tmp_path):
     mesh = AM.TetMesh(np.random.default_rng(4).normal(size=(9, 3)), np.arange(12).reshape(3, 4) % 9)
     back = AM.read(AM.write(tmp_path / "m.h5", mesh))

@@ -313,6 +313,10 @@ MISTAKES = [
      ["subject.surface.mesh", "m.ply", "vertex index 7"]),
     ("mesh-zero-area-element", "build-T", _mesh(TETRA + [[5, 5, 5]], TETRA_FACES + [[4, 4, 4]], [0, 1, 2, 3, 4]),
      ["m.ply", "element 4 has zero area"]),
+    # a vertex beyond 1 km: the weld's tolerance grew with it and every element was called "zero area"
+    # (1e9), or scipy's k-d tree overflowed (1e300)
+    ("mesh-vertex-beyond-1-km", "build-T", _mesh(TETRA[:3] + [[0, 0, 1e9]], TETRA_FACES),
+     ["subject.surface.mesh", "m.ply", "vertex 3 lies at", "more than 1 km"]),
     ("mesh-garbage", "build-T", _raw_mesh("this is not a mesh\n"), ["subject.surface.mesh", "m.ply"]),
     ("mesh-empty", "build-T", _raw_mesh(""), ["subject.surface.mesh", "m.ply"]),
     ("mesh-unknown-suffix", "build-T", _raw_mesh("x", name="m.xyz"), ["subject.surface.mesh", "m.xyz"]),

@@ -701,8 +701,23 @@ def validated(vertices_mm, faces, element_of_face, n_elements: int, *, name: str
     if bad.any():
         raise ValueError(f"{name}: {int(bad.sum())} vertex(es) have non-finite coordinates (first: vertex "
                          f"{int(np.argmax(bad))}: {v[np.argmax(bad)].tolist()})")
+    from ..config import MAX_LENGTH_MM
+
+    far = np.abs(v).max(axis=1, initial=0.0) > MAX_LENGTH_MM if v.ndim == 2 and len(v) else np.zeros(0, bool)
+    if far.any():
+        k = int(np.argmax(far))
+        raise ValueError(f"{name}: vertex {k} lies at {v[k].tolist()} mm, more than 1 km from the origin "
+                         f"({int(far.sum())} vertex(es) like it); coordinates are millimetres and at most "
+                         f"{MAX_LENGTH_MM:g} mm (a mesh in micrometres needs scale_to_mm)")
     if len(f) == 0:
         raise ValueError(f"{name} holds no surface triangles")
+    if eof.shape != (len(f),):
+        raise ValueError(f"{name}: {eof.size} element number(s) for {len(f)} faces; each face needs one")
+    if n_elements < 1 or eof.max() >= n_elements or eof.min() < -1:
+        raise ValueError(f"{name}: its faces name elements {int(eof.min())} to {int(eof.max())}, but it has "
+                         f"{n_elements} element(s) (numbered 0 to {n_elements - 1}; -1: a face of no element)")
+    if element_ids is not None and len(element_ids) != n_elements:
+        raise ValueError(f"{name}: {len(element_ids)} element id(s) for {n_elements} elements")
     out = (f < 0) | (f >= len(v))
     if out.any():
         k = int(np.argmax(out.any(axis=1)))
