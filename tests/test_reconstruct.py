@@ -307,6 +307,57 @@ def test_rates_are_fixed_at_reconstruct_time(write_config, patch_config, tmp_pat
     assert r.exit_code == 2 and "no exposure time" in " ".join(r.output.split())
 
 
+def test_image_files_that_record_their_exposure_give_the_rate(write_config, patch_config, tmp_path):
+    """Frames that record their exposure (fluxmap's own: rig snap, simulate's export; FITS
+    EXPTIME of camera software) make the rate when the config states none, and a stated
+    exposure they contradict, or poses at different exposures, exit 2 naming the file.  The
+    frames' exposure was ignored: a rig snap frame of 0.5 s was turned into photons/s at the
+    schema's 1 s, silently half the rate."""
+    from astropy.io import fits
+
+    from fluxcli.imaging.imagefiles import read_image
+
+    cfg = copy.deepcopy(patch_config)
+    cfg["simulate"]["noise"] = {"model": "poisson", "peaks_photons": [1e5], "repeats": 1, "seed": 4, "exposure_s": 0.5}
+    cfg["simulate"]["export"] = {"format": "tiff"}
+    p = write_config(cfg)
+    assert run("simulate", p, "--quiet").exit_code == 0
+    tifs = [f"run/images/level0/h{h:+g}_rot0_rep0.tif" for h in (0, 8)]
+    cfg["reconstruct"] = {"images": {"files": tifs}}
+    p = write_config(cfg)
+    r = run("reconstruct", p, "--quiet")
+    assert r.exit_code == 0, r.output
+    with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
+        assert f.attrs["rate_exposure_s"] == 0.5 and f.attrs["rate_exposure_source"] == "image files' metadata"
+        total = float(np.nansum(f["per_pose/total"][()][0]))
+    r = run("summary", p)
+    assert r.exit_code == 0 and "exposure 0.5 s" in r.output and f"{total / 0.5:.4g}" in r.output, r.output
+
+    cfg["reconstruct"]["images"]["exposure_s"] = 30.0
+    r = run("reconstruct", write_config(cfg), "--quiet", "--force")
+    text = " ".join(r.output.split())
+    assert r.exit_code == 2 and "files[0]" in text and "h+0_rot0_rep0.tif) was exposed for 0.5 s (fluxmap:exposure_s" in text
+    assert "reconstruct.images.exposure_s is 30 s" in text and "off by 60x" in text
+
+    # camera software's FITS (EXPTIME, written by astropy here): its exposure, and one per scene
+    for k, (tif, t) in enumerate(zip(tifs, (2.0, 2.0))):
+        img, _ = read_image(tmp_path / tif)
+        fits.PrimaryHDU(img.astype(np.float32), header=fits.Header({"EXPTIME": t})).writeto(tmp_path / f"p{k}.fits")
+    cfg["reconstruct"]["images"] = {"files": ["p0.fits", "p1.fits"]}
+    assert run("reconstruct", write_config(cfg), "--quiet", "--force").exit_code == 0
+    with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
+        assert f.attrs["rate_exposure_s"] == 2.0
+    cfg["reconstruct"]["images"] = {"files": ["p0.fits", tifs[1]]}
+    r = run("reconstruct", write_config(cfg), "--quiet", "--force")
+    text = " ".join(r.output.split())
+    assert r.exit_code == 2 and "was exposed for 0.5 s (fluxmap:exposure_s) but reconstruct.images.files[0] for 2 s" in text
+    fits.PrimaryHDU(img.astype(np.float32), header=fits.Header({"EXPTIME": -1.0})).writeto(tmp_path / "bad.fits")
+    cfg["reconstruct"]["images"] = {"files": ["p0.fits", "bad.fits"]}
+    assert run("reconstruct", write_config(cfg), "--quiet", "--force").exit_code == 0  # EXPTIME -1 is no measurement
+    with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
+        assert f.attrs["rate_exposure_s"] == 2.0  # p0's
+
+
 def test_faces_split_finer_keep_the_elements_and_their_geometry():
     """subject.refine_faces splits every face into four at its edge midpoints; the elements (what is
     reported) keep their areas, centroids and normals, written out here for the box's flat faces:

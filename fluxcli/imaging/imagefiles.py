@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 
-__all__ = ["SUFFIXES", "read_image", "sample_type", "write_image"]
+__all__ = ["SUFFIXES", "read_image", "recorded_exposure_s", "sample_type", "write_image"]
 
 SUFFIXES = (".tif", ".tiff", ".fits", ".exr")
 """File name suffixes :func:`write_image` can write (case-insensitive)."""
@@ -359,3 +359,27 @@ def sample_type(path) -> str:
         if fmt == t:
             return name
     return str(fmt)
+
+
+# Where a file records its exposure time (s): fluxmap's own frames (``rig snap``), FITS EXPTIME /
+# EXPOSURE (Andor Solis, PVCAM and most astronomy-derived camera software), TIFF EXIF ExposureTime.
+EXPOSURE_KEYS = ("fluxmap:exposure_s", "ExposureTime", "Exptime", "Exposure")
+
+
+def recorded_exposure_s(metadata: dict) -> tuple[float, str] | None:
+    """(exposure in s, the metadata key that records it) of an image's metadata (what
+    :func:`read_image` returns), or None when it records none.  A key that holds no positive
+    finite number (EXPTIME = 0 of a synthetic FITS, text) records none: it can only be trusted
+    as a measurement."""
+    lower = {k.lower(): k for k in metadata}
+    for key in EXPOSURE_KEYS:
+        name = lower.get(key.lower())
+        if name is None:
+            continue
+        try:
+            t = float(metadata[name])
+        except (TypeError, ValueError):
+            continue
+        if np.isfinite(t) and t > 0:
+            return t, name
+    return None

@@ -31,6 +31,7 @@ class Inputs:
     noise_kind: str = "poisson"  # how the images are noisy: gaussian | poisson | emccd
     exposure_s: float = 1.0
     frames_averaged: int = 1
+    exposure_recorded: bool = False  # exposure_s is what the image files record (not the config's default)
 
 
 def simulation_path(im) -> Path:
@@ -125,26 +126,29 @@ def _image_files(plan_im, n_poses: int, poses: list | None) -> Inputs:
     if len(plan_im.files) != n_poses:
         raise UserError(f"reconstruct.images.files: {len(plan_im.files)} file(s) for {n_poses} pose(s) "
                         "(one file per pose, in subject.poses order: heights x rotations).")
+    read = []
+    for k, p in enumerate(plan_im.files):
+        try:
+            read.append(read_image(p))
+        except ValueError as e:
+            raise UserError(f"reconstruct.images.files[{k}]: {e}") from None
+    exposure_s, recorded = _exposure_of(plan_im, [meta for _, meta in read])
     model = None
     if im.units == "counts":
         if not plan_im.sensor_given:
             raise UserError("reconstruct.images.units is counts, but system.camera.sensor is not given: converting "
                             "counts to photons needs the camera's bias, gain and quantum efficiency (give "
                             "system.camera.sensor, or images in photons).")
-        model = emccd_model(plan_im.sensor, im.exposure_s)
+        model = emccd_model(plan_im.sensor, exposure_s)
     maps = {} if plan_im.calibration is None else read_radiometric_maps(  # per-pixel bias, dark, flat (radiometry)
         plan_im.calibration, "reconstruct.images.calibration", (ny, nx))
     imgs, valid = [], []
-    for k, p in enumerate(plan_im.files):
+    for k, (p, (img, meta)) in enumerate(zip(plan_im.files, read)):
         where = f"reconstruct.images.files[{k}] ({p})"
-        try:
-            img, meta = read_image(p)
-        except ValueError as e:
-            raise UserError(f"reconstruct.images.files[{k}]: {e}") from None
         if img.shape != (ny, nx):
             raise UserError(f"{where} is {img.shape[1]} x {img.shape[0]} pixels; the camera has {nx} x {ny} "
                             "(system.camera.pixels).")
-        said = meta.get("fluxmap:units")
+        said = meta.get("fluxmap:units", meta.get("fluxmap:unit"))  # 'unit': frames of rig snap before 27 Nov 2026
         stored = sample_type(p)
         if im.units == "photons" and stored.startswith(("uint", "int")) and not isinstance(said, str):
             raise UserError(f"{where} stores {stored} integers, which are camera counts, but reconstruct.images.units "
@@ -182,7 +186,41 @@ def _image_files(plan_im, n_poses: int, poses: list | None) -> Inputs:
         valid.append(ok)
     files = {f"image pose {k}": p for k, p in enumerate(plan_im.files)}
     return Inputs(np.array(imgs), np.array(valid), None, "files", files=files,
-                  noise_kind="emccd" if model is not None else "poisson", exposure_s=im.exposure_s)
+                  noise_kind="emccd" if model is not None else "poisson", exposure_s=exposure_s,
+                  exposure_recorded=recorded)
+
+
+def _exposure_of(plan_im, metas: list[dict]) -> tuple[float, bool]:
+    """The images' exposure (s) and whether the files record it: what they record (fluxmap's
+    own frames, FITS EXPTIME, TIFF ExposureTime), which a stated reconstruct.images.exposure_s
+    must match; else the config's.  A rate must not rest on a config default the frames
+    contradict, nor poses taken at different exposures be fitted as one scene."""
+    from ..imaging.imagefiles import recorded_exposure_s
+    from .outputs import reconstruction_exposure_s
+
+    im = plan_im.source
+    stated = reconstruction_exposure_s(im, None)  # None: the config does not state it
+    got = []
+    for k, (p, meta) in enumerate(zip(plan_im.files, metas)):
+        r = recorded_exposure_s(meta)
+        if r is None:
+            continue
+        t, key = r
+        if stated is not None and abs(t - stated) > 1e-6 * stated:
+            raise UserError(f"reconstruct.images.files[{k}] ({p}) was exposed for {t:g} s ({key} in its metadata), but "
+                            f"reconstruct.images.exposure_s is {stated:g} s: every rate (photons/s) would be off by "
+                            f"{stated / t:.3g}x. Give the exposure the frames were taken at, or leave the key out to "
+                            "take the frames'.")
+        if got and abs(t - got[0][0]) > 1e-6 * t:
+            k0, t0, key0 = got[0][1], got[0][0], got[0][2]
+            raise UserError(f"reconstruct.images.files[{k}] ({p}) was exposed for {t:g} s ({key}) but "
+                            f"reconstruct.images.files[{k0}] for {t0:g} s ({key0}): the poses are fitted as one scene "
+                            "of photons per exposure, so they need one exposure. Scale the images to one exposure "
+                            "and give it as reconstruct.images.exposure_s.")
+        got.append((t, k, key))
+    if stated is not None or not got:
+        return float(im.exposure_s), False
+    return got[0][0], True
 
 
 

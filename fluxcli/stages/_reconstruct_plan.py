@@ -98,9 +98,10 @@ class ReconstructPlan:
         """A fresh provenance record of this run (the files read are added to it)."""
         return self.transfer.provenance(self.surface_sha256)
 
-    def rate_exposure_s(self, inp_exposure_s: float) -> float | None:
-        """The exposure that makes rates: a capture knows its frames', else as the config states it."""
-        return inp_exposure_s if self.images.is_capture else self.config_exposure_s
+    def rate_exposure_s(self, inp_exposure_s: float, recorded: bool = False) -> float | None:
+        """The exposure that makes rates: a capture knows its frames', image files that record
+        theirs (``recorded``) theirs, else as the config states it."""
+        return inp_exposure_s if self.images.is_capture or recorded else self.config_exposure_s
 
 
 def _image_sources(cfg: C.LoadedConfig, capture: Path | None) -> list[str]:

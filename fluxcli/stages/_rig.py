@@ -144,7 +144,7 @@ def write_frame(path: Path, counts: np.ndarray, camera, **metadata) -> Path:
     from ..imaging.imagefiles import write_image
 
     ident = camera.identity()
-    meta = {"fluxmap:unit": "counts", "fluxmap:exposure_s": float(camera.exposure_s),
+    meta = {"fluxmap:units": "counts", "fluxmap:exposure_s": float(camera.exposure_s),
             "fluxmap:em_gain": float(camera.em_gain), "fluxmap:binning": int(camera.binning),
             "fluxmap:temperature_c": float(camera.temperature_c), "fluxmap:camera": ident.model,
             "fluxmap:camera_serial": ident.serial}

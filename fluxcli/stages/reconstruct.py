@@ -71,7 +71,7 @@ def reconstruct(plan: ReconstructPlan, ctx: RunContext) -> Path:
                       plan.config_path, [pt.pose for _, pt in plan.todo])
     if plan.sweep is not None:
         check_sweep(plan.sweep, plan.images, inp)
-    t_rate = plan.rate_exposure_s(inp.exposure_s)
+    t_rate = plan.rate_exposure_s(inp.exposure_s, inp.exposure_recorded)
     rois = RoiMeter(plan.rois, plan.roi_mesh, surface, t_rate)  # regions of interest (issue 24): checked before T
     views, placer, todo, _ = plan.build_T(ctx, "building T", "elements")
     P = len(todo)
@@ -104,7 +104,7 @@ def reconstruct(plan: ReconstructPlan, ctx: RunContext) -> Path:
         noise_f = noise_of(plan, inp_f)  # its own exposure
         stray_f = [light_outside(Ts[k], inp_f.images[k], inp_f.valid[k], noise_f, pt.pose.label, surface)
                    for k, (_, pt) in enumerate(todo)]
-        meter = RoiMeter(plan.rois, plan.roi_mesh, surface, plan.rate_exposure_s(inp_f.exposure_s))
+        meter = RoiMeter(plan.rois, plan.roi_mesh, surface, plan.rate_exposure_s(inp_f.exposure_s, inp_f.exposure_recorded))
         pp_f, joint_f = solve_poses(gm, inp_f, m, noise_f, stray_f, todo, (ny, nx), plan.joint, meter, t_f)
         others[name] = (inp_f, pp_f, joint_f, meter)
     seconds = time.perf_counter() - t0
@@ -157,8 +157,8 @@ def reconstruct(plan: ReconstructPlan, ctx: RunContext) -> Path:
             observation=np.array([r.observation for r, _ in checked])),
         fit=RA.Fit(inp.images, np.array([fi for _, fi in per_pose]), inp.valid),
         method=m.method, rate_exposure_s=t_rate,
-        rate_exposure_source=("capture.h5 frames" if plan.images.is_capture else "config" if t_rate is not None
-                              else "none"),
+        rate_exposure_source=("capture.h5 frames" if plan.images.is_capture else "image files' metadata"
+                              if inp.exposure_recorded else "config" if t_rate is not None else "none"),
         settings=m.model_dump(mode="json", by_alias=True), lambda_used=main.lam,
         seconds=A.recorded_seconds(seconds), truth=truth, emission=emission, warnings=warnings,
         write_budget=lambda g: RA.write_budget(g, budget), totals_summary=summary, sweep=sweep,

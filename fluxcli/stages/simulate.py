@@ -194,7 +194,9 @@ def _simulate(sp: SimulatePlan, ctx: RunContext) -> Path:
         config_sha256=fwd.config_sha256, inputs={f"T_fwd_{k}": pt.key for k, (_, pt) in enumerate(todo)},
         provenance=fwd.provenance)
     if sim.export.format != "none":
-        export_images(sim.export, sp.out.parent / "images", noisy, counts, todo, lv)
+        from .outputs import simulation_exposure_s
+
+        export_images(sim.export, sp.out.parent / "images", noisy, counts, todo, lv, simulation_exposure_s(sim))
     rows = [[pt.pose.height_mm, pt.pose.rotation_deg, *[f"{snr[li, k]:.1f}" for li in range(L)]]
             for k, (_, pt) in enumerate(todo)]
     ctx.table(["height_mm", "rotation_deg", *[f"SNR @ peak {x:.0e}" for x in lv]], rows)
@@ -206,8 +208,9 @@ def _recorded(notes: dict, ending: str) -> dict:
     return {k: (A.recorded_seconds(v) if k.endswith(ending) else v) for k, v in notes.items()}
 
 
-def export_images(export: C.Export, folder: Path, noisy, counts, todo, lv) -> None:
-    """One file per level, repeat and pose: counts as 16-bit TIFF (EMCCD) or photons as float."""
+def export_images(export: C.Export, folder: Path, noisy, counts, todo, lv, exposure_s: float | None = None) -> None:
+    """One file per level, repeat and pose: counts as 16-bit TIFF (EMCCD) or photons as float,
+    with the exposure the config states (``fluxmap:exposure_s``; reconstruct takes rates from it)."""
     suffix = ".tif" if export.format == "tiff" else ".fits"
     for li in range(noisy.shape[0]):
         for r in range(min(export.repeats, noisy.shape[1])):
@@ -216,6 +219,8 @@ def export_images(export: C.Export, folder: Path, noisy, counts, todo, lv) -> No
                 name.parent.mkdir(parents=True, exist_ok=True)
                 meta = {"fluxmap:height_mm": pt.pose.height_mm, "fluxmap:rotation_deg": pt.pose.rotation_deg,
                         "fluxmap:level_peak_photons": float(lv[li]), "fluxmap:repeat": r}
+                if exposure_s is not None:
+                    meta["fluxmap:exposure_s"] = float(exposure_s)
                 if counts is not None:
                     write_image(name, counts[li, r, k], metadata=meta | {"fluxmap:units": "counts"})
                 else:
