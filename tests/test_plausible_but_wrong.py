@@ -80,8 +80,16 @@ def test_artefacts_record_config_geometry_and_input_files(run, tmp_path):
     r, out = invoke("info", d / "run" / "reconstruction.h5")
     assert r.exit_code == 0
     for w in ("reconstruction artefact", "system.camera.lens.f_number: 4", "subject.poses.heights_mm: [0, 5]",
-              "simulation.h5", "flux/power", "photons per element"):
+              "simulation.h5", "flux/power", "photons per element", "seal: its results match the digest"):
         assert w in out, out
+    # an edited copy: info still describes it, and says its seal is broken
+    import shutil
+
+    shutil.copy(d / "run" / "reconstruction.h5", tmp_path / "edited.h5")
+    with h5py.File(tmp_path / "edited.h5", "r+") as f:
+        f["flux/power"][0] *= 2
+    r, out = invoke("info", tmp_path / "edited.h5")
+    assert r.exit_code == 0 and "SEAL BROKEN: its results were changed after it was written" in out, out
 
 
 # ------------------------------------------------------------------ image files

@@ -8,6 +8,7 @@ from pathlib import Path
 import h5py
 
 from ..errors import UserError
+from .digest import unchanged
 from .kinds import KINDS, SCHEMA_VERSIONS
 from .store import _show, canonical, read_provenance
 
@@ -62,6 +63,10 @@ def describe(path: Path | str) -> str:
                 lines.append(f"    system.mirrors: {len(mirrors)}")
         else:
             lines.append("  no geometry recorded (made by an older fluxmap)")
+        sealed = unchanged(f)
+        if sealed is not None:
+            lines.append("  seal: its results match the digest recorded when it was written" if sealed else
+                         "  SEAL BROKEN: its results were changed after it was written (readers refuse it)")
         if prov.input_files:
             lines.append("  made from:")
             for name, d in sorted(prov.input_files.items()):
