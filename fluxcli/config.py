@@ -974,12 +974,10 @@ class CaptureSurface(Model):
     mesh: SurfaceMesh = Field(SurfaceMesh(), description="From points to the closed surface.")
 
 
-class CalibrationGridCapture(Model):
-    """The calibration grid lying flat on the stage, one series of frames per stage height."""
+class CalibrationGridCapture(CalibrationGrid):
+    """The calibration grid lying flat on the stage, one series of frames per stage height (the
+    grid's kind, pitch_mm and shape as calibrate.grid's, checked alike)."""
 
-    kind: Literal["dots", "checkerboard"] = Field("dots", description="dots (a regular dot grid) or checkerboard (its inner corners are the points).")
-    pitch_mm: float = Field(gt=0, description="Distance between neighbouring grid points (mm).")
-    shape: tuple[int, int] = Field(description="Points along x and along y [nx, ny] (checkerboard: inner corners).")
     thickness_mm: float = Field(0.0, ge=0, description="Height of the printed grid surface above the stage top (mm): the grid plane is at z = system.stage.top_z_mm + stage height + thickness_mm.")
     heights_mm: tuple[float, ...] = Field(min_length=3, description="Stage heights (mm), five or more through and around focus; each frame records the height read back from the stage.")
     exposure_s: float = Field(0.1, gt=0, description="Exposure of a grid frame (s).")

@@ -212,7 +212,8 @@ def test_resume_refuses_another_calibration_plan_naming_it(calibrated, tmp_path)
     assert r.exit_code == 2 and "calibration series" in r.output, r.output
 
 
-@pytest.mark.parametrize("case", ["no_file", "no_calibration_frames", "height_outside_travel", "unknown_filter"])
+@pytest.mark.parametrize("case", ["no_file", "no_calibration_frames", "height_outside_travel", "unknown_filter",
+                                  "grid_of_no_points", "capture_records_a_grid_of_no_points"])
 def test_bad_calibration_input_exits_2_naming_the_key(tmp_path, case):
     cfg = _config(tmp_path)
     raw = yaml.safe_load(cfg.read_text())
@@ -233,6 +234,21 @@ def test_bad_calibration_input_exits_2_naming_the_key(tmp_path, case):
         cfg.write_text(yaml.safe_dump(raw))
         r = _run("capture-surface", cfg)
         key = "capture.calibration.grid.heights_mm"
+    elif case == "grid_of_no_points":  # the capture took it, then calibrate stopped on it (exit 1)
+        raw["capture"]["calibration"]["grid"]["shape"] = [0, 11]
+        cfg.write_text(yaml.safe_dump(raw))
+        r = _run("capture-surface", cfg)
+        key = "capture.calibration.grid.shape"
+    elif case == "capture_records_a_grid_of_no_points":  # a capture made before the grid was checked
+        import json
+
+        import h5py
+
+        assert _run("capture-surface", cfg).exit_code == 0
+        with h5py.File(tmp_path / "out" / "capture.h5", "r+") as f:
+            f["calibration"].attrs["grid"] = json.dumps(json.loads(f["calibration"].attrs["grid"]) | {"shape": [0, 11]})
+        r = _run("calibrate", cfg)
+        key = "calibrate.capture: " + str(tmp_path / "out" / "capture.h5") + " records a grid that cannot be detected"
     else:
         raw["capture"]["calibration"]["filter"] = "nope"
         cfg.write_text(yaml.safe_dump(raw))

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from pydantic import ValidationError
 
 from .. import artefacts as A
 from .. import config as C
@@ -163,7 +164,13 @@ def _from_capture(path: Path, sec: C.Calibrate, shape) -> GridSource:
                         "set); leave calibrate.grid out for a radiometric calibration from it.")
     grid = sec.grid
     if grid is None and cal.grid is not None:
-        grid = C.CalibrationGrid(kind=cal.grid["kind"], pitch_mm=cal.grid["pitch_mm"], shape=tuple(cal.grid["shape"]))
+        try:
+            grid = C.CalibrationGrid(kind=cal.grid.get("kind"), pitch_mm=cal.grid.get("pitch_mm"),
+                                     shape=tuple(cal.grid.get("shape") or ()))
+        except ValidationError as e:  # a capture from before its grid was checked, or edited since
+            why = "; ".join(f"{'.'.join(map(str, x['loc']))}: {x['msg'].removeprefix('Value error, ')}" for x in e.errors())
+            raise UserError(f"calibrate.capture: {path} records a grid that cannot be detected ({why}); give the "
+                            "printed grid as calibrate.grid, or take the calibration frames again.") from None
     heights = cal.grid_plane_z_mm() if grid is not None else []
     labels = [f"{path} (stage at {h:.4g} mm)" for h in cal.grid_stage_mm]
     keys = [f"calibrate.capture, grid frames at stage height {h:.4g} mm" for h in cal.grid_stage_mm]
