@@ -381,5 +381,7 @@ def recorded_exposure_s(metadata: dict) -> tuple[float, str] | None:
         except (TypeError, ValueError):
             continue
         if np.isfinite(t) and t > 0:
+            if key != "fluxmap:exposure_s":  # OpenImageIO keeps these as float32: 0.3 reads 0.30000001
+                t = float(f"{t:.7g}")
             return t, name
     return None
