@@ -89,6 +89,12 @@ def truth_fine(truth: TruthPlan, surface: Surface) -> tuple[np.ndarray, np.ndarr
         d2 = ((fine.element_centroids_mm - centre) ** 2).sum(axis=1)
         p = np.exp(-d2 / (2 * flux.width_mm**2)) * fine.element_areas_mm2
         per_element = np.bincount(parent, weights=p, minlength=surface.n_elements)
+        if not per_element.max() > 0:  # every face beyond ~38 widths of the centre: exp underflows to 0
+            near = float(np.sqrt(d2.min()))
+            raise UserError(f"simulate.flux: the gaussian of width_mm {flux.width_mm:g} centred at "
+                            f"{np.round(centre, 3).tolist()} mm puts no light on the surface (its nearest face is "
+                            f"{near:.3g} mm away, {near / flux.width_mm:.3g} widths); move center_mm onto the "
+                            "subject's surface or widen width_mm.")
         return p * flux.peak_photons / per_element.max(), parent, {"center_mm": centre.tolist(),
                                                                    "truth_refinement": levels}
     if isinstance(flux, C.DiffusionFlux):

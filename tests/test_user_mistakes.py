@@ -345,6 +345,9 @@ MISTAKES = [
     ("flux-file-two-columns", "simulate", _flux_file_raw("flux.csv", lambda p: p.write_text("1,2\n" * 24)),
      ["simulate.flux.path", "flux.csv", "line 1 holds 2 values", "one value per line"]),
     ("flux-width-zero", "simulate", _cfg("simulate.flux.width_mm", 0), ["simulate.flux", "width_mm"]),
+    # a gaussian that reaches no face: its truth was 0/0 and the error blamed the noise level
+    ("flux-gaussian-off-the-surface", "simulate", _cfg("simulate.flux.center_mm", [1e5, 0, 0]),
+     ["simulate.flux", "puts no light on the surface", "center_mm"]),
     # lengths beyond 1 km: their squares overflowed inside the ray tracer (found by fuzzing every key)
     ("flux-width-absurd", "simulate", _cfg("simulate.flux.width_mm", 1e300), ["simulate.flux.width_mm", "1 km"]),
     ("phantom-too-fine", "build-T", _set("subject.surface={phantom: cylinder, n_angular: 10000000, n_axial: 3}"),

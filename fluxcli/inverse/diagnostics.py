@@ -225,6 +225,8 @@ def angle_structure(measured: np.ndarray, model: np.ndarray, variance: np.ndarra
     a, m, var, x = a[ok], m[ok], var[ok], x[ok]
     e = (a - m) / m
     w = m * m / var
+    if not (np.isfinite(w.sum()) and w.sum() > 0):  # weights that overflow (absurd signals): no test
+        return None
     order = np.argsort(x)
     cw = np.cumsum(w[order]) / w.sum()
     lo, hi = float(x[order][np.searchsorted(cw, 0.1)]), float(x[order][min(np.searchsorted(cw, 0.9), len(x) - 1)])
