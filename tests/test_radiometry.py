@@ -420,6 +420,33 @@ def test_fluxmap_calibrate_radiometric_cli(tmp_path):
     assert r.exit_code == 2 and "system.camera.pixels" in out and "bias_0.tif" in out
 
 
+
+def test_an_edited_calibration_is_refused_by_the_report_and_by_reconstruct(tmp_path):
+    """calibration.h5 is sealed when calibrate writes it: a flat map edited afterwards (the maps
+    reconstruct divides by) is refused, naming the file, by the report and by reconstruct's
+    map reader; a file of another tool with only /radiometric (no seal) is still read."""
+    from fluxcli.errors import UserError
+    from fluxcli.stages._radiometric import read_radiometric_maps
+
+    work = ["--set", f"workdir={tmp_path / 'calib'}"]
+    assert _run("calibrate", str(SAMPLE_CONFIG), "--quiet", *work).exit_code == 0
+    path = tmp_path / "calib" / "calibration.h5"
+    assert _run("report", str(SAMPLE_CONFIG), "--quiet", *work).exit_code == 0
+    assert read_radiometric_maps(path, "reconstruct.images.calibration", (64, 64))["flat_map"] is not None
+    with h5py.File(path, "r+") as f:
+        f["radiometric/flat_map"][0, 0] *= 1.5
+    r = _run("report", str(SAMPLE_CONFIG), "--quiet", *work)
+    out = " ".join(r.output.split())
+    assert r.exit_code == 2 and "calibration.h5 was changed after it was written" in out, r.output
+    with pytest.raises(UserError, match=r"reconstruct\.images\.calibration: .*calibration\.h5 was changed after "
+                                        r"'fluxmap calibrate' wrote it"):
+        read_radiometric_maps(path, "reconstruct.images.calibration", (64, 64))
+    with h5py.File(path, "r+") as f:  # as another tool would write it: the maps, no seal
+        for a in ("results_sha256", "results_sha256_groups", "results_sha256_version"):
+            del f.attrs[a]
+    assert read_radiometric_maps(path, "reconstruct.images.calibration", (64, 64))["flat_map"][0, 0] > 0
+
+
 def test_a_low_gain_register_matches_an_independent_branching_simulator():
     """At EM gain 3 an ideal register's excess noise factor is F² = 2 − 1/G = 1.667, a sixth below the
     high-gain 2. emccd-detect's exact 604-stage branching register (not fluxmap's code) has

@@ -16,7 +16,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .store import Provenance, write_artefact
+from .digest import seal
+from .store import Provenance, open_artefact, write_artefact
 
 KIND = "calibration"
 FILE_NAME = "calibration.h5"  # in the workdir
@@ -63,6 +64,11 @@ class Calibration:
     projectors: list = field(default_factory=list)  # fluxcli.calibration.projectors.ProjectorFit
 
 
+# what calibrate writes: the report, reconstruct's maps and the camera it describes rest on it, so
+# a reader refuses it once edited (a file of other tools with only /radiometric has no seal)
+SEALED = ("camera_yaml", "geometric", "mirrors", "radiometric", "projectors")
+
+
 def write(path: Path, cal: Calibration, *, config_sha256: str, provenance: Provenance) -> Path:
     """Write ``cal`` to ``path`` atomically (the layout the readers and kinds.py expect)."""
     with write_artefact(path, KIND, config_sha256=config_sha256, provenance=provenance) as f:
@@ -79,6 +85,7 @@ def write(path: Path, cal: Calibration, *, config_sha256: str, provenance: Prove
             write_radiometric(f.create_group(RADIOMETRIC_GROUP), cal.radiometric)
         if cal.projectors:
             _write_projectors(f.create_group("projectors"), cal.projectors)
+        seal(f, SEALED)
     return path
 
 
@@ -264,7 +271,7 @@ _GEOMETRIC_VALUES = ("focal_length_mm", "focus_distance_mm", "aperture_diameter_
 
 def read(path: Path) -> CalibrationRecord:
     """The calibration artefact at ``path`` as the report shows it (a file with only some groups is fine)."""
-    with h5py.File(path, "r") as f:
+    with open_artefact(path, KIND) as f:
         text = f["camera_yaml"][()]
         text = text.decode() if isinstance(text, bytes) else str(text)
         geo = rad = None

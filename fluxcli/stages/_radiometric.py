@@ -192,6 +192,8 @@ def read_radiometric_maps(path: Path, key: str, shape: tuple[int, int]) -> dict[
 
     try:
         maps = read_maps(path, GROUP, tuple(MAPS))
+    except UserError as e:
+        raise UserError(f"{key}: {e}") from None
     except (OSError, FileNotFoundError) as e:
         reason = "it does not exist" if not Path(path).is_file() else f"it is not a readable HDF5 file ({e})"
         raise UserError(f"{key}: cannot read {path}: {reason}.") from None
