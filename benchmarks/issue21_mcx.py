@@ -17,7 +17,9 @@ from diffuse(1.40).
     # on the GPU machine, in the repository's root with .gpu21 carried (see prepare's output);
     # install the wheels with `python3 -m pip` (a bare `pip` there may serve another interpreter):
     $ python3 -m pip install --no-index --no-deps --break-system-packages .gpu21/whl/*.whl
-    $ PYTHONPATH=. python3 benchmarks/issue21_mcx.py transport --photons 2e9 --seconds 420 --seed 27000 --out $OUT/issue21_mcx.npz
+    $ PYTHONPATH=. python3 benchmarks/issue21_mcx.py transport --photons 1.2e10 --split 2e9 --seconds 380 --seed 35000 --out $OUT/d.npz
+    # (``--split 2e9``: a file per 2e9 photons, each an independent run of the issue's size; at most
+    # 8 files come back from $OUT, so at most 6 parts beside the CSV and a log.  benchmarks/issue21_gpu.sh does all this)
     # here: the photons' images into simulation artefacts; diffuse and lambertian reconstructed
     $ .venv/bin/python benchmarks/issue21_mcx.py reconstruct runs/issue21/mcx/issue21_mcx.npz
     # here: every whole photon by face and exit angle against diffuse(1.40) (runs from 26 Nov 2026 on)
@@ -26,6 +28,11 @@ from diffuse(1.40).
 ``transport --backend pmcxcl`` runs the same code here with MCX-CL on CPU (pocl) for a small check.
 The exit-angle radiance of the top face (``mcx_reference.Tally``, the reference CSV's method) is
 accumulated from every packet and written beside the images as ``mcx_box_n140_gpu.csv``.
+
+The parent process runs MCX and nothing else: it writes each batch's detected packets to a
+RAM-backed folder, and the workers tally, keep whole photons and image their slices while MCX runs
+the next batch.  (On 27 Nov 2026 the parent still tallied and drew the whole photons itself: 37 s
+of every 49-s batch on an H200 with 16 cores, so 1.1e9 photons in two 5-minute runs.)
 """
 
 from __future__ import annotations
@@ -120,13 +127,23 @@ class _Fine:
 
 
 def _work(job):
-    """Truth, images and photons at each lens of photons [a, b) of a batch (own frame)."""
+    """One slice [a, b) of a batch's detected packets: the top face's exit-angle tally, the
+    packets kept as whole photons (Russian roulette), their exit bands per face, and their
+    truth, images and photons at each lens (own frame).  All of it here, in a worker, so that
+    the parent only runs MCX: done in the parent, the tally and the roulette took 37 s of every
+    1e8-photon batch (MCX 7.5 s on an H200), and 16 workers waited for it."""
     import issue21_box as B
     from fluxcli.montecarlo import photons as MC_ph
 
-    folder, a, b, batch = job
-    pos = np.load(Path(folder) / "pos.npy", mmap_mode="r")[a:b].astype(np.float64)
-    d = np.load(Path(folder) / "dir.npy", mmap_mode="r")[a:b].astype(np.float64)
+    folder, a, b, batch, seed, with_tally = job
+    det = np.array(np.load(Path(folder) / "det.npy", mmap_mode="r")[:, a:b])
+    tally = MR.Tally(5.0)
+    if with_tally:
+        tally.add(det, None, 0, check=False)
+    pos32, d32 = _whole_photons(det, np.random.default_rng([2026, seed, batch, a]))
+    del det
+    face_bands = B.face_band_counts(pos32, d32)
+    pos, d = pos32.astype(np.float64), d32.astype(np.float64)
     d /= np.linalg.norm(d, axis=1)[:, None]
     shape = next(iter(_EXP.values()))["shape"]
     normal = shape.outward_normals(pos)
@@ -140,7 +157,7 @@ def _work(job):
         img, got = B.image_posed(e["views"], e["occl"], e["placements"], e["rest_shift_mm"], e["cones"], pos, dd,
                                  normal, (7, batch, a), e["ray_offset_mm"])
         out[name] = (img, got, truths[e["fine_key"]])
-    return out
+    return out, tally, face_bands, len(pos)
 
 
 # ----------------------------------------------------------------------------- GPU machine: transport
@@ -160,7 +177,7 @@ def _whole_photons(det: np.ndarray, rng: np.random.Generator):
     return np.ascontiguousarray(pos), np.ascontiguousarray(det[4:7, keep].T)
 
 
-def _save(path: Path, acc: dict, meta: dict, tally) -> None:
+def _save(path: Path, acc: dict, meta: dict, tally, first_seed: int) -> None:
     tmp = path.with_name(path.stem + ".tmp.npz")
     np.savez_compressed(tmp, meta=json.dumps(meta), **{k: v for k, v in acc.items()})
     os.replace(tmp, path)
@@ -173,7 +190,7 @@ def _save(path: Path, acc: dict, meta: dict, tally) -> None:
             f"box {MR.SIZE_MM[0]}x{MR.SIZE_MM[1]}x{MR.SIZE_MM[2]} mm (1 mm voxels), mu_a {MR.MU_A_PER_MM} /mm, "
             f"mu_s {MR.MU_S_PER_MM} /mm, g {MR.G}, n {MR.N_MEDIUM} in air (isreflect=1, Fresnel at every face)",
             f"isotropic point source at {MR.SOURCE_MM} mm (grid corner at 0); settings as mcx_reference.py "
-            f"(issrcfrom0=1 bc='______111111' savedetflag='dpxvw'); seeds from {meta['seed']}, one per 1e8-photon run",
+            f"(issrcfrom0=1 bc='______111111' savedetflag='dpxvw'); seeds from {first_seed}, one per MCX run",
             f"escaped fraction {tally.face_w.sum() / n:.5f}; L(0) fit up to {MR.FIT_MAX_DEG} deg; "
             f"top face >= {tally.edge_mm} mm from its edges; bands and L_rel as in mcx_reference.py"])
 
@@ -187,7 +204,7 @@ def _ram_folder() -> Path:
 
 
 def transport(photons: float, batch: float, seconds: float, out: Path, backend: str, workers: int,
-              seed: int, with_tally: bool = True) -> int:
+              seed: int, with_tally: bool = True, split: float = 0) -> int:
     import issue21_box as B
     t_start = time.time()
     ctx = mp.get_context("fork")
@@ -204,36 +221,63 @@ def transport(photons: float, batch: float, seconds: float, out: Path, backend: 
     except Exception as exc:  # noqa: BLE001
         device = f"unknown ({exc})"
     print(f"[issue21_mcx] {code} on {device}; {workers} imaging workers; batches in {folders[0].parent}", flush=True)
-    acc: dict = {}
-    for name, e in exps.items():
-        P, V = len(e["placements"]), len(e["views"])
-        cam = e["views"][0].camera
-        acc[f"{name}/images"] = np.zeros((P, cam.nx * cam.ny), np.int64)
-        acc[f"{name}/reached"] = np.zeros((P, V), np.int64)
-        acc[f"{name}/fine_power"] = np.zeros(e["fine"][3], np.int64)
-    # every whole photon's face and exit angle band (issue21_box.EXIT_EDGES_DEG): the profile per face
-    acc["exit/face_bands"] = np.zeros((6, len(B.EXIT_EDGES_DEG) - 1), np.int64)
+
+    def empty() -> tuple[dict, dict]:
+        acc: dict = {}
+        for name, e in exps.items():
+            P, V = len(e["placements"]), len(e["views"])
+            cam = e["views"][0].camera
+            acc[f"{name}/images"] = np.zeros((P, cam.nx * cam.ny), np.int64)
+            acc[f"{name}/reached"] = np.zeros((P, V), np.int64)
+            acc[f"{name}/fine_power"] = np.zeros(e["fine"][3], np.int64)
+        # every whole photon's face and exit angle band (issue21_box.EXIT_EDGES_DEG): the profile per face
+        acc["exit/face_bands"] = np.zeros((6, len(B.EXIT_EDGES_DEG) - 1), np.int64)
+        meta = {"device": device, "code": code, "launched": 0, "whole_photons": 0, "batches": [], "wall_s": 0.0,
+                "seed": seed + len(done_batches), "mcx_s": 0.0, "imaging_wait_s": 0.0}
+        return acc, meta
+
+    # with ``split``, every ``split`` photons launched close one part (its own file, ``<out>_p<k>.npz``):
+    # independent realisations of a run of that size (their batches have their own seeds); summed by
+    # ``reconstruct`` they are the whole run
+    done_batches: list = []
+    n_part = 0
+
+    def part_path() -> Path:
+        return out if not split else out.with_name(f"{out.stem}_p{n_part}{out.suffix}")
+
+    acc, meta = empty()
     tally = MR.Tally(5.0)
-    meta = {"device": device, "code": code, "launched": 0, "whole_photons": 0, "batches": [], "wall_s": 0.0,
-            "seed": seed, "mcx_s": 0.0, "imaging_wait_s": 0.0}
-    rng = np.random.default_rng([2026, seed])
     n_total, n_batch = int(photons), int(batch)
     pending = None  # (async result, photons launched, whole photons) of the batch being imaged
 
     def collect(p):
-        res, n_launched, n_whole, face_bands = p
+        nonlocal acc, meta, n_part
+        res, n_launched, stat, record = p
         t = time.time()
-        acc["exit/face_bands"] += face_bands
-        for part in res.get():
+        n_whole = 0
+        for part, part_tally, face_bands, n in res.get():
+            acc["exit/face_bands"] += face_bands
+            tally.merge(part_tally)
+            n_whole += n
             for name, (img, got, fine) in part.items():
                 acc[f"{name}/images"] += img
                 acc[f"{name}/reached"] += got
                 acc[f"{name}/fine_power"] += fine
+        tally.add_run(stat, n_launched if with_tally else 0)
+        tally.check()
+        record["whole"] = n_whole
         meta["imaging_wait_s"] += time.time() - t
         meta["launched"] += n_launched
         meta["whole_photons"] += n_whole
         meta["wall_s"] = time.time() - t_start
-        _save(out, acc, meta, tally)  # what is imaged so far survives a stop
+        _save(part_path(), acc, meta, tally, seed)  # what is imaged so far survives a stop
+        print(f"[issue21_mcx] batch of seed {record['seed']}: {n_whole} whole photons escaped and imaged; "
+              f"{time.time() - t_start:.0f} s", flush=True)
+        if split and meta["launched"] >= split:
+            done_batches.extend(meta["batches"])
+            print(f"[issue21_mcx] part {n_part}: {meta['launched']:.4g} photons -> {part_path()}", flush=True)
+            n_part += 1
+            acc, meta = empty()
 
     b = launched_mcx = 0
     try:
@@ -246,25 +290,23 @@ def transport(photons: float, batch: float, seconds: float, out: Path, backend: 
             t = time.time()
             det, stat = MR.run_chunk(mcx, n, seed + b, dtype=np.float32)
             t_mcx = time.time() - t
-            meta["mcx_s"] += t_mcx
-            if with_tally:
-                tally.add(det, stat, n)
-            pos, d = _whole_photons(det, rng)
-            del det
             folder = folders[b % 2]
             if pending is not None:
                 collect(pending)  # the other folder's batch is done before this one is overwritten
-            np.save(folder / "pos.npy", pos)
-            np.save(folder / "dir.npy", d)
-            meta["batches"].append({"seed": seed + b, "launched": n, "whole": int(len(pos)), "mcx_s": round(t_mcx, 2),
-                                    "energy_escaped": float(stat["energytot"]) - float(stat["energyabs"])})
-            edges = np.linspace(0, len(pos), 4 * workers + 1).astype(int)
-            jobs = [(str(folder), int(x), int(y), b) for x, y in zip(edges[:-1], edges[1:])]
-            pending = (pool.map_async(_work, jobs), n, int(len(pos)), B.face_band_counts(pos, d))
+            meta["mcx_s"] += t_mcx  # (after collect, which may have closed a part)
+            np.save(folder / "det.npy", det)
+            n_det = det.shape[1]
+            del det
+            record = {"seed": seed + b, "launched": n, "whole": None, "mcx_s": round(t_mcx, 2),
+                      "energy_escaped": float(stat["energytot"]) - float(stat["energyabs"])}
+            meta["batches"].append(record)
+            edges = np.linspace(0, n_det, 4 * workers + 1).astype(int)
+            jobs = [(str(folder), int(x), int(y), b, seed, with_tally) for x, y in zip(edges[:-1], edges[1:])]
+            pending = (pool.map_async(_work, jobs), n, stat, record)
             launched_mcx += n
             b += 1
-            print(f"[issue21_mcx] batch {b}: {n:.3g} photons, {t_mcx:.1f} s of MCX, {len(pos)} whole photons "
-                  f"escaped; {time.time() - t_start:.0f} s", flush=True)
+            print(f"[issue21_mcx] batch {b}: {n:.3g} photons, {t_mcx:.1f} s of MCX, {n_det} packets detected; "
+                  f"{time.time() - t_start:.0f} s", flush=True)
         if pending is not None:
             collect(pending)
     finally:
@@ -274,12 +316,13 @@ def transport(photons: float, batch: float, seconds: float, out: Path, backend: 
                 x.unlink()
             f.rmdir()
     meta["wall_s"] = time.time() - t_start
-    _save(out, acc, meta, tally)
-    print(f"[issue21_mcx] done: {meta['launched']:.4g} photons launched, {meta['whole_photons']:.4g} left as whole "
-          f"photons, {meta['mcx_s']:.0f} s in MCX, {meta['imaging_wait_s']:.0f} s waiting for imaging, "
-          f"{meta['wall_s']:.0f} s wall -> {out}", flush=True)
+    if meta["launched"]:
+        _save(part_path(), acc, meta, tally, seed)
+    n_all = meta["launched"] + sum(x["launched"] for x in done_batches)
+    print(f"[issue21_mcx] done: {n_all:.4g} photons launched in {n_part + (meta['launched'] > 0)} part(s), "
+          f"{meta['mcx_s']:.0f} s in MCX in the last, {meta['wall_s']:.0f} s wall -> {part_path()}", flush=True)
     for name in exps:
-        print(f"  {name}: photons per pose {acc[f'{name}/images'].sum(axis=1).tolist()}")
+        print(f"  {name}: photons per pose of the last part {acc[f'{name}/images'].sum(axis=1).tolist()}")
     return 0
 
 
@@ -380,6 +423,8 @@ def main(argv=None) -> int:
     t.add_argument("--workers", type=int, default=os.cpu_count())
     t.add_argument("--seed", type=int, default=21000)
     t.add_argument("--no-tally", action="store_true", help="skip the top face's exit-angle radiance")
+    t.add_argument("--split", type=float, default=0,
+                   help="close a part (its own file) every this many photons launched: independent runs of that size")
     r = sub.add_parser("reconstruct")
     r.add_argument("npz", type=Path, nargs="+", help="transport outputs (independent seeds), summed")
     r.add_argument("--experiments", default=",".join(EXPERIMENTS))
@@ -391,7 +436,8 @@ def main(argv=None) -> int:
         return 0
     if a.step == "transport":
         a.out.parent.mkdir(parents=True, exist_ok=True)
-        return transport(a.photons, a.batch, a.seconds, a.out, a.backend, a.workers, a.seed, not a.no_tally)
+        return transport(a.photons, a.batch, a.seconds, a.out, a.backend, a.workers, a.seed, not a.no_tally,
+                         a.split)
     if a.step == "bands":
         return bands(a.npz)
     return reconstruct(a.npz, a.experiments.split(","))

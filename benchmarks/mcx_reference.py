@@ -152,7 +152,9 @@ class Tally:
         self.top_n = 0
         self.mcx_escaped = 0.0  # energytot - energyabs reported by MCX itself
 
-    def add(self, det: np.ndarray, stat: dict, nphoton: int) -> None:
+    def add(self, det: np.ndarray, stat: dict | None, nphoton: int, check: bool = True) -> None:
+        """Add one run's detected packets (``stat`` None: a slice of a run, whose launched
+        photons and MCX statistics are added once by :meth:`add_run`)."""
         ppath, pos, v, w0 = det[0], det[1:4], det[4:7], det[7]
         w = w0 * np.exp(-MU_A_PER_MM * ppath)
         face = classify_faces(pos)
@@ -161,7 +163,8 @@ class Tally:
         self.n_unplaced += int(np.sum(face < 0))
         self.face_w += np.bincount(face[face >= 0], weights=w[face >= 0], minlength=len(FACES))
         self.face_w2 += np.bincount(face[face >= 0], weights=w[face >= 0] ** 2, minlength=len(FACES))
-        self.mcx_escaped += float(stat["energytot"]) - float(stat["energyabs"])
+        if stat is not None:
+            self.add_run(stat, 0)
 
         top = face == 5
         x, y = pos[0, top], pos[1, top]
@@ -184,6 +187,21 @@ class Tally:
         self.band_w += np.bincount(band, weights=wt, minlength=len(self.band_w))
         self.band_w2 += np.bincount(band, weights=wt * wt, minlength=len(self.band_w))
         self.band_n += np.bincount(band, minlength=len(self.band_w))
+        if check:
+            self.check()
+
+    def add_run(self, stat: dict, nphoton: int) -> None:
+        """A run's launched photons and MCX's own escaped energy (its packets added in slices)."""
+        self.n_launched += nphoton
+        self.mcx_escaped += float(stat["energytot"]) - float(stat["energyabs"])
+
+    def merge(self, other: Tally) -> None:
+        """Add another tally's sums (a slice of the same runs, tallied elsewhere)."""
+        for k, v in vars(other).items():
+            if k != "edge_mm":
+                setattr(self, k, getattr(self, k) + v)
+
+    def check(self) -> None:
         if self.n_top_down > 1e-5 * max(self.band_n.sum(), 1e5):
             raise RuntimeError(f"{self.n_top_down} photons leave the top face going down")
 

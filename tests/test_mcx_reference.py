@@ -265,3 +265,37 @@ def test_fluxmap_montecarlo_agrees_with_mcx():
     use = (t["theta_centre_deg"] >= 5) & (t["theta_centre_deg"] <= 85)
     z = np.abs(rel[use] - t["L_rel"][use]) / np.hypot(rel_se[use], t["L_rel_se"][use])
     assert np.all(z < 4), f"fluxmap MC and MCX differ by {z.max():.1f} SE at some band"
+
+
+def test_a_batch_tallied_in_slices_and_merged_is_the_batch_tallied_whole():
+    """The GPU run tallies each batch's packets in worker processes, slice by slice
+    (benchmarks/issue21_mcx.py): the merged sums must be those of one tally of the whole batch,
+    and a slice alone must not pass as a run (its launched photons are added once, by the run)."""
+    from repo_scripts import load_script
+
+    ref = load_script("benchmarks/mcx_reference.py")
+    rng = np.random.default_rng(7)
+    n = 50_000
+    pos = rng.uniform(0, 1, (3, n)) * np.array(ref.SIZE_MM, float)[:, None]
+    face = rng.integers(0, 3, n)  # put every packet on a face: x, y or z, low or high side
+    side = rng.integers(0, 2, n)
+    pos[face, np.arange(n)] = side * np.array(ref.SIZE_MM, float)[face]
+    v = rng.normal(size=(3, n))
+    v /= np.linalg.norm(v, axis=0)
+    top = (face == 2) & (side == 1)
+    v[2, top] = np.abs(v[2, top])
+    det = np.vstack([rng.uniform(0, 60, n), pos, v, rng.uniform(0.2, 1, n)])
+    stat = {"energytot": 2.0e5, "energyabs": 1.2e5}
+    whole = ref.Tally(5.0)
+    whole.add(det, stat, 200_000)
+    merged = ref.Tally(5.0)
+    for a, b in ((0, 1), (1, 17_000), (17_000, 31_000), (31_000, n)):
+        part = ref.Tally(5.0)
+        part.add(det[:, a:b], None, 0, check=False)
+        assert part.n_launched == 0 and part.mcx_escaped == 0
+        merged.merge(part)
+    merged.add_run(stat, 200_000)
+    merged.check()
+    assert whole.band_n.sum() > 1000 and whole.n_unplaced == 0
+    for k, val in vars(whole).items():
+        np.testing.assert_allclose(getattr(merged, k), val, rtol=1e-12, err_msg=k)
