@@ -182,6 +182,38 @@ def source_positions(flux: C.DiffusionFlux, surface: Surface) -> np.ndarray:
     return np.array(out)
 
 
+# A stored mesh must fill the surface it is filed under: fTetWild keeps its boundary within
+# 1e-3 of the bounding box's diagonal (its envelope), and the shipped meshes hold 99.9 % of the
+# surface's volume with the same bounding box to 1e-16 mm; a mesh of another body, or this one
+# scaled or moved, is far outside these bars.
+MESH_VOLUME_TOL = 0.03
+MESH_BOX_TOL = 0.01  # of the surface's bounding-box diagonal
+
+
+def _check_tetmesh_fits(mesh: "AM.TetMesh", surface: Surface, path: Path) -> None:
+    """A UserError naming ``path`` when ``mesh`` does not fill ``surface`` (volume, bounding box)
+    or has tetrahedra of no volume: it was not made for this subject."""
+    p = np.asarray(mesh.nodes_mm, float)[np.asarray(mesh.tets, np.int64)]
+    vol = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) / 6
+    t = surface.face_vertices_mm
+    body = abs(float(np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6))
+    lo, hi = surface.vertices_mm.min(axis=0), surface.vertices_mm.max(axis=0)
+    diag = float(np.linalg.norm(hi - lo))
+    off = max(float(np.abs(mesh.nodes_mm.min(axis=0) - lo).max()), float(np.abs(mesh.nodes_mm.max(axis=0) - hi).max()))
+    if not np.all(vol > 0):
+        why = (f"{int(np.sum(vol <= 0))} of its {len(vol)} tetrahedra have no volume or are inverted "
+               "(fluxmap's mesher orients every one)")
+    elif not abs(vol.sum() / body - 1) <= MESH_VOLUME_TOL:
+        why = f"its tetrahedra fill {vol.sum():.6g} mm^3, the subject's surface encloses {body:.6g} mm^3"
+    elif not off <= MESH_BOX_TOL * diag:
+        why = (f"its nodes span {np.round(mesh.nodes_mm.min(axis=0), 3).tolist()} to "
+               f"{np.round(mesh.nodes_mm.max(axis=0), 3).tolist()} mm, the subject's surface "
+               f"{np.round(lo, 3).tolist()} to {np.round(hi, 3).tolist()} mm")
+    else:
+        return
+    raise UserError(f"the tetrahedral mesh {path} does not fit the subject it is filed under: {why}")
+
+
 def tetmesh_key(surface: Surface, mesh_edge_mm: float) -> str:
     """Content address of the tetrahedral mesh of ``surface`` (cache and shipped meshes)."""
     return A.cache_key({"surface": surface.digest(), "edge_length_mm": A.canonical(mesh_edge_mm), "mesher": "ftetwild-1"})
@@ -250,15 +282,24 @@ def _diffusion_truth(flux: C.DiffusionFlux, surface: Surface, mesh_cache: Path, 
     # same config gives the same bytes
     key = tetmesh_key(surface, flux.mesh_edge_mm)
     path = mesh_cache / f"{key}.h5"
-    if shipped is not None and (shipped / f"{key}.h5").is_file():
-        path = shipped / f"{key}.h5"
     mesh = None
-    if path.is_file():
+    if shipped is not None and (shipped / f"{key}.h5").is_file():
+        # a mesh kept with the config is the user's: a damaged one is named, never replaced
+        try:
+            stored = AM.read(shipped / f"{key}.h5")
+            _check_tetmesh_fits(stored, surface, shipped / f"{key}.h5")
+        except UserError as e:
+            raise UserError(f"simulate.flux.mesh_dir: {e} (Restore it from where it came from, or delete it: "
+                            "fluxmap then makes a new mesh in its cache, and the truth is no longer byte-reproducible.)"
+                            ) from None
+        mesh = (stored.nodes_mm, stored.tets)
+    elif path.is_file():
         try:
             stored = AM.read(path)
+            _check_tetmesh_fits(stored, surface, path)
             mesh = (stored.nodes_mm, stored.tets)
         except UserError as e:
-            warnings.warn(f"the cached tetrahedral mesh is unreadable and is remade: {e}")
+            warnings.warn(f"the cached tetrahedral mesh is unusable and is remade: {e}")
             mesh = None
     if mesh is None:
         from .diffusion.mesh import tetrahedralize

@@ -458,3 +458,62 @@ def test_undershoot_rule_against_the_sphere_closed_form(sphere_meshes):
             assert refused, table
     # the set reaches both sides of the rule
     assert sum(r[4] >= 3.0 for r in rows) >= 1 and sum(r[4] <= 0.5 for r in rows) >= 2, table
+
+
+def test_a_damaged_or_foreign_tetrahedral_mesh_is_named_and_a_shipped_one_never_replaced(tmp_path):
+    """simulate reads the diffusion truth's tetrahedral mesh from simulate.flux.mesh_dir (kept
+    with the config) or its cache. A shipped mesh with a NaN node, tetrahedra cut short, or one
+    made for another body (this sphere scaled 1.5x: it fills 3.4x the volume) is exit 2 naming
+    the file, and the file is left as it was; it used to stop in the FEM (a k-d tree's 'data must
+    be finite', 'Factor is exactly singular') or, scaled, give a wrong truth without a word. A
+    damaged cached mesh is remade with a warning."""
+    import shutil
+    import warnings
+
+    import fluxcli.config as C
+    from fluxcli.artefacts import tetmesh as AM
+    from fluxcli.errors import UserError
+    from fluxcli.surface import phantoms
+    from fluxcli.truth import _diffusion_truth, tetmesh_key
+
+    surface = phantoms.sphere(radius_mm=5.0, n_latitude=10, n_longitude=20)[0]
+    flux = C.DiffusionFlux(kind="diffusion", wavelength_nm=650, mesh_edge_mm=3.0,
+                           optical={650: {"mua_per_mm": 0.01, "musp_per_mm": 1.0}},
+                           sources=[{"position_mm": [0.0, 0.0, 1.0], "power_photons": 1e6}])
+    cache, shipped = tmp_path / "cache", tmp_path / "shipped"
+    good, info = _diffusion_truth(flux, surface, cache)
+    assert not info["mesh_cached"] and 0 < good.sum() < 1e6
+    name = f"{tetmesh_key(surface, 3.0)}.h5"
+    mesh = AM.read(cache / name)
+
+    def ship(nodes, tets):
+        shutil.rmtree(shipped, ignore_errors=True)
+        AM.write(shipped / name, AM.TetMesh(nodes, tets))
+        return (shipped / name).read_bytes()
+
+    bad_nodes = mesh.nodes_mm.copy()
+    bad_nodes[3] = np.nan
+    cases = {
+        "a node is not finite": (bad_nodes, mesh.tets),
+        "nodes are in no tetrahedron": (mesh.nodes_mm, mesh.tets[: len(mesh.tets) // 2]),
+        "appears more than once": (mesh.nodes_mm, np.concatenate([mesh.tets, mesh.tets[:5]])),
+        "does not fit the subject.*fill": (1.5 * mesh.nodes_mm, mesh.tets),
+        "does not fit the subject.*span": (mesh.nodes_mm + [0.0, 0.0, 1.0], mesh.tets),
+        "inverted": (mesh.nodes_mm, mesh.tets[:, [1, 0, 2, 3]]),
+    }
+    for why, (nodes, tets) in cases.items():
+        before = ship(nodes, tets)
+        with pytest.raises(UserError, match=rf"simulate\.flux\.mesh_dir: .*{name}.*{why}"):
+            _diffusion_truth(flux, surface, cache, shipped=shipped)
+        assert (shipped / name).read_bytes() == before  # the user's file is not replaced
+    ship(mesh.nodes_mm, mesh.tets)  # the good mesh, shipped, is used as it is
+    again, info = _diffusion_truth(flux, surface, cache, shipped=shipped)
+    assert info["mesh_cached"] and np.array_equal(again, good)
+
+    AM.write(cache / name, AM.TetMesh(mesh.nodes_mm, mesh.tets[: len(mesh.tets) // 2]))
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        remade, info = _diffusion_truth(flux, surface, cache)
+    assert not info["mesh_cached"] and any("remade" in str(x.message) for x in w)
+    assert AM.damage(AM.read(cache / name).nodes_mm, AM.read(cache / name).tets) is None
+    assert remade.sum() == pytest.approx(good.sum(), rel=0.05)
