@@ -83,6 +83,25 @@ def test_camera_uncertainty_is_read_and_a_negative_sigma_exits_2(write_config, m
         C.load_config(write_config(cfg, "bad2.yaml"))
 
 
+def test_an_uncertainty_that_moves_the_camera_past_possible_is_named_before_any_solve(write_config, minimal_config,
+                                                                                     tmp_path):
+    """A camera.yaml whose focal length's 1 sd reads 1e5 mm (a unit slip) made the error budget
+    build a camera with f beyond its focus distance: a ValueError in the optics, exit 1, after the
+    whole solve. It is now exit 2 naming the key, from reconstruct's plan."""
+    cfg = dict(minimal_config)
+    cfg["workdir"] = str(tmp_path / "run")
+    cfg["system"] = dict(cfg["system"], camera=dict(cfg["system"]["camera"], uncertainty={"focal_length_mm": 1e5}))
+    loaded = C.load_config(write_config(cfg))
+    with pytest.raises(UserError, match=r"system\.camera\.uncertainty\.focal_length_mm: .*1 sd of 100000 mm.*impossible"):
+        B.parameters(loaded.model.system)
+    from fluxcli.stages._reconstruct_plan import plan_of
+
+    with pytest.raises(UserError, match=r"uncertainty\.focal_length_mm"):
+        plan_of(loaded)
+    cfg["system"]["camera"]["uncertainty"] = {"focal_length_mm": 0.01}  # a measurement's spread: fine
+    assert [n for n, *_ in B.parameters(C.load_config(write_config(cfg, "ok.yaml")).model.system)] == ["focal_length_mm"]
+
+
 def test_parameters_move_by_one_sigma_and_keep_the_rest():
     cam = C.Camera(pixels=(8, 8), pixel_pitch_mm=0.1,
                    lens=C.Lens(focal_length_mm=25.0, f_number=4.0, focus_distance_mm=300.0),

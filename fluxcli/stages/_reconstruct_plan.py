@@ -147,6 +147,10 @@ def plan_of(cfg: C.LoadedConfig) -> ReconstructPlan:
         sensor=m_.system.camera.sensor, sensor_given="sensor" in m_.system.camera.model_fields_set,
         heights_mm=tuple(p.height_mm for p in poses_from_config(m_.subject)) if capture is not None else ())
     surface = m_.subject.surface if m_.subject is not None else None
+    from . import budget
+
+    if budget.wanted(m_.system, rc.calibration_budget):
+        budget.parameters(m_.system)  # an uncertainty that moves the camera past possible is named before any solve
     return ReconstructPlan(
         config_path=cfg.path, config_sha256=cfg.sha256, workdir=cfg.workdir, output=cfg.workdir / RECONSTRUCTION_FILE,
         images=images, settings=rc.settings(), noise=rc.noise, read_noise_photons=rc.read_noise_photons,

@@ -20,6 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .. import config as C
+from ..errors import UserError
 from ..imaging.fit_shift import shifts, with_shift_warnings  # noqa: F401 (reconstruct's)
 from ..quantify import budget as Q
 from ..surface.geometry import rotation_matrix
@@ -128,7 +129,25 @@ def parameters(system: C.System) -> list[tuple[str, float, str, C.System]]:
                 moved = m.model_copy(update={"normal": _rotate(n, ax, m.normal_sigma_deg),
                                              "axis": _rotate(u, ax, m.normal_sigma_deg)})
                 out.append((f"mirror {name} normal_deg {label}", m.normal_sigma_deg, "deg", _with_mirror(system, k, moved)))
+    for name, s, unit, moved in out:
+        _check_movable(name, s, unit, moved)
     return out
+
+
+def _check_movable(name: str, s: float, unit: str, moved: C.System) -> None:
+    """A UserError naming the uncertainty when moving its parameter by +1 sd leaves no camera
+    (a focal length past the focus distance, say): a 1 sd must be small against its value."""
+    from ..scene import camera_from_config
+
+    try:
+        camera_from_config(moved.camera)
+    except ValueError as e:
+        key = name.split(".")[0]
+        where = f"system.camera.uncertainty.{key}" if not name.startswith("mirror ") else f"system.mirrors ({name})"
+        raise UserError(f"{where}: the error budget moves {name} by its 1 sd of {s:g} {unit}, and the camera it "
+                        f"gives is impossible ({e}). A 1 sd is the spread of a measurement and must be small against "
+                        "the value it qualifies: check the number (and its unit), or leave it out to skip that "
+                        "parameter's share of the budget.") from None
 
 
 def _with_mirror(system: C.System, k: int, mirror: C.Mirror) -> C.System:
