@@ -180,3 +180,35 @@ def test_simulator_speaks_apt_as_the_independent_decoder_reads_it():
             assert st.homed and st.settled and st.motor_connected and not (st.moving_forward or st.moving_reverse)
     finally:
         sim.stop()
+
+
+def test_a_hostile_client_gets_the_wheels_error_and_the_wheel_keeps_answering():
+    """Over a loopback socket, as a third-party client would: an argument of 200 000 digits, a
+    latin-1 digit ('²' is a digit to str.isdigit, not to int) and a line that never ends once
+    stopped the simulator's thread with a ValueError (a traceback, the link dead); each now gets
+    the FW102C's command error, or nothing, and the next command its answer."""
+    import re
+    import socket
+
+    sim = FW102CSimulator(time_scale=TS)
+    sim.start("socket://127.0.0.1:0")
+    try:
+        host, port = sim.url.removeprefix("socket://").split(":")
+        with socket.create_connection((host, int(port)), timeout=5) as s:
+            def ask(raw: bytes, until: bytes = b"> ") -> bytes:
+                s.sendall(raw)
+                got = b""
+                while not got.endswith(until):
+                    chunk = s.recv(65536)
+                    assert chunk, f"the wheel closed the link after {got[-80:]!r}"
+                    got += chunk
+                return got
+
+            # (its start may be lost past the simulator's line buffer: then the command is not defined)
+            assert re.search(rb"\rCommand error CMD_(ARG_INVALID|NOT_DEFINED)\n> $", ask(b"pos=" + b"9" * 200_000 + b"\r"))
+            assert ask("pos=\u00b2\r".encode("latin-1")).endswith(b"Command error CMD_ARG_INVALID\n> ")
+            s.sendall(b"x" * 1_000_000)  # no CR: the simulator keeps only the end of it
+            assert ask(b"\rpos?\r", until=b"1\r> ").endswith(b"pos?\r1\r> ")
+            assert ask(b"pos=2\r") == b"pos=2\r> " and sim.position == 2
+    finally:
+        sim.stop()

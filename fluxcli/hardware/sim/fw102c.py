@@ -17,6 +17,7 @@ from .base import Link, SerialSimulator
 
 IDN = "THORLABS FW102C/FW212C Filter Wheel version 1.04"
 S_PER_POSITION = {1: 1.0, 0: 2.0}  # speed mode -> seconds per position
+MAX_LINE_BYTES = 4096  # what the simulator keeps of a line not yet ended by CR (the device's own buffer is smaller)
 
 
 class FW102CSimulator(SerialSimulator):
@@ -106,6 +107,8 @@ class FW102CSimulator(SerialSimulator):
                 self._handle(link, line)
                 if link.closed or self.stopping:
                     return
+            if len(buf) > MAX_LINE_BYTES:  # a client that never ends its line: its start is lost, as in a device's buffer
+                buf = buf[-MAX_LINE_BYTES:]
 
     def _handle(self, link: Link, raw: bytes) -> None:
         cmd = raw.replace(b"\n", b"").replace(b"\x00", b"").decode("latin-1").strip()
@@ -133,7 +136,7 @@ class FW102CSimulator(SerialSimulator):
         """(reply line or None, error code or None); blocks during a move."""
         if "=" in cmd:
             key, _, arg = cmd.partition("=")
-            if not arg.isdigit():
+            if not (arg.isascii() and arg.isdigit()) or len(arg) > 9:  # not '²' (latin-1 digits), nor 10^200000
                 return None, "CMD_ARG_INVALID"
             value = int(arg)
             if key == "pos":
