@@ -183,3 +183,36 @@ def test_a_per_element_text_file_reads_as_a_spreadsheet_saves_it(tmp_path):
     p = tmp_path / "flux.csv"
     p.write_bytes(("power_photons\r\n# from the lab\r\n\r\n" + "\r\n".join(map(str, values)) + "\r\n").encode("utf-8-sig"))
     assert per_element_values(p, "simulate.flux.path").tolist() == values
+
+
+def test_a_per_element_truth_too_bright_to_store_or_lit_where_no_view_looks(write_config, sim_config, tmp_path):
+    """simulate.flux as a file of per-element photons. 1e300 photons per element: with the
+    gaussian noise model the images overflowed float32 to inf, and reconstruct said 'T has no
+    non-zero column: no element is observed' (the poisson model's refusal named
+    simulate.noise.peaks_photons, which this config does not set). Now simulate refuses the level,
+    naming the key that set it. A truth lit on one element no view sees: reconstruct stopped
+    with 'b_true must have a positive sum'; now it runs and has nothing to compare there."""
+    n = 16 * 6  # the cylinder's elements (its caps are none)
+    cfg = copy.deepcopy(sim_config)
+    cfg["subject"]["poses"] = {"heights_mm": [0]}
+    for noise in ("gaussian", "poisson"):
+        np.save(tmp_path / "bright.npy", np.full(n, 1e300))
+        cfg["simulate"] = {"flux": {"kind": "file", "path": "bright.npy"}, "noise": {"model": noise, "seed": 1}}
+        r = run("simulate", write_config(cfg), "-q")
+        assert_user_error(r, "simulate.flux (its own level", "1e+300", "float32")
+    cfg["simulate"]["noise"]["peaks_photons"] = [1e6, 1e35]
+    np.save(tmp_path / "bright.npy", np.full(n, 1.0))
+    assert_user_error(run("simulate", write_config(cfg), "-q"), "simulate.noise.peaks_photons", "1e+35")
+
+    assert run("build-T", write_config(cfg), "-q").exit_code == 0
+    _, _, todo = plan(load_config(write_config(cfg)))
+    seen = np.asarray(abs(load_T(todo[0][1].path)).sum(axis=0)).ravel() > 0
+    assert 0 < seen.sum() < n
+    np.save(tmp_path / "dark.npy", np.where(np.arange(n) == np.argmin(seen), 1e6, 0.0))
+    cfg["simulate"] = {"flux": {"kind": "file", "path": "dark.npy"}, "noise": {"model": "poisson", "seed": 1}}
+    p = write_config(cfg)
+    assert run("simulate", p, "-q").exit_code == 0
+    r = run("reconstruct", p, "-q")
+    assert r.exit_code == 0, r.output
+    with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
+        assert f["truth"].attrs["total_ratio"] == 0.0 and "error_observed" not in f["truth"].attrs

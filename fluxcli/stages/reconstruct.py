@@ -127,7 +127,7 @@ def reconstruct(plan: ReconstructPlan, ctx: RunContext) -> Path:
     if inp.truth is not None:
         attrs = {"error": error_l1(main.power, inp.truth), "total_ratio": total_ratio(main.power, inp.truth)}
         for name, sel in (("observed", main.observed), ("well_observed", main.well_observed)):
-            if sel.any():
+            if sel.any() and inp.truth[sel].sum() > 0:  # (a truth lit only where no view looks: nothing to compare)
                 only = np.where(sel, main.power, np.nan)
                 attrs[f"error_{name}"] = error_l1(only, inp.truth, observed_only=True)
                 attrs[f"total_ratio_{name}"] = total_ratio(only, inp.truth, observed_only=True)
@@ -229,7 +229,7 @@ def _vs_truth(power, observed, truth) -> list[str]:
     """Error and total ratio against the simulated truth over all elements (unobserved ones
     count as 0, the paper's convention) and over the observed ones."""
     only = np.where(observed, power, np.nan)
-    if not observed.any():
+    if not observed.any() or not truth[observed].sum() > 0:
         return [f"{error_l1(power, truth):.2%} / -", f"{total_ratio(power, truth):.3f} / -"]
     return [f"{error_l1(power, truth):.2%} / {error_l1(only, truth, observed_only=True):.2%}",
             f"{total_ratio(power, truth):.3f} / {total_ratio(only, truth, observed_only=True):.3f}"]

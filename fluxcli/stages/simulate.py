@@ -123,6 +123,11 @@ def _refuse_montecarlo_noise(sim: C.Simulate) -> None:
                         "sets it) and one draw (another simulate.flux.seed is another draw); remove them.")
 
 
+# Pixels are stored as float32 (max 3.4e38): a level that puts more than this in a pixel is
+# refused rather than written as inf (no camera collects 1e30 photons in a pixel)
+MAX_PIXEL_PHOTONS = 1e30
+
+
 def _simulate(sp: SimulatePlan, ctx: RunContext) -> Path:
     """Truth, forward T per pose, images at every level and repeat; ``simulation.h5``."""
     sim, fwd = sp.settings, sp.forward
@@ -168,15 +173,22 @@ def _simulate(sp: SimulatePlan, ctx: RunContext) -> Path:
                 curvature = curvature_power(surface.refined(sp.truth.refinement)[0], fine_power, scene.emission)
             a1 = np.maximum(a1 + load_T_curvature(pt.path, curvature_ratios(scene.surface, fwd.views, scene.emission))
                             @ curvature, 0.0)
+        level_key = ("simulate.noise.peaks_photons" if sim.noise.peaks_photons is not None
+                     else "simulate.flux (its own level; simulate.noise.peaks_photons sets another)")
         for li in range(L):
             a = a1 * scale[li]
+            brightest = float(np.max(a, initial=0.0))
+            if not np.all(np.isfinite(a)) or brightest > MAX_PIXEL_PHOTONS:
+                raise UserError(f"{level_key}: at level {lv[li]:.3g} photons the brightest pixel of pose {k} would "
+                                f"hold {brightest:.3g} photons, beyond the {MAX_PIXEL_PHOTONS:g} the images store "
+                                "faithfully (float32); use a lower level.")
             clean[li, k] = a.reshape(ny, nx)
             for r in range(R):
                 rng = np.random.default_rng([sim.noise.seed, li, r, k])
                 try:
                     ph, c = add_noise(a, sim.noise, sp.sensor, rng)
                 except ValueError as e:  # e.g. numpy's Poisson sampler above ~1e19 photons
-                    raise UserError(f"simulate.noise.peaks_photons: level {lv[li]:.3g} photons cannot be sampled "
+                    raise UserError(f"{level_key}: level {lv[li]:.3g} photons cannot be sampled "
                                     f"with the {sim.noise.model} noise model ({e}); use a lower level.") from None
                 noisy[li, r, k] = ph.reshape(ny, nx)
                 if counts is not None:
