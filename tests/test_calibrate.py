@@ -9,6 +9,8 @@ independent implementations of the optics.
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import yaml
@@ -146,6 +148,26 @@ def test_a_wrong_height_is_named_with_the_height_its_image_shows(grid_set, tmp_p
     assert f"calibrate.images[{k}]" in text and f"its plane_z_mm is {z:g} mm" in text
     implied = float(text.split("lies at z = ")[1].split(" mm")[0])
     assert implied == pytest.approx(HEIGHTS[k], abs=0.5)
+
+
+@pytest.mark.parametrize("k, how", [(0, "flipped"), (2, "turned"), (4, "shifted")])
+def test_a_frame_saved_flipped_turned_or_shifted_is_named(grid_set, tmp_path, k, how):
+    """One frame of the set as camera software may save it: mirrored, turned half a turn, or
+    moved by 6 px. Its grid's scale is right, so the height check passes, and the fit then
+    failed on another frame (blaming that frame's plane_z_mm). The rest calibrate without it,
+    so it is the frame named."""
+    _, imgs, files, _ = grid_set
+    files = list(files)
+    a = np.asarray(imgs[k])
+    bad = {"flipped": a[:, ::-1], "turned": a[::-1, ::-1], "shifted": np.roll(a, 6, axis=1)}[how]
+    files[k] = tmp_path / f"bad{k}.tif"
+    write_image(files[k], np.ascontiguousarray(bad))
+    r = _run(_config(tmp_path, files))
+    assert r.exit_code == 2, r.output
+    text = " ".join(r.output.split())
+    assert re.findall(r"calibrate\.images\[(\d+)\]", text) == [str(k)]
+    # (named by the height check when the frame's own fit fails first)
+    assert "disagrees with the others: without it the rest calibrate" in text or "the heights do not match" in text
 
 
 def test_odd_height_against_a_pinhole_s_closed_form():

@@ -7,6 +7,7 @@ per-image detections, residuals and blur, and warnings.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -113,40 +114,21 @@ def calibrate_geometry(images: list[np.ndarray], heights_mm: list[float], *, kin
             raise CalibrationError(f"no {kind} grid of shape {list(shape)} found: {e}", k) from None
         except ValueError as e:
             raise CalibrationError(f"the image cannot be used: {e}", k) from None
-    known = [k for k, d in enumerate(dets) if not d.ambiguous]
-    if len({heights_mm[k] for k in known}) < 2:
-        raise CalibrationError("fewer than two heights show the grid with a known offset (cut on one side at most, "
-                               "or whole): the camera cannot be started; check calibrate.grid.shape against the images")
     units = [G.to_unit(im) for im in images]
-
-    def views(idx):
-        return [(grid_points_mm(dets[k].ij, pitch_mm, shape, heights_mm[k]), dets[k].xy_px) for k in idx]
-
-    odd = odd_height(*image_scales(views(known))[:2])  # a wrong plane_z_mm, named before it skews the fit
-    if odd is not None:
-        k = known[odd[0]]
-        raise CalibrationError(f"the grid in this image lies at z = {odd[1]:.1f} mm by its scale against the other "
-                               f"images, but its plane_z_mm is {heights_mm[k]:g} mm (the heights do not match the "
-                               "images)", k)
+    as_detected = copy.deepcopy(dets)  # (the fit labels the ambiguous ones in place)
     try:
-        init = initial_geometry(views(known), pixel_pitch_mm, nx, ny)
-    except HeightsDisagree as e:
-        raise CalibrationError(str(e)) from None
-    geo = _fit(dets, known, heights_mm, pitch_mm, shape, init)
-    # ambiguous images: label from the camera fitted so far
-    allij = np.stack(np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij"), -1).reshape(-1, 2)
-    for k, d in enumerate(dets):
-        if d.ambiguous:
-            pred = geo.camera.project(grid_points_mm(allij, pitch_mm, shape, heights_mm[k]))
-            try:
-                G.relabel_from_prediction(d, pred, allij)
-            except G.GridNotFound as e:
-                raise CalibrationError(f"{e}; check that its plane_z_mm ({heights_mm[k]:g}) matches the image "
-                                       "(the heights may not match the images)", k) from None
+        geo = _consistent_geometry(dets, heights_mm, pitch_mm, shape, pixel_pitch_mm, nx, ny)
+    except CalibrationError as e:
+        odd = _odd_one_out(as_detected, heights_mm, pitch_mm, shape, pixel_pitch_mm, nx, ny)
+        if odd is None or odd[0] == e.image:
+            raise
+        k, rms = odd
+        raise CalibrationError(f"this image disagrees with the others: without it the rest calibrate ({rms:.2f} px "
+                               f"RMS), with it they do not ({e}). Is it of this grid at plane_z_mm {heights_mm[k]:g}, "
+                               "in the camera's own orientation (not transposed, flipped or turned by the camera "
+                               "software) and of this camera?", k) from None
     used = list(range(len(dets)))
     n_found = [len(d.ij) for d in dets]  # before the per-dot fit drops any
-    geo = _fit(dets, used, heights_mm, pitch_mm, shape, geo.camera)
-    _check_heights(dets, heights_mm, pitch_mm, shape, geo.camera)
     # per-dot model: sub-pixel centres and blur
     blur_px = [np.full(len(d.ij), np.nan) for d in dets]
     dot_diam = float("nan")
@@ -274,6 +256,65 @@ def calibrate_geometry(images: list[np.ndarray], heights_mm: list[float], *, kin
              "aperture_diameter_mm": 2 * sR}
     return GeometricCalibration(cam, float(f), float(u), float(2 * R), sigma, images_out, geo.rms_px, rms_mm, blur,
                                 focus, u_measure, dot_diam, warnings, aperture_resolved)
+
+
+def _consistent_geometry(dets, heights_mm, pitch_mm, shape, pixel_pitch_mm, nx, ny) -> GeometryFit:
+    """The camera's geometry fitted to every image's grid points, after the checks that name one
+    image: a height its scale contradicts, a partly seen grid that cannot be labelled from the
+    camera fitted on the others.  Labels the ambiguous detections in ``dets`` (in place)."""
+    known = [k for k, d in enumerate(dets) if not d.ambiguous]
+    if len({heights_mm[k] for k in known}) < 2:
+        raise CalibrationError("fewer than two heights show the grid with a known offset (cut on one side at most, "
+                               "or whole): the camera cannot be started; check calibrate.grid.shape against the images")
+
+    def views(idx):
+        return [(grid_points_mm(dets[k].ij, pitch_mm, shape, heights_mm[k]), dets[k].xy_px) for k in idx]
+
+    odd = odd_height(*image_scales(views(known))[:2])  # a wrong plane_z_mm, named before it skews the fit
+    if odd is not None:
+        k = known[odd[0]]
+        raise CalibrationError(f"the grid in this image lies at z = {odd[1]:.1f} mm by its scale against the other "
+                               f"images, but its plane_z_mm is {heights_mm[k]:g} mm (the heights do not match the "
+                               "images)", k)
+    try:
+        init = initial_geometry(views(known), pixel_pitch_mm, nx, ny)
+    except HeightsDisagree as e:
+        raise CalibrationError(str(e)) from None
+    geo = _fit(dets, known, heights_mm, pitch_mm, shape, init)
+    # ambiguous images: label from the camera fitted so far
+    allij = np.stack(np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij"), -1).reshape(-1, 2)
+    for k, d in enumerate(dets):
+        if d.ambiguous:
+            pred = geo.camera.project(grid_points_mm(allij, pitch_mm, shape, heights_mm[k]))
+            try:
+                G.relabel_from_prediction(d, pred, allij)
+            except G.GridNotFound as e:
+                raise CalibrationError(f"{e}; check that its plane_z_mm ({heights_mm[k]:g}) matches the image "
+                                       "(the heights may not match the images)", k) from None
+    geo = _fit(dets, list(range(len(dets))), heights_mm, pitch_mm, shape, geo.camera)
+    _check_heights(dets, heights_mm, pitch_mm, shape, geo.camera)
+    return geo
+
+
+def _odd_one_out(dets, heights_mm, pitch_mm, shape, pixel_pitch_mm, nx, ny) -> tuple[int, float] | None:
+    """(k, RMS px) when the images calibrate without image k alone and fit well there (four images
+    or more, the rest at three heights or more): a transposed, flipped, shifted or foreign frame,
+    named instead of the frame its presence made fail.  None when no single image explains it."""
+    if len(dets) < 4:
+        return None
+    ok = []
+    for k in range(len(dets)):
+        rest = [j for j in range(len(dets)) if j != k]
+        if len({heights_mm[j] for j in rest}) < 3:
+            continue
+        try:
+            geo = _consistent_geometry([copy.deepcopy(dets[j]) for j in rest], [heights_mm[j] for j in rest],
+                                       pitch_mm, shape, pixel_pitch_mm, nx, ny)
+        except (CalibrationError, ValueError, np.linalg.LinAlgError):
+            continue
+        if geo.rms_px <= REPROJECTION_WARN_PX:
+            ok.append((k, float(geo.rms_px)))
+    return ok[0] if len(ok) == 1 else None
 
 
 def _subset(f: D.DotFits, m: np.ndarray) -> D.DotFits:
