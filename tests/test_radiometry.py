@@ -489,3 +489,43 @@ def test_a_low_gain_register_matches_an_independent_branching_simulator():
     assert r.em_gain_from_ptc == pytest.approx(gain, rel=0.03)
     assert r.excess_noise_factor_squared == pytest.approx(f2_branching, rel=0.02)
     assert not any("differ" in w for w in r.warnings)
+
+
+def test_a_frame_unlike_its_list_or_not_raw_counts_is_named(tmp_path):
+    """The sample frames with one replaced, as a lab might by mistake. A copy of a dark frame
+    under another name made the dark fit divide by zero temporal noise ('math domain error',
+    exit 1), and a frame scaled to 1e30 a singular matrix (exit 1). A lit frame among the bias
+    frames read the read noise as 1915 e (true 42), a gain-on PTC frame in a gain-off pair or a
+    flat in a gain-on pair moved the EM gain from 250 to 145 or 724, a blank dark frame gave a
+    dark current of 0: all without a word. Each is now exit 2 naming the key and the file."""
+    import shutil
+
+    folder = tmp_path / "frames"
+    shutil.copytree(SAMPLE_DIR, folder)
+    section = yaml.safe_load(SAMPLE_CONFIG.read_text())["calibrate"]["radiometric"]
+    section["directory"] = str(folder)
+
+    def run(edit_file, image):
+        write_image(folder / edit_file, image)
+        try:
+            run_radiometric(C.Radiometric.model_validate(section), lambda p: Path(p), RunContext(quiet=True))
+        finally:
+            shutil.copy(SAMPLE_DIR / edit_file, folder / edit_file)
+
+    def frame(name):
+        return read_image(SAMPLE_DIR / name)[0]
+
+    cases = [
+        ("dark_30s_0.tif", frame("dark_30s_1.tif").astype(np.uint16), r"darks\[0\]\.files\[0\] and \[1\].*same pixels"),
+        ("dark_30s_0.tif", (frame("dark_30s_0.tif") * 1e30).astype(np.float32), r"darks\[0\]\.files\[0\].*raw counts"),
+        ("bias_2.tif", (frame("bias_2.tif") - 480).astype(np.float32), r"bias\[2\].*raw counts, 0 to 65535"),
+        ("bias_2.tif", frame("ptc_on_2_0.tif").astype(np.uint16), r"bias\[2\].*bias_2\.tif is not like the other"),
+        ("ptc_off_3_0.tif", frame("ptc_on_1_0.tif").astype(np.uint16), r"ptc\[3\]\.files.*are not alike"),
+        ("ptc_on_1_0.tif", frame("flat_0.tif").astype(np.uint16), r"ptc\[9\]\.files.*are not alike"),
+        ("dark_120s_1.tif", np.zeros((64, 64), np.uint16), r"darks\[1\]\.files.*are not alike.*blank file"),
+        ("flat_3.tif", frame("bias_0.tif").astype(np.uint16), r"flats\[3\].*flat_3\.tif is not like the other"),
+    ]
+    for name, image, match in cases:
+        with pytest.raises(UserError, match=match):
+            run(name, image)
+    run("bias_2.tif", frame("bias_2.tif").astype(np.uint16))  # the sample itself still calibrates

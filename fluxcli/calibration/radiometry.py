@@ -456,11 +456,19 @@ def dark_current(frame_sets, exposures_s, bias_counts, electrons_per_count: floa
     e_sig = np.array([
         (math.sqrt(s.var(axis=0, ddof=1).mean() / s.size) if len(s) > 1 else s[0].std(ddof=1) / math.sqrt(s[0].size))
         * electrons_per_count / g for s, g in zip(stacks, em_gains)])
-    e_sig = np.maximum(e_sig, 1e-12)
+    if not np.all(np.isfinite(e_sig) & (e_sig > 0)):
+        raise InputError("dark_current: a stack of dark frames shows no temporal noise (identical frames?) or "
+                         "values beyond any camera's counts; each stack must be separate raw exposures.")
     if len(np.unique(t)) >= 2:
         w = 1.0 / e_sig**2
         A = np.stack([t, np.ones_like(t)], axis=1)
-        cov = np.linalg.inv(A.T @ (w[:, None] * A))
+        try:
+            cov = np.linalg.inv(A.T @ (w[:, None] * A))
+        except np.linalg.LinAlgError:
+            cov = np.full((2, 2), np.nan)
+        if not (np.all(np.isfinite(cov)) and cov[0, 0] > 0 and cov[1, 1] > 0):
+            raise InputError("dark_current: the dark frames' means cannot be fitted against their exposures (their "
+                             "noise estimates span too many orders of magnitude); check the dark frames.")
         dark, cic = cov @ (A.T @ (w * e_means))
         dof = len(t) - 2
         chi2 = float((w * (e_means - dark * t - cic) ** 2).sum() / dof) if dof > 0 else 1.0

@@ -40,8 +40,10 @@ def section_files(section: C.Radiometric) -> list[Path]:
     return [folder / f for f in files]
 
 
-def _read_frames(files, key: str, resolve: Callable[[Path], Path], shape: list) -> np.ndarray:
-    """Frames of ``files`` as [frame, row, col]; the first file read fixes ``shape[0]``."""
+def _read_frames(files, key: str, resolve: Callable[[Path], Path], shape: list,
+                 max_raw_counts: float = 65535.0) -> np.ndarray:
+    """Frames of ``files`` as [frame, row, col]; the first file read fixes ``shape[0]``. Each must
+    hold raw counts (0 to ``max_raw_counts``) and be like the others of its list."""
     frames = []
     for i, name in enumerate(files):
         path = resolve(name)
@@ -56,12 +58,55 @@ def _read_frames(files, key: str, resolve: Callable[[Path], Path], shape: list) 
         elif image.shape != shape[0]:
             raise UserError(f"{KEY}.{key}[{i}]: {path} is {image.shape[1]} x {image.shape[0]} pixels; "
                             f"{shape[1]} is {shape[0][1]} x {shape[0][0]}. All radiometric frames must have one size.")
+        lo, hi = float(image.min()), float(image.max())
+        if lo < 0 or hi > max_raw_counts:
+            raise UserError(f"{KEY}.{key}[{i}]: {path} holds values from {lo:.6g} to {hi:.6g}; a radiometric frame is "
+                            f"the camera's raw counts, 0 to {max_raw_counts:g} (system.camera.sensor.bit_depth), not "
+                            "bias-subtracted, scaled or converted to other units.")
         frames.append(image)
-    return np.array(frames)
+    frames = np.array(frames)
+    _check_stack(frames, key, [resolve(name) for name in files])
+    return frames
+
+
+# Frames of one list share the light, exposure and EM gain: one whose level or pixel spread is
+# off by more than these is another kind of frame (a lit frame among the bias frames, a gain-on
+# frame in a gain-off pair, a blank file). Bias drifts by a few counts and a lamp by a few per
+# cent between frames; a wrong frame is off by tens of per cent or by the EM gain.
+STACK_MEAN_REL, STACK_MEAN_COUNTS = 0.10, 5.0
+STACK_SPREAD_REL, STACK_SPREAD_COUNTS = 0.5, 1.0
+
+
+def _check_stack(frames: np.ndarray, key: str, paths: list[Path]) -> None:
+    """A UserError naming the frame of a list that is not like the others, or two identical
+    frames (the same file twice: no temporal noise between them)."""
+    n = len(frames)
+    flat = frames.reshape(n, -1)
+    for i in range(n):
+        for j in range(i + 1, n):
+            if np.array_equal(flat[i], flat[j]):
+                raise UserError(f"{KEY}.{key}[{i}] and [{j}]: {paths[i]} and {paths[j]} hold the same pixels (the same "
+                                "file twice?); frames of a list must be separate exposures: the difference between "
+                                "them is the temporal noise the calibration measures.")
+    if n < 2:
+        return
+    # median and MAD: a cosmic ray or a hot pixel in one frame moves neither
+    mean = np.median(flat, axis=1)
+    spread = 1.4826 * np.median(np.abs(flat - mean[:, None]), axis=1)
+    for k in range(n):
+        others = np.delete(np.arange(n), k)
+        m, s = float(np.median(mean[others])), float(np.median(spread[others]))
+        if (abs(mean[k] - m) > STACK_MEAN_REL * abs(m) + STACK_MEAN_COUNTS
+                or abs(spread[k] - s) > STACK_SPREAD_REL * s + STACK_SPREAD_COUNTS):
+            which = (f"{KEY}.{key}[{k}]: {paths[k]} is not like the other frame(s) of its list" if n > 2 else
+                     f"{KEY}.{key}: {paths[0]} and {paths[1]} are not alike")
+            raise UserError(f"{which}: median {mean[k]:.6g} counts and pixel spread {spread[k]:.4g} against "
+                            f"{m:.6g} and {s:.4g}. The frames of one list share the light, the exposure and the EM "
+                            "gain; is it another kind of frame (lit, gain on, dark) or a blank file?")
 
 
 def run_radiometric(section: C.Radiometric, resolve: Callable[[Path], Path], ctx: RunContext, *,
-                    expected_shape: tuple[int, int] | None = None) -> R.RadiometricResult:
+                    expected_shape: tuple[int, int] | None = None, bit_depth: int = 16) -> R.RadiometricResult:
     """Read the frames named by ``calibrate.radiometric`` and calibrate.
 
     Parameters
@@ -85,12 +130,13 @@ def run_radiometric(section: C.Radiometric, resolve: Callable[[Path], Path], ctx
         resolve = lambda name: outer(folder / name)  # noqa: E731
     shape: list = [tuple(expected_shape) if expected_shape is not None else None,
                    "system.camera.pixels" if expected_shape is not None else f"{KEY}.bias[0]"]
-    bias = _read_frames(section.bias, "bias", resolve, shape)
-    ptc = [R.PTCLevel(_read_frames(lv.files, f"ptc[{j}].files", resolve, shape), lv.exposure_s, lv.em_gain_on,
+    top = float(2**bit_depth - 1)
+    bias = _read_frames(section.bias, "bias", resolve, shape, top)
+    ptc = [R.PTCLevel(_read_frames(lv.files, f"ptc[{j}].files", resolve, shape, top), lv.exposure_s, lv.em_gain_on,
                       lv.illumination) for j, lv in enumerate(section.ptc)]
-    darks = [(_read_frames(d.files, f"darks[{j}].files", resolve, shape), d.exposure_s, d.em_gain_on)
+    darks = [(_read_frames(d.files, f"darks[{j}].files", resolve, shape, top), d.exposure_s, d.em_gain_on)
              for j, d in enumerate(section.darks)]
-    flats = _read_frames(section.flats, "flats", resolve, shape) if section.flats else None
+    flats = _read_frames(section.flats, "flats", resolve, shape, top) if section.flats else None
     return _calibrate(KEY, ctx, bias=bias, ptc=ptc, darks=darks or None, flats=flats,
                       max_counts=section.saturation_counts,
                       excess_noise_factor_squared=section.excess_noise_factor_squared,

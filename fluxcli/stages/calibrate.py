@@ -64,7 +64,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
                   if sec.projectors else [])
     rad = None
     if sec.radiometric is not None:
-        rad = run_radiometric(sec.radiometric, plan.resolve, ctx, expected_shape=shape)
+        rad = run_radiometric(sec.radiometric, plan.resolve, ctx, expected_shape=shape,
+                              bit_depth=cam.sensor.bit_depth if cam is not None else 16)
     elif src.capture is not None and src.capture.bias is not None:
         rad = radiometric_from_capture(src.capture, ctx, bit_depth=cam.sensor.bit_depth if cam is not None else 16)
     truth_errors = None
