@@ -199,7 +199,7 @@ def test_a_per_element_truth_too_bright_to_store_or_lit_where_no_view_looks(writ
         np.save(tmp_path / "bright.npy", np.full(n, 1e300))
         cfg["simulate"] = {"flux": {"kind": "file", "path": "bright.npy"}, "noise": {"model": noise, "seed": 1}}
         r = run("simulate", write_config(cfg), "-q")
-        assert_user_error(r, "simulate.flux (its own level", "1e+300", "float32")
+        assert_user_error(r, "simulate.flux (its own level", "1e+300", "(float32)")
     cfg["simulate"]["noise"]["peaks_photons"] = [1e6, 1e35]
     np.save(tmp_path / "bright.npy", np.full(n, 1.0))
     assert_user_error(run("simulate", write_config(cfg), "-q"), "simulate.noise.peaks_photons", "1e+35")

@@ -135,15 +135,13 @@ def parameters(system: C.System) -> list[tuple[str, float, str, C.System]]:
 
 
 def _check_movable(name: str, s: float, unit: str, moved: C.System) -> None:
-    """A UserError naming the uncertainty when moving its parameter by +1 sd leaves no camera
-    (a focal length past the focus distance, say): a 1 sd must be small against its value."""
+    """A UserError naming the uncertainty when moving its parameter by +1 sd leaves no camera."""
     from ..scene import camera_from_config
 
     try:
         camera_from_config(moved.camera)
     except ValueError as e:
-        key = name.split(".")[0]
-        where = f"system.camera.uncertainty.{key}" if not name.startswith("mirror ") else f"system.mirrors ({name})"
+        where = f"system.camera.uncertainty.{name.split('.')[0]}" if not name.startswith("mirror ") else name
         raise UserError(f"{where}: the error budget moves {name} by its 1 sd of {s:g} {unit}, and the camera it "
                         f"gives is impossible ({e}). A 1 sd is the spread of a measurement and must be small against "
                         "the value it qualifies: check the number (and its unit), or leave it out to skip that "

@@ -83,8 +83,15 @@ def levels(noise: C.Noise, power: np.ndarray) -> np.ndarray:
     return np.array(noise.peaks_photons if noise.peaks_photons is not None else [power.max()], float)
 
 
+MAX_PIXEL_PHOTONS = 1e30  # no camera collects this in a pixel; float32 holds up to 3.4e38
+
+
 def add_noise(a: np.ndarray, noise: C.Noise, sensor: C.Sensor, rng: np.random.Generator):
-    """Noisy photons (and counts for the EMCCD chain, else None)."""
+    """Noisy photons (and counts for the EMCCD chain, else None). Images are stored as float32
+    (max 3.4e38): a pixel past MAX_PIXEL_PHOTONS is a ValueError, not an inf written."""
+    if not (np.all(np.isfinite(a)) and np.max(a, initial=0.0) <= MAX_PIXEL_PHOTONS):
+        raise ValueError(f"its brightest pixel would hold {np.max(a):.3g} photons, beyond the {MAX_PIXEL_PHOTONS:g} "
+                         "the images (float32) store faithfully")
     if noise.model == "none":
         return a.copy(), None
     if noise.model == "gaussian":
@@ -121,11 +128,6 @@ def _refuse_montecarlo_noise(sim: C.Simulate) -> None:
     if sim.noise.peaks_photons is not None or sim.noise.repeats != 1:
         raise UserError("simulate.noise.peaks_photons / repeats: a Monte Carlo run has one level (simulate.flux.n_photons "
                         "sets it) and one draw (another simulate.flux.seed is another draw); remove them.")
-
-
-# Pixels are stored as float32 (max 3.4e38): a level that puts more than this in a pixel is
-# refused rather than written as inf (no camera collects 1e30 photons in a pixel)
-MAX_PIXEL_PHOTONS = 1e30
 
 
 def _simulate(sp: SimulatePlan, ctx: RunContext) -> Path:
@@ -177,20 +179,14 @@ def _simulate(sp: SimulatePlan, ctx: RunContext) -> Path:
                      else "simulate.flux (its own level; simulate.noise.peaks_photons sets another)")
         for li in range(L):
             a = a1 * scale[li]
-            brightest = float(np.max(a, initial=0.0))
-            if not np.all(np.isfinite(a)) or brightest > MAX_PIXEL_PHOTONS:
-                raise UserError(f"{level_key}: at level {lv[li]:.3g} photons the brightest pixel of pose {k} would "
-                                f"hold {brightest:.3g} photons, beyond the {MAX_PIXEL_PHOTONS:g} the images store "
-                                "faithfully (float32); use a lower level.")
-            clean[li, k] = a.reshape(ny, nx)
             for r in range(R):
                 rng = np.random.default_rng([sim.noise.seed, li, r, k])
                 try:
                     ph, c = add_noise(a, sim.noise, sp.sensor, rng)
                 except ValueError as e:  # e.g. numpy's Poisson sampler above ~1e19 photons
-                    raise UserError(f"{level_key}: level {lv[li]:.3g} photons cannot be sampled "
+                    raise UserError(f"{level_key}: level {lv[li]:.3g} photons, pose {k}, cannot be sampled "
                                     f"with the {sim.noise.model} noise model ({e}); use a lower level.") from None
-                noisy[li, r, k] = ph.reshape(ny, nx)
+                clean[li, k], noisy[li, r, k] = a.reshape(ny, nx), ph.reshape(ny, nx)
                 if counts is not None:
                     counts[li, r, k] = c.reshape(ny, nx)
     snr = np.sqrt(clean.reshape(L, P, -1).max(axis=2))
