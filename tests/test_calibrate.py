@@ -379,6 +379,25 @@ def test_cli_calibrates_a_projector_against_the_calibrated_camera(grid_set, tmp_
     assert r.exit_code == 0, r.output
     again = yaml.safe_load((tmp_path / "lab" / "camera.yaml").read_text())["projectors"]["left"]
     assert again == yaml.safe_load((tmp_path / "out" / "camera.yaml").read_text())["projectors"]["left"]
+    # the lab's frames in a wrong order: a Gray bit and its inverse swapped put the projector 146 mm
+    # off with no error, one height's frames given for another 205 mm off, columns and rows swapped
+    # stopped in the optimiser (exit 1); each is now exit 2 naming the projector
+    lists = [{"plane_z_mm": z, "columns": [str(f) for f in sorted(folder.glob(f"z{z:+07.2f}_columns_*.tif"))],
+              "rows": [str(f) for f in sorted(folder.glob(f"z{z:+07.2f}_rows_*.tif"))]} for z in (-20.0, 0.0, 20.0)]
+    swapped = [dict(d) for d in lists]
+    c = list(swapped[1]["columns"])
+    c[2], c[3] = c[3], c[2]
+    swapped[1]["columns"] = c
+    same_z = [dict(d) for d in lists]
+    same_z[0].update(columns=lists[1]["columns"], rows=lists[1]["rows"])
+    crossed = [dict(d, columns=d["rows"], rows=d["columns"]) for d in lists]
+    for images, said in ((swapped, "RMS reprojection"), (same_z, "hold the same pixels"), (crossed, "projector")):
+        cfg["calibrate"]["projectors"] = [{"name": "left", "pixels": [400, 300], "images": images}]
+        lab.write_text(yaml.safe_dump(cfg))
+        r = _run(lab)
+        assert r.exit_code == 2, r.output
+        text = " ".join(r.output.split())
+        assert "calibrate.projectors[0] (left)" in text and said in text, text
 
 
 def test_projector_frames_of_the_wrong_count_exit_2(grid_set, tmp_path):

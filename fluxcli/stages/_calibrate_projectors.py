@@ -110,13 +110,14 @@ def fit_projectors(sec: C.Calibrate, cam: C.Camera, geo: GeometricCalibration, f
         else:
             sets = [(im.plane_z_mm, frame_paths[f"calibrate.projectors[{k}].images[{i}].columns"],
                      frame_paths[f"calibrate.projectors[{k}].images[{i}].rows"]) for i, im in enumerate(pc.images)]
-        planes, gammas, valid_frac, heights = [], [], [], []
+        planes, gammas, valid_frac, heights, seen = [], [], [], [], {}
         for i, (z, cpaths, rpaths) in enumerate(sets):
             key = f"calibrate.projectors[{k}].images[{i}]" if pc.simulated is None else \
                 f"calibrate.projectors[{k}].simulated (z={z:g} mm)"
             decoded = []
             for which, pats, paths in (("columns", cols, cpaths), ("rows", rows, rpaths)):
                 f = _read_frames(paths, f"{key}.{which}", len(pats.frames), (ny, nx))
+                _no_frame_twice(f, paths, seen, f"calibrate.projectors[{k}] ({name})")
                 contrast = f[0] - f[1]
                 lit = contrast[contrast > 0]
                 level = pc.min_contrast_fraction * (np.percentile(lit, 99) if len(lit) else 0.0)
@@ -146,7 +147,29 @@ def fit_projectors(sec: C.Calibrate, cam: C.Camera, geo: GeometricCalibration, f
             fit.truth = _truth_errors(pc.simulated.projector, res.projector)
         fits.append(fit)
         _projector_summary(fit, ctx)
+        if res.rms_px > RMS_REFUSE_PX:
+            raise UserError(f"calibrate.projectors[{k}] ({name}): the best projector leaves an RMS reprojection of "
+                            f"{res.rms_px:.3g} projector px (a good fit: under 0.5): these frames do not show one "
+                            "board under this projector's codes. Check each height's frame order (white, black, "
+                            "each Gray bit then its inverse, the phase steps), that columns and rows are not "
+                            "swapped, and each images[].plane_z_mm.")
     return fits
+
+
+RMS_REFUSE_PX = 2.0  # a fit this poor moves a structured-light surface by millimetres (a frame swapped: 2-130 px)
+
+
+def _no_frame_twice(frames: np.ndarray, paths, seen: dict, where: str) -> None:
+    """A UserError when two frames of a projector's set hold the same pixels: every pattern
+    frame differs from every other, and so does each height's view of the board."""
+    import hashlib
+
+    for f, p in zip(frames, paths):
+        h = hashlib.sha256(np.ascontiguousarray(f).tobytes()).hexdigest()
+        if h in seen:
+            raise UserError(f"{where}: {p} and {seen[h]} hold the same pixels (the same frame listed twice, or one "
+                            "height's frames given for another); each pattern at each height is its own frame.")
+        seen[h] = p
 
 
 def _truth_errors(true_cfg: C.ProjectorModel, fitted) -> dict:

@@ -33,7 +33,8 @@ from .projector import Projector
 
 
 class ProjectorFitError(ValueError):
-    """Too few board points have decoded projector coordinates to fit a projector: bad input, not a bug."""
+    """The board points' decoded projector coordinates cannot give a projector (too few of them,
+    or none that one projector explains): bad input, not a bug."""
 
 __all__ = ["row_patterns", "projector_coordinates_at", "fit_projector", "gamma_from_phase_frames",
            "ProjectorCalibrationResult", "calibrate_projector", "simulate_board_frames"]
@@ -131,6 +132,9 @@ def fit_projector(points_mm: np.ndarray, uv_px: np.ndarray, *, width_px: int, he
         return np.r_[u - uv[:, 0], v - uv[:, 1]]
 
     p0 = np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], 0.0, 0.0, Rotation.from_matrix(R).as_rotvec(), center]
+    if not (np.all(np.isfinite(p0)) and np.all(np.isfinite(resid(p0)))):
+        raise ProjectorFitError("no projector explains the decoded coordinates: the first estimate from them puts "
+                                "board points behind it or at infinity (frames out of order, or of another board?)")
     fit = least_squares(resid, p0, x_scale="jac", method="lm")
     res = resid(fit.x)
     return make(fit.x), np.c_[res[:len(X)], res[len(X):]]
