@@ -391,13 +391,17 @@ def test_cli_calibrates_a_projector_against_the_calibrated_camera(grid_set, tmp_
     same_z = [dict(d) for d in lists]
     same_z[0].update(columns=lists[1]["columns"], rows=lists[1]["rows"])
     crossed = [dict(d, columns=d["rows"], rows=d["columns"]) for d in lists]
-    for images, said in ((swapped, "RMS reprojection"), (same_z, "hold the same pixels"), (crossed, "projector")):
+    heights = [dict(d, plane_z_mm=z) for d, z in zip(lists, (20.0, 0.0, -20.0))]
+    for images, where, said in ((swapped, "calibrate.projectors[0].images[1].columns", "phase steps disagree"),
+                                (heights, "calibrate.projectors[0] (left)", "RMS reprojection"),
+                                (same_z, "calibrate.projectors[0] (left)", "hold the same pixels"),
+                                (crossed, "calibrate.projectors[0] (left)", "projector")):
         cfg["calibrate"]["projectors"] = [{"name": "left", "pixels": [400, 300], "images": images}]
         lab.write_text(yaml.safe_dump(cfg))
         r = _run(lab)
         assert r.exit_code == 2, r.output
         text = " ".join(r.output.split())
-        assert "calibrate.projectors[0] (left)" in text and said in text, text
+        assert where in text and said in text, text
 
 
 def test_projector_frames_of_the_wrong_count_exit_2(grid_set, tmp_path):

@@ -122,6 +122,11 @@ def fit_projectors(sec: C.Calibrate, cam: C.Camera, geo: GeometricCalibration, f
                 lit = contrast[contrast > 0]
                 level = pc.min_contrast_fraction * (np.percentile(lit, 99) if len(lit) else 0.0)
                 dec = decode(f, pats, min_contrast=level, width_px=w if which == "columns" else h)
+                if dec.disagreement > GRAY_PHASE_REFUSE:
+                    raise UserError(f"{key}.{which}: the Gray code and the phase steps disagree by more than a quarter "
+                                    f"period at {dec.disagreement:.0%} of the lit pixels (frames in order: under 1 %): "
+                                    "the frames are out of order (each Gray bit then its inverse, the phase steps in "
+                                    "the order shown) or one of them is not of this code.")
                 decoded.append(dec)
                 if which == "columns" and pc.gamma is None:
                     ph = f[2 + 2 * pats.n_gray:]
@@ -156,6 +161,7 @@ def fit_projectors(sec: C.Calibrate, cam: C.Camera, geo: GeometricCalibration, f
     return fits
 
 
+GRAY_PHASE_REFUSE = 0.1  # a frame swapped or reversed: 23-50 %; in order: 0 %
 RMS_REFUSE_PX = 2.0  # a fit this poor moves a structured-light surface by millimetres (a frame swapped: 2-130 px)
 
 

@@ -104,6 +104,10 @@ class Decoded:
     modulated: np.ndarray
     smooth: np.ndarray
     valid: np.ndarray
+    # share of the lit, modulated pixels whose Gray cell and phase disagree by more than a quarter
+    # period: ~0 for frames in order (0.000 on the sample rig), ~0.5 with a Gray bit and its
+    # inverse swapped or the phase steps reversed, 0.23 with a blank Gray frame
+    disagreement: float = float("nan")
 
 
 def decode(frames: np.ndarray, patterns: PatternSet, *, min_contrast: float, min_modulation_fraction: float = 0.25,
@@ -156,4 +160,7 @@ def decode(frames: np.ndarray, patterns: PatternSet, *, min_contrast: float, min
             smooth = ((np.abs(pad[:-2, 1:-1] - 2 * col + pad[2:, 1:-1]) <= jump)
                       & (np.abs(pad[1:-1, :-2] - 2 * col + pad[1:-1, 2:]) <= jump))
     valid &= smooth
-    return Decoded(np.where(valid, column, np.nan), wrapped, modulation, white, black, lit, modulated, smooth, valid)
+    seen = lit & modulated & np.isfinite(column)
+    disagreement = float(np.mean(np.abs(coarse - column)[seen] > P / 4)) if seen.any() else float("nan")
+    return Decoded(np.where(valid, column, np.nan), wrapped, modulation, white, black, lit, modulated, smooth, valid,
+                   disagreement)
