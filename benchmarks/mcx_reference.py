@@ -102,6 +102,15 @@ def run_chunk(mcx, nphoton: int, seed: int, n_medium: float = N_MEDIUM,
 
     Returns the detected photons as rows (ppath_mm, x, y, z, vx, vy, vz, w0) x photons, and
     MCX's own statistics (``energytot``, ``energyabs``, ...)."""
+    det, stat = run_chunk_raw(mcx, nphoton, seed, n_medium, dtype)
+    return det[1:], stat
+
+
+def run_chunk_raw(mcx, nphoton: int, seed: int, n_medium: float = N_MEDIUM,
+                  dtype=np.float64) -> tuple[np.ndarray, dict]:
+    """:func:`run_chunk` with MCX's detector-id row kept in front (9 rows), in the memory order
+    MCX gave: its rows cut off, MCX's Fortran-ordered array is neither C nor Fortran contiguous,
+    and writing such a view to a file takes several times as long as the run itself."""
     vol = np.ones(SIZE_MM, dtype="uint8")
     prop = np.array([[0.0, 0.0, 1.0, 1.0], [MU_A_PER_MM, MU_S_PER_MM, G, n_medium]])
     res = mcx.run(
@@ -118,7 +127,7 @@ def run_chunk(mcx, nphoton: int, seed: int, n_medium: float = N_MEDIUM,
     det = np.asarray(det, dtype=dtype)
     if det.ndim != 2 or det.shape[0] != 9:
         raise RuntimeError(f"unexpected detected-photon array {det.shape} (want 9 rows: d p x3 v3 w)")
-    return det[1:], dict(res["stat"])
+    return det, dict(res["stat"])
 
 
 def classify_faces(pos: np.ndarray, tol: float = 1e-3) -> np.ndarray:
