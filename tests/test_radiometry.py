@@ -19,7 +19,7 @@ from typer.testing import CliRunner
 from fluxcli import config as C
 from fluxcli.calibration import radiometry as R
 from fluxcli.cli import app
-from fluxcli.errors import UserError
+from fluxcli.errors import InputError, UserError
 from fluxcli.imaging import noise as N
 from fluxcli.imaging.imagefiles import read_image, write_image
 from fluxcli.imaging.sensor_maps import counts_to_photons_with_maps
@@ -529,3 +529,70 @@ def test_a_frame_unlike_its_list_or_not_raw_counts_is_named(tmp_path):
         with pytest.raises(UserError, match=match):
             run(name, image)
     run("bias_2.tif", frame("bias_2.tif").astype(np.uint16))  # the sample itself still calibrates
+
+
+def test_a_ptc_frame_out_of_register_with_its_pair_is_named(tmp_path):
+    """One frame of a gain-off PTC pair transposed, flipped, moved by 2 px, or lit by a lamp that
+    tilted by 2 % across the field between the two exposures. The pair difference then keeps
+    the fixed pattern or the light's shape, and electrons per count read 8.14-8.43 (truth
+    8.55; 7.84 for the tilted lamp at the 0.105-s level), exit 0 with at most a warning that the
+    curve is not straight. Now exit 2 naming the frame or the pair."""
+    import shutil
+
+    folder = tmp_path / "frames"
+    shutil.copytree(SAMPLE_DIR, folder)
+    section = yaml.safe_load(SAMPLE_CONFIG.read_text())["calibrate"]["radiometric"]
+    section["directory"] = str(folder)
+    bias = np.mean([read_image(SAMPLE_DIR / f)[0] for f in section["bias"]], axis=0)
+    tilt = 1.0 + 0.02 * (np.arange(64)[None, :] / 63.0 - 0.5)
+    cases = [
+        ("ptc_off_3_0.tif", lambda f: f.T, r"ptc\[3\]\.files\[0\] and \[1\]: their difference holds structure"),
+        ("ptc_off_6_0.tif", lambda f: f[::-1], r"ptc\[6\]\.files\[0\] is not registered with files\[1\]"),
+        ("ptc_off_3_0.tif", lambda f: np.roll(f, 2, axis=0), r"ptc\[3\]\.files\[0\] is not registered"),
+        ("ptc_off_6_0.tif", lambda f: bias + (f - bias) * tilt, r"ptc\[6\]\.files\[0\] and \[1\].*light changed"),
+    ]
+    for name, edit, match in cases:
+        write_image(folder / name, np.clip(np.rint(edit(read_image(SAMPLE_DIR / name)[0])), 0, 65535).astype(np.uint16))
+        try:
+            with pytest.raises(UserError, match=match):
+                run_radiometric(C.Radiometric.model_validate(section), lambda p: Path(p), RunContext(quiet=True))
+        finally:
+            shutil.copy(SAMPLE_DIR / name, folder / name)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_pair_checks_pass_good_pairs_of_awkward_cameras(seed):
+    """Good PTC series the register checks must not refuse: row noise that changes frame to frame
+    (an sCMOS-like readout, in the bias pairs too), cosmic rays, strong vignetting, the EM gain
+    on, a fixed pattern from none to 10 %. Each series is also checked with one frame moved by
+    3 px, which must be refused where it would move that pair's variance by more than 10 %."""
+    rng = np.random.default_rng(seed)
+    ny, nx = [(64, 64), (48, 96), (128, 128)][seed % 3]
+    prnu, em_gain, row_noise = [0.0, 0.003, 0.01, 0.03, 0.1, 0.01][seed], [1, 300][seed % 2], 2.0 * (seed % 2)
+    K, read = 8.0, 5.0
+    yy, xx = np.mgrid[0:ny, 0:nx]
+    light = 1.0 - 0.6 * (((yy - ny / 2) / ny) ** 2 + ((xx - nx / 2) / nx) ** 2)
+    response = 1.0 + prnu * rng.standard_normal((ny, nx))
+    bias = 500.0 + 3.0 * rng.standard_normal((ny, nx))
+
+    def frame(signal_counts):
+        electrons = rng.poisson(signal_counts * K * response * light / em_gain).astype(float)
+        if em_gain > 1:
+            electrons = rng.gamma(np.maximum(electrons, 1e-12), em_gain) * (electrons > 0)
+        f = bias + electrons / K + read * rng.standard_normal((ny, nx)) + row_noise * rng.standard_normal((ny, 1))
+        for _ in range(3):  # cosmic rays
+            f[rng.integers(ny), rng.integers(nx)] += rng.uniform(1e3, 3e4)
+        return np.clip(f, 0, 65535)
+
+    bias_stack = np.array([frame(0.0) for _ in range(4)])
+    levels = [(j, np.array([frame(s), frame(s)])) for j, s in enumerate([20.0, 100.0, 500.0, 2000.0, 8000.0])]
+    R.check_pairs(levels, bias_stack, bias_stack.mean(axis=0), 65535.0)
+    j = int(rng.integers(5))
+    good = R.pair_statistics(*levels[j][1], bias)[1]
+    levels[j][1][0] = np.roll(levels[j][1][0], 3, axis=1)
+    leaked = R.pair_statistics(*levels[j][1], bias)[1] / good - 1.0
+    try:
+        R.check_pairs(levels, bias_stack, bias_stack.mean(axis=0), 65535.0)
+    except InputError:
+        return
+    assert leaked < 0.10, f"a frame moved by 3 px passed with its pair's variance {leaked:.1%} high"

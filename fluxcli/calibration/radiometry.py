@@ -296,6 +296,144 @@ dropping only the saturated pixels would keep their neighbours in value that noi
 happened to push down, and bias the variance low."""
 
 
+REGISTRATION_RATIO = 0.5
+REGISTRATION_SIGMAS = 8.0
+"""A PTC frame whose fixed pattern agrees with the other pairs' less than half as well as its
+partner's, by more than 8 standard errors of the agreement, is not registered with its partner."""
+
+
+def _fine_pattern(signal: np.ndarray) -> np.ndarray:
+    """The pixel-scale part of a frame's signal: the frame less its 3 × 3 running mean, so that
+    the smooth light falls out and the pixel response (the part a misregistered pair difference
+    keeps) stays."""
+    from scipy.ndimage import uniform_filter
+
+    return signal - uniform_filter(signal, 3, mode="nearest")
+
+
+def _robust_corr(x: np.ndarray, y: np.ndarray) -> float:
+    """Pearson correlation of ``x`` and ``y`` after each is clipped at 5 robust standard deviations
+    (a cosmic ray or a hot pixel moves it little)."""
+    def z(v):
+        v = v - np.median(v)
+        s = 1.4826 * np.median(np.abs(v))
+        return np.clip(v / s, -5, 5) if s > 0 else np.zeros_like(v)
+    zx, zy = z(x), z(y)
+    zx -= zx.mean()
+    zy -= zy.mean()
+    den = math.sqrt(float((zx * zx).sum() * (zy * zy).sum()))
+    return float((zx * zy).sum() / den) if den > 0 else 0.0
+
+
+def _usable(a: np.ndarray, b: np.ndarray, max_counts: float | None) -> np.ndarray:
+    """Pixels of a pair neither saturated, clipped at 0 nor hit by a cosmic ray (a difference
+    beyond 6 robust standard deviations)."""
+    ok = np.isfinite(a) & np.isfinite(b) & (a > 0) & (b > 0)
+    if max_counts is not None:
+        ok &= (a < max_counts) & (b < max_counts)
+    if not ok.any():
+        return ok
+    d = np.where(ok, a - b, 0.0)
+    dev = np.abs(d - np.median(d[ok]))
+    return ok & (dev <= 6.0 * 1.4826 * max(float(np.median(dev[ok])), 1e-12))
+
+
+def _filled(values: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """``values`` with each pixel left out replaced by its 3 × 3 neighbours' median, so that a
+    running mean or a block mean does not spread it."""
+    from scipy.ndimage import median_filter
+
+    if ok.all():
+        return values
+    base = np.where(ok, values, np.median(values[ok]) if ok.any() else 0.0)
+    return np.where(ok, values, median_filter(base, 3))
+
+
+STRUCTURE_BLOCK_PX = 8
+STRUCTURE_SHARE = 0.05
+"""A pair whose difference holds structure larger than a pixel (over 8 × 8 blocks) worth more
+than 5 % of its variance, beyond what the bias pairs' difference holds and by more than 6
+standard errors, is refused: its variance would be that much too high."""
+
+
+def _block_structure(d: np.ndarray, block: int) -> tuple[float, float, float]:
+    """(variance of the difference's structure larger than a pixel, its standard error if the
+    difference were white, the difference's pixel variance), in counts². White noise of pixel
+    variance σ² gives block means of variance σ²/B²; the excess over that is structure."""
+    ny, nx = (d.shape[0] // block) * block, (d.shape[1] // block) * block
+    d = d[:ny, :nx] - d[:ny, :nx].mean()
+    means = d.reshape(ny // block, block, nx // block, block).mean(axis=(1, 3)).ravel()
+    b2, m = block * block, means.size
+    var_d, var_m = float(d.var()), float(means.var(ddof=1))
+    return (b2 * var_m - var_d) / (b2 - 1), var_d * math.sqrt(2.0 / (m - 1)) / (b2 - 1), var_d
+
+
+def check_pairs(levels: list[tuple[int, np.ndarray]], bias_stack: np.ndarray, bias_counts,
+                max_counts: float | None) -> None:
+    """Refuse a photon-transfer pair whose difference keeps what it should cancel.
+
+    ``var(a − b) / 2`` cancels the fixed pattern (pixel response × light) only pixel for pixel,
+    and only if the light stayed put. Two checks, each on what the other cannot see:
+
+    - *Pixel pattern.* Each frame's pixel-scale pattern (less its 3 × 3 running mean) is
+      correlated with the pattern a frame of its signal should hold: the bias map's, plus its
+      signal times the pixel response seen by every other pair of the series (the pair itself left
+      out: a frame agrees with itself). Both frames of a pair see the same light, so they agree
+      alike. Where the pattern stands 8 standard errors above the noise, a frame that agrees less
+      than half as well as its partner is named: transposed, flipped or shifted (one frame of the
+      sample set transposed read electrons per count 8.21 for 8.55, without a sign).
+    - *Structure larger than a pixel.* The difference of a good pair is white: its 8 × 8 block
+      means vary as its pixels over 64. The excess (a smooth light moved with the frame, or a
+      light that changed between the two exposures) beyond the bias pairs' own (row noise of
+      the readout) is refused above 5 % of the pair's variance.
+
+    ``levels``: (index in the PTC list, frames [n, ny, nx]) of one EM-gain setting."""
+    bias_stack = np.asarray(bias_stack, dtype=np.float64)
+    pairs = [(j, k, a, b) for j, frames in levels
+             for k, (a, b) in zip(range(0, len(frames) - 1, 2), _pairs(np.asarray(frames, dtype=np.float64)))]
+    block = STRUCTURE_BLOCK_PX if min(bias_stack.shape[1:]) >= 4 * STRUCTURE_BLOCK_PX else 4
+    bias_structure = [_block_structure(_filled(a - b, ok), block)[0] for a, b in _pairs(bias_stack)
+                      for ok in [_usable(a, b, max_counts)]] if min(bias_stack.shape[1:]) >= 4 * block else []
+    floor = max(float(np.median(bias_structure)), 0.0) if bias_structure else 0.0
+    fine, weight = [], []
+    for j, k, a, b in pairs:
+        ok = _usable(a, b, max_counts)
+        if bias_structure and ok.mean() > 0.5:
+            v_s, v_se, var_d = _block_structure(_filled(a - b, ok), block)
+            excess = v_s - floor
+            if excess > STRUCTURE_SHARE * var_d and excess > 6.0 * v_se:
+                raise InputError(f"ptc[{j}].files[{k}] and [{k + 1}]: their difference holds structure larger than a pixel, "
+                                 f"{excess / var_d:.0%} of its variance (the bias pairs' difference: "
+                                 f"{floor / max(var_d, 1e-300):.1%}). A frame moved, flipped or transposed, or the "
+                                 "light changed between the two exposures? The pair's variance would read electrons "
+                                 "per count low.")
+        both = [(np.where(ok, _fine_pattern(_filled(f, ok)), 0.0)) for f in (a, b)]
+        fine.append((both, ok))
+        weight.append(max(float(np.median(0.5 * (a + b) - bias_counts)), 0.0))
+    if len(pairs) < 2:
+        return
+    # what a frame of signal S should hold at the pixel scale: the bias map's pattern plus S times the
+    # pixel response (the other pairs' pattern above bias over their signal)
+    bias_fine = _fine_pattern(np.broadcast_to(np.asarray(bias_counts, dtype=np.float64), bias_stack.shape[1:]))
+    total = sum(g - np.where(ok, bias_fine, 0.0) for both, ok in fine for g in both)
+    total_level = 2.0 * sum(weight)
+    for (j, k, _, _), (both, ok), w in zip(pairs, fine, weight):
+        rest_level = total_level - 2.0 * w
+        n = int(ok.sum())
+        if rest_level <= 0 or n < 64:
+            continue
+        reference = bias_fine + w * (total - both[0] - both[1] + 2.0 * np.where(ok, bias_fine, 0.0)) / rest_level
+        c = [_robust_corr(g[ok], reference[ok]) for g in both]
+        hi, lo, se = max(c), min(c), 1.0 / math.sqrt(n)
+        if hi > REGISTRATION_SIGMAS * se and hi - lo > REGISTRATION_SIGMAS * se and lo < REGISTRATION_RATIO * hi:
+            bad = k + int(c[1] < c[0])
+            raise InputError(f"ptc[{j}].files[{bad}] is not registered with files[{k + (bad == k)}], its pair: its "
+                             f"pixel pattern agrees with the other PTC frames' at {lo:.3f}, its partner's at {hi:.3f}. "
+                             "Transposed, flipped, shifted or from another camera? A pair's difference cancels the "
+                             "fixed pattern only pixel for pixel; a misregistered frame keeps it and reads electrons "
+                             "per count low.")
+
+
 def _ptc_series(pairs: list, exposures_s: list[float], labels: list[str], bias_counts, em_gain_on: bool,
                 max_counts: float | None, warnings: list[str]) -> PTCSeries:
     name = "gain-on" if em_gain_on else "gain-off"
@@ -682,6 +820,8 @@ def calibrate_radiometric(
     for on, levels in groups.items():
         if not levels:
             continue
+        check_pairs([(j, lv.frames) for j, lv in enumerate(ptc) if bool(lv.em_gain_on) == on], bias_stack,
+                    bias_map, max_counts)
         pairs, exposures, labels = [], [], []
         for level in levels:
             for a, b in _pairs(np.asarray(level.frames, dtype=np.float64)):
