@@ -34,6 +34,7 @@ from ..imaging.stray import STRAY_REFUSE, STRAY_WARN, light_outside  # noqa: F40
 from ..inverse import backprojection, error_l1, total_ratio
 from ..inverse.emission_checks import emission_checks
 from ..inverse.emission_domain import leave_out_edge_on
+from ..inverse.filtered import poses_disagree
 from ..inverse.solve import DENSE, REGULARISED, describe, run_method, scaled, solve_poses  # noqa: F401
 from ..inverse.unknowns import (MAX_AUTO_SUB_ELEMENTS, ElementMap, Grid, VertexMap,  # noqa: F401
                                 element_unknowns, n_vertices, resolve_unknowns)
@@ -252,7 +253,11 @@ def _dark_poses(inp: Inputs, todo) -> list[str]:
 def _warnings(per_pose, joint, todo) -> list[str]:
     """Every warning of every solve (to the console and to /warnings: never silent)."""
     out = [f"pose {pt.pose.label}: {w}" for (r, _), (_, pt) in zip(per_pose, todo) for w in r.warnings]
-    return out + ([f"joint: {w}" for w in joint.warnings] if joint is not None else [])
+    if joint is None:
+        return out
+    apart = poses_disagree([r.chi2_per_pixel for r, _ in per_pose], joint.chi2_per_pixel,
+                           [np.nansum(r.power) for r, _ in per_pose])
+    return out + [f"joint: {w}" for w in joint.warnings] + ([f"joint: {apart}"] if apart else [])
 
 
 def _total_summary(per_pose, joint, todo, sigmas: dict | None = None) -> list[str]:
