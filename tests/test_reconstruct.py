@@ -421,12 +421,9 @@ def test_faces_split_on_a_round_phantom_follow_its_round_body():
     assert s_err[0] > s_err[1] > s_err[2] > s_err[3] > 0 and s_err[2] / s_err[3] == pytest.approx(4, rel=0.05), s_err
 
 
-def test_images_given_in_another_order_than_the_poses_are_said_to_disagree(write_config, tmp_path):
-    """The demo's cylinder turned 0 and -90 degrees, its two image files swapped (or one given for
-    both poses), saved by another program (no pose metadata to check). Each pose alone fits its
-    image to the noise, and only the joint fit cannot: the joint total read 1.83x the truth (1.43x
-    with one image twice) under a chi^2 warning that blamed the model or the noise model. The
-    warning now says that the poses disagree and asks for the files' order; in order it is silent."""
+def _turned_demo_cylinder(write_config, tmp_path, noise: str):
+    """The demo's cylinder turned 0 and -90 degrees, simulated, and its images saved again as
+    another program would (the pixels without fluxmap's pose metadata): config and file names."""
     import yaml
 
     cfg = yaml.safe_load((ROOT / "configs" / "demo.yaml").read_text())
@@ -434,24 +431,61 @@ def test_images_given_in_another_order_than_the_poses_are_said_to_disagree(write
     cfg.pop("report", None)
     cfg["subject"]["poses"] = {"heights_mm": [0], "rotations_deg": [0, -90]}
     cfg["subject"]["surface"].update({"n_angular": 16, "n_axial": 8})
-    cfg["simulate"]["noise"] = {"model": "poisson", "repeats": 1, "seed": 7, "exposure_s": 10.0}
-    p = write_config(cfg)
-    assert run("simulate", p, "--quiet").exit_code == 0
+    cfg["simulate"]["noise"] = {"model": noise, "repeats": 1, "seed": 7, "exposure_s": 10.0}
+    if noise == "emccd":
+        cfg["system"]["camera"]["sensor"] = {}
+    assert run("simulate", write_config(cfg), "--quiet").exit_code == 0
     tifs = []
-    for rot in (0, -90):  # as another program saves them: the pixels without fluxmap's pose metadata
+    for rot in (0, -90):
         image, _ = read_image(tmp_path / f"run/images/level0/h+0_rot{rot}_rep0.tif")
         write_image(tmp_path / f"plain{rot}.tif", image.astype(np.float32))
         tifs.append(f"plain{rot}.tif")
+    return cfg, tifs
+
+
+def _reconstruct_files(write_config, tmp_path, cfg, files, **images) -> tuple[list[str], float]:
+    """reconstruct from ``files``: the warnings that say the poses disagree, and the total."""
+    cfg["reconstruct"] = {"images": {"files": files, **images}}
+    r = run("reconstruct", write_config(cfg), "--quiet", "--force")
+    assert r.exit_code == 0, r.output
+    with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
+        total = float(f["flux/total"][()])
+    return [w for w in read_warnings(tmp_path / "run" / "reconstruction.h5")[0] if "disagree about the light" in w], total
+
+
+def test_images_given_in_another_order_than_the_poses_are_said_to_disagree(write_config, tmp_path):
+    """Two image files swapped, or one given for both poses, saved by another program (no pose
+    metadata to check). Each pose alone fits its image to the noise, and only the joint fit cannot:
+    the joint total read 1.83x the truth (1.43x with one image twice) under a chi^2 warning that
+    blamed the model or the noise model. The warning now says that the poses disagree and asks for
+    the files' order; in order it is silent."""
+    cfg, tifs = _turned_demo_cylinder(write_config, tmp_path, "poisson")
     said, total = {}, {}
     for name, files in (("in order", tifs), ("swapped", tifs[::-1]), ("one twice", [tifs[0], tifs[0]])):
-        cfg["reconstruct"] = {"images": {"files": files}}
-        r = run("reconstruct", write_config(cfg), "--quiet", "--force")
-        assert r.exit_code == 0, r.output
-        said[name] = [w for w in read_warnings(tmp_path / "run" / "reconstruction.h5")[0]
-                      if "disagree about the light" in w]
-        with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
-            total[name] = float(f["flux/total"][()])
+        said[name], total[name] = _reconstruct_files(write_config, tmp_path, cfg, files)
     assert not said["in order"]
     for name in ("swapped", "one twice"):
         assert total[name] > 1.2 * total["in order"], (name, total)  # what the warning is about
         assert said[name] and "subject.poses order" in said[name][0], name
+
+
+def test_counts_bias_subtracted_already_or_a_bias_frame_for_a_pose(write_config, tmp_path):
+    """EMCCD counts. An image bias-subtracted by another program and given as counts had the bias
+    taken off again (median 0, most pixels 500 counts below it) and read a total 0.79x the truth
+    under a chi^2 warning: now exit 2 naming the file and system.camera.sensor.bias_counts. A bias
+    frame given for one pose fits alone (no light) and pulled the joint total to 0.47x: the warning
+    now names that pose as reading no light while the others do."""
+    cfg, tifs = _turned_demo_cylinder(write_config, tmp_path, "emccd")
+    said, good = _reconstruct_files(write_config, tmp_path, cfg, tifs, units="counts")
+    assert not said
+    image, _ = read_image(tmp_path / tifs[0])
+    write_image(tmp_path / "subtracted.tif", (image - 500.0).astype(np.float32))
+    cfg["reconstruct"] = {"images": {"files": ["subtracted.tif", tifs[1]], "units": "counts"}}
+    r = run("reconstruct", write_config(cfg), "--quiet", "--force")
+    text = " ".join(r.output.split())
+    assert r.exit_code == 2 and "files[0]" in text and "below the bias" in text and "bias_counts 500" in text, text
+    rng = np.random.default_rng(1)
+    write_image(tmp_path / "bias.tif", (500.0 + 5.0 * rng.standard_normal(image.shape)).round().astype(np.float32))
+    said, total = _reconstruct_files(write_config, tmp_path, cfg, ["bias.tif", tifs[1]], units="counts")
+    assert total < 0.8 * good
+    assert said and "h=+0mm rot=0deg read no light" in said[0], said

@@ -246,6 +246,12 @@ def _saturated(cfg, d, b):
     cfg["workdir"] = str(d / "run")
 
 
+def _bias_subtracted(cfg, d, b):
+    cfg["system"]["camera"]["sensor"] = {"bias_counts": 500}
+    cfg["reconstruct"]["images"] = {"files": images(d, value=40.0, units="counts"), "units": "counts"}
+    cfg["workdir"] = str(d / "run")
+
+
 def _with_images_and_sweep(cfg, d, b):
     cfg["reconstruct"]["images"] = {"files": images(d)}
     cfg["reconstruct"]["sweep"] = {"methods": [{"method": "nnls"}]}
@@ -430,6 +436,7 @@ MISTAKES = [
     ("image-all-nan", "reconstruct", _images(nan=True), ["img0.tif", "NaN"]),
     ("image-all-negative", "reconstruct", _images(value=-5.0), ["img0.tif", "positive"]),
     ("image-saturated", "reconstruct", _saturated, ["img0.tif", "saturated"]),
+    ("image-bias-subtracted", "reconstruct", _bias_subtracted, ["img0.tif", "below the bias", "bias_counts 500"]),
     ("images-pose-order", "reconstruct", _images(heights=(5, 0)), ["reconstruct.images.files[0]", "subject.poses"]),
     ("image-suffix", "reconstruct", lambda c, d, b: (d.joinpath("a.png").write_text("x"),
                                                      put(c, "reconstruct.images", {"files": [str(d / "a.png")] * 2})) and None,

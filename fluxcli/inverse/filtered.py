@@ -28,21 +28,27 @@ NNLS_LAMBDA = 1e-12  # relative: "no prior" for guard_lambda's reference fit, ye
 TOTAL_JUMP = 0.05
 
 
-def poses_disagree(per_pose_chi2, joint_chi2: float, totals) -> str | None:
+def poses_disagree(per_pose_chi2, joint_chi2: float, totals, labels=None) -> str | None:
     """A warning when each pose alone fits its images to the noise but the poses together do not
     (joint χ² above the range and above twice every pose's): the images disagree about the light.
-    Files out of ``subject.poses`` order, one image given for two poses, or a light that changed
-    between poses do this; each pose alone then finds *a* surface that explains its image, and the
-    joint total (1.83× the truth, two files swapped, without another word before) is not one to
-    trust. None: nothing to say."""
+    Files out of ``subject.poses`` order, one image given for two poses, a dark or bias frame given
+    for a pose (it fits alone: no light, nothing to misfit), or a light that changed between poses
+    do this; each pose alone then finds *a* surface that explains its image, and the joint total
+    (1.83× the truth, two files swapped; 0.47× with a bias frame for one pose; without another word
+    before) is not one to trust. None: nothing to say."""
     chi = np.asarray(per_pose_chi2, dtype=float)
-    hi = CHI2_RANGE[1]
-    if (len(chi) < 2 or not np.isfinite(joint_chi2) or not np.all(np.isfinite(chi)) or chi.max() > hi
-            or joint_chi2 <= max(hi, 2.0 * chi.max())):
-        return None
     t = np.asarray(totals, dtype=float)
-    return (f"each pose alone fits its image to the noise (chi^2 per pixel {chi.min():.2g}-{chi.max():.2g}) but the "
-            f"poses together do not ({joint_chi2:.3g}): their images disagree about the light. Are "
+    labels = list(labels) if labels is not None else [str(k) for k in range(len(chi))]
+    hi = CHI2_RANGE[1]
+    lit = np.isfinite(chi)
+    dark = ~lit & (np.abs(t) <= 0.01 * np.nanmax(np.abs(t), initial=0.0))  # no light to fit: fits alone trivially
+    if (len(chi) < 2 or not lit.any() or not np.isfinite(joint_chi2) or not np.all(lit | dark)
+            or chi[lit].max() > hi or joint_chi2 <= max(hi, 2.0 * chi[lit].max())):
+        return None
+    unlit = "" if not dark.any() else (f" Pose(s) {', '.join(l for l, d in zip(labels, dark) if d)} read no light "
+                                       "while the others do: a dark or bias frame given for a pose?")
+    return (f"each pose alone fits its image to the noise (chi^2 per pixel {chi[lit].min():.2g}-{chi[lit].max():.2g}) "
+            f"but the poses together do not ({joint_chi2:.3g}): their images disagree about the light.{unlit} Are "
             "reconstruct.images.files in subject.poses order, one image per pose and none given twice? Did the "
             "light change between poses (a decaying or moving source), or does the model (emission, geometry) "
             f"hold for some poses only? The per-pose totals ({np.nanmin(t):.4g}-{np.nanmax(t):.4g} photons) are "

@@ -16,7 +16,7 @@ from .. import artefacts as A
 from ..errors import UserError
 from ..imaging import noise as N
 from ..imaging.imagefiles import read_image, sample_type
-from ..imaging.sensor_maps import counts_to_photons_with_maps
+from ..imaging.sensor_maps import below_bias, counts_to_photons_with_maps
 from .plans import emccd_model
 from ._radiometric import read_radiometric_maps
 
@@ -175,6 +175,14 @@ def _image_files(plan_im, n_poses: int, poses: list | None) -> Inputs:
                 raise UserError(f"{where}: {sat.sum() / finite.sum():.0%} of the pixels are saturated (at "
                                 f"{2 ** model.bit_depth - 1} counts); shorten the exposure or lower the EM gain.")
             ok = finite & ~sat
+            low = below_bias(img, model, ok, maps.get("bias_counts_map"))
+            if low is not None:
+                bias = (f"the bias map of {plan_im.calibration}, median {np.median(maps['bias_counts_map']):.6g}" if
+                        maps.get("bias_counts_map") is not None else f"system.camera.sensor.bias_counts {model.bias_counts:g}")
+                raise UserError(f"{where}: {low[0]:.0%} of its pixels lie more than {low[1]:.3g} counts (5 read-noise sigmas) "
+                                f"below the bias ({bias}); its median is {low[2]:.6g} counts. Raw counts never fall that far "
+                                "below the bias: was the image bias-subtracted or scaled already (give it as it left the camera, "
+                                "or set system.camera.sensor.bias_counts: 0), or is the bias another camera's?")
             img = counts_to_photons_with_maps(np.where(finite, img, 0), model, **maps)
             ok &= np.isfinite(img)  # dead pixels of the flat map
             img = np.where(finite, img, np.nan)

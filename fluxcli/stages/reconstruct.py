@@ -256,7 +256,7 @@ def _warnings(per_pose, joint, todo) -> list[str]:
     if joint is None:
         return out
     apart = poses_disagree([r.chi2_per_pixel for r, _ in per_pose], joint.chi2_per_pixel,
-                           [np.nansum(r.power) for r, _ in per_pose])
+                           [np.nansum(r.power) for r, _ in per_pose], [pt.pose.label for _, pt in todo])
     return out + [f"joint: {w}" for w in joint.warnings] + ([f"joint: {apart}"] if apart else [])
 
 
