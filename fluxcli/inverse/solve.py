@@ -105,7 +105,11 @@ def solve_poses(gm, inp, m, noise, stray, todo, shape, joint_too: bool, rois, sc
             res, fitted = solve_pose()
         if gm.curvature is not None:  # the emission's curvature term: solved again, bent by this solution
             res, fitted = solve_pose(gm.curvature.T(k, res.power))
-        res = scaled(replace(res, warnings=tuple(w for w in (stray[k], spiked) if w) + tuple(res.warnings)), scale)
+        turned = orientation_hint(lambda a, v: run_method(gm.Ts[k], a, v, m, noise, gm.adjacency, gm.parts(k),
+                                                          gm.n_elements, gm.areas)[0].chi2_per_pixel,
+                                  inp.images[k], inp.valid[k], res.chi2_per_pixel, gm.n_elements)
+        res = scaled(replace(res, warnings=tuple(w for w in (stray[k], spiked, turned) if w) + tuple(res.warnings)),
+                     scale)
         if rois:
             rois.measure(str(k + 1), todo[k][1].pose.height_mm, todo[k][1].pose.rotation_deg, res)
         per_pose.append((replace(res, covariance=None), fitted))  # the covariance is n x n: measured, dropped
@@ -123,6 +127,38 @@ def solve_poses(gm, inp, m, noise, stray, todo, shape, joint_too: bool, rois, sc
             rois.measure("joint", None, None, joint)
         joint = replace(joint, covariance=None)
     return per_pose, joint
+
+
+ORIENTATIONS = (("upside down", lambda x: x[::-1]), ("mirrored left to right", lambda x: x[:, ::-1]),
+                ("turned half a turn", lambda x: x[::-1, ::-1]), ("transposed", lambda x: x.T))
+ORIENTATION_MAX_ELEMENTS = 5000  # four more solves of a pose that misfits: only where they are cheap
+ORIENTATION_GAIN = 2.0
+
+
+def orientation_hint(chi2_of, image: np.ndarray, valid: np.ndarray, chi2: float, n_elements: int) -> str | None:
+    """A warning when a pose's image, which misfits (χ² per pixel above the range), fits at least
+    2× better, and within the range, flipped, mirrored, turned or transposed: its row or column
+    order is another program's (FITS stores rows bottom-up; some camera software mirrors). The
+    image is used as given. ``chi2_of(image, valid)``: χ² per pixel of a solve of that pose.
+    None: nothing to say. Without it an image upside down read 0.946× the truth under a warning
+    that blamed the model."""
+    from .filtered import CHI2_RANGE
+
+    if not np.isfinite(chi2) or chi2 <= CHI2_RANGE[1] or n_elements > ORIENTATION_MAX_ELEMENTS:
+        return None
+    best = None
+    for name, turn in ORIENTATIONS:
+        a = turn(np.asarray(image))
+        if a.shape != np.shape(image):
+            continue
+        c = chi2_of(np.ascontiguousarray(a), np.ascontiguousarray(turn(np.asarray(valid))))
+        if np.isfinite(c) and (best is None or c < best[1]):
+            best = (name, c)
+    if best is None or best[1] * ORIENTATION_GAIN > chi2 or best[1] > CHI2_RANGE[1]:
+        return None
+    return (f"its image fits {chi2 / best[1]:.3g}x better {best[0]} (chi^2 per pixel {best[1]:.3g} against {chi2:.3g} as "
+            "given): is its row or column order another program's (FITS stores rows bottom-up; some camera software "
+            "mirrors or rotates)? The image is used as given; turn the file, not the config.")
 
 
 def scaled(res, scale: float):
