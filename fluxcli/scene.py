@@ -71,7 +71,44 @@ def views_from_config(system: C.System) -> list[View]:
         if np.dot(cam.center_mm - v.mirror.center_mm, v.mirror.normal) <= 0:
             raise UserError(f"system.mirrors: mirror {v.name!r} faces away from the camera "
                             "(its normal must point to the side the lens is on).")
+    _no_mirror_twice(mirror_names(system), plane_mirrors(system))
     return views
+
+
+def _no_mirror_twice(names: list[str], mirrors: list[PlaneMirror]) -> None:
+    """Two mirrors in one plane whose rectangles overlap are one piece of glass listed twice: each
+    would add its view of the same light (the demo's mirror listed twice was simulated and
+    reconstructed from two views of it, self-consistently, without a word)."""
+    for i in range(len(mirrors)):
+        for j in range(i + 1, len(mirrors)):
+            a, b = mirrors[i], mirrors[j]
+            if abs(float(a.normal @ b.normal)) < 1 - 1e-9 or abs(float((b.center_mm - a.center_mm) @ a.normal)) > 1e-6:
+                continue
+            # the rectangles in a's plane: overlapping unless an axis of either separates them (2-D SAT)
+            corners = [m.center_mm + su * m.half_size_mm[0] * m.axis_u + sv * m.half_size_mm[1] * m.axis_v
+                       for m in (a, b) for su in (-1, 1) for sv in (-1, 1)]
+            ca, cb = np.array(corners[:4]), np.array(corners[4:])
+            if all(max(ca @ ax) > min(cb @ ax) + 1e-9 and max(cb @ ax) > min(ca @ ax) + 1e-9
+                   for ax in (a.axis_u, a.axis_v, b.axis_u, b.axis_v)):
+                raise UserError(f"system.mirrors: mirrors {names[i]!r} and {names[j]!r} lie in one plane and overlap: "
+                                "one mirror listed twice? Each mirror adds a view of the subject, so the same glass "
+                                "twice would count its light twice.")
+
+
+def mirror_cutting(placed: Surface, system: C.System) -> str | None:
+    """The name of a mirror whose rectangle the placed surface crosses (vertices on both sides of
+    its plane within it), or None. A mirror through the subject is a typing slip in center_mm
+    or size_mm, or a stage raised into the mirror; it was simulated and reconstructed as given."""
+    V = placed.vertices_mm
+    span = float(np.ptp(V, axis=0).max()) if len(V) else 0.0
+    for name, m in zip(mirror_names(system), plane_mirrors(system)):
+        r = V - m.center_mm
+        inside = (np.abs(r @ m.axis_u) <= m.half_size_mm[0]) & (np.abs(r @ m.axis_v) <= m.half_size_mm[1])
+        d = (r @ m.normal)[inside]
+        tol = 1e-6 * max(span, 1.0)
+        if d.size and d.min() < -tol and d.max() > tol:
+            return name
+    return None
 
 
 def poses_from_config(subject: C.Subject) -> list[Pose]:
@@ -194,4 +231,10 @@ class SubjectPlacer:
         return occ
 
     def scene(self, pose: Pose, system: C.System) -> PlacedScene:
-        return PlacedScene(pose, self.place(pose), self.occluders(pose, system), self.emission)
+        placed = self.place(pose)
+        cut = mirror_cutting(placed, system)
+        if cut is not None:
+            raise UserError(f"system.mirrors: mirror {cut!r} passes through the subject at pose {pose.label} (the "
+                            "surface lies on both sides of its plane within its rectangle): check the mirror's "
+                            "center_mm and size_mm, and subject.poses (the stage raises the subject).")
+        return PlacedScene(pose, placed, self.occluders(pose, system), self.emission)

@@ -294,6 +294,10 @@ MISTAKES = [
     ("mirror-axis-off-plane", "build-T", _mirror(axis=[0, 1, 0]), ["system.mirrors.0", "axis"]),
     ("mirror-faces-away", "build-T", _mirror(normal=[0, 1, -1]), ["system.mirrors", "faces away"]),
     ("mirror-size-negative", "build-T", _mirror(size_mm=[-70, 40]), ["system.mirrors.0", "size_mm"]),
+    ("mirror-through-subject", "build-T", _mirror(center_mm=[0, 0, 8]), ["system.mirrors", "'mirror0'", "through the subject"]),
+    ("mirror-listed-twice", "build-T", _cfg("system.mirrors", [
+        {"name": n, "center_mm": [0, 31.14, 14.14], "normal": [0, -1, 1], "axis": [1, 0, 0], "size_mm": [70, 40]}
+        for n in ("right", "right again")]), ["system.mirrors", "'right' and 'right again'", "listed twice"]),
     ("mirror-reflectance", "build-T", _mirror(reflectance=1.5), ["system.mirrors.0.reflectance"]),
     ("sensor-bit-depth", "build-T", _cfg("system.camera.sensor", {"bit_depth": 20}), ["system.camera.sensor.bit_depth"]),
     ("phantom-unknown", "build-T", _cfg("subject.surface", {"phantom": "cube"}), ["subject.surface"]),
