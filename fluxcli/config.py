@@ -63,6 +63,9 @@ def _unit(v: Vec3, what: str) -> Vec3:
 
 
 # --------------------------------------------------------------------------- system
+MIN_F_NUMBER = 0.5  # sin θ ≤ 1 in air: N = 1 / (2 NA) ≥ 0.5 for any lens (Abbe's sine condition)
+
+
 class Lens(Model):
     focal_length_mm: float = Field(gt=0, description="Thin-lens focal length f (mm).")
     f_number: float | None = Field(None, gt=0, description="f-number N; aperture radius R = f/(2N).")
@@ -77,6 +80,13 @@ class Lens(Model):
             raise ValueError(
                 f"focus_distance_mm ({self.focus_distance_mm}) must exceed focal_length_mm "
                 f"({self.focal_length_mm}): a thin lens cannot focus closer than its focal length"
+            )
+        n = self.focal_length_mm / (2 * self.aperture_radius_mm)
+        if n < MIN_F_NUMBER:  # (a slip: 0.28 for 2.8, an aperture in cm or a radius as a diameter...)
+            raise ValueError(
+                f"the aperture is f/{n:.3g} (focal_length_mm {self.focal_length_mm:g}, aperture diameter "
+                f"{2 * self.aperture_radius_mm:.4g} mm): no lens in air is faster than f/0.5, whose aperture is twice "
+                "its focal length; is f_number or aperture_diameter_mm mistyped?"
             )
         return self
 

@@ -284,6 +284,7 @@ MISTAKES = [
     ("pixels-negative", "build-T", _cfg("system.camera.pixels", [-4, 24]), ["system.camera.pixels"]),
     ("pixel-pitch-zero", "build-T", _cfg("system.camera.pixel_pitch_mm", 0), ["system.camera.pixel_pitch_mm"]),
     ("f-number-and-diameter", "build-T", _cfg("system.camera.lens.aperture_diameter_mm", 5), ["f_number"]),
+    ("f-number-impossible", "build-T", _cfg("system.camera.lens.f_number", 0.04), ["system.camera.lens", "f/0.04", "f/0.5"]),
     ("focus-inside-focal-length", "build-T", _cfg("system.camera.lens.focus_distance_mm", 10), ["focus_distance_mm"]),
     ("look-parallel-up", "build-T", _cfg("system.camera.pose.up", [0, 0, 1]), ["system.camera.pose", "up"]),
     ("look-zero", "build-T", _cfg("system.camera.pose.look", [0, 0, 0]), ["look"]),
