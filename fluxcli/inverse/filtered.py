@@ -24,8 +24,28 @@ import numpy as np
 from fluxcli.inverse import spectral as S
 
 CHI2_RANGE = (0.5, 2.0)
+CHI2_FAR = 25.0
+FAR_OFF = ("far beyond what model error in the light or the noise model gives: the images and the set-up "
+           "disagree in kind. Check system.camera against the images (pixel_pitch_mm: on-chip binning multiplies "
+           "it; pixels; pose; lens), reconstruct.images.units, and that the images are this set-up's")
+"""Above this χ² per pixel, with more than 10 % of the images' light unexplained (:func:`_unexplained`),
+the misfit is geometric or one of units: images binned 2 × 2 by the camera with pixel_pitch_mm left
+as it was fitted at χ² 42-736 (the total 1.14× the truth). A wrong emission model (issue 21's
+Lambertian on Monte Carlo photons, χ² 2.3), images out of pose order (5-14) or upside down (5) stay
+below it; a small model error at very many photons a pixel passes χ² but not the share."""
 NNLS_LAMBDA = 1e-12  # relative: "no prior" for guard_lambda's reference fit, yet a non-singular system
 TOTAL_JUMP = 0.05
+
+
+FAR_UNEXPLAINED = 0.10
+
+
+def _unexplained(a, fitted) -> float:
+    """The share of the images' light the fit leaves unexplained, ‖a − T b̂‖ / ‖a‖: scale-free where
+    χ² grows with the photons (1 % of model error is χ² ≈ 1000 at 10⁷ photons a pixel)."""
+    a, fitted = np.asarray(a, float), np.asarray(fitted, float)
+    norm = float(np.sqrt(np.sum(a * a)))
+    return float(np.sqrt(np.sum((a - fitted) ** 2)) / norm) if norm > 0 else 0.0
 
 
 def poses_disagree(per_pose_chi2, joint_chi2: float, totals, labels=None) -> str | None:
@@ -327,7 +347,10 @@ def level_and_fit(a, b, fitted, *, weights, var_model, variance, free_level: boo
         if np.isfinite(chi2) and not lo <= chi2 <= hi:
             warnings.append(f"chi^2 per pixel is {chi2:.3g} (expected about 1 under the noise model): "
                             + ("the model does not explain the data to the noise (model error, a wrong noise model, "
-                               "or too much regularisation)" if chi2 > hi else
+                               "or too much regularisation)" if hi < chi2 <= CHI2_FAR else
+                               FAR_OFF if chi2 > CHI2_FAR and _unexplained(a, fitted) > FAR_UNEXPLAINED else
+                               "the model does not explain the data to the noise (model error, a wrong noise model, "
+                               "or too much regularisation)" if chi2 > CHI2_FAR else
                                "the fit follows the noise (too little regularisation, or the noise model overstates it)"))
     return b, fitted, var_model, level, chi2
 
