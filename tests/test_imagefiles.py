@@ -271,3 +271,24 @@ def test_fits_with_an_empty_primary_reads_its_image_extension_and_two_images_are
                               image.astype(">f4").tobytes()) + ext)
     with pytest.raises(ValueError, match="holds 2 images .FITS extensions.; fluxmap reads one image per file"):
         read_image(two)
+
+
+def test_fits_blank_pixels_read_as_nan_and_a_cube_is_refused_by_its_frames(tmp_path):
+    """Integer FITS marks undefined pixels with BLANK (the standard; astropy reads them as NaN once
+    scaled): they were read as counts (-1, or 32767 + BZERO). And a cube of 5 frames (a kinetic
+    series, NAXIS3 = 5) stopped with numpy's "cannot reshape array of size 46080 into shape
+    (96,96)"; it is now refused saying it holds 5 frames."""
+    stored = np.arange(NY * NX, dtype=np.int32).reshape(NY, NX) % 3000
+    stored[2, 3] = stored[NY - 1, 0] = -1
+    path = tmp_path / "blank.fits"
+    path.write_bytes(_fits_hdu(_image_cards(True, 16, NY, NX, ["BLANK   =                   -1"]),
+                               stored.astype(">i2").tobytes()))
+    read, _ = read_image(path)
+    np.testing.assert_array_equal(np.isnan(read), stored == -1)
+    np.testing.assert_array_equal(read[stored != -1], stored[stored != -1].astype(np.float64))
+    cube = tmp_path / "cube.fits"
+    cards = ["SIMPLE  =                    T", "BITPIX  =                  -32", "NAXIS   =                    3",
+             f"NAXIS1  = {NX:20d}", f"NAXIS2  = {NY:20d}", "NAXIS3  =                    5"]
+    cube.write_bytes(_fits_hdu(cards, np.zeros((5, NY, NX), ">f4").tobytes()))
+    with pytest.raises(ValueError, match=f"holds 5 frames of {NX} x {NY} .a cube"):
+        read_image(cube)

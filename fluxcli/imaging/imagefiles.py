@@ -15,7 +15,8 @@ File conventions, including where OpenImageIO needs help:
   stores both natively. OpenImageIO converts ``uint16`` lossily for FITS (to a
   normalised int16) and EXR (to half), so there counts are stored exactly as int32
   (FITS, ``BITPIX = 32``) or float32 (EXR).
-- **FITS scaling.** A FITS file's ``BZERO`` and ``BSCALE`` are applied (physical = BZERO +
+- **FITS scaling.** Integer pixels equal to ``BLANK`` (the standard's undefined value) read as NaN,
+  which every stage leaves out. A FITS file's ``BZERO`` and ``BSCALE`` are applied (physical = BZERO +
   BSCALE x stored), as the standard says and astropy does: unsigned 16-bit counts, what camera
   software writes, are stored as int16 with ``BZERO = 32768`` and read back as 0..65535
   (OpenImageIO alone returns them shifted by -32768). Such a file's sample type is ``uint16``
@@ -255,6 +256,12 @@ def read_image(path) -> tuple[np.ndarray, dict[str, str | float | int]]:
                 f"Image file '{path}' has {spec.nchannels} channels; fluxmap expects a "
                 f"single-channel image."
             )
+        if spec.depth > 1:  # a FITS cube (NAXIS3 > 1): a kinetic series or an accumulation's frames
+            raise ValueError(
+                f"Image file '{path}' holds {spec.depth} frames of {spec.width} x {spec.height} (a cube, such as "
+                "a kinetic series); fluxmap reads one image per file, one file per pose (save the frame meant, "
+                "or the frames' sum, to a file of its own)."
+            )
         # TypeUnknown: native sample type, so integer samples are not normalised to [0, 1].
         pixels = inp.read_image(oiio.UNKNOWN)
         if pixels is None:
@@ -267,6 +274,10 @@ def read_image(path) -> tuple[np.ndarray, dict[str, str | float | int]]:
     image = np.asarray(pixels, dtype=np.float64).reshape(spec.height, spec.width)
     if is_fits:
         image = image[::-1]  # undo OIIO's flip: row 0 is the first row stored in the file
+        blank = attributes.get("Blank", attributes.get("BLANK"))
+        if isinstance(blank, (int, float)) and not isinstance(blank, bool) and np.issubdtype(np.asarray(pixels).dtype,
+                                                                                               np.integer):
+            image = np.where(image == float(blank), np.nan, image)  # the standard's undefined pixels (integer data)
         zero, scale = _fits_scaling(attributes)
         if (zero, scale) != (0.0, 1.0):  # the standard's physical values (OIIO returns the stored ones)
             image = zero + scale * image
