@@ -384,8 +384,9 @@ def check_pairs(levels: list[tuple[int, np.ndarray]], bias_stack: np.ndarray, bi
       sample set transposed read electrons per count 8.21 for 8.55, without a sign).
     - *Structure larger than a pixel.* The difference of a good pair is white: its 8 × 8 block
       means vary as its pixels over 64. The excess (a smooth light moved with the frame, or a
-      light that changed between the two exposures) beyond the bias pairs' own (row noise of
-      the readout) is refused above 5 % of the pair's variance.
+      light whose shape changed between the two exposures) beyond the bias pairs' own (row noise
+      of the readout) is refused above 5 % of the pair's variance. The second frame is scaled to
+      the first's mean signal first: a lamp a few per cent brighter for one frame is left alone.
 
     ``levels``: (index in the PTC list, frames [n, ny, nx]) of one EM-gain setting."""
     bias_stack = np.asarray(bias_stack, dtype=np.float64)
@@ -399,7 +400,11 @@ def check_pairs(levels: list[tuple[int, np.ndarray]], bias_stack: np.ndarray, bi
     for j, k, a, b in pairs:
         ok = _usable(a, b, max_counts)
         if bias_structure and ok.mean() > 0.5:
-            v_s, v_se, var_d = _block_structure(_filled(a - b, ok), block)
+            # b scaled to a's mean signal: a lamp a little brighter for one frame (the light's shape
+            # unchanged) is not what this check is about; a frame moved, or light that changed shape, is
+            sa, sb = float(np.mean((a - bias_counts)[ok])), float(np.mean((b - bias_counts)[ok]))
+            k_ab = sa / sb if sa > 0 and sb > 0 else 1.0
+            v_s, v_se, var_d = _block_structure(_filled((a - bias_counts) - k_ab * (b - bias_counts), ok), block)
             excess = v_s - floor
             if excess > STRUCTURE_SHARE * var_d and excess > 6.0 * v_se:
                 raise InputError(f"ptc[{j}].files[{k}] and [{k + 1}]: their difference holds structure larger than a pixel, "
