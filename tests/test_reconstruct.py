@@ -534,3 +534,24 @@ def test_images_binned_on_the_chip_with_the_pitch_left_are_said_to_disagree_in_k
         said[pitch] = [w for w in read_warnings(tmp_path / "run" / "reconstruction.h5")[0] if "disagree in kind" in w]
     assert said[0.13] and "binning multiplies" in said[0.13][0]
     assert not said[0.26]
+
+
+def test_orientation_hint_is_a_diagnostic_that_never_stops_a_reconstruction():
+    """The turned images are solved only to say something: a solve that fails on one of them is
+    passed over (it used to be able to end the reconstruction with the solver's error), and
+    nothing is said unless one fits 2x better and within the chi^2 range."""
+    from fluxcli.errors import UserError
+    from fluxcli.inverse.solve import orientation_hint
+
+    image, valid = np.arange(12.0).reshape(3, 4), np.ones((3, 4), bool)
+
+    def chi2_of(a, v):
+        if np.array_equal(a, image[::-1]):
+            raise UserError("reconstruct.method smooth: the solver failed")
+        return 1.1 if np.array_equal(a, image[:, ::-1]) else 6.0
+
+    hint = orientation_hint(chi2_of, image, valid, 5.0, 100)
+    assert hint is not None and "better mirrored left to right" in hint and "1.1" in hint
+    assert orientation_hint(lambda a, v: 3.0, image, valid, 5.0, 100) is None  # not within the range
+    assert orientation_hint(chi2_of, image, valid, 1.5, 100) is None  # the pose fits: nothing tried
+    assert orientation_hint(chi2_of, image, valid, 5.0, 10**6) is None  # too big to try

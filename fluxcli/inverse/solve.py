@@ -151,7 +151,10 @@ def orientation_hint(chi2_of, image: np.ndarray, valid: np.ndarray, chi2: float,
         a = turn(np.asarray(image))
         if a.shape != np.shape(image):
             continue
-        c = chi2_of(np.ascontiguousarray(a), np.ascontiguousarray(turn(np.asarray(valid))))
+        try:  # a diagnostic: a solve that cannot run on the turned image says nothing, and stops nothing
+            c = chi2_of(np.ascontiguousarray(a), np.ascontiguousarray(turn(np.asarray(valid))))
+        except (UserError, InputError, ValueError, np.linalg.LinAlgError):
+            continue
         if np.isfinite(c) and (best is None or c < best[1]):
             best = (name, c)
     if best is None or best[1] * ORIENTATION_GAIN > chi2 or best[1] > CHI2_RANGE[1]:
