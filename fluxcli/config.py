@@ -517,17 +517,18 @@ class DiffusionFlux(Model):
 
 
 class MonteCarloFlux(Model):
-    """Photons transported through a box or cylinder phantom by Monte Carlo (MCML-style, Fresnel at
-    every face); the truth is the photons that left through each element, and the images are those
-    photons traced through the lens and mirrors (no emission model is assumed)."""
+    """Photons transported by Monte Carlo (MCML-style, Fresnel at every face) through the subject: an
+    analytic box or cylinder phantom, or the subject's own closed triangle mesh (a mesh file, a
+    captured surface, a sphere phantom); the truth is the photons that left through each element, and
+    the images are those photons traced through the lens and mirrors (no emission model is assumed)."""
 
     kind: Literal["montecarlo"]
     mua_per_mm: float = Field(ge=0, le=1e3, description="Absorption coefficient mu_a (1/mm).")
     mus_per_mm: float = Field(gt=0, le=1e3, description="Scattering coefficient mu_s (1/mm); mu_s' = mu_s (1 - g).")
     g: float = Field(0.0, ge=-0.99, le=0.99, description="Henyey-Greenstein anisotropy.")
     refractive_index: float = Field(1.4, ge=1, le=3, description="Refractive index n of the phantom (outside is air).")
-    position_mm: Vec3 = Field(description="Isotropic point source, in the phantom's own frame (centred at the origin, "
-                              "before it is placed on the stage and posed).")
+    position_mm: Vec3 = Field(description="Isotropic point source, in the subject's own frame before it is placed on the "
+                              "stage and posed: a phantom's is centred at the origin, a mesh's is its file's coordinates (in mm, after scale_to_mm).")
     radius_mm: float = Field(0.0, ge=0, description="0 for a point source, else a uniform ball of this radius.")
     n_photons: int = Field(gt=0, le=10**11, description="Photons launched (the source power, photons per exposure).")
     seed: int = Field(0, ge=0, le=2**63 - 1, description="Seed of the photon streams; the same seed gives the same photons.")

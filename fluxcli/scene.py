@@ -125,9 +125,11 @@ class SubjectPlacer:
         on), or None; ``emission``: the surface's emission profile; ``resolve``: turns a path the
         config gives into the file it means (beside the config)."""
         s = subject.surface
+        self.surface_config = s  # subject.surface as given (what a Monte Carlo run names when it refuses a mesh)
         self.stage = stage
         self.rests_on_stage = isinstance(s, (C.CylinderPhantom, C.BoxPhantom, C.RingPhantom, C.SpherePhantom))
         self.notes: list[str] = []  # what a mesh file yielded and what was repaired in it
+        self.warnings: list[str] = []  # what placing it found (a stage through the subject)
         self.emission = emission  # Lambertian when subject.emission is absent
         body = None  # a round phantom's own curved surface, which split faces follow
         if isinstance(s, C.CylinderPhantom):

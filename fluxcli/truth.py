@@ -329,19 +329,39 @@ def _diffusion_truth(flux: C.DiffusionFlux, surface: Surface, mesh_cache: Path, 
 
 
 # ------------------------------------------------------------------ Monte Carlo truth
-def montecarlo_shape(surface_cfg) -> "Shape":
-    """The analytic body of a box or cylinder phantom (its own frame); a :class:`UserError`
-    for any subject the photon transport cannot model."""
+SUBJECT_MESH = "the subject's own closed surface"  # montecarlo_shape's answer for any other subject
+
+
+def montecarlo_shape(surface_cfg) -> "Shape | str":
+    """The analytic body of a box or cylinder phantom (its own frame), or :data:`SUBJECT_MESH`
+    for any other subject: the photons then travel inside its own triangle mesh (a mesh file,
+    a captured surface, a sphere phantom), which :func:`montecarlo_truth` checks is closed."""
     from .montecarlo.transport import Shape
 
     if isinstance(surface_cfg, C.BoxPhantom):
         return Shape.box(surface_cfg.size_mm)
     if isinstance(surface_cfg, C.CylinderPhantom):
         return Shape.cylinder(surface_cfg.radius_mm, surface_cfg.length_mm)
-    what = (f"a {surface_cfg.phantom} phantom" if hasattr(surface_cfg, "phantom")
-            else "a mesh file" if isinstance(surface_cfg, C.MeshSurface) else "a captured surface")
-    raise UserError(f"simulate.flux: kind montecarlo transports photons through an analytic box or cylinder; "
-                    f"subject.surface is {what}, which it cannot model. Use subject.surface.phantom: box or cylinder.")
+    return SUBJECT_MESH
+
+
+def _mesh_body(fine, surface_cfg, src: np.ndarray, radius_mm: float):
+    """The body a subject's own (refined, flat-split) surface encloses, checked closed and holding
+    the source; a :class:`UserError` naming the key otherwise."""
+    from .montecarlo.meshbody import MeshBody
+
+    what = ("subject.surface.mesh" if isinstance(surface_cfg, C.MeshSurface) else "subject.surface.artefact"
+            if not hasattr(surface_cfg, "phantom") else f"subject.surface (a {surface_cfg.phantom} phantom)")
+    try:
+        body = MeshBody.of(fine.vertices_mm, fine.faces, name=what)
+    except ValueError as e:
+        raise UserError(f"simulate.flux: kind montecarlo: {e}.") from None
+    if body.depth_mm(src[None])[0] <= radius_mm:
+        lo, hi = fine.bounds_mm()
+        raise UserError(f"simulate.flux.position_mm: the source {src.tolist()} mm (radius {radius_mm:g} mm) is not "
+                        f"inside {what} (its own coordinates, as the file gives them: it spans "
+                        f"{np.round(lo, 3).tolist()} to {np.round(hi, 3).tolist()} mm).")
+    return body
 
 
 @dataclass
@@ -378,12 +398,14 @@ def montecarlo_truth(flux: C.MonteCarloFlux, shape, refinement: int, ray_offset_
 
     medium = MC.Medium(flux.mua_per_mm, flux.mus_per_mm, flux.g, flux.refractive_index)
     src = np.asarray(flux.position_mm, float)
-    if shape.depth_mm(src[None])[0] <= flux.radius_mm:
+    levels = refinement
+    fine, parent = placer.own_surface.refined(levels)
+    if shape is SUBJECT_MESH:  # photons inside the very faces the truth is tallied on: the exit's face is the one met
+        shape = _mesh_body(fine, placer.surface_config, src, flux.radius_mm)
+    elif shape.depth_mm(src[None])[0] <= flux.radius_mm:
         raise UserError(f"simulate.flux.position_mm: the source {src.tolist()} mm (radius {flux.radius_mm:g} mm) is not "
                         f"inside the phantom (its own frame: centred at the origin, half sizes "
                         f"{list(shape.half_mm)} mm along x, y, z).")
-    levels = refinement
-    fine, parent = placer.own_surface.refined(levels)
     fine_scene = OcclusionScene(fine.vertices_mm, fine.faces)
     cam = views[0].camera
     P, V = len(scenes), len(views)
@@ -405,8 +427,11 @@ def montecarlo_truth(flux: C.MonteCarloFlux, shape, refinement: int, ray_offset_
     for b in range(n_batches):
         n = min(flux.batch_photons, flux.n_photons - b * flux.batch_photons)
         esc = MC.transport(medium, shape, src, n, seed=flux.seed, batch=b, source_radius_mm=flux.radius_mm, tally=tally)
-        normal = shape.outward_normals(esc.position_mm)
-        face = MC_ph.faces_of_exits(shape, fine.vertices_mm, fine.faces, esc.position_mm, scene=fine_scene)
+        if esc.face is not None:  # a mesh body: the triangle met is the fine face
+            face, normal = esc.face, shape.normals[esc.face]
+        else:
+            normal = shape.outward_normals(esc.position_mm)
+            face = MC_ph.faces_of_exits(shape, fine.vertices_mm, fine.faces, esc.position_mm, scene=fine_scene)
         el = np.where(face >= 0, fine.element_of_face[np.maximum(face, 0)], -1)
         on = el >= 0
         fine_power += np.bincount(el[on], weights=esc.weight[on], minlength=fine.n_elements)

@@ -346,7 +346,10 @@ def test_a_mirror_adds_only_light_from_the_faces_that_face_it(write_config, tmp_
 
 
 @pytest.mark.parametrize("change, words", [
-    ({"subject": {"surface": {"mesh": "mouse.vtk"}}}, ["simulate.flux", "box or cylinder", "mesh file"]),
+    ({"subject": {"surface": {"mesh": "patch.ply"}}}, ["simulate.flux", "subject.surface.mesh", "not a closed surface",
+                                                       "encloses no body"]),
+    ({"simulate": {"flux": {"position_mm": [0, 0, 30.0]}}, "subject": {"surface": {"mesh": "mouse.vtk"}}},
+     ["simulate.flux.position_mm", "not inside subject.surface.mesh", "-29.872", "20.0"]),
     ({"simulate": {"flux": {"position_mm": [0, 0, 30.0]}}}, ["simulate.flux.position_mm", "not inside"]),
     ({"simulate": {"noise": {"model": "emccd"}}}, ["simulate.noise.model", "shot noise"]),
     ({"simulate": {"noise": {"peaks_photons": [1e6]}}}, ["simulate.noise.peaks_photons", "n_photons"]),

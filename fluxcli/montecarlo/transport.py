@@ -16,7 +16,9 @@ Choices, and why:
 
 Shapes, in the subject's own frame (centred at the origin): ``BOX`` with half sizes
 (hx, hy, hz) (a slab is a box with very large hx, hy) and ``CYLINDER`` along x (radius,
-half length), the orientation of :func:`fluxcli.surface.phantoms.cylinder`.
+half length), the orientation of :func:`fluxcli.surface.phantoms.cylinder`; or any closed
+triangle mesh (:class:`fluxcli.montecarlo.meshbody.MeshBody`, kind ``MESH``), where the way out
+of a step is found in a bounding-volume hierarchy and the exit's face is the triangle met.
 
 Reproducibility: photons are split into a fixed number of streams (independent of the
 thread count), each with its own xoroshiro128+ generator seeded by splitmix64 from
@@ -30,6 +32,8 @@ from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
+
+from .meshbody import MESH, STACK_DEPTH, MeshBody, mesh_hit
 
 BOX, CYLINDER = 0, 1
 N_STREAMS = 64  # photons of a batch are split into this many independent streams
@@ -107,15 +111,21 @@ class Shape:
         nrm[side, 2] = p[side, 2] / rho[side]
         return nrm
 
+    def kernel_args(self) -> tuple:
+        """The mesh arrays of the transport kernel: none for an analytic body."""
+        return (np.zeros((0, 9)), np.zeros((0, 3)), np.zeros((0, 3)), *[np.zeros(0, np.int64)] * 5, np.zeros((0, 3)))
+
 
 @dataclass
 class Escaped:
     """Photons that left the body in one batch: exit points on the surface (mm, subject
-    frame), directions in air (unit) and weights (photons; 1 each in analogue transport)."""
+    frame), directions in air (unit) and weights (photons; 1 each in analogue transport); for a
+    mesh body also the triangle each left through (None for an analytic body)."""
 
     position_mm: np.ndarray
     direction: np.ndarray
     weight: np.ndarray
+    face: np.ndarray | None = None
 
 
 @dataclass
@@ -269,7 +279,8 @@ def _scatter(state, g, ux, uy, uz):
 
 @nb.njit(cache=True, parallel=True)
 def _transport(seed, batch, n_photons, kind, half, mua, mus, g, n_in, src, src_radius, beam,
-               out_pos, out_dir, out_code, path_per_stream):
+               tri, bmin, bmax, left, right, start, count, order, tri_normal,
+               out_pos, out_dir, out_code, out_face, path_per_stream):
     mut = mua + mus
     albedo = mus / mut
     h0, h1, h2 = half[0], half[1], half[2]
@@ -280,6 +291,7 @@ def _transport(seed, batch, n_photons, kind, half, mua, mus, g, n_in, src, src_r
         x0, state[0] = _splitmix64(x0)
         x0, state[1] = _splitmix64(x0)
         path = 0.0
+        stack = np.empty(STACK_DEPTH, np.int64)
         for i in range(s * per, min(n_photons, (s + 1) * per)):
             # launch: isotropic, from a point or uniformly in a small ball
             x, y, z = src[0], src[1], src[2]
@@ -302,14 +314,22 @@ def _transport(seed, batch, n_photons, kind, half, mua, mus, g, n_in, src, src_r
             else:
                 ux, uy, uz = beam[0], beam[1], beam[2]
             code = LOST
+            skip = -1  # the mesh triangle the photon was just turned back from
             for _ in range(MAX_EVENTS):
                 step = -math.log(_next(state)) / mut
-                dist, face = _distance_out(kind, h0, h1, h2, x, y, z, ux, uy, uz)
+                if kind == MESH:
+                    dist, face = mesh_hit(x, y, z, ux, uy, uz, step, skip, tri, bmin, bmax, left, right, start,
+                                          count, order, stack)
+                    if face < 0:
+                        dist = 1e300
+                else:
+                    dist, face = _distance_out(kind, h0, h1, h2, x, y, z, ux, uy, uz)
                 if step < dist:
                     x += step * ux
                     y += step * uy
                     z += step * uz
                     path += step
+                    skip = -1
                     if _next(state) > albedo:
                         code = ABSORBED
                         break
@@ -320,9 +340,15 @@ def _transport(seed, batch, n_photons, kind, half, mua, mus, g, n_in, src, src_r
                 y += dist * uy
                 z += dist * uz
                 path += dist
-                nx, ny, nz = _normal(kind, face, y, z, h1)
-                # put the point exactly on the face it reached (no drift out of the body)
-                if kind == BOX:
+                if kind == MESH:
+                    nx, ny, nz = tri_normal[face, 0], tri_normal[face, 1], tri_normal[face, 2]
+                else:
+                    nx, ny, nz = _normal(kind, face, y, z, h1)
+                # put the point exactly on the face it reached (no drift out of the body); on a mesh
+                # the hit lies on its triangle to rounding, and the next query passes that triangle over
+                if kind == MESH:
+                    pass
+                elif kind == BOX:
                     if face < 2:
                         x = nx * h0
                     elif face < 4:
@@ -335,6 +361,8 @@ def _transport(seed, batch, n_photons, kind, half, mua, mus, g, n_in, src, src_r
                     else:
                         x = nx * h0
                 cos_i = ux * nx + uy * ny + uz * nz
+                if kind == MESH and cos_i < -1e-6:  # met a face from outside: slipped through a crack
+                    break
                 if cos_i <= 0.0:  # grazing rounding: it is not leaving; turn it back in
                     cos_i = 0.0
                 r, cos_t = fresnel_reflectance(cos_i, n_in, 1.0)
@@ -342,6 +370,7 @@ def _transport(seed, batch, n_photons, kind, half, mua, mus, g, n_in, src, src_r
                     ux -= 2 * cos_i * nx
                     uy -= 2 * cos_i * ny
                     uz -= 2 * cos_i * nz
+                    skip = face
                     continue
                 # refract into air (Snell, vector form): t = n u + (cos_t - n cos_i) N
                 k = cos_t - n_in * cos_i
@@ -351,13 +380,14 @@ def _transport(seed, batch, n_photons, kind, half, mua, mus, g, n_in, src, src_r
                 norm = 1.0 / math.sqrt(tx * tx + ty * ty + tz * tz)
                 out_pos[i, 0], out_pos[i, 1], out_pos[i, 2] = x, y, z
                 out_dir[i, 0], out_dir[i, 1], out_dir[i, 2] = tx * norm, ty * norm, tz * norm
+                out_face[i] = face
                 code = ESCAPED
                 break
             out_code[i] = code
         path_per_stream[s] = path
 
 
-def transport(medium: Medium, shape: Shape, source_mm, n_photons: int, *, seed: int = 0, batch: int = 0,
+def transport(medium: Medium, shape: "Shape | MeshBody", source_mm, n_photons: int, *, seed: int = 0, batch: int = 0,
               source_radius_mm: float = 0.0, beam_direction=None, tally: Tally | None = None) -> Escaped:
     """Transport ``n_photons`` photons launched isotropically at ``source_mm`` (subject frame,
     inside the body), or all along ``beam_direction`` (a unit vector: a pencil beam, as in
@@ -372,10 +402,11 @@ def transport(medium: Medium, shape: Shape, source_mm, n_photons: int, *, seed: 
     pos = np.zeros((n, 3))
     dirs = np.zeros((n, 3))
     code = np.full(n, LOST, np.int8)
+    face = np.full(n, -1, np.int64)
     path = np.zeros(N_STREAMS)
     _transport(np.uint64(seed), np.uint64(batch), n, shape.kind, np.asarray(shape.half_mm, float),
                float(medium.mua_per_mm), float(medium.mus_per_mm), float(medium.g), float(medium.refractive_index),
-               src, float(source_radius_mm), beam, pos, dirs, code, path)
+               src, float(source_radius_mm), beam, *shape.kernel_args(), pos, dirs, code, face, path)
     esc = code == ESCAPED
     if tally is not None:
         tally.launched += n
@@ -383,4 +414,4 @@ def transport(medium: Medium, shape: Shape, source_mm, n_photons: int, *, seed: 
         tally.absorbed += int((code == ABSORBED).sum())
         tally.lost += int((code == LOST).sum())
         tally.path_mm += float(path.sum())
-    return Escaped(pos[esc], dirs[esc], np.ones(int(esc.sum())))
+    return Escaped(pos[esc], dirs[esc], np.ones(int(esc.sum())), face[esc] if shape.kind == MESH else None)
