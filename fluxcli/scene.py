@@ -111,6 +111,28 @@ def mirror_cutting(placed: Surface, system: C.System) -> str | None:
     return None
 
 
+def stage_cutting(placed: Surface, stage: C.Stage | None, top_z_mm: float) -> float:
+    """How deep (mm) the placed surface reaches into the stage below its top, within its footprint,
+    where it also lies above the top (the stage's top plane cuts through the subject); 0 when it
+    does not. A mesh stays where its file puts it, so a mesh centred on the origin sinks half into
+    a stage at z = 0: its lower half is simulated and reconstructed hidden in the stage. A scanned
+    surface's rim may lie a little under the top; ``STAGE_SLACK`` of the subject's height (at
+    least 0.5 mm) is allowed."""
+    if stage is None or not len(placed.vertices_mm):
+        return 0.0
+    V = placed.vertices_mm
+    cx, cy = stage.center_xy_mm
+    over = (np.abs(V[:, 0] - cx) <= stage.size_mm[0] / 2) & (np.abs(V[:, 1] - cy) <= stage.size_mm[1] / 2)
+    z = V[over, 2]
+    slack = max(0.5, STAGE_SLACK * float(np.ptp(V[:, 2])))
+    if not z.size or z.max() <= top_z_mm or z.min() >= top_z_mm - slack:
+        return 0.0
+    return float(top_z_mm - z.min())
+
+
+STAGE_SLACK = 0.02
+
+
 def poses_from_config(subject: C.Subject) -> list[Pose]:
     p = subject.poses or C.Poses()
     return [Pose(float(h), float(r)) for h in p.heights_mm for r in p.rotations_deg]
@@ -239,4 +261,13 @@ class SubjectPlacer:
             raise UserError(f"system.mirrors: mirror {cut!r} passes through the subject at pose {pose.label} (the "
                             "surface lies on both sides of its plane within its rectangle): check the mirror's "
                             "center_mm and size_mm, and subject.poses (the stage raises the subject).")
+        if not self.rests_on_stage and not self.warnings and (
+                deep := stage_cutting(placed, self.stage, self._stage_top(pose.height_mm))):
+            lo = self.surface.bounds_mm()[0][2]
+            self.warnings.append(
+                f"subject.surface: at pose {pose.label} the subject reaches {deep:.3g} mm into the stage (below its top "
+                f"at z = {self._stage_top(pose.height_mm):g} mm, within system.stage.size_mm): what lies inside the "
+                f"stage is hidden from every view, and is simulated and reconstructed so (unobserved). A mesh stays "
+                f"where its file puts it (its lowest point at rest is at z = {lo:.4g} mm; it is not set on the stage): "
+                "if the subject rests on the stage, move it up in the file or lower system.stage.top_z_mm.")
         return PlacedScene(pose, placed, self.occluders(pose, system), self.emission)

@@ -271,6 +271,28 @@ def test_an_inward_wound_mesh_is_turned_outward_with_a_notice_and_gives_the_same
     assert Ts[0].sum() > 0 and (Ts[0] != Ts[1]).nnz == 0
 
 
+def test_a_mesh_sunk_into_the_stage_is_warned_about_at_the_first_pose_that_sinks(run, tmp_path):
+    """A mesh stays where its file puts it. The sample mouse (z 0 to 20 mm) on a stage at z = 0 sinks
+    in nowhere flat, but turned 40 deg about its long axis its flank reaches into the stage; moved
+    down 5 mm it sinks at rest. Both are built (what lies in the stage is hidden, as it would be),
+    with a warning naming the pose, the depth and the key."""
+    d, cfg, p = run
+    m = _mouse()
+    for name, dz, rot, says in (("flat", 0.0, 0.0, None), ("turned", 0.0, 40.0, "rot=40deg the subject reaches"),
+                                ("low", -5.0, 0.0, "rot=0deg the subject reaches 5 mm into the stage")):
+        f = ply(tmp_path / f"{name}.ply", (m.vertices_mm + [0, 0, dz]).tolist(), m.faces.tolist(),
+                m.element_of_face.tolist())
+        c = copy.deepcopy(cfg)
+        c["workdir"] = str(tmp_path / name)
+        c["subject"] = {"surface": {"mesh": str(f)}, "poses": {"rotations_deg": [0.0, rot]}}
+        c["system"]["stage"] = {"top_z_mm": 0.0, "size_mm": [100, 60], "thickness_mm": 5}
+        r, out = invoke("build-T", write(tmp_path, c, f"{name}.yaml"), "--quiet")
+        assert r.exit_code == 0, out
+        assert ("into the stage" in out) == (says is not None), out
+        if says:
+            assert says in out and "system.stage.top_z_mm" in out and f"lowest point at rest is at z = {dz:.4g} mm" in out
+
+
 def test_a_mesh_whose_faces_each_have_their_own_corners_is_welded_and_reconstructs_the_same(run, tmp_path):
     """STL exports and some writers give every face its own three vertices. Unwelded, no vertex is
     shared: the surface is not closed and a reconstruction on vertex unknowns solves a heap of

@@ -128,7 +128,8 @@ def emission_notice(ctx) -> None:
 
 
 def announce(ctx, placer: SubjectPlacer) -> None:
-    """Say what a mesh file yielded, and warn about what was repaired in it (once per run)."""
+    """Say what a mesh file yielded, and warn about what was repaired in it and what placing it
+    found (once per run)."""
     for k, note in enumerate(placer.notes):
         if k == 0:
             if note not in ctx.warned:
@@ -136,6 +137,8 @@ def announce(ctx, placer: SubjectPlacer) -> None:
                 ctx.say(note)
         else:
             ctx.warn(note)
+    for w in placer.warnings:
+        ctx.warn(w)
 
 
 def key_parts(scene: PlacedScene, views: list[View], tr: Transfer) -> dict:
