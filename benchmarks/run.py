@@ -35,7 +35,7 @@ sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(ROOT))
 
 # item 1-3: the T kernel (bench_transfer); item 4: reconstruction, diffusion, Dask
-MODULES = ["bench_transfer", "bench_inverse", "bench_diffusion", "bench_dask", "bench_scale"]
+MODULES = ["bench_transfer", "bench_inverse", "bench_diffusion", "bench_dask", "bench_scale", "bench_montecarlo"]
 KEYS = ("item", "name", "unit", "min", "median", "target", "met", "note")
 
 
