@@ -94,6 +94,19 @@ def test_a_body_that_is_not_convex_loses_no_photon_and_absorbs_at_mu_a_per_mm_tr
     assert np.abs(np.einsum("ij,ij->i", e.position_mm - tri[:, 0], n)).max() < 1e-9
 
 
+def test_the_same_seed_gives_the_same_photons_on_any_thread_count():
+    import numba
+
+    body, old = MeshBody.of(*bumpy_ball()), numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        a = transport(Medium(0.01, 1.0, 0.0, 1.4), body, (1, 1, 1), 4000, seed=3)
+    finally:
+        numba.set_num_threads(old)
+    b = transport(Medium(0.01, 1.0, 0.0, 1.4), body, (1, 1, 1), 4000, seed=3)
+    assert np.array_equal(a.position_mm, b.position_mm) and np.array_equal(a.face, b.face)
+
+
 def test_a_surface_with_a_hole_is_not_a_body():
     v, f = box_mesh((10, 10, 10), 5.0)
     with pytest.raises(ValueError, match=r"not a closed surface \(3 edge"):
