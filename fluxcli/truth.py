@@ -345,13 +345,34 @@ def montecarlo_shape(surface_cfg) -> "Shape | str":
     return SUBJECT_MESH
 
 
+def _surface_key(surface_cfg) -> str:
+    return ("subject.surface.mesh" if isinstance(surface_cfg, C.MeshSurface) else "subject.surface.artefact"
+            if not hasattr(surface_cfg, "phantom") else f"subject.surface (a {surface_cfg.phantom} phantom)")
+
+
+def _exits_leave(body, esc, surface_cfg, sample: int = 2000) -> None:
+    """A :class:`UserError` when photons that leave a mesh body land inside it: the surface crosses
+    itself, or holds overlapping bodies (two spheres merged into one file). A photon that leaves
+    a concave but sound body is outside just past its exit; one that leaves through a face lying
+    inside the body is not. Checked on the first batch's first ``sample`` photons."""
+    k = min(sample, len(esc.weight))
+    if k == 0:
+        return
+    step = 1e-4 * max(float(max(body.half_mm)), 1e-3)
+    inside = body.contains(esc.position_mm[:k] + step * esc.direction[:k])
+    if inside.mean() > 0.01:
+        raise UserError(f"simulate.flux: kind montecarlo: {inside.mean():.0%} of the photons leaving "
+                        f"{_surface_key(surface_cfg)} leave into the body again: the surface crosses itself or holds "
+                        "overlapping bodies, so inside and outside are not defined. Give one closed surface that "
+                        "does not intersect itself (merge overlapping parts into their union).")
+
+
 def _mesh_body(fine, surface_cfg, src: np.ndarray, radius_mm: float):
     """The body a subject's own (refined, flat-split) surface encloses, checked closed and holding
     the source; a :class:`UserError` naming the key otherwise."""
     from .montecarlo.meshbody import MeshBody
 
-    what = ("subject.surface.mesh" if isinstance(surface_cfg, C.MeshSurface) else "subject.surface.artefact"
-            if not hasattr(surface_cfg, "phantom") else f"subject.surface (a {surface_cfg.phantom} phantom)")
+    what = _surface_key(surface_cfg)
     try:
         body = MeshBody.of(fine.vertices_mm, fine.faces, name=what)
     except ValueError as e:
@@ -428,6 +449,8 @@ def montecarlo_truth(flux: C.MonteCarloFlux, shape, refinement: int, ray_offset_
         n = min(flux.batch_photons, flux.n_photons - b * flux.batch_photons)
         esc = MC.transport(medium, shape, src, n, seed=flux.seed, batch=b, source_radius_mm=flux.radius_mm, tally=tally)
         if esc.face is not None:  # a mesh body: the triangle met is the fine face
+            if b == 0:
+                _exits_leave(shape, esc, placer.surface_config)
             face, normal = esc.face, shape.normals[esc.face]
         else:
             normal = shape.outward_normals(esc.position_mm)

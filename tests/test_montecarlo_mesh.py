@@ -121,6 +121,28 @@ def test_depth_and_inside_of_a_mesh_box_are_the_analytic_box_s():
     assert np.allclose(body.depth_mm(p[inside]), Shape.box((30, 40, 20)).depth_mm(p[inside]), atol=1e-9)
 
 
+@pytest.mark.parametrize("apart_mm, refused", [(20.0, False), (4.0, True)])
+def test_overlapping_bodies_in_one_file_are_refused_and_separate_ones_run(write_config, tmp_path, apart_mm, refused):
+    """Two spheres merged into one file: apart, two bodies (the source in one); overlapping, each
+    sphere's faces lie inside the other, so photons leave into the body again: exit 2 naming the
+    key, not images of a body with no inside."""
+    import pyvista as pv
+
+    def ball(c):
+        return pv.Sphere(radius=5.0, center=c, theta_resolution=16, phi_resolution=12).triangulate().clean()
+    (ball((0, 0, 5)) + ball((apart_mm, 0, 5))).save(str(tmp_path / "two.vtp"))
+    cfg = {"workdir": "run",
+           "system": {"camera": {"pixels": [32, 32], "pixel_pitch_mm": 1.0, "pose": {"lens_center_mm": [0, 0, 70.0]},
+                                 "lens": {"focal_length_mm": 25.0, "f_number": 1.0, "focus_distance_mm": 55.0}}},
+           "subject": {"surface": {"mesh": "two.vtp"}},
+           "simulate": {"flux": {"kind": "montecarlo", "mua_per_mm": 0.01, "mus_per_mm": 1.0, "position_mm": [2, 0, 5.0],
+                                 "n_photons": 20_000, "seed": 1}}}
+    r = runner.invoke(app, ["simulate", str(write_config(cfg)), "--quiet", "--force"])
+    text = " ".join(r.output.split())
+    assert r.exit_code == (2 if refused else 0), text
+    assert ("subject.surface.mesh leave into the body again" in text) == refused, text
+
+
 def test_the_sample_mouse_end_to_end(write_config, tmp_path):
     """simulate.flux.kind montecarlo on data-samples/mouse.vtk (96 elements of 12 triangles each):
     the truth per element is the photons that left through it, found here by brute force from the
