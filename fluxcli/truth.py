@@ -345,6 +345,12 @@ def montecarlo_shape(surface_cfg) -> "Shape | str":
     return SUBJECT_MESH
 
 
+def _is_mesh_body(shape) -> bool:
+    from .montecarlo.meshbody import MESH
+
+    return shape.kind == MESH
+
+
 def _surface_key(surface_cfg) -> str:
     return ("subject.surface.mesh" if isinstance(surface_cfg, C.MeshSurface) else "subject.surface.artefact"
             if not hasattr(surface_cfg, "phantom") else f"subject.surface (a {surface_cfg.phantom} phantom)")
@@ -481,6 +487,8 @@ def montecarlo_truth(flux: C.MonteCarloFlux, shape, refinement: int, ray_offset_
              "path_mm": tally.path_mm, "photons_per_s": tally.launched / max(seconds, 1e-9),
              "not_on_elements": off_elements, "source_mm": src.tolist(), "truth_refinement": levels,
              "transport": "MCML-style, analogue absorption, probabilistic Fresnel, Henyey-Greenstein",
+             "body": (f"the subject's own mesh, {len(shape.faces)} triangles (refined {levels}x)" if _is_mesh_body(shape)
+                      else f"analytic {'box' if shape.kind == MC.BOX else 'cylinder'}, half sizes {list(shape.half_mm)} mm"),
              "seconds": seconds}
     return MonteCarloTruth(fine_power, parent, images.reshape(P, cam.ny, cam.nx), reached, on_sensor, hist, tally,
                            off_elements, photons, seconds, notes)

@@ -9,6 +9,8 @@ on a body that is not convex.
 
 from __future__ import annotations
 
+import json
+
 import h5py
 import numpy as np
 import pytest
@@ -167,8 +169,10 @@ def test_the_sample_mouse_end_to_end(write_config, tmp_path):
         power, fine, parent = f["truth/power"][()], f["truth/power_fine"][()], f["truth/fine_parent"][()]
         pos, fine_face = f["montecarlo/photons/position_mm"][()], f["montecarlo/photons/face"][()]
         lost, esc = f["montecarlo"].attrs["lost"], f["montecarlo"].attrs["escaped"]
+        body = json.loads(f["truth"].attrs["notes"])["body"]
         img = f["images/noisy"][0, 0]
     assert lost == 0 and len(pos) == esc and power.sum() == esc  # every face of the mouse is an element's
+    assert body == "the subject's own mesh, 4608 triangles (refined 1x)"  # the artefact says what the photons crossed
     assert np.allclose(np.bincount(parent, weights=fine, minlength=len(power)), power)
     from fluxcli.surface.mesh import read_mesh
     mouse = read_mesh(tmp_path / "mouse.vtk")
