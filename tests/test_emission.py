@@ -95,7 +95,8 @@ def test_depth_term_matches_monte_carlo_exit_photons_in_an_absorbing_medium():
 
 def test_depth_term_is_in_the_key_and_off_gives_p1_alone():
     on = E.profile({"model": "diffuse", "refractive_index": 1.40, "tangential_flux": False})
-    off = E.profile({"model": "diffuse", "refractive_index": 1.40, "tangential_flux": False, "depth_term": False})
+    off = E.profile({"model": "diffuse", "refractive_index": 1.40, "tangential_flux": False, "depth_term": False,
+                     "body_curvature": False})
     assert np.array_equal(off.table, E.diffuse(1.40).table) and off.key() == E.diffuse(1.40).key()
     assert on.key() != off.key() and "depth_term" in on.key()
     more = E.profile({"model": "diffuse", "refractive_index": 1.40, "tangential_flux": False, "absorption_per_mm": 0.1})

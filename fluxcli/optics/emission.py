@@ -28,6 +28,9 @@ Profiles (docs/design.md, "Emission"):
     brighter, ``L_t(r, s) = -p(theta) g(theta) grad_t M . s`` with
     ``g = (1 + 3 mu' / A) / (n mu_t' (1 + 3 mu' / 2A))`` (mm), mu_t' = mu_a + mu_s'; see
     :func:`tangent_length` and docs/design.md, "Emission: the tangential flux".
+    With it (on by default) the body's own curvature: under a convex surface the fluence grows
+    faster with depth and oblique rays run under a surface that falls away, so each element's
+    profile is bent by its mean curvature (:mod:`fluxcli.optics.body_curvature`; 1 on flat faces).
 ``table``
     a measured or computed curve (angle from the normal in degrees, or cos theta) -> relative
     radiance, interpolated linearly and normalised.
@@ -161,6 +164,16 @@ class Profile:
     depth_term: float = 0.0  # diffuse: the coefficient c of the depth term 1 + c mu'^2 in the table (0: none)
     # the curvature term (diffuse only): l^2 h(theta) / p(theta) on the same mu grid, mm^2; empty: off
     curvature: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+    # the body's own curvature (diffuse only): T's columns scaled per element and view by the factor of
+    # :mod:`fluxcli.optics.body_curvature` at the element's mean curvature and emission angle (False: off)
+    body_curvature: bool = False
+
+    @property
+    def body(self) -> np.ndarray:
+        """The body-curvature factor table (N_H, N_MU) of :func:`fluxcli.optics.body_curvature.factor_table`."""
+        from .body_curvature import factor_table
+
+        return factor_table(self.refractive_index, self.depth_term, self.table)
 
     @property
     def has_tangent(self) -> bool:
@@ -230,13 +243,19 @@ class Profile:
             out["tangent_layout"] = TANGENT_LAYOUT
         if self.has_curvature:  # absent when off: the key of a diffuse T before the term existed
             out["curvature_sha256"] = hashlib.sha256(self.curvature.tobytes()).hexdigest()
+        if self.body_curvature:  # absent when off: the key of a diffuse T before the term existed
+            from .body_curvature import LAYOUT
+
+            out["body_curvature"] = LAYOUT
+            out["transport_per_mm"] = round(float(self.reduced_scattering_per_mm + self.absorption_per_mm), 9)
         return out
 
     def describe(self) -> str:
         if self.model == "diffuse":
             terms = [t for t, on in ((f"its depth term (c {self.depth_term:.3g})", self.depth_term),
                                      ("its tangential flux", self.has_tangent),
-                                     ("its curvature term", self.has_curvature)) if on]
+                                     ("its curvature term", self.has_curvature),
+                                     ("the body's curvature", self.body_curvature)) if on]
             if terms:
                 return (f"diffuse (refractive index {self.refractive_index:g}) with {' and '.join(terms)} "
                         f"(mu_s' {self.reduced_scattering_per_mm:g} /mm, mu_a {self.absorption_per_mm:g} /mm)")
@@ -352,17 +371,18 @@ def curvature_ratio(cos_theta: np.ndarray, n: float, depth: float, transport_per
 
 
 def diffuse(refractive_index: float = 1.40, *, tangential: bool = False, depth: bool = False,
-            curvature: bool = False, reduced_scattering_per_mm: float = DEFAULT_REDUCED_SCATTERING_PER_MM,
+            curvature: bool = False, body: bool = False, reduced_scattering_per_mm: float = DEFAULT_REDUCED_SCATTERING_PER_MM,
             absorption_per_mm: float = DEFAULT_ABSORPTION_PER_MM) -> Profile:
     """The diffusion-theory profile (P1 with a Fresnel boundary); with ``depth`` the depth term
     of a medium with these coefficients (:func:`depth_term`), with ``tangential`` its
     tangential-flux term (:func:`tangent_length`), with ``curvature`` its curvature term
-    (:func:`curvature_ratio`).  None: the coefficients are not used."""
+    (:func:`curvature_ratio`), with ``body`` the body's own curvature
+    (:mod:`fluxcli.optics.body_curvature`).  None: the coefficients are not used."""
     n = float(refractive_index)
     if not (np.isfinite(n) and n >= 1.0):
         raise ValueError(f"refractive index must be a number >= 1, got {refractive_index}")
     mus, mua = float(reduced_scattering_per_mm), float(absorption_per_mm)
-    if tangential or depth or curvature:
+    if tangential or depth or curvature or body:
         if not (np.isfinite(mus) and mus > 0):
             raise ValueError(f"reduced_scattering_per_mm must be a number > 0, got {reduced_scattering_per_mm}")
         if not (np.isfinite(mua) and mua >= 0):
@@ -370,12 +390,12 @@ def diffuse(refractive_index: float = 1.40, *, tangential: bool = False, depth: 
     c = depth_term(mus, mua) if depth else 0.0
     mu = np.linspace(0.0, 1.0, N_TABLE)
     table = _normalised(diffuse_radiance(mu, n, c))
-    if not (tangential or depth or curvature):
+    if not (tangential or depth or curvature or body):
         return Profile("diffuse", table, refractive_index=n)
     tangent = np.ascontiguousarray(table * tangent_length(mu, n, mus + mua)) if tangential else np.zeros(0)
     curv = np.ascontiguousarray(curvature_ratio(mu, n, c, mus + mua)) if curvature else np.zeros(0)
     return Profile("diffuse", table, refractive_index=n, tangent=tangent, reduced_scattering_per_mm=mus,
-                   absorption_per_mm=mua, depth_term=c, curvature=curv)
+                   absorption_per_mm=mua, depth_term=c, curvature=curv, body_curvature=bool(body))
 
 
 def table(x, radiance, *, unit: str = "deg", source: str | None = None) -> Profile:
@@ -501,6 +521,7 @@ def profile(model) -> Profile:
     if kind == "diffuse":
         return diffuse(get("refractive_index", 1.40), tangential=bool(get("tangential_flux", True)),
                        depth=bool(get("depth_term", True)), curvature=bool(get("curvature_term", False)),
+                       body=bool(get("body_curvature", True)),
                        reduced_scattering_per_mm=get("reduced_scattering_per_mm", DEFAULT_REDUCED_SCATTERING_PER_MM),
                        absorption_per_mm=get("absorption_per_mm", DEFAULT_ABSORPTION_PER_MM))
     if kind == "table":
@@ -628,6 +649,21 @@ def tangent_light(surface, power_per_element: np.ndarray, same_plane_cos: float 
     return out.ravel()
 
 
+def element_geometry(surface) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per element of ``surface``: its area (mm^2), its area-weighted centroid (mm) and its unit
+    area-weighted normal (zeros for an element without faces)."""
+    ok = surface.element_of_face >= 0
+    fe, fa = surface.element_of_face[ok], surface.face_areas_mm2[ok]
+    E_n = surface.n_elements
+    S = np.bincount(fe, fa, E_n)
+    tri = surface.vertices_mm[surface.faces[ok]]
+    cen = np.stack([np.bincount(fe, fa * tri[:, :, k].mean(axis=1), E_n) for k in range(3)], axis=1)
+    cen = np.divide(cen, S[:, None], out=np.zeros_like(cen), where=S[:, None] > 0)
+    nrm = np.stack([np.bincount(fe, fa * surface.face_normals[ok][:, k], E_n) for k in range(3)], axis=1)
+    ln = np.linalg.norm(nrm, axis=1)[:, None]
+    return S, cen, np.divide(nrm, ln, out=np.zeros_like(nrm), where=ln > 0)
+
+
 def curvature_operator(surface, same_plane_cos: float = 0.8, radius_mm: float | None = None):
     """The curvature term's map from power per element to ``S_e lap_t M|_e`` per element:
     sparse (E, E), so that the light the term sends to pixel i is ``sum_e T[i, e] r_e (K @
@@ -649,14 +685,7 @@ def curvature_operator(surface, same_plane_cos: float = 0.8, radius_mm: float | 
     ok = surface.element_of_face >= 0
     faces, fe = surface.faces[ok], surface.element_of_face[ok]
     E_n = surface.n_elements
-    fa = surface.face_areas_mm2[ok]
-    S = np.bincount(fe, fa, E_n)
-    tri = surface.vertices_mm[faces]
-    cen = np.stack([np.bincount(fe, fa * tri[:, :, k].mean(axis=1), E_n) for k in range(3)], axis=1)
-    cen = np.divide(cen, S[:, None], out=np.zeros_like(cen), where=S[:, None] > 0)
-    nrm = np.stack([np.bincount(fe, fa * surface.face_normals[ok][:, k], E_n) for k in range(3)], axis=1)
-    nrm = np.divide(nrm, np.linalg.norm(nrm, axis=1)[:, None], out=np.zeros_like(nrm),
-                    where=np.linalg.norm(nrm, axis=1)[:, None] > 0)
+    S, cen, nrm = element_geometry(surface)
     # an in-plane frame per element (any: the Laplacian does not depend on it)
     helper = np.where(np.abs(nrm[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
     e1 = np.cross(nrm, helper)

@@ -827,6 +827,12 @@ def build_transfer(
         errors.append(err)
         stats[view.name] = st
         sub(1.0)
+    if emission is not None and emission.body_curvature:  # the body's own curvature, per element and view
+        from .body_curvature import view_factors
+
+        for k, fac in enumerate(view_factors(surface, views, emission)):
+            per_view[k] = sp.csr_matrix(per_view[k] @ sp.diags(fac))
+            errors[k] = errors[k] * fac
     total = per_view[0] * views[0].weight
     for T, view in zip(per_view[1:], views[1:]):
         total = total + T * view.weight
