@@ -156,3 +156,17 @@ def test_flat_faces_keep_their_T_and_a_spheres_columns_take_the_factor():
     # ... but a uniformly bright ball sends as much light towards a distant lens whatever its profile
     # (by symmetry, a quarter-pi-th of its power per steradian): the factor keeps each element's power
     assert a[seen].sum() / b[seen].sum() == pytest.approx(1.0, abs=1e-3)
+
+
+def test_reconstruct_says_what_curvature_it_read():
+    from fluxcli.inverse.emission_checks import body_curvature_line
+    from fluxcli.optics.transfer import views_for
+
+    prof = E.profile({"model": "diffuse", "refractive_index": 1.40})  # the term is on by default
+    assert prof.body_curvature
+    cam = _camera(150.0, 6.0, 32, 0.5)
+    ball = _icosphere(10.0, 3).transformed(np.eye(3), np.array([0, 0, -150.0]))
+    line = body_curvature_line(ball, views_for(cam, []), prof)
+    assert "median 0.1" in line and "radius 10 mm" in line, line
+    box = phantoms.box(size_mm=(12, 10, 8), element_mm=2.0)[0].transformed(np.eye(3), np.array([0, 0, -150.0]))
+    assert "flat everywhere" in body_curvature_line(box, views_for(cam, []), prof)

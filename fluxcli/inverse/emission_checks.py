@@ -54,6 +54,8 @@ def emission_checks(profile, views, todo, per_pose, joint, images, valid, noise,
              + ("" if prof.is_lambertian else " (L/L0 " + ", ".join(
                  f"{r:.2f} at {a:g} deg" for a, r in zip(CHECK_DEG[::2], prof.radiance(np.radians(CHECK_DEG[::2]))))
                 + ")")]
+    if prof.body_curvature and todo:
+        lines.append(body_curvature_line(todo[0][0].surface, views, prof))
     lines += [f"seen at grazing angles, pose {pt.pose.label}: light {D.describe_shares(li)}; "
               f"total {D.describe_shares(to)}" for li, to, (_, pt) in zip(light, totals, todo)]
     if joint is not None:
@@ -67,3 +69,20 @@ def emission_checks(profile, views, todo, per_pose, joint, images, valid, noise,
         if w:
             joint = replace(joint, warnings=tuple(joint.warnings) + (w,))
     return out, joint, lines, record, structured
+
+
+def body_curvature_line(surface, views, prof) -> str:
+    """One console line on the body's curvature (:mod:`fluxcli.optics.body_curvature`): the mean
+    curvature the mesh gives its elements and how far it bends their light towards the views."""
+    from ..optics.body_curvature import fit_radius_mm, mean_curvature, view_factors
+
+    transport = prof.reduced_scattering_per_mm + prof.absorption_per_mm
+    H = mean_curvature(surface, fit_radius_mm(surface, transport))
+    fac = np.concatenate(view_factors(surface, views, prof))
+    if not np.any(H != 0):
+        return "body curvature: the mesh is flat everywhere (mean curvature 0): the profile is not bent"
+    lo, med, hi = np.percentile(H, [5, 50, 95])
+    return (f"body curvature: mean curvature {lo:.3g} .. {hi:.3g} /mm over the elements (5-95 %, median {med:.3g}; "
+            f"a sphere of radius {1 / med:.0f} mm has the median)" if med > 0 else
+            f"body curvature: mean curvature {lo:.3g} .. {hi:.3g} /mm over the elements (5-95 %, median {med:.3g})") + \
+        f"; the light each element sends towards the views x{fac.min():.3f} .. x{fac.max():.3f}"
