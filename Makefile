@@ -7,7 +7,8 @@
 #   make test   create .venv if needed, install with test extras, run the test suite
 #   make bench  speed ratios measured in one run (slow checks included)
 #   make accuracy  issue 8's battery: error, totals, chi^2, lambda, warnings per case x method;
-#                  then issue 21's on Monte Carlo phantoms (benchmarks/accuracy_mc.py)
+#                  then issue 21's on Monte Carlo phantoms (benchmarks/accuracy_mc.py) and the
+#                  body-curvature term against photons leaving spheres and a cylinder
 #   make paper-2d | paper-3d | heights   the paper's experiments (pipelines/experiments.mk)
 #   make study  issue 24: a simulated study (growing source, 3 days, 2 poses, 2 filters) -> fluxmap study
 
@@ -48,10 +49,11 @@ check-report: $(VENV)/.installed
 	@test -f runs/demo/report/index.html || $(MAKE) demo
 	$(PY) -m fluxcli.report.browser_check runs/demo/report/index.html runs/demo/report/screenshot.png
 
-# issue 8: realistic, honestly simulated cases x methods (~20 min on 2 cores); then issue 21's Monte Carlo battery (~50 min)
+# issue 8: realistic, honestly simulated cases x methods (~20 min on 2 cores); then issue 21's Monte Carlo battery (~50 min), then the body's curvature against photons (~2 min)
 accuracy: $(VENV)/.installed
 	$(PY) benchmarks/accuracy.py --draws 5
 	$(PY) benchmarks/accuracy_mc.py
+	$(PY) benchmarks/body_curvature_photons.py
 
 demo-rig: $(VENV)/.installed  # issue 12: build-T and reconstruct on the surface capture-surface measured
 	@echo "== demo-rig 1/5: capture-surface (structured light, then the emission frames; ~30 s)"

@@ -97,10 +97,14 @@ MEDIA = {"box-absorbing": {"mua_per_mm": 0.1, "mus_per_mm": 1.0, "g": 0.0}}
 MODELS = ("diffuse", "lambertian")
 # more models for some cases: diffuse-p1 is diffuse without its depth term (P1's profile);
 # diffuse-fine is diffuse on faces split into four (subject.refine_faces: 1; the same elements), for
-# the spots about an element wide, with a deep source as the control (the same photons: seeded)
+# the spots about an element wide, with a deep source as the control (the same photons: seeded);
+# diffuse-flat is diffuse without the body's curvature (a flat surface's profile), on the curved bodies
 EXTRA_MODELS = {"box-absorbing": ("diffuse-p1", "diffuse-fine"), "box-n1.56-shallow2": ("diffuse-fine",),
                 "box-direct": ("diffuse-fine",), "box-n1.33-deep8": ("diffuse-fine",),
-                "cylinder-direct": ("diffuse-fine",)}  # on the cylinder: faces split onto its round body
+                "cylinder-direct": ("diffuse-fine", "diffuse-flat"),  # on the cylinder: faces split onto its round body
+                # the curved bodies also without the body's curvature (emission.body_curvature: false)
+                "cylinder-direct-40-facets": ("diffuse-flat",), "cylinder-mirrors-deep8": ("diffuse-flat",),
+                "ellipsoid-mesh": ("diffuse-flat",)}
 # and every case diffuse-curv: diffuse with its curvature term (subject.emission.curvature_term)
 
 
@@ -134,6 +138,8 @@ def config(name: str, model: str, n_photons: int, seed: int) -> dict:
                          "reduced_scattering_per_mm": medium["mus_per_mm"] * (1 - medium["g"])}
         if model == "diffuse-p1":
             emission["depth_term"] = False
+        if model == "diffuse-flat":  # the profile of a flat surface: without the body's curvature
+            emission["body_curvature"] = False
         if model.endswith("-curv"):
             emission["curvature_term"] = True
     else:
