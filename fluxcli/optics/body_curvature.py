@@ -17,20 +17,21 @@ The first makes the light that comes from deep, along the normal, brighter; the 
 grazing light, which comes from shallow, dimmer. Both steepen the profile of a convex body
 (a sphere of radius 12 mm, mu_s' 1 /mm: ~4 % more light along the normal, ~3 % less at 70-80 deg)
 and flatten that of a concave one. To first order in H the ray integral gains
-``H l^2 (3 mu'^2 - 1) / z_b``, but that leaves out a third of what a sphere's exact field gives at
-H l ~ 0.01-0.1, so the table here integrates the field itself: ``phi`` from the normal ODE with
+``H l^2 (3 mu'^2 - 1) / z_b``, but under a sphere of 12 mm that is less than half of what the
+sphere's exact field (and the photons) give, so the table here integrates the field itself: ``phi`` from the normal ODE with
 the sphere's ``H(z)`` (the osculating sphere of the body's mean curvature), then the ray integral
 along the sphere's depth, for each H on a grid. The ratio to the flat integral, normalised so
 that it carries no light of its own (an element's power is its exitance times its area), is
 the factor this module applies per element and view at the angle to the view's lens centre, as
 the curvature term does (:func:`fluxcli.transfer_cache.curvature_ratios`): T's columns stay power
 fractions. The direction-dependent part (k_n - H, for a body curved more one way than the
-other: a cylinder) is left out; it moves a cylinder's grazing light by about 1 %.
+other: a cylinder) is left out; on a cylinder of 12.5 mm the photons' light at 65-80 deg is then
+0.2-0.7 % above the factor's (benchmarks/body_curvature_photons.py).
 
-Checked against photons (tests/test_body_curvature.py): fluxcli's Monte Carlo from the centre
-of spheres of radius 12 and 24 mm (mu_s 1 /mm, mu_a 0.01 /mm, n 1.40), the exit angles in bands:
-the flat profile is off by up to +3.7 / -3.4 % at 12 mm, the profile with this factor within
-the photons' noise. H of a mesh comes from the turn of its normals over a few transport lengths
+Checked against photons (tests/test_body_curvature.py; benchmarks/body_curvature_photons.py for
+24 mm and the cylinder): fluxcli's Monte Carlo from the centre of a sphere of radius 12 mm (mu_s
+1 /mm, mu_a 0.01 /mm, n 1.40), the exit angles in bands: the flat profile is off by up to +3.7 /
+-3.5 %, the profile with this factor within the photons' noise (0.5 %). H of a mesh comes from the turn of its normals over a few transport lengths
 (:func:`mean_curvature`): 0 on a box's faces, 1/2R on a cylinder's side, 1/R on a sphere.
 """
 
