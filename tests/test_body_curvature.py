@@ -135,16 +135,18 @@ def _camera(d_focus: float, R: float, n: int, pitch: float):
 def test_flat_faces_keep_their_T_and_a_spheres_columns_take_the_factor():
     from fluxcli.optics.transfer import build_transfer, views_for
 
-    on, off = E.diffuse(1.40, depth=True, body=True), E.diffuse(1.40, depth=True)
+    on = E.diffuse(1.40, depth=True, tangential=True, body=True)
+    off = E.diffuse(1.40, depth=True, tangential=True)
     assert on.key() != off.key() and on.key()["body_curvature"] == bc.LAYOUT
     cam = _camera(150.0, 6.0, 96, 0.15)
     box = phantoms.box(size_mm=(12, 10, 8), element_mm=2.0)[0].transformed(np.eye(3), np.array([0, 0, -150.0]))
-    a = build_transfer(box, views_for(cam, []), emission=on).T.toarray()
-    b = build_transfer(box, views_for(cam, []), emission=off).T.toarray()
-    assert np.array_equal(a, b)  # H = 0 on every face: the same T to the bit
+    a = build_transfer(box, views_for(cam, []), emission=on)
+    b = build_transfer(box, views_for(cam, []), emission=off)
+    assert np.array_equal(a.T.toarray(), b.T.toarray())  # H = 0 on every face: the same T to the bit ...
+    assert np.array_equal(a.T_tangent.toarray(), b.T_tangent.toarray())  # ... and the same tangential part
     ball = _icosphere(8.0, 2).transformed(np.eye(3), np.array([0, 0, -150.0]))
-    a = np.asarray(build_transfer(ball, views_for(cam, []), emission=on).T.sum(axis=0)).ravel()
-    b = np.asarray(build_transfer(ball, views_for(cam, []), emission=off).T.sum(axis=0)).ravel()
+    ra, rb = build_transfer(ball, views_for(cam, []), emission=on), build_transfer(ball, views_for(cam, []), emission=off)
+    a, b = np.asarray(ra.T.sum(axis=0)).ravel(), np.asarray(rb.T.sum(axis=0)).ravel()
     cen = ball.element_centroids_mm
     cos = np.einsum("ij,ij->i", ball.face_normals, -cen) / np.linalg.norm(cen, axis=1)
     seen = b > 0
@@ -152,6 +154,11 @@ def test_flat_faces_keep_their_T_and_a_spheres_columns_take_the_factor():
     assert np.allclose(H, 1 / 8.0, rtol=0.05)  # 320 facets
     want = bc.factor(on.body, cos, H, 1.01)
     assert np.allclose(a[seen] / b[seen], want[seen], rtol=1e-9)
+    ta, tb = ra.T_tangent.toarray(), rb.T_tangent.toarray()  # the tangential part: its own factor
+    tw = np.repeat(bc.factor(on.body_tangent, cos, H, 1.01), 2)
+    cols = np.abs(tb).sum(axis=0) > 0
+    assert np.allclose(ta[:, cols], tb[:, cols] * tw[cols], rtol=1e-9, atol=1e-30)
+    assert tw[np.repeat(seen, 2)].min() > 1.05  # convex: it reaches further
     assert np.ptp(want[seen]) > 0.05  # the factor does move light between the ball's elements ...
     # ... but a uniformly bright ball sends as much light towards a distant lens whatever its profile
     # (by symmetry, a quarter-pi-th of its power per steradian): the factor keeps each element's power
@@ -170,3 +177,59 @@ def test_reconstruct_says_what_curvature_it_read():
     assert "median 0.1" in line and "radius 10 mm" in line, line
     box = phantoms.box(size_mm=(12, 10, 8), element_mm=2.0)[0].transformed(np.eye(3), np.array([0, 0, -150.0]))
     assert "flat everywhere" in body_curvature_line(box, views_for(cam, []), prof)
+
+
+def _drift_on_sphere(radius_mm: float, depth_mm: float, n_photons: int):
+    """Photons leaving a sphere from a point ``depth_mm`` under its top: per band of exit angle the
+    drift length g that their own drift away from the source's foot implies, as on the slab of
+    tests/test_emission.py (``<d . t> = g k sin^2(theta) / 2`` with k = -d ln M / d rho fitted to the
+    photons' exit density over the sphere's arc rho, 3-12 mm from the foot)."""
+    from fluxcli.montecarlo import transport as MC
+    from fluxcli.montecarlo.meshbody import MeshBody
+
+    s = _icosphere(radius_mm, 5)
+    body = MeshBody.of(s.vertices_mm, s.faces)
+    e = MC.transport(MC.Medium(0.01, 1.0, 0.0, 1.40), body, np.array([0, 0, radius_mm - depth_mm]), n_photons, seed=7)
+    p, d, nrm = e.position_mm, e.direction, body.normals[e.face]
+    u = p / np.linalg.norm(p, axis=1)[:, None]
+    rho = radius_mm * np.arccos(np.clip(u[:, 2], -1, 1))
+    t = u * u[:, 2:3] - np.array([0, 0, 1.0])  # along the surface, away from the foot
+    t -= nrm * np.einsum("ij,ij->i", t, nrm)[:, None]
+    t /= np.maximum(np.linalg.norm(t, axis=1), 1e-12)[:, None]
+    d_t, cos = np.einsum("ij,ij->i", d, t), np.einsum("ij,ij->i", d, nrm)
+    edges = np.arange(1.0, 16.01, 0.5)
+    count = np.histogram(rho, edges)[0]
+    a = edges / radius_mm
+    ring = 2 * np.pi * radius_mm**2 * (np.cos(a[:-1]) - np.cos(a[1:]))
+    fit = np.polyfit(0.5 * (edges[1:] + edges[:-1]), np.log(count / ring), 3, w=np.sqrt(count))
+    k = -np.polyval(np.polyder(fit), rho)
+    near = (rho > 3) & (rho < 12)
+    out = []
+    for lo, hi in ((20, 40), (40, 65)):
+        b = near & (cos <= np.cos(np.radians(lo))) & (cos > np.cos(np.radians(hi)))
+        den = (k[b] * (1 - cos[b] ** 2)).sum()
+        out.append((lo, hi, 2 * d_t[b].sum() / den, 2 * d_t[b].std() * np.sqrt(b.sum()) / den))
+    return out
+
+
+def test_photons_leaving_a_sphere_drift_as_the_curved_tangential_term_says():
+    """Over a convex body the light drifts away from a buried source more than over a flat slab:
+    the ray behind an exit reaches further along the surface at depth, where the fluence is larger.
+    The photons' drift length g on a sphere of 12 mm over a wide slab's (the same medium, the source
+    6 mm deep, tests/test_emission.py) is the osculating sphere's sideways moment over the flat one
+    (body_curvature.tangent_factor_table over the scalar factor); the flat term says 1."""
+    from test_emission import _g_from_photons
+
+    R = 12.0
+    prof = E.diffuse(1.40, depth=True, tangential=True, body=True)
+    slab = {(lo, hi): (g, sg) for lo, hi, g, sg, _ in _g_from_photons(1.40, 1_000_000)}
+    for lo, hi, g_mc, sigma in _drift_on_sphere(R, 6.0, 1_000_000):
+        mu, H = np.array([np.cos(np.radians((lo + hi) / 2))]), np.full(1, 1 / R)
+        want = float(bc.factor(prof.body_tangent, mu, H, 1.01)[0] / bc.factor(prof.body, mu, H, 1.01)[0])
+        g_slab, s_slab = slab[(lo, hi)]
+        got = g_mc / g_slab
+        err = got * np.hypot(sigma / g_mc, s_slab / g_slab)
+        print(f"{lo}-{hi} deg: g on the sphere {g_mc:.3f}, on the slab {g_slab:.3f}: x{got:.3f} +- {err:.3f}; model x{want:.3f}")
+        assert err < 0.06 * got
+        assert got == pytest.approx(want, rel=0.1), (lo, hi, got, want)
+        assert got > 1.15  # the flat term (x1) is far short of it

@@ -176,6 +176,14 @@ class Profile:
         return factor_table(self.refractive_index, self.depth_term, self.table)
 
     @property
+    def body_tangent(self) -> np.ndarray:
+        """The body-curvature factor table of the tangential-flux term
+        (:func:`fluxcli.optics.body_curvature.tangent_factor_table`)."""
+        from .body_curvature import tangent_factor_table
+
+        return tangent_factor_table(self.refractive_index, self.depth_term, self.table)
+
+    @property
     def has_tangent(self) -> bool:
         return len(self.tangent) > 0
 

@@ -833,6 +833,10 @@ def build_transfer(
         for k, fac in enumerate(view_factors(surface, views, emission)):
             per_view[k] = sp.csr_matrix(per_view[k] @ sp.diags(fac))
             errors[k] = errors[k] * fac
+        if emission.has_tangent:  # its tangential flux too (columns 2j + a of element j)
+            for k, fac in enumerate(view_factors(surface, views, emission, tangential=True)):
+                if tangents[k] is not None:
+                    tangents[k] = sp.csr_matrix(tangents[k] @ sp.diags(np.repeat(fac, 2)))
     total = per_view[0] * views[0].weight
     for T, view in zip(per_view[1:], views[1:]):
         total = total + T * view.weight
