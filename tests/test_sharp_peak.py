@@ -1,0 +1,80 @@
+"""The sharp-peak check (fluxcli.inverse.sharp_peak) on images made here in closed form: a
+spot narrower than what the fit's unknowns can shape, against a fit that spreads it over one
+unit of the unknowns (a box blur of the unit's width, light conserved), fires; the same spot
+fitted by a shifted copy of itself (a camera a calibration error away), by a copy a few per cent
+dimmer (an emission model's kind of error), or on unknowns finer than the spot does not. The
+end-to-end case (Monte Carlo photons from a source 2 mm deep, n 1.56, 4-mm elements) is
+tests/test_montecarlo.py::test_a_spot_about_an_element_wide_is_followed_on_finer_faces."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from scipy import ndimage
+
+from fluxcli.inverse.sharp_peak import MAX_NEGATIVE, sharp_peak
+
+N = 64
+Y, X = np.mgrid[0:N, 0:N].astype(float)
+PHOTONS = 2e5
+BACKGROUND = 3.0
+
+
+def spot(cx=32.0, cy=32.0, sigma=1.2, photons=PHOTONS):
+    return photons * np.exp(-((X - cx) ** 2 + (Y - cy) ** 2) / (2 * sigma**2)) / (2 * np.pi * sigma**2) + BACKGROUND
+
+
+def square_T(width_px: int) -> sp.csc_matrix:
+    """Elements of width_px x width_px pixels tiling the image: one column each (T = 1 on its pixels)."""
+    blocks = (Y // width_px) * (N // width_px) + (X // width_px)
+    return sp.csc_matrix((np.ones(N * N), (np.arange(N * N), blocks.ravel().astype(int))),
+                         shape=(N * N, (N // width_px) ** 2))
+
+
+def check(measured, fitted, width_px=8, unknowns_per_element=1.0):
+    T = square_T(width_px)
+    power = np.asarray(T.T @ measured.ravel()).ravel()
+    var = np.maximum(fitted, 1.0)
+    chi2 = float(np.mean((measured - fitted) ** 2 / var))
+    return sharp_peak(measured, fitted, np.ones_like(measured, bool), var, T, power, unknowns_per_element, chi2)
+
+
+def test_a_spot_narrower_than_the_unknowns_is_seen():
+    m = spot()
+    fit = ndimage.uniform_filter(m, 8)  # what unknowns 8 pixels wide can make of it: the light kept, spread
+    p = check(m, fit)
+    assert p.seen, p
+    assert p.excess > 1.0 and p.negative < 0.05 and p.core_px < p.unit_px == pytest.approx(64.0)
+    # and not on unknowns four times finer (4 per element: a unit of 16 pixels, more than the core's 9-13)
+    fine = check(m, fit, unknowns_per_element=4.0)
+    assert fine.unit_px == pytest.approx(16.0) and fine.core_px < fine.unit_px
+    finer = check(m, fit, unknowns_per_element=16.0)
+    assert not finer.seen and finer.core_px >= finer.unit_px
+
+
+def test_a_shifted_spot_is_not_a_sharp_peak():
+    """A fit that is the spot half a pixel away: χ² is large and the core misses light, but the
+    residual has both signs there (the shift test's business)."""
+    m = spot()
+    p = check(m, spot(cx=32.5))
+    assert p.chi2_per_pixel > 2.0 and p.negative > MAX_NEGATIVE and not p.seen, p
+
+
+def test_a_few_per_cent_of_model_error_is_not_a_sharp_peak():
+    m = spot(photons=2e7)  # enough light for 3 % to be far beyond the noise
+    p = check(m, 0.97 * (m - BACKGROUND) + BACKGROUND)
+    assert p.chi2_per_pixel > 2.0 and p.excess < 0.05 and not p.seen, p
+
+
+def test_a_peak_the_noise_hides_is_not_warned_of():
+    """The same spread fit at 200 photons in all: the fit explains the image to the noise (χ² per
+    pixel from the measured image's own Poisson draw), so nothing is said."""
+    rng = np.random.default_rng(0)
+    m = spot(photons=200.0, sigma=1.2) - BACKGROUND + 0.02
+    fit = ndimage.uniform_filter(m, 8)
+    p = check(rng.poisson(m).astype(float), fit)
+    assert not p.seen, p
+
+
+def test_nothing_to_test_is_none():
+    z = np.zeros((N, N))
+    assert check(z, z) is None
