@@ -25,7 +25,8 @@ A camera a calibration error away leaves a residual of both signs along the imag
 (the shift test), not light missing at the peak; a wrong emission profile misjudges elements by
 viewing angle, a few per cent (the battery's other cases: at most 2.4 % at the core, χ² below 2);
 neither fires this.  A lens model that blurs more than the real lens does leave light missing at
-the peak; the warning names it second.  With the warning, the χ² and viewing-angle warnings of
+the peak, and so does a small bright reflection the subject's light does not explain; the warning
+names both, after the faces.  With the warning, the χ² and viewing-angle warnings of
 the pose (:data:`EXPLAINED`) and its shift warning are not given: they would send the user to the
 camera or the emission model for a misfit that is neither's.
 """
@@ -107,7 +108,8 @@ def peak_warning(p: SharpPeak, refine_faces: int = 0) -> str:
             "emission model. The fit spreads the peak's light over the elements around it: the total is little "
             "affected, the map within an element or two of the peak is wrong. Split the faces (subject.refine_faces: "
             f"{nxt} splits each into {4 ** nxt}, and build-T's work grows about as much; the elements, what is reported, "
-            "stay as they are) or give a finer mesh. A lens that blurs less than system.camera.lens says would read the same way.")
+            "stay as they are) or give a finer mesh. A lens that blurs less than system.camera.lens says, or a small bright "
+            "reflection or stray light in the image, would read the same way.")
 
 
 EXPLAINED = ("chi^2 per pixel is ", "the fit's residual is structured by viewing angle")  # what the peak explains
