@@ -16,7 +16,8 @@ light the model puts on the wrong side.
 ``--bands`` (~2 min at 8e6 photons): the same photons' exit angles, azimuth-averaged (the
 tangential flux's odd part cancels), in bands per region, over ``diffuse``'s profile: flat, with
 the body's curvature, and with the body's curvature and the curvature term (kappa = lap_t M / M
-from the photons' own exitance, fitted over two element widths as reconstruct does).
+from the photons' own exitance, fitted over two element widths as reconstruct does). With
+``--body cylinder`` the same on a finely faceted cylinder (r 12.5 mm) with a source 5 mm deep.
 
 ``--control N``: the issue's own control at N photons: the same exit points, every direction
 redrawn from the flat ``diffuse`` profile, imaged through the battery's camera and reconstructed
@@ -25,6 +26,7 @@ and observation cost alone (10^8 photons: ~15 min).
 
     $ .venv/bin/python benchmarks/ellipsoid_photons.py
     $ .venv/bin/python benchmarks/ellipsoid_photons.py --bands
+    $ .venv/bin/python benchmarks/ellipsoid_photons.py --bands --body cylinder
     $ .venv/bin/python benchmarks/ellipsoid_photons.py --control 1e8
 """
 
@@ -116,25 +118,40 @@ def cone(n_photons: int, cone_deg: float, seed: int = 13) -> None:
                         f"{key} {k / p[m & cm].sum():.3f}" for key, p in pred.items()) + f"   1 sd {1 / np.sqrt(k):.3f}")
 
 
-def _photons(n_photons: int, seed: int):
-    """The ellipsoid, its mesh body and the battery's photons leaving it, 10^6 at a time."""
+CYLINDER_R_MM, CYLINDER_DEPTH_MM = 12.5, 5.0  # --body cylinder: the battery's radius, a source 5 mm under the top
+
+
+def _cylinder():
+    """A finely faceted cylinder (120 x 60 facets, each face an element), axis along x."""
+    from fluxcli.surface import phantoms
+    from fluxcli.surface.mesh import Surface
+
+    s = phantoms.cylinder(radius_mm=CYLINDER_R_MM, length_mm=60, n_angular=120, n_axial=60)[0]
+    return Surface(s.vertices_mm, s.faces, np.arange(len(s.faces)), len(s.faces))
+
+
+def _photons(n_photons: int, seed: int, which: str = "ellipsoid"):
+    """The ellipsoid (or the cylinder), its mesh body and the photons leaving it, 10^6 at a time."""
     from fluxcli.montecarlo import transport as MC
     from fluxcli.montecarlo.meshbody import MeshBody
 
-    surf = _surface()
+    if which == "cylinder":
+        surf, n, src = _cylinder(), 1.40, [0.0, 0.0, CYLINDER_R_MM - CYLINDER_DEPTH_MM]
+    else:
+        surf = _surface()
+        _, n, src, _, _ = AM.CASES[CASE]
     body = MeshBody.of(surf.vertices_mm, surf.faces)
-    _, n, src, _, _ = AM.CASES[CASE]
     m = AM.TISSUE
     batches = (MC.transport(MC.Medium(m["mua_per_mm"], m["mus_per_mm"], m["g"], n), body, np.array(src, float),
                             1_000_000, seed=seed, batch=b) for b in range(max(1, n_photons // 1_000_000)))
     return surf, body, n, np.array(src, float), batches
 
 
-def bands(n_photons: int, seed: int = 17) -> None:
+def bands(n_photons: int, seed: int = 17, which: str = "ellipsoid") -> None:
     from fluxcli.optics import body_curvature as bc
     from fluxcli.optics import emission as E
 
-    surf, body, n, src, batches = _photons(n_photons, seed)
+    surf, body, n, src, batches = _photons(n_photons, seed, which)
     F = len(body.faces)
     edges = np.array([0, 20, 35, 45, 55, 65, 75, 90.0])
     counts, W = np.zeros((F, len(edges) - 1)), np.zeros(F)
@@ -158,12 +175,19 @@ def bands(n_photons: int, seed: int = 17) -> None:
                       for a, b in zip(edges[:-1], edges[1:])])
         return o / o.sum()
 
-    r = np.hypot(cen[:, 0] - src[0], cen[:, 1] - src[1])
-    print(f"{n_photons:.3g} photons (seed {seed}); exit angles per band over diffuse's (depth term): flat / with the "
+    if which == "cylinder":  # along the surface from the source's foot (the top line, x = 0)
+        r = np.hypot(CYLINDER_R_MM * np.arctan2(cen[:, 1], cen[:, 2]), cen[:, 0])
+        side = np.abs(nrm[:, 0]) < 0.5
+        regions = [(f"r {a}-{b}" if a else f"r < {b} mm", side & (r >= a) & (r < b)) for a, b in ((0, 4), (4, 8), (8, 12), (12, 20))]
+        regions.append(("the whole side", side))
+    else:
+        r = np.hypot(cen[:, 0] - src[0], cen[:, 1] - src[1])
+        regions = [("r < 4 mm, top", (r < 4) & (nrm[:, 2] > 0.5)), ("r 4-8, top", (r >= 4) & (r < 8) & (nrm[:, 2] > 0.5)),
+                   ("r 8-12", (r >= 8) & (r < 12)), ("r 12-20", (r >= 12) & (r < 20)), ("sides", np.abs(nrm[:, 2]) < 0.3)]
+    print(f"{which}: {n_photons:.3g} photons (seed {seed}); exit angles per band over diffuse's (depth term): flat / with the "
           "body's curvature / with it and the curvature term; bands " + " ".join(f"{a:.0f}-{b:.0f}" for a, b in
                                                                               zip(edges[:-1], edges[1:])) + " deg")
-    for name, m in (("r < 4 mm, top", (r < 4) & (nrm[:, 2] > 0.5)), ("r 4-8, top", (r >= 4) & (r < 8) & (nrm[:, 2] > 0.5)),
-                    ("r 8-12", (r >= 8) & (r < 12)), ("r 12-20", (r >= 12) & (r < 20)), ("sides", np.abs(nrm[:, 2]) < 0.3)):
+    for name, m in regions:
         ph = counts[m].sum(axis=0) / counts[m].sum()
         w = W[m] / W[m].sum()
         flat = share(prof.weight(mu))
@@ -220,12 +244,14 @@ def main() -> None:
     ap.add_argument("--photons", type=float, default=1.6e7, help="photons for the cone check")
     ap.add_argument("--cone-deg", type=float, default=10.0)
     ap.add_argument("--bands", action="store_true", help="the exit-angle bands by region instead (8e6 photons unless --photons)")
+    ap.add_argument("--body", choices=("ellipsoid", "cylinder"), default="ellipsoid",
+                    help="--bands on the battery's ellipsoid or on a cylinder (r 12.5 mm, source 5 mm deep)")
     ap.add_argument("--control", type=float, default=0.0, help="run the redrawn control at this many photons instead")
     a = ap.parse_args()
     if a.control:
         control(int(a.control))
     elif a.bands:
-        bands(int(a.photons) if "--photons" in sys.argv else 8_000_000)
+        bands(int(a.photons) if "--photons" in sys.argv else 8_000_000, which=a.body)
     else:
         cone(int(a.photons), a.cone_deg)
 

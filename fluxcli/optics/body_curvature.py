@@ -38,7 +38,12 @@ drift 1.5x / 1.2x as far as over a slab at 20-40 / 40-65 deg, the factor says 1.
 Checked against photons (tests/test_body_curvature.py; benchmarks/body_curvature_photons.py for
 24 mm and the cylinder): fluxcli's Monte Carlo from the centre of a sphere of radius 12 mm (mu_s
 1 /mm, mu_a 0.01 /mm, n 1.40), the exit angles in bands: the flat profile is off by up to +3.7 /
--3.5 %, the profile with this factor within the photons' noise (0.5 %). H of a mesh comes from the turn of its normals over a few transport lengths
+-3.5 %, the profile with this factor within the photons' noise (0.5 %). A limit: the field it
+integrates is the osculating sphere's, a fluence that varies with depth alone, which is the field
+of a deep, central source.  Over a source 5-6 mm under the skin the light 4-20 mm from its foot
+leaves as a slab's does (the cylinder and the ellipsoid, region by region: the factor is 1-3 % too
+steep there, and right over the whole side only on average; benchmarks/ellipsoid_photons.py
+--bands). H of a mesh comes from the turn of its normals over a few transport lengths
 (:func:`mean_curvature`): 0 on a box's faces, 1/2R on a cylinder's side, 1/R on a sphere.
 """
 
