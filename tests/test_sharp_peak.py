@@ -78,3 +78,23 @@ def test_a_peak_the_noise_hides_is_not_warned_of():
 def test_nothing_to_test_is_none():
     z = np.zeros((N, N))
     assert check(z, z) is None
+
+
+def test_the_joint_fit_points_at_the_poses_whose_peak_is_too_sharp():
+    """The joint solve holds every pose's image: its chi^2 warning names the poses whose peak the
+    unknowns cannot follow instead of offering model error; nothing changes when no pose fired."""
+    from dataclasses import dataclass
+
+    from fluxcli.inverse.sharp_peak import explain_joint
+
+    @dataclass(frozen=True)
+    class Joint:
+        chi2_per_pixel: float
+        warnings: tuple
+
+    j = Joint(10.5, ("chi^2 per pixel is 10.5 (expected about 1 under the noise model): model error", "lambda sat"))
+    out = explain_joint(j, [False, True, True], ["a", "b", "c"])
+    assert out.warnings[0].startswith("chi^2 per pixel is 10.5: the images of pose(s) b, c peak more sharply")
+    assert "subject.refine_faces" in out.warnings[0] and out.warnings[1:] == ("lambda sat",)
+    assert explain_joint(j, [False, False, False], ["a", "b", "c"]) is j
+    assert explain_joint(None, [True], ["a"]) is None

@@ -141,3 +141,18 @@ def check_poses(per_pose, images, valid, noise, Ts, unknowns_per_element: float,
         peaks.append(sharp_peak(images[k], fitted, valid[k], noise.variance(fit), Ts[k], r.power,
                                 unknowns_per_element, r.chi2_per_pixel))
     return with_peak_warnings(per_pose, peaks, refine_faces)
+
+
+def explain_joint(joint, fired: list[bool], labels: list[str]):
+    """The joint solve's result with its χ² and viewing-angle warnings (:data:`EXPLAINED`) replaced by
+    one that points at the poses whose peak is sharper than the unknowns (``fired``, per pose with
+    its ``labels``): their images are in the joint fit too.  ``joint`` unchanged when none fired
+    (or there is no joint solve)."""
+    if joint is None or not any(fired):
+        return joint
+    named = ", ".join(lab for lab, f in zip(labels, fired) if f)
+    kept = tuple(w for w in joint.warnings if not str(w).startswith(EXPLAINED))
+    note = (f"chi^2 per pixel is {joint.chi2_per_pixel:.3g}: the images of pose(s) {named} peak more sharply than the "
+            "surface's unknowns can follow (see their warnings: split the faces with subject.refine_faces), and the "
+            "joint fit holds those images too")
+    return replace(joint, warnings=(note,) + kept)

@@ -35,7 +35,7 @@ from ..inverse import backprojection, error_l1, total_ratio
 from ..inverse.emission_checks import emission_checks
 from ..inverse.emission_domain import leave_out_edge_on
 from ..inverse.filtered import poses_disagree
-from ..inverse.sharp_peak import check_poses
+from ..inverse.sharp_peak import check_poses, explain_joint
 from ..inverse.solve import DENSE, REGULARISED, describe, run_method, scaled, solve_poses  # noqa: F401
 from ..inverse.unknowns import (MAX_AUTO_SUB_ELEMENTS, ElementMap, Grid, VertexMap,  # noqa: F401
                                 element_unknowns, n_vertices, resolve_unknowns)
@@ -121,6 +121,7 @@ def reconstruct(plan: ReconstructPlan, ctx: RunContext) -> Path:
     checked, peaked = check_poses(checked, inp.images, inp.valid, noise, Ts, gm.Ts[0].shape[1] / surface.n_elements,
                                   plan.transfer.subject.refine_faces)  # a peak sharper than the unknowns
     checked = B.with_shift_warnings(checked, budget.shifts, [pt.pose.label for _, pt in todo], by_angle, peaked)
+    joint_checked = explain_joint(joint_checked, peaked, [pt.pose.label for _, pt in todo])
     warnings = _dark_poses(inp, todo) + _warnings(checked, joint_checked, todo)
     summary = _total_summary(checked, joint_checked, todo, {b.label: b.sigma for b in budget.totals}) + budget.lines()
     sweep = run_sweep(plan, ctx, grids, todo) if plan.sweep is not None else None
