@@ -472,6 +472,30 @@ def test_stages_use_the_model_store_it_and_report_grazing_shares(write_config, p
     assert "diffuse (refractive index 1.4)" in (tmp_path / "run" / "report" / "index.html").read_text()
 
 
+def test_the_report_figure_keeps_its_axes_for_the_longest_model_description(tmp_path):
+    """diffuse with every term describes itself in ~160 characters; as the legend label it took
+    the axes' width, matplotlib's layout gave up (a UserWarning on the console) and both panels
+    were squashed to slivers. The description is now a wrapped title and the legend the model's
+    short name: each panel keeps over a third of the figure's width, and no warning is raised."""
+    import warnings
+
+    from fluxcli.report import figures as F
+
+    a = np.linspace(0.0, 90.0, 91)
+    # the default's terms (squashed without a warning before) and every term (the warning)
+    for prof in (E.diffuse(1.40, tangential=True, depth=True, body=True),
+                 E.diffuse(1.40, tangential=True, depth=True, curvature=True, body=True)):
+        assert len(prof.describe()) > 130
+        fig = F.emission_figure(a, prof.radiance(np.radians(a)), prof.describe())
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            F.save(fig, tmp_path / "emission.png")
+        assert (tmp_path / "emission.png").stat().st_size > 0
+        for ax in fig.axes:
+            assert ax.get_position().width > 0.33, (prof.describe(), ax.get_position())
+        assert prof.describe().split(" with ")[0] in [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+
+
 def test_the_rig_simulated_camera_renders_with_the_emission_model(minimal_config, tmp_path):
     """The simulated camera renders the subject's emission through the forward T: with the
     diffuse profile its image of a cylinder is brighter where the surface faces the camera and

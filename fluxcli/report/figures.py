@@ -649,12 +649,19 @@ def sensitivity_figure(angles_deg, per_pose, per_view, view_names, labels) -> Fi
 def emission_figure(angle_deg, relative_radiance, label: str) -> Figure:
     """The emission profile used, L(theta)/L(0), beside Lambertian (1 everywhere), and the ray
     weight pi p(theta) of both (what each estimator multiplies a ray by, power kept per element)."""
-    fig = _figure(9.0, 3.6)
+    import textwrap
+
+    # the model's full description (its terms and medium, 140-170 characters for diffuse) as a
+    # wrapped title: in the legend it took the axes' width and the layout collapsed them
+    short, _, terms = str(label).partition(" with ")
+    fig = _figure(9.0, 3.6 if not terms else 4.2)
+    if terms:
+        fig.suptitle(textwrap.fill(str(label), 110), fontsize=8)
     ax, ax2 = fig.subplots(1, 2)
     a = np.asarray(angle_deg, float)
     r = np.asarray(relative_radiance, float)
     ax.plot(a, np.ones_like(a), "--", color="0.4", label="lambertian")
-    ax.plot(a, r, "-", color=JOINT_COLOUR, label=label)
+    ax.plot(a, r, "-", color=JOINT_COLOUR, label=textwrap.shorten(short, 60, placeholder=" …"))
     ax.set_xlabel("emission angle from the surface normal (°)")
     ax.set_ylabel("L(θ) / L(0)")
     ax.set_xlim(0, 90)
@@ -667,7 +674,7 @@ def emission_figure(angle_deg, relative_radiance, label: str) -> Figure:
     order = np.argsort(mu)
     norm = 2 * np.trapezoid(r[order] * mu[order], mu[order])
     ax2.plot(a, np.ones_like(a), "--", color="0.4", label="lambertian")
-    ax2.plot(a, r / norm if norm > 0 else r, "-", color=JOINT_COLOUR, label=label)
+    ax2.plot(a, r / norm if norm > 0 else r, "-", color=JOINT_COLOUR, label=short)
     ax2.set_xlabel("emission angle from the surface normal (°)")
     ax2.set_ylabel("π p(θ): radiance per unit exitance, × π")
     ax2.set_xlim(0, 90)
