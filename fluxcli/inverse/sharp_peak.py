@@ -23,7 +23,7 @@ element (vertices of the faces, about 4x more per level of ``subject.refine_face
 
 A camera a calibration error away leaves a residual of both signs along the image's gradients
 (the shift test), not light missing at the peak; a wrong emission profile misjudges elements by
-viewing angle, a few per cent (the battery's other cases: at most 2.4 % at the core, χ² below 2);
+viewing angle, a few per cent (the battery's other cases: at most 4.1 % at the core, χ² below 2);
 neither fires this.  A lens model that blurs more than the real lens does leave light missing at
 the peak, and so does a small bright reflection the subject's light does not explain; the warning
 names both, after the faces.  With the warning, the χ² and viewing-angle warnings of
