@@ -444,7 +444,7 @@ def test_study_dates_are_iso_and_a_subject_keeps_one_time_axis(tmp_path):
 
 
 # ------------------------------------------------------------------ several filters in one reconstruct
-def test_filters_reconstructed_one_by_one_in_one_run(tmp_path):
+def test_filters_reconstructed_one_by_one_in_one_run(tmp_path, monkeypatch):
     """A capture of the simulated rig through 'open' and '580nm' (transmission 0.5): one
     reconstruct with filters [open, 580nm] and the transmission given recovers, per filter,
     the light before the filter (the truth the simulated camera recorded, / transmission);
@@ -461,6 +461,7 @@ def test_filters_reconstructed_one_by_one_in_one_run(tmp_path):
     minimal["workdir"] = "run"
     cfg = rig_config(minimal, tmp_path / "Tcache", repeats=2, exposure_s=[0.5, 1.0])
     cfg["rois"] = [{"name": "all", "kind": "box", "min_mm": [-100, -100, -100], "max_mm": [100, 100, 100]}]
+    cfg["subject"]["emission"] = {"model": "diffuse", "refractive_index": 1.4}  # edge-on elements: left out of every filter
     p = tmp_path / "cfg.yaml"
     p.write_text(yaml.safe_dump(cfg))
     r = CliRunner().invoke(app, ["capture-surface", str(p), "-q"])
@@ -512,3 +513,42 @@ def test_filters_reconstructed_one_by_one_in_one_run(tmp_path):
         f["filters/580nm/rois/total_photons_per_s"][-1, -1] *= 1.1
     r = CliRunner().invoke(app, ["study", str(tmp_path / "study.yaml"), "-q"])
     assert r.exit_code == 2 and "was changed after it was written" in " ".join(r.output.split()), r.output
+
+    # A reflection in the 580nm frames only: light where no element of the subject can send any.
+    # That filter's solve leaves it out, and it must say so, by filter and pose (the warnings of
+    # every filter after the first once stayed inside its solve: exit 0, /warnings silent).
+    def warnings_of(path):  # /warnings as written (the seal was broken above on purpose)
+        with h5py.File(path) as f:
+            return [w.decode() if isinstance(w, bytes) else str(w) for w in f["warnings"][()]]
+
+    def stray(w):
+        return "falls on pixels that no element of the subject can reach" in w
+
+    assert not [w for w in warnings_of(run / "reconstruction.h5") if stray(w)]
+    with h5py.File(run / "capture.h5", "r+") as f:
+        light = ~f["plan/dark"][()].astype(bool) & (np.char.decode(f["plan/filter"][()]) == "580nm")
+        for k in np.flatnonzero(light):
+            frame = f["frames/counts"][k]
+            frame[:2, :2] += (0.5 * (frame.max() - np.median(frame))).astype(frame.dtype)
+            f["frames/counts"][k] = frame
+    r = CliRunner().invoke(app, ["reconstruct", str(p), "--force"])
+    assert r.exit_code == 0, r.output
+    moved = warnings_of(run / "reconstruction.h5")
+    for label in ("pose h=+0mm", "pose h=+1mm"):
+        assert any(w.startswith(f"filter 580nm, {label}") and stray(w) for w in moved), (label, moved)
+    assert not [w for w in moved if w.startswith("filter open") and stray(w)], moved
+    assert "filter 580nm, pose" in " ".join(r.output.split())  # and on the console
+    # Elements seen only beyond the profile's trusted angle leave every filter's observed total,
+    # not the first filter's alone (the others' totals held them, so a ratio of two filters'
+    # totals mixed two sets of elements). The angle is lowered here so that this small scene,
+    # seen from above, has such elements (its rim is seen at up to 80 deg).
+    import fluxcli.optics.emission as E
+
+    monkeypatch.setattr(E, "DIFFUSE_TRUSTED_TO_DEG", 60.0)
+    r = CliRunner().invoke(app, ["reconstruct", str(p), "--force"])
+    assert r.exit_code == 0, r.output
+    edge = [w for w in warnings_of(run / "reconstruction.h5") if "seen only beyond 60 deg" in w]
+    assert {w.split(",")[0] for w in edge} == {"filter open", "filter 580nm"}, edge
+    with h5py.File(run / "reconstruction.h5") as f:
+        np.testing.assert_array_equal(f["filters/580nm/flux/observed"][()], f["flux/observed"][()])
+        np.testing.assert_array_equal(np.isnan(f["filters/580nm/flux/power"][()]), np.isnan(f["flux/power"][()]))

@@ -34,13 +34,12 @@ from ..imaging.stray import STRAY_REFUSE, STRAY_WARN, light_outside  # noqa: F40
 from ..inverse import backprojection, error_l1, total_ratio
 from ..inverse.emission_checks import emission_checks
 from ..inverse.emission_domain import leave_out_edge_on
-from ..inverse.filtered import poses_disagree
-from ..inverse.sharp_peak import check_poses, explain_joint
 from ..inverse.solve import DENSE, REGULARISED, describe, run_method, scaled, solve_poses  # noqa: F401
 from ..inverse.unknowns import (MAX_AUTO_SUB_ELEMENTS, ElementMap, Grid, VertexMap,  # noqa: F401
                                 element_unknowns, n_vertices, resolve_unknowns)
 from . import budget as B
 from ._reconstruct_grid import check_solver_size, direct_roi, make_grid, run_sweep  # noqa: F401
+from ._reconstruct_filters import checked_solves, dark_poses, named, noise_of, other_filters, solve_warnings  # noqa: F401
 from ._reconstruct_inputs import Inputs, check_sweep, from_capture, load_inputs, photon_noise, simulated_emission  # noqa: F401
 from ._reconstruct_plan import SOLVER_VERSION, ReconstructPlan, plan_of  # noqa: F401
 from .context import RunContext
@@ -57,12 +56,6 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
             ctx.say(line)
         return plan.output
     return reconstruct(plan, ctx)
-
-
-def noise_of(plan: ReconstructPlan, inp: Inputs):
-    """The images' noise model under the plan's ``reconstruct.noise``."""
-    return photon_noise(plan.noise, plan.read_noise_photons, plan.images.sensor, inp.noise_kind, inp.exposure_s,
-                        inp.frames_averaged)
 
 
 def reconstruct(plan: ReconstructPlan, ctx: RunContext) -> Path:
@@ -97,18 +90,8 @@ def reconstruct(plan: ReconstructPlan, ctx: RunContext) -> Path:
     totals = B.TotalMeter(ctx, P + int(plan.joint and P > 1))  # each total's photon-noise sigma; progress
     per_pose, joint = solve_poses(gm, inp, m, noise, stray, todo, (ny, nx), plan.joint, B.Both(rois, totals), scale)
     per_pose, joint = leave_out_edge_on(placer.emission, views, todo, per_pose, joint)  # issue 21: the model's domain
-    others = {}  # filter -> (inputs, per pose, joint, ROI meter): one T per pose for every filter
-    for name in plan.filters[1:]:
-        inp_f = from_capture(plan.images, surface.n_elements, name)
-        t_f = plan.transmission(name)
-        if inp_f.truth is not None and t_f != 1.0:
-            inp_f.truth = inp_f.truth / t_f
-        noise_f = noise_of(plan, inp_f)  # its own exposure
-        stray_f = [light_outside(Ts[k], inp_f.images[k], inp_f.valid[k], noise_f, pt.pose.label, surface)
-                   for k, (_, pt) in enumerate(todo)]
-        meter = RoiMeter(plan.rois, plan.roi_mesh, surface, plan.rate_exposure_s(inp_f.exposure_s, inp_f.exposure_recorded))
-        pp_f, joint_f = solve_poses(gm, inp_f, m, noise_f, stray_f, todo, (ny, nx), plan.joint, meter, t_f)
-        others[name] = (inp_f, pp_f, joint_f, meter)
+    others, filter_warnings = other_filters(plan, surface, gm, m, Ts, todo, views, placer.emission, (ny, nx),
+                                            gm.Ts[0].shape[1] / surface.n_elements)  # {filter: ...}, each checked
     seconds = time.perf_counter() - t0
     budget = B.error_budget(plan.system, plan.calibration_budget, plan.build_T, ctx, surface, m, gm, inp, noise,
                             per_pose, joint, todo, scale, totals, t_rate, rois)
@@ -118,11 +101,11 @@ def reconstruct(plan: ReconstructPlan, ctx: RunContext) -> Path:
     checked, joint_checked, emission_lines, emission, by_angle = emission_checks(
         placer.emission, views, todo, per_pose, joint, inp.images, inp.valid, noise,
         simulated_emission(plan.images, plan.subject_emission))
-    checked, peaked = check_poses(checked, inp.images, inp.valid, noise, Ts, gm.Ts[0].shape[1] / surface.n_elements,
-                                  plan.transfer.subject.refine_faces)  # a peak sharper than the unknowns
+    checked, joint_checked, peaked = checked_solves(checked, joint_checked, inp, noise, Ts, gm.Ts[0].shape[1] /
+                                                    surface.n_elements, plan.transfer.subject.refine_faces, todo)
     checked = B.with_shift_warnings(checked, budget.shifts, [pt.pose.label for _, pt in todo], by_angle, peaked)
-    joint_checked = explain_joint(joint_checked, peaked, [pt.pose.label for _, pt in todo])
-    warnings = _dark_poses(inp, todo) + _warnings(checked, joint_checked, todo)
+    warnings = named(plan.filters, plan.main_filter, dark_poses(inp, todo) + solve_warnings(checked, joint_checked, todo))
+    warnings += filter_warnings
     summary = _total_summary(checked, joint_checked, todo, {b.label: b.sigma for b in budget.totals}) + budget.lines()
     sweep = run_sweep(plan, ctx, grids, todo) if plan.sweep is not None else None
     prov = plan.new_provenance()
@@ -243,25 +226,6 @@ def _vs_truth(power, observed, truth) -> list[str]:
 def _headline_cell(res) -> str:
     h = headline_of(res)
     return f"{h.photons:.4g}" if h.reason is None else f"{h.photons:.4g} over well-observed (see below)"
-
-
-def _dark_poses(inp: Inputs, todo) -> list[str]:
-    """A pose whose images hold no light at all: its total is 0 and what the fit says of it
-    (the regularisation, the misfit) is about nothing, which the user should hear first."""
-    return [f"pose {pt.pose.label}: its images hold no light (no valid pixel above 0): its total is 0 within "
-            "the noise floor, and its warnings about the fit below say nothing about the subject; check the "
-            "exposure, the filter and that the subject is in view" for k, (_, pt) in enumerate(todo)
-            if not np.any(np.asarray(inp.images[k])[np.asarray(inp.valid[k], bool)] > 0)]
-
-
-def _warnings(per_pose, joint, todo) -> list[str]:
-    """Every warning of every solve (to the console and to /warnings: never silent)."""
-    out = [f"pose {pt.pose.label}: {w}" for (r, _), (_, pt) in zip(per_pose, todo) for w in r.warnings]
-    if joint is None:
-        return out
-    apart = poses_disagree([r.chi2_per_pixel for r, _ in per_pose], joint.chi2_per_pixel,
-                           [np.nansum(r.power) for r, _ in per_pose], [pt.pose.label for _, pt in todo])
-    return out + [f"joint: {w}" for w in joint.warnings] + ([f"joint: {apart}"] if apart else [])
 
 
 def _total_summary(per_pose, joint, todo, sigmas: dict | None = None) -> list[str]:
