@@ -34,8 +34,8 @@ def noise_of(plan, inp: Inputs):
 def checked_solves(per_pose, joint, inp: Inputs, noise, Ts, unknowns_per_element: float, refine_faces: int, todo):
     """The sharp-peak test (:mod:`fluxcli.inverse.sharp_peak`) on each pose's solve and its note on
     the joint one: ``(per_pose, joint, fired)``."""
-    per_pose, fired = check_poses(per_pose, inp.images, inp.valid, noise, Ts, unknowns_per_element, refine_faces)
-    return per_pose, explain_joint(joint, fired, [pt.pose.label for _, pt in todo]), fired
+    per_pose, fired, near = check_poses(per_pose, inp.images, inp.valid, noise, Ts, unknowns_per_element, refine_faces)
+    return per_pose, explain_joint(joint, fired, [pt.pose.label for _, pt in todo], near), fired
 
 
 def dark_poses(inp: Inputs, todo) -> list[str]:
