@@ -552,3 +552,12 @@ def test_filters_reconstructed_one_by_one_in_one_run(tmp_path, monkeypatch):
     with h5py.File(run / "reconstruction.h5") as f:
         np.testing.assert_array_equal(f["filters/580nm/flux/observed"][()], f["flux/observed"][()])
         np.testing.assert_array_equal(np.isnan(f["filters/580nm/flux/power"][()]), np.isnan(f["flux/power"][()]))
+
+    # Every 580nm frame at full scale: no pixel that sees the subject is usable. Refused, naming the
+    # pose and the filter (it stopped with the solver's "T must be non-empty and 2-D, got shape (0, 112)").
+    with h5py.File(run / "capture.h5", "r+") as f:
+        for k in np.flatnonzero(light):
+            f["frames/counts"][k] = np.full_like(f["frames/counts"][k], np.iinfo(f["frames/counts"].dtype).max)
+    r = CliRunner().invoke(app, ["reconstruct", str(p), "--force"])
+    text = " ".join(r.output.split())
+    assert r.exit_code == 2 and "pose h=+0mm rot=0deg (filter 580nm): none of the" in text, r.output

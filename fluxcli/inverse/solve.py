@@ -80,15 +80,21 @@ def _solve(T, a, valid, m, noise, adjacency, areas, groups=None):
         raise UserError(f"reconstruct.method {m.method}: {msg}") from None
 
 
-def solve_poses(gm, inp, m, noise, stray, todo, shape, joint_too: bool, rois, scale: float = 1.0):
+def solve_poses(gm, inp, m, noise, stray, todo, shape, joint_too: bool, rois, scale: float = 1.0, what: str = ""):
     """Each pose on its own (isolated spikes left out and solved again), then all jointly;
     every region of interest measured on each result while its covariance is alive.
-    ``scale`` divides the results (a filter's transmission: the light before the filter).
+    ``scale`` divides the results (a filter's transmission: the light before the filter);
+    ``what`` follows a pose's name in an error (``" (filter 580nm)"``).
     Returns [(Result, fitted image)] per pose and the joint Result (or None)."""
     ny, nx = shape
     P = len(todo)
     per_pose = []
     for k in range(P):
+        seen = np.asarray(abs(gm.Ts[k]).sum(axis=1)).ravel() > 0
+        if not np.any(seen & np.asarray(inp.valid[k], bool).ravel()):
+            raise UserError(f"reconstruct, pose {todo[k][1].pose.label}{what}: none of the {int(seen.sum())} pixels that "
+                            "see the subject is usable (each is saturated, NaN or masked), so there is nothing to "
+                            "reconstruct from; take the images again with a shorter exposure or a lower EM gain.")
         def solve_pose(T=None):  # T: pose k's T bent by the curvature term (None: gm's)
             res, keep = run_method(gm.Ts[k] if T is None else T, inp.images[k], inp.valid[k], m, noise,
                                    gm.adjacency, gm.parts(k), gm.n_elements, gm.areas)

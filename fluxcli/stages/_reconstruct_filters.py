@@ -77,7 +77,7 @@ def other_filters(plan, surface, gm, m, Ts, todo, views, emission, shape, unknow
         stray = [light_outside(Ts[k], inp.images[k], inp.valid[k], noise, f"{pt.pose.label} (filter {name})", surface)
                  for k, (_, pt) in enumerate(todo)]
         meter = RoiMeter(plan.rois, plan.roi_mesh, surface, plan.rate_exposure_s(inp.exposure_s, inp.exposure_recorded))
-        pp, joint = solve_poses(gm, inp, m, noise, stray, todo, shape, plan.joint, meter, t)
+        pp, joint = solve_poses(gm, inp, m, noise, stray, todo, shape, plan.joint, meter, t, f" (filter {name})")
         pp, joint = leave_out_edge_on(emission, views, todo, pp, joint)  # the same elements as the first filter's
         pp, joint, _ = checked_solves(pp, joint, inp, noise, Ts, unknowns_per_element, refine, todo)
         others[name] = (inp, pp, joint, meter)

@@ -78,7 +78,8 @@ def reconstruct(plan: ReconstructPlan, ctx: RunContext) -> Path:
     Ts = grids["elements"].Ts
     gm = grids[m.unknowns]
     noise = noise_of(plan, inp)
-    stray = [light_outside(Ts[k], inp.images[k], inp.valid[k], noise, pt.pose.label, surface)
+    tag = f" (filter {plan.main_filter})" if len(plan.filters or ()) > 1 else ""  # in a pose's errors
+    stray = [light_outside(Ts[k], inp.images[k], inp.valid[k], noise, pt.pose.label + tag, surface)
              for k, (_, pt) in enumerate(todo)]
     ctx.say(f"reconstruct: {inp.source}; {describe(m)}, {P} pose(s); {noise.kind} noise model")
     if plan.qe_warning:  # QE scales every photon
@@ -88,7 +89,7 @@ def reconstruct(plan: ReconstructPlan, ctx: RunContext) -> Path:
     if inp.truth is not None and scale != 1.0:
         inp.truth = inp.truth / scale  # the truth through the filter, as the results: before it
     totals = B.TotalMeter(ctx, P + int(plan.joint and P > 1))  # each total's photon-noise sigma; progress
-    per_pose, joint = solve_poses(gm, inp, m, noise, stray, todo, (ny, nx), plan.joint, B.Both(rois, totals), scale)
+    per_pose, joint = solve_poses(gm, inp, m, noise, stray, todo, (ny, nx), plan.joint, B.Both(rois, totals), scale, tag)
     per_pose, joint = leave_out_edge_on(placer.emission, views, todo, per_pose, joint)  # issue 21: the model's domain
     others, filter_warnings = other_filters(plan, surface, gm, m, Ts, todo, views, placer.emission, (ny, nx),
                                             gm.Ts[0].shape[1] / surface.n_elements)  # {filter: ...}, each checked
