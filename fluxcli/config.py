@@ -50,7 +50,20 @@ class Model(BaseModel):
                 and _longest(v) > MAX_DURATION_S):
             raise ValueError(f"durations are in seconds here and at most {MAX_DURATION_S:g} s (a day); "
                              f"got {_longest(v):g}")
+        if _has_nul(v):  # the OS refuses it in any path ("embedded null byte", once exit 1 from a study file)
+            raise ValueError("holds a NUL character (\\x00), which no file name or name may contain")
         return v
+
+
+def _has_nul(v) -> bool:
+    """Whether a text or path value (or one inside a list or mapping) holds a NUL character."""
+    if isinstance(v, (str, Path)):
+        return "\x00" in str(v)
+    if isinstance(v, (tuple, list)):
+        return any(_has_nul(x) for x in v)
+    if isinstance(v, dict):
+        return any(_has_nul(k) or _has_nul(x) for k, x in v.items())
+    return False
 
 
 def _unit(v: Vec3, what: str) -> Vec3:
@@ -1305,26 +1318,43 @@ _SURFACE_MEMBERS = {"phantom": ("MeshSurface", "ArtefactSurface"), "mesh": ("Art
                     "artefact": ("MeshSurface", "tagged-union")}
 
 
-def _relevant(errors: list, raw: Any) -> list:
-    """Drop errors from union members the user did not choose (a phantom with a bad radius
-    is not also 'missing its mesh key'), and a list's 'too short' when one of its items failed."""
-    items = {tuple(e["loc"][:i]) for e in errors for i, x in enumerate(e["loc"]) if isinstance(x, int)}
-    errors = [e for e in errors if not (e["type"] == "too_short" and tuple(e["loc"]) in items)]
-    surf = raw.get("subject", {}).get("surface") if isinstance(raw, dict) and isinstance(raw.get("subject"), dict) else None
-    if not isinstance(surf, dict):
+# reconstruct.images: the key that says which kind it is -> the other kind's member (in error locations)
+_IMAGES_MEMBERS = {"capture": "ImageFiles", "files": "CaptureSource"}
+
+
+def _section(raw: Any, *keys: str):
+    for k in keys:
+        raw = raw.get(k) if isinstance(raw, dict) else None
+    return raw if isinstance(raw, dict) else None
+
+
+def _not_chosen(errors: list, section, members: dict, match) -> list:
+    """``errors`` without those of the union members ``section`` (the user's mapping) did not choose."""
+    if section is None:
         return errors
-    for key, others in _SURFACE_MEMBERS.items():
-        if key in surf:
-            kept = [e for e in errors if not any(isinstance(x, str) and x.startswith(others) for x in e["loc"])]
+    for key, others in members.items():
+        if key in section:
+            kept = [e for e in errors if not any(isinstance(x, str) and match(x, others) for x in e["loc"])]
             return kept or errors
     return errors
+
+
+def _relevant(errors: list, raw: Any) -> list:
+    """Drop errors from union members the user did not choose (a phantom with a bad radius
+    is not also 'missing its mesh key'; images from a capture are not also 'missing their
+    files'), and a list's 'too short' when one of its items failed."""
+    items = {tuple(e["loc"][:i]) for e in errors for i, x in enumerate(e["loc"]) if isinstance(x, int)}
+    errors = [e for e in errors if not (e["type"] == "too_short" and tuple(e["loc"]) in items)]
+    errors = _not_chosen(errors, _section(raw, "subject", "surface"), _SURFACE_MEMBERS, lambda x, o: x.startswith(o))
+    return _not_chosen(errors, _section(raw, "reconstruct", "images"), _IMAGES_MEMBERS,
+                       lambda x, o: x == o or x.endswith(f", {o}]"))
 
 
 def _format_validation_error(err: ValidationError, path: Path, raw: Any = None, what: str = "config") -> str:
     lines = []
     errors = _relevant(err.errors(), raw)
     for e in errors[:6]:
-        loc = ".".join(str(x) for x in e["loc"] if not (isinstance(x, str) and x in _UNION_TAGS))
+        loc = ".".join(str(x) for x in e["loc"] if not (isinstance(x, str) and (x in _UNION_TAGS or x.startswith(_MEMBER_NAMES))))
         if e["type"] == "extra_forbidden":
             msg = "unknown key (check its spelling against the README's config reference)"
         elif e["type"] == "missing":
@@ -1354,6 +1384,7 @@ _UNION_CHOICES = {"model": _tags(Emission, "model"), "kind": _tags(Flux, "kind")
 _UNION_TAGS = {"cylinder", "ring", "sphere", "patch", "MeshSurface", "ArtefactSurface",
                "gaussian", "uniform", "file", "diffusion", "float", "literal['auto']",
                "function-after[_check(), Lens]", "ImageFiles", "CaptureSource", "tagged-union[CylinderPhantom,BoxPhantom,RingPhantom,SpherePhantom,PatchPhantom]"}
+_MEMBER_NAMES = ("function-after[", "tagged-union[")  # a member with a validator, a tagged union: never a key
 
 
 def _camera_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:

@@ -3,6 +3,7 @@ sphere ROI on the analytic Gaussian spot against its closed form."""
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 import numpy as np
@@ -408,6 +409,9 @@ def test_study_file_mistakes_exit_2(tmp_path):
     r = CliRunner().invoke(app, ["study", str(s)])
     assert r.exit_code == 2 and "sessions[0] (a day 1 -): artefact" in " ".join(r.output.split())
     assert "nowhere.h5" in " ".join(r.output.split())
+    s.write_text(yaml.safe_dump({"sessions": [{"artefact": "m1\x00.h5", "subject": "a", "day": 1}]}))
+    r = CliRunner().invoke(app, ["study", str(s)])  # was exit 1: "embedded null byte" from the OS
+    assert r.exit_code == 2 and "'sessions.0.artefact': holds a NUL character" in " ".join(r.output.split()), r.output
 
 
 def test_study_dates_are_iso_and_a_subject_keeps_one_time_axis(tmp_path):
@@ -513,6 +517,24 @@ def test_filters_reconstructed_one_by_one_in_one_run(tmp_path, monkeypatch):
         f["filters/580nm/rois/total_photons_per_s"][-1, -1] *= 1.1
     r = CliRunner().invoke(app, ["study", str(tmp_path / "study.yaml"), "-q"])
     assert r.exit_code == 2 and "was changed after it was written" in " ".join(r.output.split()), r.output
+
+    # The filters the other way round, the first with an exposure of its own: the same two solves
+    # (a filter's solve does not depend on the others), /flux now the 580nm one at its 0.5 s. The
+    # run used to write the artefact and then stop (exit 2) on "the config states an exposure of
+    # 1 s ... reconstructed with 0.5 s", reading exposure_s where the first filter has its own.
+    swapped = copy.deepcopy(cfg)
+    swapped["reconstruct"]["images"]["filters"] = ["580nm", "open"]
+    q = tmp_path / "swapped.yaml"
+    q.write_text(yaml.safe_dump(swapped))
+    r = CliRunner().invoke(app, ["reconstruct", str(q), "--force"])
+    assert r.exit_code == 0, r.output
+    with h5py.File(run / "reconstruction.h5") as f:
+        assert [*__import__("json").loads(f["filters"].attrs["order"])] == ["580nm", "open"]
+        np.testing.assert_array_equal(f["filters/580nm/flux/power"][()], f["flux/power"][()])
+        for k, t in (("open", 1.0), ("580nm", 0.5)):
+            assert float(np.nansum(f[f"filters/{k}/flux/power"][()])) / t == pytest.approx(got[k], rel=1e-9)
+    r = CliRunner().invoke(app, ["report", str(q)])
+    assert r.exit_code == 0, r.output
 
     # A reflection in the 580nm frames only: light where no element of the subject can send any.
     # That filter's solve leaves it out, and it must say so, by filter and pose (the warnings of

@@ -280,6 +280,8 @@ MISTAKES = [
     ("set-impossible-date", "build-T", _set("workdir=2026-13-01"), ["--set 'workdir=2026-13-01'", "not a date"]),
     ("unknown-top-key", "build-T", _cfg("sytem", {}), ["'sytem'", "unknown key"]),
     ("unknown-nested-key", "build-T", _cfg("system.camera.pixel_pitch", 0.1), ["system.camera.pixel_pitch"]),
+    # a NUL character in a path: the OS refuses it ("embedded null byte", exit 1; found by fuzzing study files)
+    ("nul-in-a-path", "build-T", _cfg("subject.surface", {"mesh": "a\x00b.ply"}), ["'subject.surface.mesh'", "NUL"]),
     ("missing-lens", "build-T", _del("system.camera.lens"), ["system.camera.lens"]),
     ("pixels-negative", "build-T", _cfg("system.camera.pixels", [-4, 24]), ["system.camera.pixels"]),
     ("pixel-pitch-zero", "build-T", _cfg("system.camera.pixel_pitch_mm", 0), ["system.camera.pixel_pitch_mm"]),
@@ -446,6 +448,15 @@ MISTAKES = [
     ("image-suffix", "reconstruct", lambda c, d, b: (d.joinpath("a.png").write_text("x"),
                                                      put(c, "reconstruct.images", {"files": [str(d / "a.png")] * 2})) and None,
      ["reconstruct.images.files", "a.png"]),
+    # a capture's keys wrong: the error named the other kind of images' keys first ("files: required
+    # key is missing", "capture: unknown key", ...) under pydantic's "function-after[_check(), ImageFiles]"
+    ("capture-filter-twice", "reconstruct", _cfg("reconstruct.images", {"capture": "capture.h5", "filters": ["a", "a"]}),
+     ["'reconstruct.images': filters: list each filter once"]),
+    ("capture-transmission-zero", "reconstruct", _cfg("reconstruct.images", {
+        "capture": "capture.h5", "filters": ["a", "b"], "transmissions": {"b": 0.0}}),
+     ["'reconstruct.images': transmissions must lie in (0, 1]"]),
+    ("files-with-capture-keys", "reconstruct", _cfg("reconstruct.images", {"files": ["a.tif"], "filters": ["a"]}),
+     ["'reconstruct.images.filters': unknown key"]),
     # --- report
     ("report-no-reconstruction", "report", _no_sim, ["reconstruction.h5"]),
     ("report-slice-outside", "report", _set("report.slice_axial_mm=1000"), ["report.slice_axial_mm", "1000"]),
@@ -499,6 +510,9 @@ def test_user_mistake_exits_2_naming_the_key_or_file(case, base, tmp_path):
     out = out[out.index("fluxmap: error:"):]
     for w in words:
         assert w in out, f"{w!r} not in: {out}"
+    assert "function-after" not in out and "tagged-union" not in out, out  # pydantic's names are not keys
+    if name.startswith("capture-"):  # nothing of the other kind of images
+        assert "files" not in out, out
     if os.environ.get("FLUXMAP_SHOW_MISTAKES"):
         print(f"\nMISTAKE {name} | {out}")
 

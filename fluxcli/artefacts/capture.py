@@ -422,12 +422,14 @@ def _frame_table(f: h5py.File, path: Path, names: list[str]) -> None:
                                 + (f" ({bad.size} such frames)" if bad.size > 1 else "") + ". Take the capture again.")
 
 
-def read_capture(path: Path, filter: str | None = None, exposure_s: float | None = None) -> CaptureImages:
+def read_capture(path: Path, filter: str | None = None, exposure_s: float | None = None,
+                 exposure_key: str = "exposure_s") -> CaptureImages:
     """Read a complete capture: per planned height the mean of its light frames for ``filter``
     at ``exposure_s``, and the mean of the dark frames at that exposure.
 
     Raises UserError when the capture is incomplete, has no dark frames, or ``filter`` /
-    ``exposure_s`` is not one of its own (``None`` is allowed when it has only one)."""
+    ``exposure_s`` is not one of its own (``None`` is allowed when it has only one), naming the
+    config key ``reconstruct.images.<exposure_key>`` the exposure came from."""
     path = Path(path)
     with open_artefact(path, KIND) as f:
         plan = json.loads(f.attrs["plan"])
@@ -438,7 +440,7 @@ def read_capture(path: Path, filter: str | None = None, exposure_s: float | None
             raise UserError(f"capture {path} is incomplete: {committed.sum()} of {committed.size} frames; finish it "
                             "with 'fluxmap capture-surface CONFIG --resume'.")
         filter = _one_of(path, "filter", filter, list(plan["filters"]))
-        exposure_s = float(_one_of(path, "exposure_s", exposure_s, [float(e) for e in plan["exposures_s"]]))
+        exposure_s = float(_one_of(path, exposure_key, exposure_s, [float(e) for e in plan["exposures_s"]]))
         pe = f["plan/exposure_s"][()]
         dark = f["plan/dark"][()].astype(bool)
         if not (dark & (pe == exposure_s)).any():

@@ -53,7 +53,9 @@ def from_capture(im, n_elements: int, filter_name: str | None = None) -> Inputs:
     src = im.source
     if filter_name is None:
         filter_name = src.filters[0] if src.filters else src.filter
-    cap = read_capture(path, filter_name, src.exposures_s.get(filter_name, src.exposure_s) if filter_name else src.exposure_s)
+    own = bool(filter_name) and filter_name in src.exposures_s  # the filter's own exposure, else the common one
+    cap = read_capture(path, filter_name, src.exposures_s[filter_name] if own else src.exposure_s,
+                       f"exposures_s.{filter_name}" if own else "exposure_s")
     order = cap.pose_order(list(im.heights_mm))
     photons, valid = N.capture_photons(cap, emccd_model(im.sensor, cap.exposure_s))
     nx, ny = im.pixels

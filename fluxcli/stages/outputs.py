@@ -37,6 +37,10 @@ def reconstruction_exposure_s(images, sim) -> float | None:
     """The exposure of the images reconstructed: the image files', else the simulation's
     (``images``: reconstruct.images or None; ``sim``: the ``simulate`` section or None)."""
     if images is not None:  # image files, or a capture (whose exposure_s picks one of its exposures)
+        first = (getattr(images, "filters", None) or (getattr(images, "filter", None),))[0]
+        own = getattr(images, "exposures_s", None) or {}
+        if first in own:  # the first filter's own exposure: what /flux is made of
+            return float(own[first])
         t = getattr(images, "exposure_s", None)
         return float(t) if t is not None and _given(images, "exposure_s") else None
     return simulation_exposure_s(sim)
