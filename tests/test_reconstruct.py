@@ -555,3 +555,32 @@ def test_orientation_hint_is_a_diagnostic_that_never_stops_a_reconstruction():
     assert orientation_hint(lambda a, v: 3.0, image, valid, 5.0, 100) is None  # not within the range
     assert orientation_hint(chi2_of, image, valid, 1.5, 100) is None  # the pose fits: nothing tried
     assert orientation_hint(chi2_of, image, valid, 5.0, 10**6) is None  # too big to try
+
+
+def test_a_pose_with_no_light_beyond_the_noise_is_said_to_be_dark():
+    """A bias-level frame after dark subtraction holds small values of both signs: some pixels
+    are above 0, so "no valid pixel above 0" missed it (a second filter set to a bias-level frame
+    reconstructed with warnings about lambda and poorly observed elements only). Light over the
+    subject's pixels within 5 noise sigmas of nothing is now dark; 200 photons of a faint spot
+    over Poisson noise of 14 are not."""
+    from types import SimpleNamespace
+
+    import scipy.sparse as sp
+
+    from fluxcli.imaging.noise import PhotonNoise
+    from fluxcli.stages._reconstruct_filters import dark_poses
+    from fluxcli.stages._reconstruct_inputs import Inputs
+
+    rng = np.random.default_rng(3)
+    ny = nx = 16
+    T = sp.csr_array(np.vstack([np.ones((64, 1)), np.zeros((ny * nx - 64, 1))]))  # the subject: the first 64 pixels
+    bias = rng.normal(0.0, 1.0, (ny, nx))  # dark-subtracted bias: read noise of 1 photon, no light
+    faint = bias.copy()
+    faint.ravel()[:64] += 200.0 / 64
+    todo = [(None, SimpleNamespace(pose=SimpleNamespace(label=lab))) for lab in ("a", "b")]
+    inp = Inputs(np.stack([bias, faint]), np.ones((2, ny, nx), bool), None, "test")
+    noise = PhotonNoise("poisson", read_noise_photons=1.0)
+    said = dark_poses(inp, todo, noise, [T, T])
+    assert len(said) == 1 and said[0].startswith("pose a: its images hold no light (") and "against" in said[0], said
+    assert np.any(bias.ravel()[:64] > 0)  # the old test (a pixel above 0) passed it
+    assert dark_poses(inp, todo) == []  # without the noise model: the old test only

@@ -38,13 +38,31 @@ def checked_solves(per_pose, joint, inp: Inputs, noise, Ts, unknowns_per_element
     return per_pose, explain_joint(joint, fired, [pt.pose.label for _, pt in todo], near), fired
 
 
-def dark_poses(inp: Inputs, todo) -> list[str]:
-    """A pose whose images hold no light at all: its total is 0 and what the fit says of it
+DARK_SIGMAS = 5.0  # light over the subject's pixels below this many standard errors of their noise: none
+
+
+def dark_poses(inp: Inputs, todo, noise=None, Ts=None) -> list[str]:
+    """A pose whose images hold no light: no valid pixel above 0, or (with the noise model
+    ``noise`` and each pose's T, ``Ts``) no more over the pixels that see the subject than
+    :data:`DARK_SIGMAS` standard errors of their noise (a bias frame, a filter that passes
+    nothing, the light off).  Its total is 0 within the noise and what the fit says of it
     (the regularisation, the misfit) is about nothing, which the user should hear first."""
-    return [f"pose {pt.pose.label}: its images hold no light (no valid pixel above 0): its total is 0 within "
-            "the noise floor, and its warnings about the fit below say nothing about the subject; check the "
-            "exposure, the filter and that the subject is in view" for k, (_, pt) in enumerate(todo)
-            if not np.any(np.asarray(inp.images[k])[np.asarray(inp.valid[k], bool)] > 0)]
+    out = []
+    for k, (_, pt) in enumerate(todo):
+        a = np.asarray(inp.images[k], float).ravel()
+        use = np.asarray(inp.valid[k], bool).ravel() & np.isfinite(a)
+        if Ts is not None:
+            use &= np.asarray(abs(Ts[k]).sum(axis=1)).ravel() > 0
+        light = float(a[use].sum())
+        sd = float(np.sqrt(np.sum(noise.variance(np.maximum(a[use], 0.0))))) if noise is not None and use.any() else 0.0
+        if np.any(a[use] > 0) and not (noise is not None and light <= DARK_SIGMAS * sd):
+            continue
+        what = ("no valid pixel above 0" if not np.any(a[use] > 0) else
+                f"{light:.3g} photons over the {int(use.sum())} pixels that see the subject, against {sd:.3g} of noise")
+        out.append(f"pose {pt.pose.label}: its images hold no light ({what}): its total is 0 within the noise "
+                   "floor, and its warnings about the fit below say nothing about the subject; check the exposure, "
+                   "the filter and that the subject is in view")
+    return out
 
 
 def solve_warnings(per_pose, joint, todo) -> list[str]:
@@ -81,5 +99,5 @@ def other_filters(plan, surface, gm, m, Ts, todo, views, emission, shape, unknow
         pp, joint = leave_out_edge_on(emission, views, todo, pp, joint)  # the same elements as the first filter's
         pp, joint, _ = checked_solves(pp, joint, inp, noise, Ts, unknowns_per_element, refine, todo)
         others[name] = (inp, pp, joint, meter)
-        warnings += named(plan.filters, name, dark_poses(inp, todo) + solve_warnings(pp, joint, todo))
+        warnings += named(plan.filters, name, dark_poses(inp, todo, noise, Ts) + solve_warnings(pp, joint, todo))
     return others, warnings

@@ -105,7 +105,8 @@ def reconstruct(plan: ReconstructPlan, ctx: RunContext) -> Path:
     checked, joint_checked, peaked = checked_solves(checked, joint_checked, inp, noise, Ts, gm.Ts[0].shape[1] /
                                                     surface.n_elements, plan.transfer.subject.refine_faces, todo)
     checked = B.with_shift_warnings(checked, budget.shifts, [pt.pose.label for _, pt in todo], by_angle, peaked)
-    warnings = named(plan.filters, plan.main_filter, dark_poses(inp, todo) + solve_warnings(checked, joint_checked, todo))
+    warnings = named(plan.filters, plan.main_filter,
+                     dark_poses(inp, todo, noise, Ts) + solve_warnings(checked, joint_checked, todo))
     warnings += filter_warnings
     summary = _total_summary(checked, joint_checked, todo, {b.label: b.sigma for b in budget.totals}) + budget.lines()
     sweep = run_sweep(plan, ctx, grids, todo) if plan.sweep is not None else None
