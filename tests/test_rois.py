@@ -219,14 +219,15 @@ def test_reconstruct_report_and_vtp_carry_the_rois(tiny_run, tmp_path):
     p = _copy_run(tiny_run, tmp_path, [
         {"name": "top", "kind": "box", "min_mm": [-20, -20, 12], "max_mm": [20, 20, 40]},
         {"name": "under", "kind": "box", "min_mm": [-20, -20, -5], "max_mm": [20, 20, 3]},
-        {"name": "listed", "kind": "elements", "ids": [0, 1]}])
+        {"name": "listed", "kind": "elements", "ids": [0, 1]},
+        {"name": "tête μ", "kind": "elements", "ids": [2]}])  # the VTP holds ASCII names only (was exit 1)
     for stage in ("reconstruct", "report"):
         r = CliRunner().invoke(app, [stage, str(p)])
         assert r.exit_code == 0, r.output
     run = tmp_path / "run"
     rows = list(csv.DictReader((run / "rois.csv").open()))
     assert list(rows[0]) == list(Q.CSV_COLUMNS)
-    assert [(x["roi"], x["pose"]) for x in rows] == [(n, k) for n in ("top", "under", "listed")
+    assert [(x["roi"], x["pose"]) for x in rows] == [(n, k) for n in ("top", "under", "listed", "tête μ")
                                                       for k in ("1", "2", "joint")]
     with h5py.File(run / "reconstruction.h5") as f:
         got = read_rois(f["rois"])
@@ -238,10 +239,11 @@ def test_reconstruct_report_and_vtp_carry_the_rois(tiny_run, tmp_path):
     assert got["status"][1, -1].startswith("mostly unobserved")  # the underside faces the stage
     assert "MOSTLY" not in r.output
     s = json.loads((run / "report" / "summary.json").read_text())
-    assert s["rois"]["names"] == ["top", "under", "listed"]
+    assert s["rois"]["names"] == ["top", "under", "listed", "tête μ"]
     assert "Regions of interest" in (run / "report" / "index.html").read_text()
     m = pv.read(str(run / "reconstruction.vtp"))
-    assert {"roi_top", "roi_under", "roi_listed"} <= set(m.cell_data.keys())
+    assert {"roi_top", "roi_under", "roi_listed", "roi_tete u03bc"} <= set(m.cell_data.keys())
+    assert "roi_tete u03bc: 1 in region of interest 'tete u03bc', 0 outside" in " ".join(m.field_data["units"])
 
 
 @pytest.mark.parametrize("roi, needle", [

@@ -9,6 +9,11 @@ get ``element_id = -1``, ``observed_state = -1`` and NaN values.
 ``observed_state``: 1 observed, 0 unobserved (no view sees the element: NaN, not zero),
 -1 not an element. Units are in the array names and again, in words, in the field data
 array ``units`` (one ``name: unit`` line per array).
+
+VTK's string arrays hold ASCII only, so names and texts made from the user's words (a filter
+"é-filter", a region "tête") are written in ASCII (:func:`ascii_name`: accents dropped, any other
+character as its code point, e.g. ``u03bc`` for μ); a non-ASCII name once stopped reconstruct
+after its artefact was written (exit 1).
 """
 
 from __future__ import annotations
@@ -20,6 +25,21 @@ from pathlib import Path
 import numpy as np
 
 OBSERVED, UNOBSERVED, NOT_AN_ELEMENT = 1, 0, -1
+
+
+def ascii_name(text: str) -> str:
+    """``text`` in ASCII for VTK: accents dropped (é -> e), any other non-ASCII character as its
+    code point (μ -> u03bc)."""
+    import unicodedata
+
+    out = []
+    for ch in str(text):
+        if ch.isascii():
+            out.append(ch)
+            continue
+        base = "".join(c for c in unicodedata.normalize("NFKD", ch) if c.isascii())
+        out.append(base if base else f"u{ord(ch):04x}")
+    return "".join(out)
 
 
 def element_to_face(values, element_of_face, fill=np.nan) -> np.ndarray:
@@ -70,17 +90,24 @@ def polydata(vertices_mm, faces, element_of_face, element_arrays: dict, *, obser
     mesh.cell_data["element_id"] = eof
     if observed is not None:
         mesh.cell_data["observed_state"] = observed_state(observed, eof)
+    written = {}  # the name given -> the ASCII name written (distinct: a clash keeps the code points)
     for name, values in element_arrays.items():
         v = np.asarray(values)
         fill = np.nan if v.dtype.kind == "f" else -1
-        mesh.cell_data[name] = element_to_face(v, eof, fill=fill)
+        out = ascii_name(name)
+        if out in written.values() or out in ("element_id", "observed_state"):
+            out = "".join(c if c.isascii() else f"u{ord(c):04x}" for c in str(name))
+        written[name] = out
+        mesh.cell_data[out] = element_to_face(v, eof, fill=fill)
     names = ["element_id"] + (["observed_state"] if observed is not None else []) + list(element_arrays)
     unit_text = {"element_id": "index of the flux element (-1: not an element)",
                  "observed_state": "1 observed, 0 unobserved, -1 not an element"} | dict(units or {})
-    mesh.field_data["units"] = np.array([f"{n}: {unit_text.get(n, 'dimensionless')}" for n in names])
+    mesh.field_data["units"] = np.array([ascii_name(f"{written.get(n, n)}: {unit_text.get(n, 'dimensionless')}")
+                                         for n in names])
     mesh.field_data["coordinates_unit"] = np.array(["mm"])
     for k, v in (field or {}).items():
-        mesh.field_data[k] = np.atleast_1d(np.asarray(v))
+        v = np.atleast_1d(np.asarray(v))
+        mesh.field_data[ascii_name(k)] = np.array([ascii_name(x) for x in v]) if v.dtype.kind in "US" else v
     return mesh
 
 
