@@ -494,6 +494,10 @@ def test_filters_reconstructed_one_by_one_in_one_run(tmp_path, monkeypatch):
     assert [(x["filter"], x["pose"]) for x in rows] == [("open", "1"), ("580nm", "1"), ("open", "2"), ("580nm", "2"),
                                                          ("open", "joint"), ("580nm", "joint")]
     assert float(rows[-1]["total_photons_per_s"]) == pytest.approx(got["580nm"], rel=1e-6)
+    r = CliRunner().invoke(app, ["summary", str(p)])  # each filter's total, at its own frames' exposure
+    text = " ".join(r.output.split())
+    assert r.exit_code == 0 and f"filter 580nm: {got['580nm']:.4g} photons/s over observed elements, before the filter " \
+        "(transmission 0.5; its frames 0.5 s)" in text and f"filter open: {got['open']:.4g} photons/s" in text, r.output
     r = CliRunner().invoke(app, ["report", str(p)])
     assert r.exit_code == 0, r.output
     s = __import__("json").loads((run / "report" / "summary.json").read_text())

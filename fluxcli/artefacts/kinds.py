@@ -131,7 +131,8 @@ register(Kind("reconstruction", 2, "fluxmap reconstruct", "surface flux reconstr
     Dataset("rois/well_observed_share", "", "share of the area well observed [roi, map]", required=False),
     Dataset("rois/status", "", "'' or why the number does not stand for the region [roi, map]", required=False),
     Dataset("rois/members", "", "elements of each region [roi, map, element]", required=False),
-    Dataset("filters", "", "several filters in one run: /filters/<name>/{flux, per_pose_power, rois, ...}",
+    Dataset("filters", "", "several filters in one run: /filters/<name>/{flux, per_pose_power, rois, ...}; "
+            "attrs transmission, rate_exposure_s (s, that filter's frames)",
             required=False),
     Dataset("truth/error_per_pose", "", "L1 error of each pose against the truth (paper Eq. 15) [pose]", required=False),
     Dataset("truth/total_ratio_per_pose", "", "reconstructed / true total [pose]", required=False),

@@ -141,6 +141,7 @@ class FilterRecord:
     direct_roi_photons: list  # [pose] measured photons (through the filter) over the direct view's pixels
     truth_power: np.ndarray | None  # photons before the filter (None: no truth)
     write_rois: Callable | None  # writes its /rois group (None: no regions)
+    rate_exposure_s: float | None = None  # s: what makes this filter's rates (its own frames'); None: per exposure
 
 
 @dataclass
@@ -276,6 +277,8 @@ def _write_filters(g: h5py.Group, filters: list) -> None:
         h = g.create_group(x.name)
         h.attrs["transmission"] = x.transmission
         h.attrs["source"] = x.source
+        if x.rate_exposure_s is not None:
+            h.attrs["rate_exposure_s"] = float(x.rate_exposure_s)
         _write_flux(h.create_group("flux"), x.flux)
         h.create_dataset("per_pose_power", data=x.per_pose_power).attrs["unit"] = "photons"
         h.create_dataset("per_pose_total", data=x.per_pose_total).attrs["unit"] = "photons"
@@ -530,6 +533,23 @@ def read_maps(path: Path) -> Maps:
             rois=rois, per_filter=per_filter,
             headline=(float(head[()]), str(head.attrs.get("over", "")), str(head.attrs.get("reason", "")))
             if head is not None else None)
+
+
+def read_filters(path: Path) -> list[dict]:
+    """Each filter of a run that reconstructed several (none: []), in order: name, transmission,
+    headline total (photons per exposure, before the filter), what it is over, and the exposure
+    that makes its rates (s; None: not recorded)."""
+    with open_artefact(path, KIND) as f:
+        if "filters" not in f:
+            return []
+        out = []
+        for name in json.loads(f["filters"].attrs["order"]):
+            h = f[f"filters/{name}"]
+            head = h["flux/headline_total"]
+            t = h.attrs.get("rate_exposure_s")
+            out.append({"name": name, "transmission": float(h.attrs["transmission"]), "total": float(head[()]),
+                        "over": str(head.attrs.get("over", "")), "exposure_s": float(t) if t is not None else None})
+        return out
 
 
 def read_roi_spectrum(path: Path) -> tuple[dict | None, dict]:

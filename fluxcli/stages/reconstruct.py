@@ -191,7 +191,7 @@ def _filter_record(plan: ReconstructPlan, name, inp_f, pp, joint, meter, areas, 
     return RA.FilterRecord(
         name, plan.transmission(name), inp_f.source, _flux(main, areas), np.array([r.power for r, _ in pp]),
         [np.nansum(r.power) for r, _ in pp], [direct_roi(T_paths[k], inp_f.images[k]) for k in range(len(pp))],
-        inp_f.truth, meter.write if meter else None)
+        inp_f.truth, meter.write if meter else None, plan.rate_exposure_s(inp_f.exposure_s, inp_f.exposure_recorded))
 
 
 def _flux(res, areas) -> RA.Flux:

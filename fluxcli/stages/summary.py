@@ -70,6 +70,11 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> None:
     if truth is not None:
         ctx.say(f"ground truth {truth.sum() * rate:.4g} {unit}: the joint reconstruction finds "
                 f"{joint_total / truth.sum():.3f} of it" + (f", error sum|b' - b| / sum b = {error:.1%}" if error is not None else ""))
+    for x in RA.read_filters(rec):  # several filters in one run: each one's total, before the filter
+        f_rate, f_unit = (1.0 / x["exposure_s"], "photons/s") if x["exposure_s"] else (1.0, "photons per exposure")
+        ctx.say(f"filter {x['name']}: {x['total'] * f_rate:.4g} {f_unit} over {x['over']}, before the filter "
+                f"(transmission {x['transmission']:g}" + (f"; its frames {x['exposure_s']:g} s" if x["exposure_s"] else "")
+                + ")")
     if rois is not None:  # regions of interest: the last map (joint, or the only pose)
         r_unit = "photons/s" if rois["exposure_s"] is not None else "photons per exposure"
         for i, name in enumerate(rois["names"]):
