@@ -502,6 +502,8 @@ def test_filters_reconstructed_one_by_one_in_one_run(tmp_path, monkeypatch):
     assert r.exit_code == 0, r.output
     s = __import__("json").loads((run / "report" / "summary.json").read_text())
     assert s["rois_spectrum"]["filters"] == ["open", "580nm"] and "rois_spectrum.png" in s["figures"]
+    assert [x["name"] for x in s["filters"]] == ["open", "580nm"]  # the report's Filters section
+    assert [x["total_photons_per_s"] for x in s["filters"]] == pytest.approx([got["open"], got["580nm"]], rel=1e-9)
     import pyvista as pv
 
     assert {"filter_open_power_photons", "filter_580nm_power_photons"} <= set(pv.read(str(run / "reconstruction.vtp")).cell_data.keys())

@@ -86,7 +86,8 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> Path:
     index, summary = R.make_report(study, out_dir, title=rs.title or cfg.path.stem, geometry=geometry,
                                    slice_axial_mm=rs.slice_axial_mm, surface_views=rs.surface_views,
                                    extra={"provenance": {"inputs": inputs, "settings": settings}},
-                                   sections=_rois_section(rec) + ([_calibration_section(cal)] if cal.is_file() else [])
+                                   sections=_filters_section(rec) + _rois_section(rec)
+                                   + ([_calibration_section(cal)] if cal.is_file() else [])
                                    + ([_surface_section(surf, plotly_loaded=True)] if surf is not None else []),
                                    record=record_of(cfg, inputs, exposure_s), rig=rig_of(cfg.model.system),
                                    exposure_s=exposure_s)
@@ -175,6 +176,28 @@ def _sections_only(out_dir: Path, title: str, cal: Path | None, surf: Path | Non
                                        extra={"provenance": {"inputs": inputs}})
     ctx.say(f"report: {' and '.join(k.split('.')[0] for k in inputs)}, {len(summary['figures'])} figure(s); open {index}")
     return index
+
+
+def _filters_section(rec: Path) -> list:
+    """Several filters in one run: each filter's total before the filter, at its frames' exposure."""
+    filters = RA.read_filters(rec)
+    if not filters:
+        return []
+
+    def add(page, save):
+        page.section("filters", "Filters")
+        page.text("Each filter's images were reconstructed with the same T and divided by the filter's transmission: "
+                  "the light leaving the surface within its band, before the filter. The first filter's is the map "
+                  "shown above; each one's map is in /filters/<name> and in the VTP.")
+        rows = []
+        for x in filters:
+            rate, unit = (1.0 / x["exposure_s"], "photons/s") if x["exposure_s"] else (1.0, "photons per exposure")
+            rows.append([x["name"], f"{x['transmission']:g}", f"{x['exposure_s']:g}" if x["exposure_s"] else "-",
+                         f"{x['total'] * rate:.4g} {unit}", x["over"]])
+        page.table(["filter", "transmission", "frames (s)", "total before the filter", "over"], rows, left_columns=1)
+        return {"filters": [x | {"total_photons_per_s": x["total"] / x["exposure_s"] if x["exposure_s"] else None}
+                            for x in filters]}
+    return [add]
 
 
 def _rois_section(rec: Path) -> list:
