@@ -635,6 +635,20 @@ class ImageFiles(Model):
         return self
 
 
+def _group_names(names, key: str, where: str) -> None:
+    """Filter names are HDF5 group names (/filters/<name>, /truth/<name>), where '/' nests: a name
+    that is no group's ('/x', 'a//b', 'x/', './x'), or one nesting another ('580' and '580/20'), is
+    refused (``key``: what the message starts with, e.g. ``"filters: "``)."""
+    for a in names:
+        if any(part in ("", ".") for part in a.split("/")):
+            raise ValueError(f"{key}{a!r} cannot name a group of {where} (a '/' at its start or end, two in a row, "
+                             "or a '.' between two); rename it")
+        nested = [b for b in names if b != a and b.startswith(a + "/")]
+        if nested:
+            raise ValueError(f"{key}{a!r} and {nested[0]!r} would nest in {where} ({nested[0]} inside {a}); "
+                             "rename one")
+
+
 class CaptureSource(Model):
     """The frames of a capture (capture.h5 of capture-surface)."""
 
@@ -654,6 +668,7 @@ class CaptureSource(Model):
             raise ValueError("give filter (one) or filters (several), not both")
         if self.filters is not None and len(set(self.filters)) != len(self.filters):
             raise ValueError("filters: list each filter once")
+        _group_names(self.filters or (), "filters: ", "reconstruction.h5")
         named = set(self.filters or ()) | ({self.filter} if self.filter else set())
         for key in ("transmissions", "exposures_s"):
             extra = sorted(set(getattr(self, key)) - named) if named else []
@@ -1095,9 +1110,11 @@ class Capture(Model):
 
     @field_validator("heights_mm", "filters")
     @classmethod
-    def _distinct(cls, v):
+    def _distinct(cls, v, info):
         if len(set(v)) != len(v):
             raise ValueError("list the same value only once (use repeats for more frames)")
+        if info.field_name == "filters":
+            _group_names(v, "", "capture.h5")
         return v
 
     @field_validator("exposure_s")

@@ -455,6 +455,9 @@ MISTAKES = [
     ("capture-transmission-zero", "reconstruct", _cfg("reconstruct.images", {
         "capture": "capture.h5", "filters": ["a", "b"], "transmissions": {"b": 0.0}}),
      ["'reconstruct.images': transmissions must lie in (0, 1]"]),
+    # filter names are HDF5 groups, where '/' nests: '580' beside '580/20' stopped writing the artefact (exit 1)
+    ("capture-filters-nest", "reconstruct", _cfg("reconstruct.images", {"capture": "capture.h5", "filters": ["580/20", "580"]}),
+     ["'reconstruct.images': filters: '580' and '580/20' would nest in reconstruction.h5"]),
     ("files-with-capture-keys", "reconstruct", _cfg("reconstruct.images", {"files": ["a.tif"], "filters": ["a"]}),
      ["'reconstruct.images.filters': unknown key"]),
     # --- report
