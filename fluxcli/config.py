@@ -1374,6 +1374,9 @@ def _format_validation_error(err: ValidationError, path: Path, raw: Any = None, 
         loc = ".".join(str(x) for x in e["loc"] if not (isinstance(x, str) and (x in _UNION_TAGS or x.startswith(_MEMBER_NAMES))))
         if e["type"] == "extra_forbidden":
             msg = "unknown key (check its spelling against the README's config reference)"
+        elif e["type"] == "missing" and e["loc"] and isinstance(e["loc"][-1], int):  # a fixed-length list, short
+            loc = loc.rsplit(".", 1)[0]
+            msg = f"too few values: item {e['loc'][-1] + 1} of this fixed-length list is missing (e.g. x, y, z)"
         elif e["type"] == "missing":
             msg = "required key is missing"
         elif e["type"] in ("union_tag_not_found", "union_tag_invalid"):  # the key that picks a variant

@@ -283,6 +283,9 @@ MISTAKES = [
     # a NUL character in a path: the OS refuses it ("embedded null byte", exit 1; found by fuzzing study files)
     ("nul-in-a-path", "build-T", _cfg("subject.surface", {"mesh": "a\x00b.ply"}), ["'subject.surface.mesh'", "NUL"]),
     ("missing-lens", "build-T", _del("system.camera.lens"), ["system.camera.lens"]),
+    # a point given with two numbers: was "'system.camera.pose.lens_center_mm.2': required key is missing"
+    ("vector-too-short", "build-T", _cfg("system.camera.pose.lens_center_mm", [0, 0]),
+     ["'system.camera.pose.lens_center_mm': too few values: item 3"]),
     ("pixels-negative", "build-T", _cfg("system.camera.pixels", [-4, 24]), ["system.camera.pixels"]),
     ("pixel-pitch-zero", "build-T", _cfg("system.camera.pixel_pitch_mm", 0), ["system.camera.pixel_pitch_mm"]),
     ("f-number-and-diameter", "build-T", _cfg("system.camera.lens.aperture_diameter_mm", 5), ["f_number"]),
