@@ -3,13 +3,14 @@
 A capture through several emission filters is reconstructed filter by filter with one T per
 pose (the filter changes the light, not the geometry).  Each filter after the first goes
 through what the first goes through after its solve: the emission model's domain (edge-on
-elements left out of the observed total, so that the filters' totals cover the same
-elements and their ratio is a spectrum, not a geometry), the test for a peak sharper than
-the unknowns, and every warning of its solves, named by filter, into the artefact's
-/warnings and the console.  Before this the other filters' solves kept their warnings to
-themselves: a filter whose frames were taken after the subject moved fitted at χ² in the
-thousands without a word, and their totals held the edge-on elements the first filter's
-left out.
+elements left out of the observed total, so that the filters' totals cover the same elements
+and their ratio is a spectrum, not a geometry), the share of its total resting on grazing
+views and a residual structured by viewing angle, the test for a peak sharper than the
+unknowns, the dark-pose test, and every warning of its solves, named by filter, into the
+artefact's /warnings and the console.  Before this the other filters' solves kept their
+warnings to themselves (a reflection in one filter's frames, a filter that passed nothing:
+exit 0 and not a word), and their totals held the edge-on elements the first filter's left
+out.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..imaging.stray import light_outside
+from ..inverse.emission_checks import emission_checks
 from ..inverse.emission_domain import leave_out_edge_on
 from ..inverse.filtered import poses_disagree
 from ..inverse.sharp_peak import check_poses, explain_joint
@@ -97,6 +99,7 @@ def other_filters(plan, surface, gm, m, Ts, todo, views, emission, shape, unknow
         meter = RoiMeter(plan.rois, plan.roi_mesh, surface, plan.rate_exposure_s(inp.exposure_s, inp.exposure_recorded))
         pp, joint = solve_poses(gm, inp, m, noise, stray, todo, shape, plan.joint, meter, t, f" (filter {name})")
         pp, joint = leave_out_edge_on(emission, views, todo, pp, joint)  # the same elements as the first filter's
+        pp, joint, *_ = emission_checks(emission, views, todo, pp, joint, inp.images, inp.valid, noise)  # grazing views
         pp, joint, _ = checked_solves(pp, joint, inp, noise, Ts, unknowns_per_element, refine, todo)
         others[name] = (inp, pp, joint, meter)
         warnings += named(plan.filters, name, dark_poses(inp, todo, noise, Ts) + solve_warnings(pp, joint, todo))
