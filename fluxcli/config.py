@@ -546,7 +546,7 @@ class MonteCarloFlux(Model):
     radius_mm: float = Field(0.0, ge=0, description="0 for a point source, else a uniform ball of this radius.")
     n_photons: int = Field(gt=0, le=10**11, description="Photons launched (the source power, photons per exposure).")
     seed: int = Field(0, ge=0, le=2**63 - 1, description="Seed of the photon streams; the same seed gives the same photons.")
-    batch_photons: int = Field(2_000_000, ge=1000, le=10**8, description="Photons transported at a time (memory).")
+    batch_photons: int = Field(2_000_000, ge=1000, le=10**8, description="Photons transported at a time (memory); fewer in a medium where a batch would take more than 30 s, so that progress moves and Ctrl-C is heard.")
     keep_photons: bool = Field(False, description="Also store every escaping photon (exit point, direction) in the artefact; for small runs.")
 
 

@@ -409,6 +409,37 @@ class MonteCarloTruth:
     notes: dict
 
 
+BATCH_S = 30.0  # a batch of photons should take about this long at most: progress moves, and Ctrl-C is heard
+SAY_ETA_S = 600.0  # a transport expected to take longer than this is announced with its estimate
+
+
+def _pace(flux: C.MonteCarloFlux, medium, shape, say) -> int:
+    """The photons a batch: ``simulate.flux.batch_photons``, fewer when a batch would take more
+    than :data:`BATCH_S` (a numba kernel hears no signal until it returns).  A medium in which a
+    photon is expected to make more than a fifth of :data:`MAX_EVENTS` interactions is refused:
+    photons would be cut off (lost) and the run would take days (μs 1000 /mm with μa 0 in a
+    20-mm box: ~1e8 a photon, 2000 photons kept the CLI busy past its own timeout)."""
+    import os
+
+    from .montecarlo import transport as MC
+
+    per = MC.expected_events(medium, shape.half_mm)
+    if per > MC.MAX_EVENTS / 5:
+        raise UserError(f"simulate.flux: with mu_a {medium.mua_per_mm:g} /mm and mu_s {medium.mus_per_mm:g} /mm (g "
+                        f"{medium.g:g}) a photon scatters about {per:.2g} times before it is absorbed or leaves a body "
+                        f"{2 * min(shape.half_mm):.3g} mm across, beyond the {MC.MAX_EVENTS:.0e} the transport follows: "
+                        "the light would be cut off and the run would take days. Check mus_per_mm and mua_per_mm "
+                        "(tissue: mu_s' about 1 /mm, mu_a 0.01-1 /mm).")
+    threads = max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
+    eta = flux.n_photons * per / (MC.EVENTS_PER_S_PER_THREAD * threads)
+    if eta > SAY_ETA_S:
+        say(f"simulate: about {per:.3g} interactions a photon (mu_a {medium.mua_per_mm:g}, mu_s {medium.mus_per_mm:g} /mm): "
+            f"roughly {eta / 3600:.2g} h for {flux.n_photons:.3g} photons on {threads} thread(s)")
+    # the batch size fixes which photons a seed draws, so it must not depend on this machine's threads:
+    # sized for two (CI's), a batch takes at most BATCH_S there and less on more threads
+    return int(min(flux.batch_photons, max(1000, BATCH_S * 2 * MC.EVENTS_PER_S_PER_THREAD / per)))
+
+
 def montecarlo_truth(flux: C.MonteCarloFlux, shape, refinement: int, ray_offset_mm: float, placer, scenes: list,
                      views: list, say=lambda s: None) -> MonteCarloTruth:
     """Transport ``flux.n_photons`` photons once through the phantom ``shape``
@@ -433,11 +464,12 @@ def montecarlo_truth(flux: C.MonteCarloFlux, shape, refinement: int, ray_offset_
         raise UserError(f"simulate.flux.position_mm: the source {src.tolist()} mm (radius {flux.radius_mm:g} mm) is not "
                         f"inside the phantom (its own frame: centred at the origin, half sizes "
                         f"{list(shape.half_mm)} mm along x, y, z).")
+    batch_photons = _pace(flux, medium, shape, say)
     fine_scene = OcclusionScene(fine.vertices_mm, fine.faces)
     cam = views[0].camera
     P, V = len(scenes), len(views)
-    check_memory(8.0 * cam.nx * cam.ny * P * 2 + 120.0 * min(flux.batch_photons, flux.n_photons) * (1 + P / 4),
-                 f"{P} photon image(s) of {cam.nx} x {cam.ny} pixels and batches of {flux.batch_photons:.3g} photons",
+    check_memory(8.0 * cam.nx * cam.ny * P * 2 + 120.0 * min(batch_photons, flux.n_photons) * (1 + P / 4),
+                 f"{P} photon image(s) of {cam.nx} x {cam.ny} pixels and batches of {batch_photons:.3g} photons",
                  "simulate.flux.batch_photons, subject.poses or system.camera.pixels")
     placements = [placer.placement(s.pose) for s in scenes]
     occl = [OcclusionScene(*merge(s.surface, *s.occluders)) for s in scenes]
@@ -450,9 +482,9 @@ def montecarlo_truth(flux: C.MonteCarloFlux, shape, refinement: int, ray_offset_
     kept = {"position_mm": [], "direction": [], "face": []} if flux.keep_photons else None
     tally = MC.Tally()
     t0 = time.perf_counter()
-    n_batches = -(-flux.n_photons // flux.batch_photons)
+    n_batches = -(-flux.n_photons // batch_photons)
     for b in range(n_batches):
-        n = min(flux.batch_photons, flux.n_photons - b * flux.batch_photons)
+        n = min(batch_photons, flux.n_photons - b * batch_photons)
         esc = MC.transport(medium, shape, src, n, seed=flux.seed, batch=b, source_radius_mm=flux.radius_mm, tally=tally)
         if esc.face is not None:  # a mesh body: the triangle met is the fine face
             if b == 0:

@@ -441,3 +441,38 @@ def test_a_spot_about_an_element_wide_is_followed_on_finer_faces(write_config, t
     # the warning comes again and names the next level, which fits to the noise without it
     assert "subject.refine_faces: 2" in warned[1], warned[1]
     assert "peaks more sharply" not in warned[2], warned[2]
+
+
+def test_a_medium_that_keeps_light_inside_is_refused_and_a_slow_one_is_batched_small(monkeypatch):
+    """mu_s 1000 /mm with mu_a 0 in a 30 x 40 x 20-mm box: ~1e8 interactions a photon, past the
+    transport's cap. 2000 such photons kept `fluxmap simulate` in one numba batch past a 120-s
+    timeout (SIGTERM is heard only between batches); it is now refused at once, naming the keys.
+    The estimate of interactions a photon agrees with the transport's own count within a factor
+    of 2, and a slow medium (mu_s 100, mu_a 0) gets batches short enough for progress to move,
+    sized the same on any machine (the batch fixes which photons a seed draws)."""
+    import os
+
+    from fluxcli import config as C
+    from fluxcli import truth as TR
+    from fluxcli.errors import UserError
+    from fluxcli.montecarlo import transport as MC
+
+    shape = MC.Shape.box((30, 40, 20))
+    for mus, mua in ((1.0, 0.01), (10.0, 0.01), (1.0, 0.0)):
+        med = MC.Medium(mua, mus, 0.0, 1.4)
+        t = MC.Tally()
+        MC.transport(med, shape, np.array([5.0, 0.0, 4.0]), 20000, tally=t)
+        measured = t.path_mm * (mus + mua) / t.launched  # interactions a photon (path / mean free path)
+        assert 0.5 < MC.expected_events(med, shape.half_mm) / measured < 2.0, (mus, mua, measured)
+
+    def flux(mus, mua, n=2000):
+        return C.MonteCarloFlux(kind="montecarlo", mua_per_mm=mua, mus_per_mm=mus, position_mm=(5, 0, 4), n_photons=n)
+
+    with pytest.raises(UserError, match=r"mu_a 0 /mm and mu_s 1000 /mm .* about 1e\+08"):
+        TR._pace(flux(1000.0, 0.0), MC.Medium(0.0, 1000.0, 0.0, 1.4), shape, lambda s: None)
+    said = []
+    assert TR._pace(flux(1.0, 0.01), MC.Medium(0.01, 1.0, 0.0, 1.4), shape, said.append) == 2_000_000  # as configured
+    slow = TR._pace(flux(100.0, 0.0, n=10**6), MC.Medium(0.0, 100.0, 0.0, 1.4), shape, said.append)
+    assert slow == 1000 and len(said) == 1 and "interactions a photon" in said[0] and " h for 1e+06 photons" in said[0]
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(16)))  # another machine: the same batches
+    assert TR._pace(flux(100.0, 0.0, n=10**6), MC.Medium(0.0, 100.0, 0.0, 1.4), shape, said.append) == slow

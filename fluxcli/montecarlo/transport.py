@@ -41,6 +41,21 @@ MAX_EVENTS = 10_000_000  # a photon still inside after this many interactions is
 
 # exit codes per photon
 ABSORBED, ESCAPED, LOST = 0, 1, 2
+EVENTS_PER_S_PER_THREAD = 1.1e7  # interactions a second on one thread (2.2-2.5e7 measured on 2, box and cylinder)
+
+
+def expected_events(medium: "Medium", half_mm) -> float:
+    """About how many interactions a photon makes before it is absorbed or leaves a body whose
+    smallest half size is ``min(half_mm)`` (mm): 1 / (μa/μt + 1 / (h² μt μt')), the mean number
+    before analogue absorption (μt/μa) and a diffusive walk's to cross h (h² μt μt', μt' = μa +
+    μs (1 - g)), whichever ends it first.  Within a factor 2 of the transport's own count on a
+    30 x 40 x 20-mm box: μs 1, 10 and 100 /mm, μa 0.01 and 0 /mm (61, 964, 9.0e5 and 125
+    measured; 51, 911, 1.0e6 and 102 here)."""
+    mut = medium.mua_per_mm + medium.mus_per_mm
+    mutr = medium.mua_per_mm + medium.mus_per_mm * (1.0 - medium.g)
+    h = float(min(half_mm))
+    escape = h * h * mut * mutr
+    return 1.0 / (medium.mua_per_mm / mut + 1.0 / max(escape, 1.0))
 
 
 @dataclass(frozen=True)

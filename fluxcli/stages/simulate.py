@@ -253,6 +253,13 @@ def _simulate_montecarlo(sp: SimulatePlan, shape, ctx: RunContext) -> Path:
     ctx.say(f"simulate: {t.launched:.4g} photons launched, {t.escaped:.4g} escaped ({t.escaped / t.launched:.1%}), "
             f"{t.absorbed:.4g} absorbed, {t.lost} lost; {power.sum():.4g} through the {surface.n_elements} elements "
             f"({mc.seconds:.1f} s, {mc.notes['photons_per_s']:.3g} photons/s)")
+    if t.lost:  # cut off by the transport's cap on interactions: their light is in neither truth nor images
+        from ..montecarlo.transport import MAX_EVENTS
+
+        ctx.warn(f"simulate: {t.lost} of {t.launched:.4g} photons ({t.lost / t.launched:.2%}) were still inside the body "
+                 f"after {MAX_EVENTS:.0e} interactions each and are left out of the truth and the images; with mu_a "
+                 f"{sim.flux.mua_per_mm:g} /mm and mu_s {sim.flux.mus_per_mm:g} /mm light stays inside that long (tissue: "
+                 "mu_s' about 1 /mm, mu_a 0.01-1 /mm).")
     P = mc.images.shape[0]
     clean = mc.images.astype(np.float32)[None]
     prov = replace(fwd.provenance, geometry=without_emission(fwd.provenance.geometry))  # the photons assume none
