@@ -517,6 +517,15 @@ def test_filters_reconstructed_one_by_one_in_one_run(tmp_path, monkeypatch):
     assert joint["580nm"] == pytest.approx(got["580nm"], rel=1e-6) and joint["open"] == pytest.approx(got["open"], rel=1e-6)
     direct = {x["filter"]: float(x["direct_image_photons_per_s"]) for x in rows if x["pose"] == "1"}
     assert direct["580nm"] == pytest.approx(0.5 * direct["open"], rel=0.1)  # the image through a 0.5 filter
+    # a session that names one of the artefact's filters takes that one; one it does not hold is refused
+    # (its filter was ignored: the rows came out named open and 580nm under a study that said GFP)
+    for filt, code in (("580nm", 0), ("GFP", 2)):
+        (tmp_path / "one.yaml").write_text(yaml.safe_dump({"output": "out1", "sessions": [
+            {"artefact": "run/reconstruction.h5", "subject": "a", "day": 1, "filter": filt}]}))
+        r = CliRunner().invoke(app, ["study", str(tmp_path / "one.yaml"), "-q"])
+        assert r.exit_code == code, r.output
+    assert "filter 'GFP' is not among the filters" in " ".join(r.output.split())
+    assert {x["filter"] for x in csv.DictReader((tmp_path / "out1" / "study.csv").open())} == {"580nm"}
     # a filter's numbers edited after the fact are refused like the first filter's (/filters was
     # outside the digest: an edit there went into the study unseen)
     import h5py

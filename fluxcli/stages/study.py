@@ -20,7 +20,9 @@ Writes ``study.csv`` (one row per session x region x pose, the joint reconstruct
 the direct-view image sum of each pose).  Sessions whose set-up (camera, calibration,
 emission model, units) differs from the first one's are flagged, naming what differs.  An
 artefact whose results changed after it was written (its recorded digest), or whose input
-files changed since, is refused (exit 2), naming the file.
+files changed since, is refused (exit 2), naming the file.  An artefact of several filters (one
+reconstruct through each) gives a part per filter; a session that names a filter takes that
+one, and one the artefact does not hold is refused.
 """
 
 from __future__ import annotations
@@ -140,6 +142,12 @@ def read_session(s: StudySession, k: int, base: Path) -> list[Session]:
         raise UserError(f"{where}: {path} holds no regions of interest; give rois: in its config and reconstruct "
                         "it again.")
     parts = view.parts
+    names = [filt for filt, *_ in parts]
+    if s.filter != "-" and names != [s.filter]:  # an artefact of several filters: the one the study names
+        if s.filter not in names:
+            raise UserError(f"{where}: filter {s.filter!r} is not among the filters {path} was reconstructed through "
+                            f"({', '.join(names)}); name one of them, or leave filter out to take them all.")
+        parts = [x for x in parts if x[0] == s.filter]
     out = []
     for filt, rois, power, direct in parts:
         truth = None
