@@ -524,3 +524,34 @@ def montecarlo_truth(flux: C.MonteCarloFlux, shape, refinement: int, ray_offset_
              "seconds": seconds}
     return MonteCarloTruth(fine_power, parent, images.reshape(P, cam.ny, cam.nx), reached, on_sensor, hist, tally,
                            off_elements, photons, seconds, notes)
+
+
+def lost_photons_warning(lost: int, launched: int, flux) -> str | None:
+    """Photons the transport cut off (still inside after its cap on interactions): their light
+    is in neither the truth nor the images, which the user should hear with the keys to check."""
+    from .montecarlo.transport import MAX_EVENTS
+
+    if not lost:
+        return None
+    return (f"simulate: {lost} of {launched:.4g} photons ({lost / launched:.2%}) were still inside the body after "
+            f"{MAX_EVENTS:.0e} interactions each and are left out of the truth and the images; with mu_a "
+            f"{flux.mua_per_mm:g} /mm and mu_s {flux.mus_per_mm:g} /mm light stays inside that long (tissue: mu_s' "
+            "about 1 /mm, mu_a 0.01-1 /mm).")
+
+
+FEW_PHOTONS = 1000  # whole photons in an image below which its reconstruction is mostly photon noise
+
+
+def few_photons_warning(in_image: float, launched: float, where: str) -> list[str]:
+    """What to say when a Monte Carlo image holds so few photons that its reconstruction would
+    be mostly shot noise (a per-element error of tens of per cent): the photons to launch for
+    ~10^5 an image, as this run's own collection implies."""
+    if in_image >= FEW_PHOTONS:
+        return []
+    if in_image <= 0:
+        return [f"{where}: no photon reached the image; check that the subject is in view, or launch more "
+                f"(simulate.flux.n_photons, {launched:.3g} now)."]
+    photons = f"{in_image:.0f} photon{'' if in_image == 1 else 's'}"
+    return [f"{where}: only {photons} reached the image, so its reconstruction is mostly photon "
+            f"noise; about {launched * 1e5 / in_image:.2g} launched (simulate.flux.n_photons, {launched:.3g} now) "
+            f"would give 10^5."]

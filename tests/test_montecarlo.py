@@ -476,3 +476,9 @@ def test_a_medium_that_keeps_light_inside_is_refused_and_a_slow_one_is_batched_s
     assert slow == 1000 and len(said) == 1 and "interactions a photon" in said[0] and " h for 1e+06 photons" in said[0]
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(16)))  # another machine: the same batches
     assert TR._pace(flux(100.0, 0.0, n=10**6), MC.Medium(0.0, 100.0, 0.0, 1.4), shape, said.append) == slow
+    # photons the cap cut off are said, with their share and the keys (none: nothing said)
+    from fluxcli.truth import lost_photons_warning
+
+    w = lost_photons_warning(3, 2000, flux(100.0, 0.0))
+    assert w.startswith("simulate: 3 of 2000 photons (0.15%) were still inside the body after 1e+07 interactions")
+    assert "mu_a 0 /mm and mu_s 100 /mm" in w and lost_photons_warning(0, 2000, flux(1.0, 0.01)) is None

@@ -29,7 +29,8 @@ from ..imaging.imagefiles import write_image
 from ..optics.transfer import ALGORITHM_VERSION
 from ..resources import check_memory
 from ..transfer_cache import TransferPlan, ensure
-from ..truth import TruthPlan, forward_transfer, montecarlo_shape, montecarlo_truth, truth_fine
+from ..truth import (TruthPlan, few_photons_warning, forward_transfer, lost_photons_warning, montecarlo_shape,
+                     montecarlo_truth, truth_fine)
 from .context import RunContext
 from .outputs import export_simulation, simulation_exposure_s
 from .plans import check_folders, emccd_model, geometry_of, transfer_plan, truth_plan
@@ -253,13 +254,8 @@ def _simulate_montecarlo(sp: SimulatePlan, shape, ctx: RunContext) -> Path:
     ctx.say(f"simulate: {t.launched:.4g} photons launched, {t.escaped:.4g} escaped ({t.escaped / t.launched:.1%}), "
             f"{t.absorbed:.4g} absorbed, {t.lost} lost; {power.sum():.4g} through the {surface.n_elements} elements "
             f"({mc.seconds:.1f} s, {mc.notes['photons_per_s']:.3g} photons/s)")
-    if t.lost:  # cut off by the transport's cap on interactions: their light is in neither truth nor images
-        from ..montecarlo.transport import MAX_EVENTS
-
-        ctx.warn(f"simulate: {t.lost} of {t.launched:.4g} photons ({t.lost / t.launched:.2%}) were still inside the body "
-                 f"after {MAX_EVENTS:.0e} interactions each and are left out of the truth and the images; with mu_a "
-                 f"{sim.flux.mua_per_mm:g} /mm and mu_s {sim.flux.mus_per_mm:g} /mm light stays inside that long (tissue: "
-                 "mu_s' about 1 /mm, mu_a 0.01-1 /mm).")
+    if (lost := lost_photons_warning(t.lost, t.launched, sim.flux)) is not None:
+        ctx.warn(lost)
     P = mc.images.shape[0]
     clean = mc.images.astype(np.float32)[None]
     prov = replace(fwd.provenance, geometry=without_emission(fwd.provenance.geometry))  # the photons assume none
@@ -286,21 +282,3 @@ def _simulate_montecarlo(sp: SimulatePlan, shape, ctx: RunContext) -> Path:
                                                                              f"rot={p.rotation_deg:g}deg"):
             ctx.warn(w)
     return sp.out
-
-
-FEW_PHOTONS = 1000  # whole photons in an image below which its reconstruction is mostly photon noise
-
-
-def few_photons_warning(in_image: float, launched: float, where: str) -> list[str]:
-    """What to say when a Monte Carlo image holds so few photons that its reconstruction would
-    be mostly shot noise (a per-element error of tens of per cent): the photons to launch for
-    ~10^5 an image, as this run's own collection implies."""
-    if in_image >= FEW_PHOTONS:
-        return []
-    if in_image <= 0:
-        return [f"{where}: no photon reached the image; check that the subject is in view, or launch more "
-                f"(simulate.flux.n_photons, {launched:.3g} now)."]
-    photons = f"{in_image:.0f} photon{'' if in_image == 1 else 's'}"
-    return [f"{where}: only {photons} reached the image, so its reconstruction is mostly photon "
-            f"noise; about {launched * 1e5 / in_image:.2g} launched (simulate.flux.n_photons, {launched:.3g} now) "
-            f"would give 10^5."]
