@@ -517,6 +517,11 @@ def test_filters_reconstructed_one_by_one_in_one_run(tmp_path, monkeypatch):
     assert joint["580nm"] == pytest.approx(got["580nm"], rel=1e-6) and joint["open"] == pytest.approx(got["open"], rel=1e-6)
     direct = {x["filter"]: float(x["direct_image_photons_per_s"]) for x in rows if x["pose"] == "1"}
     assert direct["580nm"] == pytest.approx(0.5 * direct["open"], rel=0.1)  # the image through a 0.5 filter
+    # one artefact in two sessions (a line copied, its day changed and its artefact not): refused, naming both
+    (tmp_path / "twice.yaml").write_text(yaml.safe_dump({"output": "out2", "sessions": [
+        {"artefact": "run/reconstruction.h5", "subject": "a", "day": d} for d in (1, 5)]}))
+    r = CliRunner().invoke(app, ["study", str(tmp_path / "twice.yaml"), "-q"])
+    assert r.exit_code == 2 and "sessions[0] (a day 1 -) and sessions[1] (a day 5 -) both read" in " ".join(r.output.split())
     # a session that names one of the artefact's filters takes that one; one it does not hold is refused
     # (its filter was ignored: the rows came out named open and 580nm under a study that said GFP)
     for filt, code in (("580nm", 0), ("GFP", 2)):

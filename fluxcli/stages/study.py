@@ -174,10 +174,24 @@ def _keep(session: Session, names: tuple[str, ...], where: str) -> Session:
     return Session(**{**session.__dict__, "rois": sub})
 
 
+def _one_measurement_once(sessions, base: Path) -> None:
+    """One artefact (and filter) is one measurement: listed in two sessions it would be counted
+    twice, or read as two time points (a line copied and its day changed, its artefact not)."""
+    seen = {}
+    for k, s in enumerate(sessions):
+        path = s.artefact if s.artefact.is_absolute() else (base / s.artefact).resolve()
+        j = seen.setdefault((path, s.filter), k)
+        if j != k:
+            raise UserError(f"sessions[{j}] ({sessions[j].name}) and sessions[{k}] ({s.name}) both read {path}"
+                            + (f" through filter {s.filter}" if s.filter != "-" else "") + ": one measurement "
+                            "cannot be two sessions; give each session its own artefact.")
+
+
 def run(study_path: Path, ctx: RunContext) -> Path:
     study_path = Path(study_path).resolve()
     st = load_study(study_path)
     base = study_path.parent
+    _one_measurement_once(st.sessions, base)
     sessions = [x for k, s in enumerate(st.sessions) for x in read_session(s, k, base)]
     names = st.rois or tuple(n for n in sessions[0].rois["names"] if all(n in s.rois["names"] for s in sessions))
     if not names:
