@@ -274,6 +274,8 @@ def test_calibration_h5_layout_round_trip_and_figures(sample_result, tmp_path):
         read_radiometric_maps(path, "reconstruct.images.calibration", (48, 32))
     with pytest.raises(UserError, match=r"cannot read .*nowhere\.h5"):
         read_radiometric_maps(tmp_path / "nowhere.h5", "reconstruct.images.calibration", (64, 64))
+    with pytest.raises(UserError, match=r"cannot read .*: it is a folder, not a calibration\.h5"):  # was "does not exist"
+        read_radiometric_maps(tmp_path, "reconstruct.images.calibration", (64, 64))
     broken = tmp_path / "broken.h5"
     with h5py.File(broken, "w") as f:
         f.create_group("radiometric").create_dataset("dark_e_per_s_map", data=np.full((64, 64), np.nan))

@@ -241,7 +241,8 @@ def read_radiometric_maps(path: Path, key: str, shape: tuple[int, int]) -> dict[
     except UserError as e:
         raise UserError(f"{key}: {e}") from None
     except (OSError, FileNotFoundError) as e:
-        reason = "it does not exist" if not Path(path).is_file() else f"it is not a readable HDF5 file ({e})"
+        reason = ("it is a folder, not a calibration.h5" if Path(path).is_dir() else "it does not exist"
+                  if not Path(path).is_file() else f"it is not a readable HDF5 file ({e})")
         raise UserError(f"{key}: cannot read {path}: {reason}.") from None
     if maps is None:
         raise UserError(f"{key}: {path} holds no /{GROUP} group; run 'fluxmap calibrate' with "
