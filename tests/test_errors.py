@@ -181,6 +181,26 @@ def test_a_capture_file_of_another_kind_exits_2_naming_it(tiny_run, tmp_path):
     assert code == 2 and "capture.h5" in out and "'simulation' artefact, not 'capture'" in out, out
 
 
+def test_another_tools_hdf5_in_an_artefacts_place_exits_2_naming_it(tmp_path):
+    """HDF5 files that are no fluxmap artefact, read where one is expected: no 'kind', a number
+    for a kind, a text schema_version (int('x') stopped the readers and the up-to-date check:
+    exit 1). Each is refused naming the file; the up-to-date check says no."""
+    import h5py
+
+    from fluxcli.artefacts.store import is_up_to_date
+
+    for name, attrs, said in (("none.h5", {}, "no fluxmap artefact (it has no 'kind' attribute)"),
+                              ("five.h5", {"kind": 5}, "is a '5' artefact, not 'reconstruction'"),
+                              ("text.h5", {"kind": "reconstruction", "schema_version": "x"}, "has schema version x")):
+        with h5py.File(tmp_path / name, "w") as f:
+            f.attrs.update(attrs)
+        (tmp_path / "s.yaml").write_text(f"sessions:\n- {{artefact: {name}, subject: a, day: 1}}\n")
+        r = CliRunner().invoke(app, ["study", str(tmp_path / "s.yaml"), "-q"])
+        out = " ".join(r.output.split())
+        assert r.exit_code == 2 and str(tmp_path / name) in out and said in out, out
+        assert is_up_to_date(tmp_path / name, "reconstruction", "d") is False
+
+
 # ------------------------------------------------------------------ a bug is exit 1 with its traceback
 def test_user_error_is_a_value_error():
     """Code that catches ValueError (the science packages' "these numbers cannot be used")

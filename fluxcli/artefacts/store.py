@@ -298,6 +298,21 @@ def _seal_holds(path: Path, f: h5py.File) -> bool:
     return True
 
 
+def _text(v) -> str:
+    """An attribute as text for a message (bytes decoded, numpy scalars as plain numbers)."""
+    if isinstance(v, bytes):
+        return v.decode(errors="replace")
+    return str(v.item()) if hasattr(v, "item") and getattr(v, "ndim", 1) == 0 else str(v)
+
+
+def _version(v) -> int | None:
+    """A schema_version attribute as an int, or None where it is none (missing, text, a float)."""
+    try:
+        return int(v) if v is not None and float(v) == int(v) else None
+    except (TypeError, ValueError, OverflowError):
+        return None
+
+
 def open_artefact(path: Path, kind: str, *, check: bool = True) -> ArtefactFile:
     """Open an artefact for reading, refusing files of another kind or schema, or incomplete ones."""
     path = Path(path)
@@ -312,9 +327,12 @@ def open_artefact(path: Path, kind: str, *, check: bool = True) -> ArtefactFile:
     got_kind = f.attrs.get("kind")
     if got_kind != kind:
         f.close()
-        raise UserError(f"artefact {path} is a {got_kind!r} artefact, not {kind!r}.")
-    if int(f.attrs.get("schema_version", -1)) != SCHEMA_VERSIONS[kind]:
-        v = f.attrs.get("schema_version")
+        if got_kind is None:
+            raise UserError(f"artefact {path} is an HDF5 file but no fluxmap artefact (it has no 'kind' attribute); "
+                            f"give a {kind}.h5 that fluxmap made.")
+        raise UserError(f"artefact {path} is a {_text(got_kind)!r} artefact, not {kind!r}.")
+    if _version(f.attrs.get("schema_version")) != SCHEMA_VERSIONS[kind]:  # (another tool's text: no version)
+        v = _text(f.attrs.get("schema_version"))
         remedy = f._remedy()
         f.close()
         raise UserError(f"artefact {path} has schema version {v}; this fluxmap reads version "
@@ -376,7 +394,7 @@ def is_up_to_date(path: Path, kind: str, digest: str) -> bool:
     """True when ``path`` is a readable ``kind`` artefact built from exactly ``digest``."""
     try:
         with h5py.File(path, "r") as f:
-            return (f.attrs.get("kind") == kind and int(f.attrs.get("schema_version", -1)) == SCHEMA_VERSIONS[kind]
-                    and f.attrs.get("inputs_digest") == digest)
+            return bool(f.attrs.get("kind") == kind and _version(f.attrs.get("schema_version")) == SCHEMA_VERSIONS[kind]
+                        and f.attrs.get("inputs_digest") == digest)
     except (OSError, KeyError):
         return False
