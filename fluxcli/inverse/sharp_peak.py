@@ -133,9 +133,14 @@ def _spot_share(m, f, var, ok, core) -> float:
     return float(np.clip((float(c[spot].sum()) - float(spot.sum())) / total, 0.0, 1.0))
 
 
+def _next_split(refine_faces: int) -> int:
+    """The level of ``subject.refine_faces`` after the one the run used: what both notes name."""
+    return int(refine_faces) + 1
+
+
 def peak_warning(p: SharpPeak, refine_faces: int = 0) -> str:
     """The warning, naming the next level of ``subject.refine_faces`` (the one the run used: ``refine_faces``)."""
-    nxt = int(refine_faces) + 1
+    nxt = _next_split(refine_faces)
     return (f"the light peaks more sharply than the surface's unknowns can follow: the images hold {p.excess:.0%} more "
             f"light than the fit in the {p.core_px} pixels of the brightest spot's half-maximum ({p.z:.0f} standard "
             f"errors), where the fit's unknowns cannot put light into fewer than about {p.unit_px:.0f} pixels (an element's "
@@ -149,13 +154,14 @@ def peak_warning(p: SharpPeak, refine_faces: int = 0) -> str:
 
 
 def near_note(p: SharpPeak, refine_faces: int = 0) -> str:
-    """What a pose's χ² warning adds when the misfit lies in a spot a few unknowns wide (:attr:`SharpPeak.near`)."""
-    nxt = int(refine_faces) + 1
+    """What a pose's χ² warning adds when the misfit lies in a spot a few unknowns wide (:attr:`SharpPeak.near`):
+    both readings, and the test that tells them apart (the next ``subject.refine_faces``)."""
     return (f" Most of this misfit ({p.spot_share:.0%} of chi^2's excess over the pixels) lies in the brightest spot, "
             f"whose half-maximum ({p.core_px} pixels) spans only about {p.core_px / p.unit_px:.1f} of the unknowns' "
             f"footprints ({p.unit_px:.0f} pixels each): light that varies within an element faster than the unknowns "
             "can follow misfits this way with a set-up that is right, and so does a camera model that does not match "
-            f"the images. To tell them apart, split the faces (subject.refine_faces: {nxt}): if chi^2 falls, it was "
+            f"the images. To tell them apart, split the faces (subject.refine_faces: {_next_split(refine_faces)}): if chi^2 "
+            "falls, it was "
             "the unknowns.")
 
 
