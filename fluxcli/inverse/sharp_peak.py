@@ -161,8 +161,7 @@ def near_note(p: SharpPeak, refine_faces: int = 0) -> str:
             f"footprints ({p.unit_px:.0f} pixels each): light that varies within an element faster than the unknowns "
             "can follow misfits this way with a set-up that is right, and so does a camera model that does not match "
             f"the images. To tell them apart, split the faces (subject.refine_faces: {_next_split(refine_faces)}): if chi^2 "
-            "falls, it was "
-            "the unknowns.")
+            "falls, it was the unknowns.")
 
 
 EXPLAINED = ("chi^2 per pixel is ", "the fit's residual is structured by viewing angle")  # what the peak explains
