@@ -7,7 +7,8 @@ photons themselves through the thin lens and mirrors (whole photons: their count
 shot noise) and reconstructs them, each pose alone and all poses jointly, with
 ``subject.emission: diffuse`` (refractive index matching the phantom) AND ``lambertian``,
 from the same photons (five cases also ``diffuse-fine``: the same photons on faces split once (on the cylinder onto its round body),
-``subject.refine_faces: 1``; and the absorbing box ``diffuse-p1``, without the depth term; every
+``subject.refine_faces: 1``; and the absorbing box and the box of tissue-like scattering (g 0.9)
+``diffuse-p1``, without the depth term; every
 case ``diffuse-curv``, with the curvature term, ``subject.emission.curvature_term: true``, and
 ``diffuse-fine-curv`` beside ``diffuse-fine``).
 Printed per case x model: the totals over observed elements against
@@ -90,10 +91,15 @@ CASES = {
     "box-absorbing": ({**BOX, "element_mm": 2.0}, 1.40, [5.0, 0.0, 6.0], [-60, -30, 0, 30, 60], False),
     # a curved body that is no phantom: photons inside its own mesh, source 6 mm under its top
     "ellipsoid-mesh": (ELLIPSOID, 1.40, [8.0, 2.0, 16.0], [-60, 0, 60], False),
+    # the issue's box with tissue's forward-peaked scattering (g 0.9, mu_s 10 /mm: the same mu_s' of
+    # 1 /mm as every other case, so diffuse's default medium): the model derives the profile for
+    # isotropic scattering, and real tissue does not scatter isotropically
+    "box-tissue-g0.9": (BOX, 1.40, [5.0, 0.0, 4.0], [-90, -60, -30, 0, 30, 60], False),
 }
 HEIGHTS = {"box-mirrors-2h": [0.0, 8.0]}  # stage heights (mm) of the cases that have more than one
 # the cases whose medium is not TISSUE; their diffuse model is told the medium
-MEDIA = {"box-absorbing": {"mua_per_mm": 0.1, "mus_per_mm": 1.0, "g": 0.0}}
+MEDIA = {"box-absorbing": {"mua_per_mm": 0.1, "mus_per_mm": 1.0, "g": 0.0},
+         "box-tissue-g0.9": {"mua_per_mm": 0.01, "mus_per_mm": 10.0, "g": 0.9}}
 MODELS = ("diffuse", "lambertian")
 # more models for some cases: diffuse-p1 is diffuse without its depth term (P1's profile);
 # diffuse-fine is diffuse on faces split into four (subject.refine_faces: 1; the same elements), for
@@ -104,7 +110,9 @@ EXTRA_MODELS = {"box-absorbing": ("diffuse-p1", "diffuse-fine"), "box-n1.56-shal
                 "cylinder-direct": ("diffuse-fine", "diffuse-flat"),  # on the cylinder: faces split onto its round body
                 # the curved bodies also without the body's curvature (emission.body_curvature: false)
                 "cylinder-direct-40-facets": ("diffuse-flat",), "cylinder-mirrors-deep8": ("diffuse-flat",),
-                "ellipsoid-mesh": ("diffuse-flat",)}
+                "ellipsoid-mesh": ("diffuse-flat",),
+                # tissue's forward scattering: its photons leave as P1 alone says (docs/design.md)
+                "box-tissue-g0.9": ("diffuse-p1",)}
 # and every case diffuse-curv: diffuse with its curvature term (subject.emission.curvature_term)
 
 
@@ -264,13 +272,17 @@ def report(name: str, res: dict) -> bool:
 
 
 def main(argv=None) -> int:
+    global OUT
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", default="all", help="comma-separated case names, or all")
     ap.add_argument("--photons", type=float, default=1e8, help="photons launched per case")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--list", action="store_true")
     ap.add_argument("--reuse", action="store_true", help="reconstruct the photons each case's last run left (no simulate)")
+    ap.add_argument("--out", type=Path, default=OUT, help=f"where the cases run (default {OUT.relative_to(ROOT)}); "
+                    "another folder keeps the photons there")
     a = ap.parse_args(argv)
+    OUT = a.out.resolve()
     if a.list:
         for k, (s, n, src, rot, mir) in CASES.items():
             print(f"{k}: {s.get('phantom') or s['mesh']}, n {n}, source {src} mm, rotations {rot}, mirrors {mir}, medium {MEDIA.get(k, TISSUE)}"

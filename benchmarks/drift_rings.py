@@ -1,6 +1,7 @@
 """How far the light leaving a turbid slab drifts away from a buried source, ring by ring.
 
-Photons (fluxcli's Monte Carlo: mu_a 0.01, mu_s 1 /mm, g 0, index n) leave the top of a wide slab
+Photons (fluxcli's Monte Carlo: mu_a 0.01, mu_s' 1 /mm, index n; isotropic scattering, or
+Henyey-Greenstein with ``--g`` and mu_s = 1 / (1 - g) /mm, tissue's forward-peaked kind) leave the top of a wide slab
 from an isotropic point ``--depth`` mm under it.  Per ring of distance rho from the source's foot
 and per band of exit angle, the drift length g the photons imply: the radiance
 ``M p (1 + g k sin(theta) cos(phi))`` gives a mean radial component ``g k sin^2(theta) / 2``, with
@@ -16,6 +17,7 @@ and per band of exit angle, the drift length g the photons imply: the radiance
 
     $ .venv/bin/python benchmarks/drift_rings.py                  # n 1.40, 6 mm deep, 4e6 photons: ~40 s
     $ .venv/bin/python benchmarks/drift_rings.py --n 1.0 --depth 4
+    $ .venv/bin/python benchmarks/drift_rings.py --g 0.9           # tissue's scattering: ~10x the time
 """
 
 from __future__ import annotations
@@ -28,14 +30,14 @@ RINGS_MM = ((0.5, 2), (2, 3.5), (3.5, 5), (5, 7), (7, 9), (9, 12), (12, 16))
 BANDS_DEG = ((20, 40), (40, 65))
 
 
-def run(n: float, depth_mm: float, n_photons: int, seed: int = 5) -> None:
+def run(n: float, depth_mm: float, n_photons: int, seed: int = 5, g_hg: float = 0.0) -> None:
     from fluxcli.montecarlo.transport import Medium, Shape, transport
     from fluxcli.optics import emission as E
 
-    top_z, mua, mus = 15.0, 0.01, 1.0
+    top_z, mua, mus = 15.0, 0.01, 1.0  # mus: the reduced scattering coefficient the model is told
     pos, dirs = [], []
     for b in range(max(1, n_photons // 1_000_000)):
-        e = transport(Medium(mua, mus, 0.0, n), Shape.box((120, 120, 30)), (0, 0, top_z - depth_mm),
+        e = transport(Medium(mua, mus / (1.0 - g_hg), g_hg, n), Shape.box((120, 120, 30)), (0, 0, top_z - depth_mm),
                       min(n_photons, 1_000_000), seed=seed, batch=b)
         top = e.position_mm[:, 2] > top_z - 1e-6
         pos.append(e.position_mm[top])
@@ -68,7 +70,7 @@ def run(n: float, depth_mm: float, n_photons: int, seed: int = 5) -> None:
     zb = 2.0 * E.boundary_A(n) / 3.0
     c = E.depth_term(mus, mua)
     prof = E.diffuse(n, tangential=True, reduced_scattering_per_mm=mus, absorption_per_mm=mua)
-    print(f"n {n}, source {depth_mm} mm deep, {len(rho)} photons leave the top ({n_photons:.3g} launched, seed {seed}); "
+    print(f"n {n}, g {g_hg}, source {depth_mm} mm deep, {len(rho)} photons leave the top ({n_photons:.3g} launched, seed {seed}); "
           f"l {l:.3f} mm, z_b {zb:.3f} l")
     print(f"{'ring':>11} {'kappa l^2':>9} {'Q l^2':>7} {'band':>6}  {'g photons (mm)':>16}  {'planar':>6}  {'3rd order':>9}")
     for r0, r1 in RINGS_MM:
@@ -92,9 +94,10 @@ def main() -> None:
     ap.add_argument("--n", type=float, default=1.40)
     ap.add_argument("--depth", type=float, default=6.0, help="the source's depth (mm)")
     ap.add_argument("--photons", type=float, default=4e6)
+    ap.add_argument("--g", type=float, default=0.0, help="Henyey-Greenstein anisotropy (mu_s = 1 / (1 - g) /mm)")
     a = ap.parse_args()
     with np.errstate(over="ignore", invalid="ignore"):
-        run(a.n, a.depth, int(a.photons))
+        run(a.n, a.depth, int(a.photons), g_hg=a.g)
 
 
 if __name__ == "__main__":
