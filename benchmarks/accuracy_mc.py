@@ -95,11 +95,14 @@ CASES = {
     # 1 /mm as every other case, so diffuse's default medium): the model derives the profile for
     # isotropic scattering, and real tissue does not scatter isotropically
     "box-tissue-g0.9": (BOX, 1.40, [5.0, 0.0, 4.0], [-90, -60, -30, 0, 30, 60], False),
+    # and the 40-facet cylinder's (a curved body: the body's curvature and the drift along it)
+    "cylinder-tissue-g0.9": (CYLINDER_FINE, 1.40, [5.0, 0.0, 7.5], [-90, -45, 0, 45, 90], False),
 }
 HEIGHTS = {"box-mirrors-2h": [0.0, 8.0]}  # stage heights (mm) of the cases that have more than one
 # the cases whose medium is not TISSUE; their diffuse model is told the medium
 MEDIA = {"box-absorbing": {"mua_per_mm": 0.1, "mus_per_mm": 1.0, "g": 0.0},
-         "box-tissue-g0.9": {"mua_per_mm": 0.01, "mus_per_mm": 10.0, "g": 0.9}}
+         "box-tissue-g0.9": {"mua_per_mm": 0.01, "mus_per_mm": 10.0, "g": 0.9},
+         "cylinder-tissue-g0.9": {"mua_per_mm": 0.01, "mus_per_mm": 10.0, "g": 0.9}}
 MODELS = ("diffuse", "lambertian")
 # more models for some cases: diffuse-p1 is diffuse without its depth term (P1's profile);
 # diffuse-fine is diffuse on faces split into four (subject.refine_faces: 1; the same elements), for
@@ -112,7 +115,7 @@ EXTRA_MODELS = {"box-absorbing": ("diffuse-p1", "diffuse-fine"), "box-n1.56-shal
                 "cylinder-direct-40-facets": ("diffuse-flat",), "cylinder-mirrors-deep8": ("diffuse-flat",),
                 "ellipsoid-mesh": ("diffuse-flat",),
                 # tissue's forward scattering: its photons leave as P1 alone says (docs/design.md)
-                "box-tissue-g0.9": ("diffuse-p1",)}
+                "box-tissue-g0.9": ("diffuse-p1",), "cylinder-tissue-g0.9": ("diffuse-p1", "diffuse-flat")}
 # and every case diffuse-curv: diffuse with its curvature term (subject.emission.curvature_term)
 
 
