@@ -54,6 +54,33 @@ class Model(BaseModel):
             raise ValueError("holds a NUL character (\\x00), which no file name or name may contain")
         return v
 
+    @model_validator(mode="before")
+    @classmethod
+    def _no_empty_paths(cls, data):
+        """A path given as empty text (``workdir: ""``) is read by Python as "." (the config's own
+        folder), so artefacts or a T cache would land beside the configs without a word: refused,
+        naming the key."""
+        if isinstance(data, dict):
+            for name, field in cls.model_fields.items():
+                if name in data and _holds_path(field.annotation) and _has_blank(data[name]):
+                    raise ValueError(f"{name}: {EMPTY_PATH}")
+        return data
+
+
+EMPTY_PATH = "is an empty path; give a file or folder name, or leave the key out for its default"
+
+
+def _holds_path(annotation) -> bool:
+    """Whether a field's type is, or holds, a Path (``Path | None``, ``tuple[Path, ...]``)."""
+    return annotation is Path or any(_holds_path(a) for a in get_args(annotation))
+
+
+def _has_blank(v) -> bool:
+    """Whether a value (or an item of a list) is text with nothing but spaces in it."""
+    if isinstance(v, str):
+        return not v.strip()
+    return isinstance(v, (tuple, list)) and any(isinstance(x, str) and not x.strip() for x in v)
+
 
 def _has_nul(v) -> bool:
     """Whether a text or path value (or one inside a list or mapping) holds a NUL character."""
@@ -1388,9 +1415,13 @@ def _format_validation_error(err: ValidationError, path: Path, raw: Any = None, 
                    else f"required key is missing: one of {kinds}")
         else:
             msg = e["msg"].removeprefix("Value error, ")
+            if msg.endswith(EMPTY_PATH):  # raised by the section holding the key: name the key itself
+                key, msg = msg.split(": ", 1)
+                loc = f"{loc}.{key}" if loc else key
         lines.append(f"'{loc}': {msg}" if loc else msg)
     more = "" if len(errors) <= 6 else f" (and {len(errors) - 6} more)"
-    return f"{what} {path}: " + "; ".join(lines) + more + "."
+    text = "; ".join(lines) + more
+    return f"{what} {path}: " + text + ("" if text.endswith((".", "?", "!")) else ".")
 
 
 # the values of the keys that pick a variant of a section, for the messages that name them

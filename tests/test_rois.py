@@ -414,6 +414,9 @@ def test_study_file_mistakes_exit_2(tmp_path):
     s.write_text(yaml.safe_dump({"sessions": [{"artefact": "m1\x00.h5", "subject": "a", "day": 1}]}))
     r = CliRunner().invoke(app, ["study", str(s)])  # was exit 1: "embedded null byte" from the OS
     assert r.exit_code == 2 and "'sessions.0.artefact': holds a NUL character" in " ".join(r.output.split()), r.output
+    s.write_text(yaml.safe_dump({"output": "", "sessions": [{"artefact": "m1.h5", "subject": "a", "day": 1}]}))
+    r = CliRunner().invoke(app, ["study", str(s)])  # was: the table and page written beside the study file
+    assert r.exit_code == 2 and "'output': is an empty path" in " ".join(r.output.split()), r.output
 
 
 def test_study_dates_are_iso_and_a_subject_keeps_one_time_axis(tmp_path):

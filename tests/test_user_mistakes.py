@@ -282,6 +282,11 @@ MISTAKES = [
     ("unknown-nested-key", "build-T", _cfg("system.camera.pixel_pitch", 0.1), ["system.camera.pixel_pitch"]),
     # a NUL character in a path: the OS refuses it ("embedded null byte", exit 1; found by fuzzing study files)
     ("nul-in-a-path", "build-T", _cfg("subject.surface", {"mesh": "a\x00b.ply"}), ["'subject.surface.mesh'", "NUL"]),
+    # a path given as empty text reads as "." (the config's folder): artefacts or a T cache would
+    # land beside the configs without a word, and an empty mesh read "is a folder"
+    ("empty-workdir", "build-T", _cfg("workdir", ""), ["'workdir'", "is an empty path"]),
+    ("empty-cache-dir", "build-T", _cfg("transfer", {"cache_dir": "  "}), ["'transfer.cache_dir'", "is an empty path"]),
+    ("empty-mesh", "build-T", _cfg("subject.surface", {"mesh": ""}), ["'subject.surface.mesh'", "is an empty path"]),
     ("missing-lens", "build-T", _del("system.camera.lens"), ["system.camera.lens"]),
     # a point given with two numbers: was "'system.camera.pose.lens_center_mm.2': required key is missing"
     ("vector-too-short", "build-T", _cfg("system.camera.pose.lens_center_mm", [0, 0]),
