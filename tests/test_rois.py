@@ -417,6 +417,8 @@ def test_study_file_mistakes_exit_2(tmp_path):
     s.write_text(yaml.safe_dump({"output": "", "sessions": [{"artefact": "m1.h5", "subject": "a", "day": 1}]}))
     r = CliRunner().invoke(app, ["study", str(s)])  # was: the table and page written beside the study file
     assert r.exit_code == 2 and "'output': is an empty path" in " ".join(r.output.split()), r.output
+    r = CliRunner().invoke(app, ["study", str(tmp_path)])  # was: "study file ... does not exist"
+    assert r.exit_code == 2 and "is a folder; give the study's YAML file itself" in " ".join(r.output.split()), r.output
 
 
 def test_study_dates_are_iso_and_a_subject_keeps_one_time_axis(tmp_path):

@@ -105,6 +105,8 @@ class StudyFile(C.Model):
 
 def load_study(path: Path) -> StudyFile:
     path = Path(path)
+    if path.is_dir():
+        raise UserError(f"study file {path} is a folder; give the study's YAML file itself.")
     if not path.is_file():
         raise UserError(f"study file {path} does not exist.")
     try:
