@@ -58,6 +58,31 @@ def test_a_residual_that_is_not_a_shift_is_not_read_as_one():
     assert not s.seen and s.size_px < 0.05
 
 
+def test_a_misfit_on_one_flank_is_not_read_as_a_shift():
+    """The image brighter than the model on one side of its peak (light that varies within an
+    element faster than its unknowns, a crease seen edge-on): the residual projects onto the
+    gradients, so the whole-image regression is significant, but only the flank that holds the
+    misfit sees a shift.  A camera out of place moves both flanks; this is not one."""
+    fitted = _blob((40, 40), 20.0, 19.0)
+    x = np.mgrid[:40, :40][1]
+    measured = np.random.default_rng(0).poisson(fitted * (1 + 0.08 * (x > 21))).astype(float)
+    s = Q.image_shift(measured, fitted, np.ones_like(fitted, bool), fitted)
+    assert s.z > Q.SHIFT_Z and s.size_px > Q.SHIFT_MIN_PX  # the whole image alone would warn
+    assert max(s.flank_z) > Q.SHIFT_Z and min(s.flank_z) < 1.0  # the bright side sees it, the other does not
+    assert s.one_flank and not s.seen and Q.shift_warning("p", s, 1.1) is None
+
+
+def test_one_view_shifted_alone_is_seen_on_both_its_flanks():
+    """A mirror a calibration error away moves its view and not the direct one: both flanks of
+    the moved view carry the shift, so the flank test keeps the warning."""
+    direct = _blob((40, 60), 15.0, 19.0)
+    fitted = direct + _blob((40, 60), 45.0, 20.0, width=3.0, peak=2000.0)
+    measured = np.random.default_rng(2).poisson(direct + _blob((40, 60), 45.3, 19.8, width=3.0, peak=2000.0))
+    s = Q.image_shift(measured.astype(float), fitted, np.ones_like(fitted, bool), fitted)
+    assert min(s.flank_z) > 2 * Q.SHIFT_FLANK_Z and s.seen and s.dx_px > 0 > s.dy_px
+    assert "system.mirrors" in Q.shift_warning("p", s, 1.3)
+
+
 def test_calibration_sigma_adds_in_quadrature_with_the_gain():
     assert Q.calibration_sigma(100.0, [3.0, -4.0], 0.12) == pytest.approx(13.0)
     assert Q.calibration_sigma(100.0, [], None) == 0.0

@@ -159,6 +159,8 @@ register(Kind("reconstruction", 2, "fluxmap reconstruct", "surface flux reconstr
     Dataset("budget/shift_px", "px", "per pose: the fitted image's shift that best explains the residual",
             required=False),
     Dataset("budget/shift_z", "", "per pose: |shift| over its standard error", required=False),
+    Dataset("budget/shift_flank_z", "", "per pose: the shift as each flank of the image alone sees it, in its sd",
+            required=False),
     Dataset("sweep", "", "the study sweep: error[method, level, pose, repeat], mean, sd, max_snr, "
             "levels_peak_photons", required=False),
 )))

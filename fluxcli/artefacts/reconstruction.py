@@ -398,6 +398,10 @@ def write_budget(g: h5py.Group, b) -> None:
             "per pose: the shift (x, y pixels) of the fitted image that best explains the residual"
         g.create_dataset("shift_z", data=np.array([s.z for s in b.shifts], float)).attrs["meaning"] = \
             f"per pose: |shift| in units of its standard error; {b.shifts[0].RULE}"
+        g.create_dataset("shift_flank_z", data=np.array([s.flank_z or (np.nan, np.nan) for s in b.shifts], float)
+                         ).attrs["meaning"] = ("per pose: the shift along its direction as each flank of the image "
+                                               "alone sees it (where the image brightens along it, then where it "
+                                               "darkens), in that flank's standard error; NaN: not asked")
 
 
 # ------------------------------------------------------------------ reading
@@ -429,6 +433,8 @@ def read_budget(g: h5py.Group) -> dict:
     if "shift_z" in g:
         out["shift_z"] = g["shift_z"][()].tolist()
         out["shift_px"] = g["shift_px"][()].tolist()
+        if "shift_flank_z" in g:  # written since the flank test (older files: absent)
+            out["shift_flank_z"] = g["shift_flank_z"][()].tolist()
     return out
 
 
