@@ -113,7 +113,7 @@ def solve_poses(gm, inp, m, noise, stray, todo, shape, joint_too: bool, rois, sc
             res, fitted = solve_pose(gm.curvature.T(k, res.power))
         turned = orientation_hint(lambda a, v: run_method(gm.Ts[k], a, v, m, noise, gm.adjacency, gm.parts(k),
                                                           gm.n_elements, gm.areas)[0].chi2_per_pixel,
-                                  inp.images[k], inp.valid[k], res.chi2_per_pixel, gm.n_elements)
+                                  inp.images[k], inp.valid[k], res.chi2_per_pixel, gm.n_elements, seen.reshape(ny, nx))
         res = scaled(replace(res, warnings=tuple(w for w in (stray[k], spiked, turned) if w) + tuple(res.warnings)),
                      scale)
         if rois:
@@ -139,23 +139,36 @@ ORIENTATIONS = (("upside down", lambda x: x[::-1]), ("mirrored left to right", l
                 ("turned half a turn", lambda x: x[::-1, ::-1]), ("transposed", lambda x: x.T))
 ORIENTATION_MAX_ELEMENTS = 5000  # four more solves of a pose that misfits: only where they are cheap
 ORIENTATION_GAIN = 2.0
+ORIENTATION_REACH = 0.02  # a turned image may put at most this much more of its light where the subject cannot be seen
 
 
-def orientation_hint(chi2_of, image: np.ndarray, valid: np.ndarray, chi2: float, n_elements: int) -> str | None:
+def orientation_hint(chi2_of, image: np.ndarray, valid: np.ndarray, chi2: float, n_elements: int,
+                     reach: np.ndarray | None = None) -> str | None:
     """A warning when a pose's image, which misfits (χ² per pixel above the range), fits at least
     2× better, and within the range, flipped, mirrored, turned or transposed: its row or column
     order is another program's (FITS stores rows bottom-up; some camera software mirrors). The
     image is used as given. ``chi2_of(image, valid)``: χ² per pixel of a solve of that pose.
     None: nothing to say. Without it an image upside down read 0.946× the truth under a warning
-    that blamed the model."""
+    that blamed the model.
+
+    ``reach`` (ny, nx) bool: the pixels that see the subject (T's rows with an entry). χ² counts
+    only the pixels the fit lights, so a turned image whose light falls where nothing can be seen
+    "fits" by leaving that light out. Such a turning is not offered: it may put at most
+    :data:`ORIENTATION_REACH` more of the image's light outside ``reach`` than the image as given.
+    The demo's images with the lens 0.6 mm off the config's read "3.85x better turned half a turn"
+    (χ² 1.12 against 4.32): turned, 44 % of the light lies outside the subject's reach (2.3 % as
+    given)."""
     from .filtered import CHI2_RANGE
 
     if not np.isfinite(chi2) or chi2 <= CHI2_RANGE[1] or n_elements > ORIENTATION_MAX_ELEMENTS:
         return None
+    out_given = _light_outside(image, valid, reach)
     best = None
     for name, turn in ORIENTATIONS:
         a = turn(np.asarray(image))
         if a.shape != np.shape(image):
+            continue
+        if _light_outside(a, turn(np.asarray(valid)), reach) > out_given + ORIENTATION_REACH:
             continue
         try:  # a diagnostic: a solve that cannot run on the turned image says nothing, and stops nothing
             c = chi2_of(np.ascontiguousarray(a), np.ascontiguousarray(turn(np.asarray(valid))))
@@ -168,6 +181,16 @@ def orientation_hint(chi2_of, image: np.ndarray, valid: np.ndarray, chi2: float,
     return (f"its image fits {chi2 / best[1]:.3g}x better {best[0]} (chi^2 per pixel {best[1]:.3g} against {chi2:.3g} as "
             "given): is its row or column order another program's (FITS stores rows bottom-up; some camera software "
             "mirrors or rotates)? The image is used as given; turn the file, not the config.")
+
+
+def _light_outside(image, valid, reach) -> float:
+    """The share of the image's light (its positive valid pixels) that lies outside ``reach``
+    (0 without ``reach``, or where the image holds no light)."""
+    if reach is None:
+        return 0.0
+    a = np.where(np.asarray(valid, bool) & np.isfinite(image), np.maximum(np.asarray(image, float), 0.0), 0.0)
+    total = float(a.sum())
+    return float(a[~np.asarray(reach, bool)].sum()) / total if total > 0 else 0.0
 
 
 def scaled(res, scale: float):
