@@ -8,7 +8,8 @@ shot noise) and reconstructs them, each pose alone and all poses jointly, with
 ``subject.emission: diffuse`` (refractive index matching the phantom) AND ``lambertian``,
 from the same photons (five cases also ``diffuse-fine``: the same photons on faces split once (on the cylinder onto its round body),
 ``subject.refine_faces: 1``; and the absorbing box and the box of tissue-like scattering (g 0.9)
-``diffuse-p1``, without the depth term; every
+``diffuse-p1``, without the depth term; the two of tissue-like scattering ``diffuse-isotropic``, not
+told the medium's anisotropy g (``scattering_anisotropy``), as if it scattered isotropically; every
 case ``diffuse-curv``, with the curvature term, ``subject.emission.curvature_term: true``, and
 ``diffuse-fine-curv`` beside ``diffuse-fine``).
 Printed per case x model: the totals over observed elements against
@@ -115,7 +116,9 @@ EXTRA_MODELS = {"box-absorbing": ("diffuse-p1", "diffuse-fine"), "box-n1.56-shal
                 "cylinder-direct-40-facets": ("diffuse-flat",), "cylinder-mirrors-deep8": ("diffuse-flat",),
                 "ellipsoid-mesh": ("diffuse-flat",),
                 # tissue's forward scattering: its photons leave as P1 alone says (docs/design.md)
-                "box-tissue-g0.9": ("diffuse-p1",), "cylinder-tissue-g0.9": ("diffuse-p1", "diffuse-flat")}
+                # and, told g 0, as a model built for isotropic scattering reads them
+                "box-tissue-g0.9": ("diffuse-p1", "diffuse-isotropic"),
+                "cylinder-tissue-g0.9": ("diffuse-p1", "diffuse-flat", "diffuse-isotropic")}
 # and every case diffuse-curv: diffuse with its curvature term (subject.emission.curvature_term)
 
 
@@ -147,6 +150,8 @@ def config(name: str, model: str, n_photons: int, seed: int) -> dict:
         if name in MEDIA:  # told the phantom's medium (the default medium is TISSUE's)
             emission |= {"absorption_per_mm": medium["mua_per_mm"],
                          "reduced_scattering_per_mm": medium["mus_per_mm"] * (1 - medium["g"])}
+            if medium["g"] and model != "diffuse-isotropic":  # and its anisotropy (diffuse-isotropic: as if g 0)
+                emission["scattering_anisotropy"] = medium["g"]
         if model == "diffuse-p1":
             emission["depth_term"] = False
         if model == "diffuse-flat":  # the profile of a flat surface: without the body's curvature

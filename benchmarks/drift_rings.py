@@ -9,6 +9,8 @@ and per band of exit angle, the drift length g the photons imply: the radiance
 
 - the tangential-flux term's g(theta) (``emission.tangent_length``), which takes the field under
   the surface as linear in depth, ``phi = (z + z_b) m(x)``: the same in every ring;
+- the term as told the medium's g (``scattering_anisotropy``: the δ-Eddington ray integral,
+  ``emission.tangent_length``), "told g" (the same as planar for g 0);
 - the same ray integral carried to third order (docs/design.md, "The tangential flux", a limit):
   ``phi(x, z) = phi0 (1 + z / z_b) + z^2 / 2 (c phi0 - lap_t phi0)`` and the ray's sideways walk to
   third order give the drift coefficient ``z_b + 2 mu' + 3 c mu'^2 z_b + z_b (-3 mu'^2 + 3/4
@@ -70,9 +72,11 @@ def run(n: float, depth_mm: float, n_photons: int, seed: int = 5, g_hg: float = 
     zb = 2.0 * E.boundary_A(n) / 3.0
     c = E.depth_term(mus, mua)
     prof = E.diffuse(n, tangential=True, reduced_scattering_per_mm=mus, absorption_per_mm=mua)
+    told = E.diffuse(n, tangential=True, reduced_scattering_per_mm=mus, absorption_per_mm=mua, scattering_anisotropy=g_hg)
     print(f"n {n}, g {g_hg}, source {depth_mm} mm deep, {len(rho)} photons leave the top ({n_photons:.3g} launched, seed {seed}); "
           f"l {l:.3f} mm, z_b {zb:.3f} l")
-    print(f"{'ring':>11} {'kappa l^2':>9} {'Q l^2':>7} {'band':>6}  {'g photons (mm)':>16}  {'planar':>6}  {'3rd order':>9}")
+    print(f"{'ring':>11} {'kappa l^2':>9} {'Q l^2':>7} {'band':>6}  {'g photons (mm)':>16}  {'planar':>6}  {'3rd order':>9}"
+          f"  {'told g':>6}")
     for r0, r1 in RINGS_MM:
         for lo, hi in BANDS_DEG:
             b = (rho >= r0) & (rho < r1) & (d[:, 2] <= np.cos(np.radians(lo))) & (d[:, 2] > np.cos(np.radians(hi)))
@@ -85,8 +89,10 @@ def run(n: float, depth_mm: float, n_photons: int, seed: int = 5, g_hg: float = 
             base = zb + 2 * mu_in
             third = base + 3 * c * mu_in**2 * zb + zb * (-3 * mu_in**2 + 0.75 * (1 - mu_in**2)) * Q(rho[b]) * l * l
             gm = prof.tangent_weight(mu) / prof.weight(mu)
+            gt = told.tangent_weight(mu) / told.weight(mu)
             print(f"{r0:4.1f}-{r1:4.1f} mm {np.mean(lap(rho[b]) / M(rho[b])) * l * l:+9.3f} {np.mean(Q(rho[b])) * l * l:+7.3f} "
-                  f"{lo:2d}-{hi:2d}  {g:8.3f} ± {sd:.3f}  {(gm * w).sum() / w.sum():6.3f}  {(gm * third / base * w).sum() / w.sum():9.3f}")
+                  f"{lo:2d}-{hi:2d}  {g:8.3f} ± {sd:.3f}  {(gm * w).sum() / w.sum():6.3f}  {(gm * third / base * w).sum() / w.sum():9.3f}"
+                  f"  {(gt * w).sum() / w.sum():6.3f}")
 
 
 def main() -> None:

@@ -107,16 +107,36 @@ def boundary_A(n: float) -> float:
     return (1 + r_eff) / (1 - r_eff)
 
 
-def diffuse_radiance(cos_theta: np.ndarray, n: float, depth: float = 0.0) -> np.ndarray:
+def diffuse_radiance(cos_theta: np.ndarray, n: float, depth: float = 0.0, anisotropy: float = 0.0) -> np.ndarray:
     """Radiance leaving a diffusive medium of index ``n`` into air at the angle whose cosine is
     ``cos_theta`` (outside), unnormalised: ``T_F(theta') (1 + 3 mu' / 2A) (1 + depth mu'^2)``
     with ``cos theta' = mu' = sqrt(1 - sin^2 theta / n^2)`` and ``depth`` the depth term's
     coefficient (:func:`depth_term`; 0: P1's profile); the constant factors (phi/4pi, 1/n^2)
-    drop out when normalised."""
+    drop out when normalised.
+
+    ``anisotropy`` (the phase function's g; 0: isotropic scattering) shortens the depth term as
+    the δ-Eddington ray integral says (:func:`delta_eddington_g`, docs/design.md): its z² part by
+    (1 − g*) and its z³ part by (1 − g*)², so the factor is ``(1 + 3 mu'/2A) + depth mu'^2
+    (1 − g*) (1 + (1 − g*) 3 mu'/2A)`` (the same as above for g = 0)."""
     mu = np.clip(np.asarray(cos_theta, float), 0.0, 1.0)
     mu_in = np.sqrt(1.0 - (1.0 - mu * mu) / n**2)
-    return ((1.0 - fresnel_reflectance(mu_in, n)) * (1.0 + 3.0 * mu_in / (2.0 * boundary_A(n)))
-            * (1.0 + depth * mu_in * mu_in))
+    a = 3.0 * mu_in / (2.0 * boundary_A(n))
+    q = 1.0 - delta_eddington_g(anisotropy)
+    return (1.0 - fresnel_reflectance(mu_in, n)) * ((1.0 + a) + depth * mu_in * mu_in * q * (1.0 + q * a))
+
+
+def delta_eddington_g(anisotropy: float) -> float:
+    """The anisotropy ``g* = g / (1 + g)`` of the δ-Eddington phase function (Joseph, Wiscombe &
+    Weinman 1976, J. Atmos. Sci. 33, 2452) that stands for a forward-peaked one of anisotropy g:
+    a share f = g² of the scattering goes straight on (a ray that keeps its direction, as if
+    unscattered), the rest scatters with the first moment g*, so μ_s (1 − f)(1 − g*) = μ_s (1 − g)
+    keeps μ_s′.  In the ray integral behind the exit radiance (docs/design.md) the straight-on
+    part only thins the attenuation; what is left scatters at μ_s* = μ_s′ / (1 − g*), a shorter
+    path than 1/μ_s′ when g > 0.  0 for isotropic scattering."""
+    g = float(anisotropy)
+    if not (np.isfinite(g) and 0.0 <= g < 1.0):
+        raise ValueError(f"scattering_anisotropy must be a number in [0, 1), got {anisotropy}")
+    return g / (1.0 + g)
 
 
 def depth_term(reduced_scattering_per_mm: float, absorption_per_mm: float) -> float:
@@ -162,6 +182,7 @@ class Profile:
     reduced_scattering_per_mm: float | None = None
     absorption_per_mm: float | None = None
     depth_term: float = 0.0  # diffuse: the coefficient c of the depth term 1 + c mu'^2 in the table (0: none)
+    scattering_anisotropy: float = 0.0  # diffuse: the medium's g (the depth and tangential terms' δ-Eddington g*)
     # the curvature term (diffuse only): l^2 h(theta) / p(theta) on the same mu grid, mm^2; empty: off
     curvature: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
     # the body's own curvature (diffuse only): T's columns scaled per element and view by the factor of
@@ -246,6 +267,8 @@ class Profile:
             out["refractive_index"] = float(self.refractive_index)
         if self.depth_term:  # absent when off: the key of a diffuse T before the term existed
             out["depth_term"] = round(float(self.depth_term), 9)  # as artefacts store numbers (store.canonical)
+        if self.scattering_anisotropy and (self.depth_term or self.has_tangent):  # absent for g 0 (as before)
+            out["scattering_anisotropy"] = round(float(self.scattering_anisotropy), 9)
         if self.has_tangent:  # absent when off: the key of a diffuse T before the term existed
             out["tangent_sha256"] = hashlib.sha256(self.tangent.tobytes()).hexdigest()
             out["tangent_layout"] = TANGENT_LAYOUT
@@ -265,8 +288,10 @@ class Profile:
                                      ("its curvature term", self.has_curvature),
                                      ("the body's curvature", self.body_curvature)) if on]
             if terms:
+                g = (f", g {self.scattering_anisotropy:g}" if self.scattering_anisotropy
+                     and (self.depth_term or self.has_tangent) else "")
                 return (f"diffuse (refractive index {self.refractive_index:g}) with {' and '.join(terms)} "
-                        f"(mu_s' {self.reduced_scattering_per_mm:g} /mm, mu_a {self.absorption_per_mm:g} /mm)")
+                        f"(mu_s' {self.reduced_scattering_per_mm:g} /mm, mu_a {self.absorption_per_mm:g} /mm{g})")
             return f"diffuse (refractive index {self.refractive_index:g})"
         if self.model == "table":
             return f"table ({self.source})" if self.source else "table"
@@ -309,7 +334,7 @@ DEFAULT_REDUCED_SCATTERING_PER_MM = 1.0
 DEFAULT_ABSORPTION_PER_MM = 0.01
 
 
-def tangent_length(cos_theta: np.ndarray, n: float, transport_per_mm: float) -> np.ndarray:
+def tangent_length(cos_theta: np.ndarray, n: float, transport_per_mm: float, anisotropy: float = 0.0) -> np.ndarray:
     """The length ``g(theta)`` (mm) that turns the relative exitance gradient into the
     tangential part of the radiance leaving the surface: outside,
     ``L = M p(theta) (1 - g(theta) grad_t M / M . s_o)``, with
@@ -330,11 +355,29 @@ def tangent_length(cos_theta: np.ndarray, n: float, transport_per_mm: float) -> 
     ``s_i,t = s_o,t / n`` (Snell) and grad m / m = grad M / M (M proportional to phi(0)).
     Checked against the photons of fluxcli.montecarlo (tests/test_emission.py): the drift of
     the exit directions away from the source matches this g within a few per cent at n 1.00
-    and 1.40, where P1's is a factor 2-3.5 short."""
+    and 1.40, where P1's is a factor 2-3.5 short.
+
+    ``anisotropy`` g: forward-peaked scattering of the same mu_s'.  With the δ-Eddington phase
+    function (:func:`delta_eddington_g`) the source along the ray is ``mu_s* (phi + 3 g* J . s_i)
+    / 4pi`` over the path ``e^{-mu_s* s}``, mu_s* = mu_s' / (1 − g*).  The normal part is P1's
+    again (similarity).  The tangential part gathers the field's tangential gradient from
+    ``phi`` over the shorter path, ``(1 − g*)(z_b + 2 mu' l (1 − g*))``, and from ``J``: its
+    tangential component, ``g* (z_b + mu' l (1 − g*))``, and its normal one, which also varies
+    along the ray's sideways walk, ``g* (1 − g*) mu' l``.  Together ``z_b + 2 mu' l (1 − g*)``: the
+    light comes from nearer the surface, where the tangential gradient is smaller, so
+
+        g = (l / n) (1 + 3 mu' (1 − g*) / A) / (1 + 3 mu' / 2A),
+
+    the same as above for g 0.  At n 1.40 and 40-65°: 0.92 mm (g 0), 0.78 (g 0.5), 0.72 (g 0.9);
+    beyond 5 mm from the source the photons of a slab drift ~0.91, ~0.78 and ~0.72 mm
+    (benchmarks/drift_rings.py; docs/design.md).  P1's own phase moment in place of the
+    δ-Eddington one (g* = g) would give 0.54 mm at g 0.9: the forward peak does not turn the light
+    it scatters."""
     mu = np.clip(np.asarray(cos_theta, float), 0.0, 1.0)
     mu_in = np.sqrt(1.0 - (1.0 - mu * mu) / n**2)
     A = boundary_A(n)
-    return (1.0 + 3.0 * mu_in / A) / (n * transport_per_mm * (1.0 + 3.0 * mu_in / (2.0 * A)))
+    gs = delta_eddington_g(anisotropy)
+    return (1.0 + 3.0 * mu_in * (1.0 - gs) / A) / (n * transport_per_mm * (1.0 + 3.0 * mu_in / (2.0 * A)))
 
 
 def _moment(values: np.ndarray) -> float:
@@ -345,7 +388,8 @@ def _moment(values: np.ndarray) -> float:
     return float(np.sum(h * (a * (2 * m0 + m1) + b * (m0 + 2 * m1)) / 6.0))
 
 
-def curvature_ratio(cos_theta: np.ndarray, n: float, depth: float, transport_per_mm: float) -> np.ndarray:
+def curvature_ratio(cos_theta: np.ndarray, n: float, depth: float, transport_per_mm: float,
+                    anisotropy: float = 0.0) -> np.ndarray:
     """``l^2 h(theta) / p(theta)`` (mm^2): where the exitance curves along the surface
     (``lap_t M``, 1/mm^2 times M) the light leaving at theta is ``M p (1 + this x lap_t M / M)``.
 
@@ -373,19 +417,21 @@ def curvature_ratio(cos_theta: np.ndarray, n: float, depth: float, transport_per
         return h_in / p_in
 
     grid = np.linspace(0.0, 1.0, N_TABLE)
-    p_grid = diffuse_radiance(grid, n, depth)  # the flux each part carries, by the tables' own rule
+    p_grid = diffuse_radiance(grid, n, depth, anisotropy)  # the flux each part carries, by the tables' own rule
     share = _moment(p_grid * ratio(grid)) / _moment(p_grid)
     return (ratio(mu) - share) / transport_per_mm**2
 
 
 def diffuse(refractive_index: float = 1.40, *, tangential: bool = False, depth: bool = False,
             curvature: bool = False, body: bool = False, reduced_scattering_per_mm: float = DEFAULT_REDUCED_SCATTERING_PER_MM,
-            absorption_per_mm: float = DEFAULT_ABSORPTION_PER_MM) -> Profile:
+            absorption_per_mm: float = DEFAULT_ABSORPTION_PER_MM, scattering_anisotropy: float = 0.0) -> Profile:
     """The diffusion-theory profile (P1 with a Fresnel boundary); with ``depth`` the depth term
     of a medium with these coefficients (:func:`depth_term`), with ``tangential`` its
     tangential-flux term (:func:`tangent_length`), with ``curvature`` its curvature term
     (:func:`curvature_ratio`), with ``body`` the body's own curvature
-    (:mod:`fluxcli.optics.body_curvature`).  None: the coefficients are not used."""
+    (:mod:`fluxcli.optics.body_curvature`).  None: the coefficients are not used.
+    ``scattering_anisotropy``: the medium's g, which shortens the depth and tangential terms
+    (:func:`delta_eddington_g`); the curvature and body terms keep their isotropic derivation."""
     n = float(refractive_index)
     if not (np.isfinite(n) and n >= 1.0):
         raise ValueError(f"refractive index must be a number >= 1, got {refractive_index}")
@@ -395,15 +441,18 @@ def diffuse(refractive_index: float = 1.40, *, tangential: bool = False, depth: 
             raise ValueError(f"reduced_scattering_per_mm must be a number > 0, got {reduced_scattering_per_mm}")
         if not (np.isfinite(mua) and mua >= 0):
             raise ValueError(f"absorption_per_mm must be a number >= 0, got {absorption_per_mm}")
+    g = float(scattering_anisotropy)
+    delta_eddington_g(g)  # checks it
     c = depth_term(mus, mua) if depth else 0.0
     mu = np.linspace(0.0, 1.0, N_TABLE)
-    table = _normalised(diffuse_radiance(mu, n, c))
+    table = _normalised(diffuse_radiance(mu, n, c, g))
     if not (tangential or depth or curvature or body):
         return Profile("diffuse", table, refractive_index=n)
-    tangent = np.ascontiguousarray(table * tangent_length(mu, n, mus + mua)) if tangential else np.zeros(0)
-    curv = np.ascontiguousarray(curvature_ratio(mu, n, c, mus + mua)) if curvature else np.zeros(0)
+    tangent = np.ascontiguousarray(table * tangent_length(mu, n, mus + mua, g)) if tangential else np.zeros(0)
+    curv = np.ascontiguousarray(curvature_ratio(mu, n, c, mus + mua, g)) if curvature else np.zeros(0)
     return Profile("diffuse", table, refractive_index=n, tangent=tangent, reduced_scattering_per_mm=mus,
-                   absorption_per_mm=mua, depth_term=c, curvature=curv, body_curvature=bool(body))
+                   absorption_per_mm=mua, depth_term=c, curvature=curv, body_curvature=bool(body),
+                   scattering_anisotropy=g)
 
 
 def table(x, radiance, *, unit: str = "deg", source: str | None = None) -> Profile:
@@ -531,7 +580,8 @@ def profile(model) -> Profile:
                        depth=bool(get("depth_term", True)), curvature=bool(get("curvature_term", False)),
                        body=bool(get("body_curvature", True)),
                        reduced_scattering_per_mm=get("reduced_scattering_per_mm", DEFAULT_REDUCED_SCATTERING_PER_MM),
-                       absorption_per_mm=get("absorption_per_mm", DEFAULT_ABSORPTION_PER_MM))
+                       absorption_per_mm=get("absorption_per_mm", DEFAULT_ABSORPTION_PER_MM),
+                       scattering_anisotropy=get("scattering_anisotropy", 0.0))
     if kind == "table":
         return table(get("angles"), get("radiance"), unit=get("unit", "deg"))
     raise ValueError(f"unknown emission model {kind!r} (lambertian, diffuse or table)")
