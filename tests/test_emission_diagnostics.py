@@ -149,3 +149,26 @@ def test_a_coarse_faceting_of_a_round_body_is_named_in_the_grazing_warning():
     for fine in (9.0, float("nan")):
         assert "refine_faces" not in D.grazing_warning(shares, fine)
     assert D.grazing_warning(np.array([0.5, 0.2]), 18.0) is None
+
+
+def test_photons_of_another_medium_than_the_model_is_told_are_named():
+    """Monte Carlo photons of tissue-like scattering (g 0.9) reconstructed with diffuse told g 0
+    read the limb of a curved body ~2 % low (docs/accuracy.md §1.1): reconstruct names the key.
+    Told the same medium, or with another model than diffuse, nothing is said."""
+    from fluxcli.inverse.emission_checks import photons_medium_note
+    from fluxcli.optics import emission as E
+
+    flux = {"kind": "montecarlo", "mua_per_mm": 0.01, "mus_per_mm": 10.0, "g": 0.9, "refractive_index": 1.40}
+
+    def key(**kw):
+        return E.profile({"model": "diffuse", "refractive_index": 1.40, **kw}).key()
+
+    said = photons_medium_note(flux, key())
+    assert said and "g 0.9" in said and "scattering_anisotropy" in said and "absorption_per_mm" not in said
+    assert photons_medium_note(flux, key(scattering_anisotropy=0.9)) is None
+    assert photons_medium_note(flux, key(scattering_anisotropy=0.9, depth_term=False)) is None
+    wrong = photons_medium_note(flux, key(scattering_anisotropy=0.9, absorption_per_mm=0.1))
+    assert wrong and "absorption_per_mm" in wrong and "mu_a 0.01 /mm, mu_s' 1 /mm" in wrong
+    assert "refractive index 1.33" in photons_medium_note(flux, key(refractive_index=1.33, scattering_anisotropy=0.9))
+    assert photons_medium_note(flux, None) is None  # lambertian: no medium to tell
+    assert photons_medium_note(dict(flux, g=0.0, mus_per_mm=1.0), key()) is None  # the isotropic phantom, as told

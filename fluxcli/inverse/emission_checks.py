@@ -86,3 +86,40 @@ def body_curvature_line(surface, views, prof) -> str:
             f"a sphere of radius {1 / med:.0f} mm has the median)" if med > 0 else
             f"body curvature: mean curvature {lo:.3g} .. {hi:.3g} /mm over the elements (5-95 %, median {med:.3g})") + \
         f"; the light each element sends towards the views x{fac.min():.3f} .. x{fac.max():.3f}"
+
+
+def photons_medium_note(flux: dict, now: dict | None) -> str | None:
+    """A warning when Monte Carlo photons (``flux``: simulate.flux as the simulation recorded it)
+    are reconstructed with a ``diffuse`` model (``now``: subject.emission as the geometry records
+    it) told another medium than the one the photons went through: refractive index, anisotropy g
+    (``scattering_anisotropy``), or mu_a and mu_s' (as the depth term's c = 3 mu_a / mu_t' and the
+    transport coefficient mu_t' the key holds).  A model-mismatch experiment can be the point; a
+    forgotten key usually is not (tissue's g 0.9 read as isotropic: the drift a fifth too long,
+    docs/accuracy.md §1.1).  None when they agree, or the model is not ``diffuse``."""
+    if not isinstance(now, dict) or now.get("model") != "diffuse" or not isinstance(flux, dict):
+        return None
+    try:
+        n, g = float(flux["refractive_index"]), float(flux.get("g", 0.0))
+        mua, musp = float(flux["mua_per_mm"]), float(flux["mus_per_mm"]) * (1.0 - float(flux.get("g", 0.0)))
+    except (KeyError, TypeError, ValueError):
+        return None
+    told, given = [], []
+    if abs(float(now.get("refractive_index", n)) - n) > 1e-6:
+        told.append(f"refractive index {float(now['refractive_index']):g}")
+        given.append(f"{n:g}")
+    uses_medium = any(k in now for k in ("depth_term", "tangent_sha256", "body_curvature", "curvature_sha256"))
+    g_now = float(now.get("scattering_anisotropy", 0.0))
+    if uses_medium and abs(g_now - g) > 0.005:
+        told.append(f"g {g_now:g} (scattering_anisotropy)")
+        given.append(f"g {g:g}")
+    c_now, t_now = now.get("depth_term"), now.get("transport_per_mm")
+    if (c_now is not None and abs(float(c_now) - 3 * mua / (mua + musp)) > 0.02 * 3 * mua / (mua + musp) + 1e-9) or (
+            t_now is not None and abs(float(t_now) - (mua + musp)) > 0.02 * (mua + musp)):
+        told.append("another mu_a or mu_s' (absorption_per_mm, reduced_scattering_per_mm)")
+        given.append(f"mu_a {mua:g} /mm, mu_s' {musp:g} /mm")
+    if not told:
+        return None
+    return (f"the photons went through a medium of {', '.join(given)} (simulate.flux), but subject.emission "
+            f"describes {', '.join(told)}: a model-mismatch experiment, unless subject.emission was meant to "
+            "describe the photons' medium (then give it the same numbers)")
+

@@ -17,6 +17,7 @@ from ..errors import UserError
 from ..imaging import noise as N
 from ..imaging.imagefiles import read_image, sample_type
 from ..imaging.sensor_maps import below_bias, counts_to_photons_with_maps
+from ..inverse.emission_checks import photons_medium_note
 from .plans import emccd_model
 from ._radiometric import read_radiometric_maps
 
@@ -271,16 +272,17 @@ def _without_emission(x):
 
 def simulated_emission(im, now) -> str | None:
     """How the images were simulated, when they come from simulation.h5 under another emission
-    model than ``now`` (subject.emission as the geometry records it): a warning (None when the
-    same, or not simulated)."""
+    model than ``now`` (subject.emission as the geometry records it), or as Monte Carlo photons
+    of another medium than ``now`` describes: a warning (None when the same, or not simulated)."""
     if im.source is not None:
         return None
     path = simulation_path(im)
     try:
         with A.open_artefact(path, "simulation") as f:
-            then = (A.read_provenance(f).geometry.get("subject") or {}).get("emission")
-            if f["truth"].attrs.get("kind") == "montecarlo":  # photons: no emission model to mismatch
-                return None
+            prov = A.read_provenance(f)
+            then = (prov.geometry.get("subject") or {}).get("emission")
+            if f["truth"].attrs.get("kind") == "montecarlo":  # photons: no model to mismatch, but a medium
+                return photons_medium_note(((prov.config or {}).get("simulate") or {}).get("flux"), now)
     except UserError:
         return None
     if then == now:
