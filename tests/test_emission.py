@@ -111,6 +111,30 @@ def test_depth_term_is_in_the_key_and_off_gives_p1_alone():
         E.diffuse(1.40, depth=True, absorption_per_mm=-1.0)
 
 
+def test_the_medium_s_g_is_in_the_key_only_where_a_term_uses_it(write_config, minimal_config):
+    """scattering_anisotropy 0 (the default) keeps every diffuse key and table byte for byte, so
+    the isotropic cases' T caches stand; g 0.9 changes the depth and tangential tables and the key;
+    P1 alone (no term that uses the medium) does not depend on it; the config reads it and refuses
+    g outside [0, 1) naming the key."""
+    from fluxcli import config as C
+    from fluxcli.errors import UserError
+
+    base = {"model": "diffuse", "refractive_index": 1.40}
+    iso, told = E.profile(base), E.profile(dict(base, scattering_anisotropy=0.9))
+    assert E.profile(dict(base, scattering_anisotropy=0.0)).key() == iso.key() and "scattering_anisotropy" not in iso.key()
+    assert told.key() != iso.key() and told.key()["scattering_anisotropy"] == 0.9 and "g 0.9" in told.describe()
+    assert not np.array_equal(told.tangent, iso.tangent) and not np.array_equal(told.table, iso.table)
+    assert told.tangent_weight(0.6) / told.weight(0.6) < 0.8 * iso.tangent_weight(0.6) / iso.weight(0.6)
+    p1 = dict(base, depth_term=False, tangential_flux=False, body_curvature=False)
+    assert E.profile(dict(p1, scattering_anisotropy=0.9)).key() == E.profile(p1).key()
+    cfg = dict(minimal_config)
+    cfg["subject"] = dict(cfg["subject"], emission=dict(base, scattering_anisotropy=0.9))
+    assert C.load_config(write_config(cfg)).model.subject.emission.scattering_anisotropy == 0.9
+    cfg["subject"]["emission"]["scattering_anisotropy"] = 1.0
+    with pytest.raises(UserError, match="scattering_anisotropy"):
+        C.load_config(write_config(cfg, "bad.yaml"))
+
+
 @pytest.mark.parametrize("n,r_eff", [(1.33, 0.431), (1.40, 0.493)])
 def test_boundary_coefficient_gives_haskell_1994_effective_reflection(n, r_eff):
     A = E.boundary_A(n)
