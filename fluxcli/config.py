@@ -1399,7 +1399,7 @@ def _format_validation_error(err: ValidationError, path: Path, raw: Any = None, 
     lines = []
     errors = _relevant(err.errors(), raw)
     for e in errors[:6]:
-        loc = ".".join(str(x) for x in e["loc"] if not (isinstance(x, str) and (x in _UNION_TAGS or x.startswith(_MEMBER_NAMES))))
+        loc = _user_loc(e["loc"], raw, keep_last=e["type"] == "missing")
         if e["type"] == "extra_forbidden":
             msg = "unknown key (check its spelling against the README's config reference)"
         elif e["type"] == "missing" and e["loc"] and isinstance(e["loc"][-1], int):  # a fixed-length list, short
@@ -1432,11 +1432,36 @@ def _tags(union: Any, key: str) -> str:
 
 
 _UNION_CHOICES = {"model": _tags(Emission, "model"), "kind": _tags(Flux, "kind"), "phantom": _tags(Phantom, "phantom")}
+
+
+def _user_loc(loc, raw: Any, keep_last: bool = False) -> str:
+    """An error's location as the user wrote it: pydantic's names for a union's members (the
+    variant a tag picked, ``diffuse`` in ``subject.emission.diffuse.absorption_per_mm``) left out,
+    unless the user's own data holds that name as a key at that place (a key ``file`` is not the
+    flux kind ``file``), or it is the missing key itself (``keep_last``: a table's ``file``)."""
+    out, cur = [], raw
+    for i, x in enumerate(loc):
+        member = isinstance(x, str) and (x in _UNION_TAGS or x in _TAG_VALUES or x.startswith(_MEMBER_NAMES))
+        if keep_last and i == len(loc) - 1:
+            member = False
+        if member and not (isinstance(cur, dict) and x in cur):
+            continue
+        out.append(str(x))
+        if isinstance(cur, dict):
+            cur = cur.get(x)
+        elif isinstance(cur, list) and isinstance(x, int) and -len(cur) <= x < len(cur):
+            cur = cur[x]
+        else:
+            cur = None
+    return ".".join(out)
+
+
 # pydantic puts union member names into error locations; they are not keys the user wrote.
 _UNION_TAGS = {"cylinder", "ring", "sphere", "patch", "MeshSurface", "ArtefactSurface",
                "gaussian", "uniform", "file", "diffusion", "float", "literal['auto']",
                "function-after[_check(), Lens]", "ImageFiles", "CaptureSource", "tagged-union[CylinderPhantom,BoxPhantom,RingPhantom,SpherePhantom,PatchPhantom]"}
 _MEMBER_NAMES = ("function-after[", "tagged-union[")  # a member with a validator, a tagged union: never a key
+_TAG_VALUES = {t.strip().strip("'") for v in _UNION_CHOICES.values() for t in v.split(",")}  # every variant's tag
 
 
 def _camera_from_file(raw: dict[str, Any], base_dir: Path, path: Path) -> None:

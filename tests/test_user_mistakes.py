@@ -287,6 +287,10 @@ MISTAKES = [
     ("empty-workdir", "build-T", _cfg("workdir", ""), ["'workdir'", "is an empty path"]),
     ("empty-cache-dir", "build-T", _cfg("transfer", {"cache_dir": "  "}), ["'transfer.cache_dir'", "is an empty path"]),
     ("empty-mesh", "build-T", _cfg("subject.surface", {"mesh": ""}), ["'subject.surface.mesh'", "is an empty path"]),
+    # a key of a section with variants: was named 'subject.emission.diffuse.scattering_anisotropy' (pydantic's
+    # name for the variant in the key's path); g is a mean cosine, tissue's ~0.9, not a percentage
+    ("emission-g-as-percent", "build-T", _cfg("subject.emission", {"model": "diffuse", "scattering_anisotropy": 90}),
+     ["'subject.emission.scattering_anisotropy'", "less than 1"]),
     ("missing-lens", "build-T", _del("system.camera.lens"), ["system.camera.lens"]),
     # a point given with two numbers: was "'system.camera.pose.lens_center_mm.2': required key is missing"
     ("vector-too-short", "build-T", _cfg("system.camera.pose.lens_center_mm", [0, 0]),
