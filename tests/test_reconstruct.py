@@ -512,6 +512,33 @@ def test_an_image_upside_down_is_said_to_fit_better_turned(write_config, tmp_pat
 
 
 
+def test_a_camera_a_calibration_error_away_is_said_to_shift_the_image(write_config, tmp_path):
+    """The demo's cylinder imaged with the camera where the config says, then reconstructed with
+    the lens centre 1 mm across the cylinder (~0.23 pixel on the sensor): a real calibration
+    error, which moves both flanks of each image. Both poses are warned that the image looks
+    shifted (the flank test keeps a true shift), and neither is offered a turned image (whose
+    light would fall outside the subject's reach). With the config's own camera nothing is said."""
+    cfg, tifs = _turned_demo_cylinder(write_config, tmp_path, "poisson")
+    said = {}
+    for dy in (0.0, 1.0):
+        cfg["system"]["camera"]["pose"]["lens_center_mm"] = [0.0, dy, 338.0]
+        cfg["reconstruct"] = {"images": {"files": tifs}}
+        path = write_config(cfg)
+        assert run("build-T", path, "--quiet").exit_code == 0
+        r = run("reconstruct", path, "--quiet", "--force")
+        assert r.exit_code == 0, r.output
+        warnings = read_warnings(tmp_path / "run" / "reconstruction.h5")[0]
+        with h5py.File(tmp_path / "run" / "reconstruction.h5") as f:
+            flanks = f["budget/shift_flank_z"][()]
+        said[dy] = ([w for w in warnings if "looks like the image shifted" in w], [w for w in warnings if "better" in w],
+                    flanks)
+    assert not said[0.0][0] and not said[0.0][1]
+    shifted, turned, flanks = said[1.0]
+    assert len(shifted) == 2 and all("calibration error" in w or "system.camera.pose" in w for w in shifted), shifted
+    assert not turned, turned
+    assert np.all(flanks > 2.5), flanks  # each flank of each image sees the move on its own
+
+
 def test_images_binned_on_the_chip_with_the_pitch_left_are_said_to_disagree_in_kind(write_config, tmp_path):
     """The demo's images binned 2 x 2 by the camera; the config's pixels halved to match, but
     pixel_pitch_mm left as it was. The fit misfit at chi^2 42-736 and read the total 1.14x the
