@@ -270,12 +270,13 @@ def report(name: str, res: dict) -> bool:
             err = " ".join(f"{x:.1%}" for x in r[tag + "error"])
             print(f"{model:<11} {label:<9} {tot:<48} {r[tag + 'spread']:>7.1%} {err:<44} "
                   f"{r[tag + 'joint_ratio']:.3f}/{r[tag + 'joint_error']:.1%}" + ("" if tag else f" {len(r['warnings'])}"))
-        if model == "diffuse":
-            bars = (all(abs(x - 1) <= 0.02 for x in r["ratio"]) and r["spread"] <= 0.02
+        if model in ("diffuse", "diffuse-fine"):  # the default, and the remedy reconstruct names for a spot
+            bars = (all(abs(x - 1) <= 0.02 for x in r["ratio"]) and r["spread"] <= 0.02  # finer than the faces
                     and max(r["error"]) <= 0.05 and abs(r["joint_ratio"] - 1) <= 0.02 and r["joint_error"] <= 0.05)
-            ok &= bars
+            ok &= bars or model != "diffuse"  # the exit status is the default's
             print(f"{'':<11} issue bars over observed elements (totals within 2 %, spread <= 2 %, error <= 5 %, "
-                  f"each pose and joint): {'MET' if bars else 'NOT MET'}")
+                  f"each pose and joint){' on faces split once' if model != 'diffuse' else ''}: "
+                  f"{'MET' if bars else 'NOT MET'}")
     for model in models_of(name):
         print(f"{model:<11} photons imaged / sum(T b_true) per pose (T without the tangential term): "
               + " ".join(f"{x:.3f}" for x in res[model]["image_over_model"]))
