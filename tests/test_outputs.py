@@ -241,3 +241,19 @@ def test_summary_prints_per_pose_totals_spreads_and_rates(cylinder_run):
     assert f"{totals[0] / 2.5:.4g} ± " in out and f"{roi[0] / 2.5:.4g}" in out
     assert f"fluxmap total {(totals.max() - totals.min()) / totals.mean():.1%}" in out
     assert out.rstrip().splitlines()[-1].startswith("report:")
+
+
+def test_summary_sets_each_pose_s_total_against_the_truth_on_the_elements_it_observes(cylinder_run):
+    """A simulated run: each pose's total over the truth summed on the elements that pose observes
+    (what stays 1 as the subject turns, issue 21's measure), and its spread over the poses."""
+    out = run("summary", cylinder_run.parent / "cfg.yaml").output
+    with h5py.File(cylinder_run / "reconstruction.h5") as f:
+        truth = f["truth/power"][()]
+        obs = f["per_pose/observed"][()].astype(bool)
+        pp = f["per_pose/power"][()]
+        reason = f["per_pose/headline_reason"][()]
+    assert not any(reason), "this run's headline totals are over observed elements"
+    ratio = np.array([np.nansum(pp[k][obs[k]]) / truth[obs[k]].sum() for k in range(len(obs))])
+    spread = (ratio.max() - ratio.min()) / ratio.mean()
+    assert ("fluxmap total over the truth on the elements it is over, per pose: "
+            + " ".join(f"{r:.3f}" for r in ratio) + f" (spread {spread:.1%})") in out

@@ -455,6 +455,7 @@ class Summary:
     headline_total: np.ndarray  # [pose] photons: the total to read first
     headline_reason: list  # [pose] why it is over well-observed elements ('' not)
     pose_observed: np.ndarray  # [pose, element] bool
+    pose_well_observed: np.ndarray  # [pose, element] bool: the elements of a headline over well-observed ones
     power: np.ndarray  # [element] photons of /flux, NaN unobserved
     joint_over_poses: bool  # /flux is the joint solve
     truth: np.ndarray | None  # [element] photons (None: no truth)
@@ -478,6 +479,7 @@ def read_summary(path: Path) -> Summary:
             headline_reason=[w.decode() if isinstance(w, bytes) else str(w) for w in pp["headline_reason"][()]]
             if "headline_reason" in pp else [""] * len(totals),
             pose_observed=pp["observed"][()].astype(bool),
+            pose_well_observed=pp["observation"][()] == 2 if "observation" in pp else pp["observed"][()].astype(bool),
             power=np.where(f["flux/observed"][()].astype(bool), f["flux/power"][()], np.nan),
             joint_over_poses=bool(f["flux"].attrs.get("joint_over_poses", False)),
             truth=truth,

@@ -39,6 +39,10 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> None:
     share_name = ("share observed (of the true light)" if truth is not None
                   else "share observed (of the light the joint reconstruction finds)")
     sd = budget["sigma"] if budget is not None else None
+    # against the truth on the elements each total is over: what stays 1 as the subject turns
+    on = [r.pose_well_observed[k] if why[k] else pose_obs[k] for k in range(len(heights))]
+    vs_truth = (np.array([heads[k] / truth[on[k]].sum() if truth[on[k]].sum() > 0 else np.nan
+                          for k in range(len(heights))]) if truth is not None else None)
 
     def pm(i):  # ' ± σ' of total i (poses, then joint); none where the total is over well-observed elements
         return f" ± {sd[i] * rate:.2g}" if sd is not None and i < len(sd) and np.isfinite(sd[i]) else ""
@@ -67,6 +71,12 @@ def run(cfg: C.LoadedConfig, ctx: RunContext) -> None:
         if roi is not None:
             ctx.say(f"turning and raising the subject changed the direct ROI sum {roi.max() / roi.min():.1f}-fold; "
                     f"fluxmap's total moved {spread(totals):.1%}.")
+    if vs_truth is not None:
+        seen = np.isfinite(power)
+        ctx.say("fluxmap total over the truth on the elements it is over, per pose: "
+                + " ".join(f"{x:.3f}" for x in vs_truth)
+                + (f" (spread {spread(vs_truth):.1%})" if len(heights) > 1 and np.isfinite(vs_truth).all() else "")
+                + (f"; jointly {joint_total / truth[seen].sum():.3f}" if joint and len(heights) > 1 and seen.any() else ""))
     if truth is not None:
         ctx.say(f"ground truth {truth.sum() * rate:.4g} {unit}: the joint reconstruction finds "
                 f"{joint_total / truth.sum():.3f} of it" + (f", error sum|b' - b| / sum b = {error:.1%}" if error is not None else ""))
